@@ -1,0 +1,1 @@
+"""AE-Rec browser viewer (viser) around the reconstruction core."""

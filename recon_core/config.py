@@ -1,0 +1,109 @@
+"""All parameters of a run, one dataclass per stage, each field commented.
+
+Named presets (`PRESETS`) tune them for test-size and production-size inputs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+
+
+@dataclass
+class GroupingConfig:
+    max_gap_days: float = 15.0        # images closer in time than this share a date group
+    max_span_days: float | None = 30.0  # cap on a chained group's total span (None = no cap)
+
+
+@dataclass
+class TilingConfig:
+    tile_size: int = 1000             # d: tile side in pixels (pushbroom ~ affine on a tile)
+    overlap: int | None = None        # overlap between neighbouring tiles; None = d // 3
+
+
+@dataclass
+class FeatureConfig:
+    max_features_per_mpx: int = 8000  # SIFT keypoints kept per megapixel (strongest first)
+    contrast_threshold: float = 0.01  # SIFT contrast threshold on the 8-bit detection image
+    detect_block: int = 2048          # images are read by window of this many pixels
+    stretch_percentiles: tuple[float, float] = (0.5, 99.5)  # uint16 -> 8-bit robust stretch
+
+
+@dataclass
+class MatchingConfig:
+    ratio: float = 0.8                # Lowe's ratio test
+    mutual: bool = True               # keep only mutual nearest neighbours
+    fa_thresh_px: float = 1.5         # RANSAC threshold of the affine fundamental matrix (px)
+    min_inliers: int = 30             # a tile pair with fewer verified matches is dropped
+    coarse_factor: int = 8            # downsampling of the whole-image overview match
+    k_partners: int = 6               # match each image with its k best partners only
+    min_parallax_ratio: float = 0.0   # sigma3/sigma4 guard; 0 = adaptive (see sfm)
+
+
+@dataclass
+class SfmConfig:
+    resect_thresh_px: float = 2.0     # RANSAC threshold for tile resection
+    resect_min_inliers: int = 12      # a tile needs this many 2D-3D inliers to register
+    max_reproj_px: float = 2.0        # triangulated points with a larger error are dropped
+    min_points_conditioning: float = 0.01  # resection points flatter than this are regularised
+    global_ba_growth: float = 0.15    # run a global BA when tiles grew by this fraction
+    local_ba_window: int = 6          # cameras refined in a local BA after each registration
+
+
+@dataclass
+class BundleConfig:
+    loss: str = "huber"               # robust loss of scipy.optimize.least_squares
+    loss_scale_px: float = 1.0        # f_scale of the robust loss, pixels
+    max_nfev: int = 50                # iteration cap per adjustment
+    smoothness_weight: float = 0.0    # prior tying adjacent tile cameras of one image (0 = off)
+
+
+@dataclass
+class Config:
+    grouping: GroupingConfig = field(default_factory=GroupingConfig)
+    tiling: TilingConfig = field(default_factory=TilingConfig)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    sfm: SfmConfig = field(default_factory=SfmConfig)
+    bundle: BundleConfig = field(default_factory=BundleConfig)
+    seed: int = 0                     # seeds every random choice (RANSAC, sampling)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def with_overrides(self, overrides: dict) -> "Config":
+        """Return a copy with "stage.field" -> value overrides applied."""
+        cfg = self
+        for key, value in overrides.items():
+            stage, _, name = key.partition(".")
+            if not name:
+                cfg = replace(cfg, **{stage: value})
+                continue
+            sub = getattr(cfg, stage)
+            if name not in {f.name for f in fields(sub)}:
+                raise KeyError(f"unknown parameter {key}")
+            cfg = replace(cfg, **{stage: replace(sub, **{name: value})})
+        return cfg
+
+
+def config_from_dict(d: dict) -> Config:
+    cfg = Config()
+    for k, v in d.items():
+        sub = getattr(cfg, k, None)
+        if is_dataclass(sub):
+            cfg = cfg.with_overrides({f"{k}.{kk}": vv for kk, vv in v.items()})
+        else:
+            cfg = cfg.with_overrides({k: v})
+    return cfg
+
+
+PRESETS: dict[str, dict] = {
+    "default": {},
+    # small synthetic sites in tests: tiles small enough that tiling is exercised
+    "tiny": {"tiling.tile_size": 300},
+}
+
+
+def preset(name: str) -> Config:
+    if name not in PRESETS:
+        raise KeyError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+    return Config().with_overrides(PRESETS[name])

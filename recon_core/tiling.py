@@ -1,0 +1,72 @@
+"""Tiles of d x d pixels whose neighbours overlap by d/3, small enough for an affine camera."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Tile:
+    """A window of one image; (col0, row0) is its offset in full-image pixels."""
+
+    image: str
+    ti: int          # tile row index
+    tj: int          # tile column index
+    col0: int
+    row0: int
+    width: int
+    height: int
+
+    @property
+    def id(self) -> str:
+        return f"{self.image}:{self.ti}_{self.tj}"
+
+    @property
+    def centre(self) -> np.ndarray:
+        return np.array([self.col0 + (self.width - 1) / 2.0, self.row0 + (self.height - 1) / 2.0])
+
+    def contains(self, xy: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """(n, 2) full-image (col, row) -> (n,) bool: inside the tile (shrunk by margin)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        return ((xy[:, 0] >= self.col0 - 0.5 + margin) & (xy[:, 0] <= self.col0 + self.width - 0.5 - margin)
+                & (xy[:, 1] >= self.row0 - 0.5 + margin) & (xy[:, 1] <= self.row0 + self.height - 0.5 - margin))
+
+    def corners(self) -> np.ndarray:
+        """(4, 2) full-image pixel corners, clockwise from top-left."""
+        c0, r0 = self.col0 - 0.5, self.row0 - 0.5
+        c1, r1 = c0 + self.width, r0 + self.height
+        return np.array([[c0, r0], [c1, r0], [c1, r1], [c0, r1]])
+
+    def to_dict(self) -> dict:
+        return {"id": self.id, "image": self.image, "ti": self.ti, "tj": self.tj,
+                "col0": self.col0, "row0": self.row0, "width": self.width, "height": self.height}
+
+
+def tile_starts(length: int, d: int, overlap: int) -> list[int]:
+    """Start offsets along one axis: step d - overlap; the last tile is shifted to end at the border."""
+    if length <= d:
+        return [0]
+    step = d - overlap
+    if step <= 0:
+        raise ValueError(f"overlap {overlap} must be smaller than the tile size {d}")
+    starts = list(range(0, length - d, step))
+    if starts[-1] != length - d:
+        starts.append(length - d)
+    return starts
+
+
+def tile_image(name: str, width: int, height: int, d: int = 1000, overlap: int | None = None) -> list[Tile]:
+    """Cut an image into tiles of d x d (clipped to the image when it is smaller)."""
+    overlap = d // 3 if overlap is None else overlap
+    tiles = []
+    for ti, r0 in enumerate(tile_starts(height, d, overlap)):
+        for tj, c0 in enumerate(tile_starts(width, d, overlap)):
+            tiles.append(Tile(name, ti, tj, c0, r0, min(d, width - c0), min(d, height - r0)))
+    return tiles
+
+
+def tiles_containing(tiles: list[Tile], xy: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    """(n, 2) points -> (n, len(tiles)) bool membership matrix."""
+    return np.stack([t.contains(xy, margin) for t in tiles], axis=1) if tiles else np.zeros((len(xy), 0), bool)

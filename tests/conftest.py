@@ -1,0 +1,52 @@
+"""Shared fixtures: small hand-made sites, the synthetic `tiny` site, the real shared data."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("AEREC_SHARED_DATA", ROOT.parent / "shared" / "data"))
+
+
+def write_tiff(path: Path, arr: np.ndarray, when: str | None = "2020:01:02 10:00:00", **tags) -> Path:
+    """Write a small single-band GeoTIFF with an optional TIFFTAG_DATETIME."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arr = np.asarray(arr)
+    with rasterio.open(path, "w", driver="GTiff", width=arr.shape[1], height=arr.shape[0],
+                       count=1, dtype=arr.dtype) as ds:
+        ds.write(arr, 1)
+        if when:
+            ds.update_tags(TIFFTAG_DATETIME=when, **tags)
+    return path
+
+
+def gcp_feature(gid: str, lon: float, lat: float, h: float, obs: dict, role: str = "control") -> dict:
+    return {"type": "Feature", "geometry": {"type": "Point", "coordinates": [lon, lat, h]},
+            "properties": {"id": gid, "role": role, "observations": obs}}
+
+
+@pytest.fixture
+def small_site(tmp_path: Path) -> Path:
+    """Two 64 x 48 uint16 images a day apart, one GCP seen in both."""
+    rng = np.random.default_rng(0)
+    site = tmp_path / "site"
+    write_tiff(site / "images" / "a.tif", rng.integers(0, 2047, (48, 64), dtype=np.uint16))
+    write_tiff(site / "images" / "b.tif", rng.integers(0, 2047, (48, 64), dtype=np.uint16),
+               when="2020:01:03 10:00:00")
+    fc = {"type": "FeatureCollection",
+          "features": [gcp_feature("G1", 10.0, 45.0, 100.0, {"a.tif": [3.0, 4.0], "b.tif": [5.5, 6.5]})]}
+    (site / "gcps.geojson").write_text(json.dumps(fc))
+    return site
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared real data not found at {SHARED_DATA}")
+    return SHARED_DATA

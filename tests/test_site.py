@@ -1,0 +1,154 @@
+"""Site reading: good input reads back; every kind of bad input is one clear InputError."""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime, timezone
+
+import numpy as np
+import pytest
+
+from recon_core.cli import main
+from recon_core.errors import InputError
+from recon_core.site import GCP, load_site, read_gcps_geojson, read_window, write_gcps_geojson
+from tests.conftest import gcp_feature, write_tiff
+
+
+def test_reads_small_site(small_site):
+    site = load_site(small_site)
+    assert [im.name for im in site.images] == ["a.tif", "b.tif"]
+    assert site.images[0].width == 64 and site.images[0].height == 48
+    assert site.images[1].acquired == datetime(2020, 1, 3, 10, tzinfo=timezone.utc)
+    assert site.gcps[0].observations["b.tif"] == (5.5, 6.5)
+    w = read_window(site.images[0], 10, 5, 20, 7)
+    assert w.shape == (7, 20) and w.dtype == np.float32
+
+
+def test_sidecar_time_wins(small_site):
+    (small_site / "images" / "a.json").write_text(json.dumps({"acquired": "2021-05-06T07:08:09Z"}))
+    site = load_site(small_site)
+    assert site.image("a.tif").acquired == datetime(2021, 5, 6, 7, 8, 9, tzinfo=timezone.utc)
+    assert site.image("a.tif").time_source == "sidecar"
+
+
+def test_gcps_round_trip(tmp_path, small_site):
+    site = load_site(small_site)
+    site.gcps.append(GCP("G2", 10.001, 45.002, 120.5, "check", 0.1, {"a.tif": (1.0, 2.0)}))
+    write_gcps_geojson(tmp_path / "g.geojson", site.gcps)
+    back = read_gcps_geojson(tmp_path / "g.geojson")
+    assert [g.id for g in back] == ["G1", "G2"]
+    assert back[1].role == "check" and back[1].sigma_m == 0.1
+    assert back[1].lat == pytest.approx(45.002, abs=1e-9)
+
+
+def test_projected_gcp_crs(tmp_path):
+    fc = {"type": "FeatureCollection", "crs_epsg": 32633,
+          "features": [gcp_feature("P", 500000.0, 4983000.0, 50.0, {})]}
+    (tmp_path / "g.geojson").write_text(json.dumps(fc))
+    g = read_gcps_geojson(tmp_path / "g.geojson")[0]
+    assert g.lon == pytest.approx(15.0, abs=1e-6) and 44.9 < g.lat < 45.1 and g.h == 50.0
+
+
+def _expect_error(site, fragment):
+    with pytest.raises(InputError) as ei:
+        load_site(site)
+    assert fragment in str(ei.value)
+    return ei.value
+
+
+def test_no_images(tmp_path):
+    (tmp_path / "images").mkdir()
+    err = _expect_error(tmp_path, "no .tif")
+    assert err.path.endswith("images")
+
+
+def test_no_images_folder(tmp_path):
+    _expect_error(tmp_path, "no images/ folder")
+
+
+def test_not_a_geotiff(small_site):
+    (small_site / "images" / "c.tif").write_bytes(b"this is not a tiff at all" * 10)
+    err = _expect_error(small_site, "not a GeoTIFF")
+    assert err.path.endswith("c.tif")
+
+
+def test_png_named_tif(small_site):
+    import cv2
+
+    cv2.imwrite(str(small_site / "images" / "p.png"), np.zeros((8, 8), np.uint8))
+    (small_site / "images" / "p.png").rename(small_site / "images" / "p.tif")
+    err = _expect_error(small_site, "not a GeoTIFF")
+    assert err.path.endswith("p.tif")
+
+
+def test_truncated_tiff(small_site):
+    big = small_site / "images" / "big.tif"
+    write_tiff(big, np.random.default_rng(1).integers(0, 2047, (400, 300), dtype=np.uint16))
+    data = big.read_bytes()
+    big.write_bytes(data[: len(data) // 2])
+    err = _expect_error(small_site, "truncated")
+    assert err.path.endswith("big.tif")
+
+
+def test_missing_time(small_site):
+    write_tiff(small_site / "images" / "c.tif", np.zeros((8, 8), np.uint16), when=None)
+    err = _expect_error(small_site, "no acquisition time")
+    assert err.path.endswith("c.tif")
+
+
+def test_bad_sidecar(small_site):
+    (small_site / "images" / "a.json").write_text("{not json")
+    err = _expect_error(small_site, "sidecar")
+    assert err.path.endswith("a.json")
+
+
+def _write_gcps(site, features):
+    (site / "gcps.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": features}))
+
+
+def test_gcp_unknown_image(small_site):
+    _write_gcps(small_site, [gcp_feature("G1", 10, 45, 1, {"zzz.tif": [1, 1]})])
+    err = _expect_error(small_site, "unknown image 'zzz.tif'")
+    assert err.path.endswith("gcps.geojson")
+
+
+def test_gcp_observation_outside(small_site):
+    _write_gcps(small_site, [gcp_feature("G1", 10, 45, 1, {"a.tif": [70.0, 3.0]})])
+    _expect_error(small_site, "lies outside a.tif")
+
+
+def test_malformed_geojson(small_site):
+    (small_site / "gcps.geojson").write_text('{"type": "FeatureCollection", "features": [')
+    _expect_error(small_site, "malformed GeoJSON")
+
+
+def test_geojson_wrong_structure(small_site):
+    (small_site / "gcps.geojson").write_text('{"type": "Feature"}')
+    _expect_error(small_site, "FeatureCollection")
+
+
+def test_gcp_bad_coordinates(small_site):
+    _write_gcps(small_site, [gcp_feature("G1", 10, 45, 1, {})])
+    doc = json.loads((small_site / "gcps.geojson").read_text())
+    doc["features"][0]["geometry"]["coordinates"] = [10, 45]
+    (small_site / "gcps.geojson").write_text(json.dumps(doc))
+    _expect_error(small_site, "coordinates must be")
+
+
+def test_bad_site_json(small_site):
+    (small_site / "site.json").write_text(json.dumps({"bounds": [5, 5, 1, 1]}))
+    _expect_error(small_site, "bounds")
+
+
+def test_cli_error_is_one_line(small_site, capsys):
+    (small_site / "images" / "c.tif").write_bytes(b"garbage" * 20)
+    code = main(["info", str(small_site)])
+    err = capsys.readouterr().err
+    assert code != 0
+    assert err.strip().count("\n") == 0 and "c.tif" in err and "Traceback" not in err
+
+
+def test_cli_info_real_data(shared_data, capsys):
+    assert main(["info", str(shared_data / "reunion_pair")]) == 0
+    out = capsys.readouterr().out
+    assert "2 image(s)" in out and "1 date group(s)" in out and "4 control, 8 check" in out
