@@ -103,6 +103,41 @@ def cmd_info(args) -> int:
     return 0
 
 
+def cmd_run(args) -> int:
+    from .config import preset
+    from .events import EventBus
+    from .pipeline import run
+
+    cfg = preset(args.preset)
+    overrides = {}
+    if args.tile_size:
+        overrides["tiling.tile_size"] = args.tile_size
+    if args.seed is not None:
+        overrides["seed"] = args.seed
+    cfg = cfg.with_overrides(overrides)
+    prog = ProgressPrinter(not args.quiet)
+    t0 = time.time()
+    try:
+        state = run(args.site, args.out, cfg, until=args.stage, bus=EventBus(prog), resume=not args.restart)
+    finally:
+        prog.close()
+    print_summary(state.report)
+    print(f"done in {time.time() - t0:.1f} s; outputs in {args.out} (report.json)")
+    return 0
+
+
+def print_summary(report: dict) -> None:
+    sparse = report.get("stages", {}).get("sparse", {})
+    for g, s in sparse.get("groups", {}).items():
+        if "error" in s:
+            print(f"group {g}: FAILED: {s['error']}")
+            continue
+        t = s.get("timings_s", {})
+        print(f"group {g}: tiles registered {s['tiles_registered']}/{s['tiles_total']}, "
+              f"points {s['points']}, mean reprojection error {s['mean_reproj_px']:.3f} px; "
+              + ", ".join(f"{k} {v:.1f} s" for k, v in t.items()))
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="aerec", description="AE-Rec: affine-to-Euclidean 3D "
                                 "reconstruction from optical satellite images with 4 GCPs.")
@@ -121,6 +156,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-span-days", type=float, default=30.0)
     s.set_defaults(func=cmd_info)
 
+    s = sub.add_parser("run", help="reconstruct a site (resumes finished stages)")
+    s.add_argument("site", type=Path)
+    s.add_argument("--out", type=Path, required=True, help="output folder")
+    s.add_argument("--stage", default=None, help="stop after this stage (default: run all)")
+    s.add_argument("--preset", default="default", help="parameter preset (default, tiny)")
+    s.add_argument("--tile-size", type=int, default=None, help="tile side d in pixels (default 1000)")
+    s.add_argument("--seed", type=int, default=None)
+    s.add_argument("--restart", action="store_true", help="ignore finished stages and recompute")
+    s.add_argument("--quiet", action="store_true", help="no progress bars")
+    s.set_defaults(func=cmd_run)
     return p
 
 

@@ -44,27 +44,31 @@ class Tile:
                 "col0": self.col0, "row0": self.row0, "width": self.width, "height": self.height}
 
 
-def tile_starts(length: int, d: int, overlap: int) -> list[int]:
-    """Start offsets along one axis: step d - overlap; the last tile is shifted to end at the border."""
-    if length <= d:
-        return [0]
-    step = d - overlap
-    if step <= 0:
+def tile_layout(length: int, d: int, overlap: int, slack: float = 0.1) -> tuple[list[int], int]:
+    """Start offsets and tile length along one axis.
+
+    Tiles are d long and overlap by at least `overlap`; the last one ends at the border. To avoid
+    near-duplicate tiles (a 1024 px image cut at d = 1000 into two tiles shifted by 24 px), tiles
+    may stretch by up to `slack` * d, and starts are spread evenly.
+    """
+    if d <= overlap:
         raise ValueError(f"overlap {overlap} must be smaller than the tile size {d}")
-    starts = list(range(0, length - d, step))
-    if starts[-1] != length - d:
-        starts.append(length - d)
-    return starts
+    d_max = int(round(d * (1.0 + slack)))
+    if length <= d_max:
+        return [0], length
+    n = int(np.ceil((length - overlap) / (d_max - overlap)))
+    size = min(length, max(d, int(np.ceil((length + (n - 1) * overlap) / n))))
+    starts = np.round(np.linspace(0, length - size, n)).astype(int)
+    return sorted(set(starts.tolist())), size
 
 
-def tile_image(name: str, width: int, height: int, d: int = 1000, overlap: int | None = None) -> list[Tile]:
-    """Cut an image into tiles of d x d (clipped to the image when it is smaller)."""
+def tile_image(name: str, width: int, height: int, d: int = 1000, overlap: int | None = None,
+               slack: float = 0.1) -> list[Tile]:
+    """Cut an image into tiles of about d x d (clipped to the image when it is smaller)."""
     overlap = d // 3 if overlap is None else overlap
-    tiles = []
-    for ti, r0 in enumerate(tile_starts(height, d, overlap)):
-        for tj, c0 in enumerate(tile_starts(width, d, overlap)):
-            tiles.append(Tile(name, ti, tj, c0, r0, min(d, width - c0), min(d, height - r0)))
-    return tiles
+    rows, h = tile_layout(height, d, overlap, slack)
+    cols, w = tile_layout(width, d, overlap, slack)
+    return [Tile(name, ti, tj, c0, r0, w, h) for ti, r0 in enumerate(rows) for tj, c0 in enumerate(cols)]
 
 
 def tiles_containing(tiles: list[Tile], xy: np.ndarray, margin: float = 0.0) -> np.ndarray:

@@ -1,0 +1,124 @@
+"""Runs the stages in order, writes OUT, emits events; resumes from the last finished stage.
+
+Each finished stage records itself in OUT/stages/<stage>.json (with a hash of the
+configuration); a later run with the same configuration skips it and reloads its outputs.
+OUT/report.json gathers every stage's summary and is rewritten atomically after each stage.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .config import Config
+from .errors import InputError, ReconstructionError
+from .events import EventBus, Message, StageDone
+from .grouping import Group, group_by_date
+from .io_utils import write_json
+from .site import Site, load_site
+
+STAGES = ("sparse",)
+
+
+@dataclass
+class RunState:
+    """What the stages pass on to each other (loaded back when resuming)."""
+
+    site: Site
+    out: Path
+    cfg: Config
+    groups: list[Group]
+    models: dict = field(default_factory=dict)      # group index -> SparseModel
+    report: dict = field(default_factory=dict)
+
+
+def config_hash(cfg: Config) -> str:
+    return hashlib.sha1(json.dumps(cfg.to_dict(), sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def _stage_file(out: Path, stage: str) -> Path:
+    return out / "stages" / f"{stage}.json"
+
+
+def stage_done(out: Path, stage: str, cfg: Config) -> bool:
+    f = _stage_file(out, stage)
+    if not f.exists():
+        return False
+    try:
+        return json.loads(f.read_text()).get("config_hash") == config_hash(cfg)
+    except ValueError:
+        return False
+
+
+def _mark_done(state: RunState, stage: str, summary: dict) -> None:
+    write_json(_stage_file(state.out, stage), {"config_hash": config_hash(state.cfg), "summary": summary})
+    state.report.setdefault("stages", {})[stage] = summary
+    write_json(state.out / "report.json", state.report)
+
+
+def run_sparse(state: RunState, bus: EventBus) -> dict:
+    from .sparse import reconstruct_group, save_model
+
+    out = {"groups": {}}
+    for g in state.groups:
+        try:
+            model, summary = reconstruct_group(g, state.cfg, bus)
+        except ReconstructionError as exc:
+            bus.emit(Message("error", str(exc), g.index))
+            out["groups"][str(g.index)] = {"error": str(exc), "images": [im.name for im in g.images]}
+            continue
+        save_model(model, state.out)
+        state.models[g.index] = model
+        out["groups"][str(g.index)] = summary
+    if not state.models:
+        msgs = "; ".join(v["error"] for v in out["groups"].values())
+        raise ReconstructionError(f"no group could be reconstructed: {msgs}")
+    return out
+
+
+def load_sparse(state: RunState) -> None:
+    from .sparse import group_dir, load_model
+
+    for g in state.groups:
+        if (group_dir(state.out, g.index) / "cameras.json").exists():
+            state.models[g.index] = load_model(state.out, g.index)
+
+
+STAGE_RUNNERS = {"sparse": (run_sparse, load_sparse)}
+
+
+def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
+        until: str | None = None, bus: EventBus | None = None, resume: bool = True) -> RunState:
+    """Run the pipeline on a site up to and including stage `until` (default: all)."""
+    cfg = cfg or Config()
+    bus = bus or EventBus()
+    site = load_site(site_path)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "output path exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    groups = group_by_date(site.images, cfg.grouping.max_gap_days, cfg.grouping.max_span_days)
+    report_path = out / "report.json"
+    report = json.loads(report_path.read_text()) if (resume and report_path.exists()) else {}
+    report.update({"site": str(site.root), "config": cfg.to_dict(), "config_hash": config_hash(cfg),
+                   "groups": [{"index": g.index, "images": [im.name for im in g.images],
+                               "span_days": g.span_days} for g in groups]})
+    state = RunState(site, out, cfg, groups, report=report)
+    if until is not None and until not in STAGES:
+        raise InputError(None, f"unknown stage {until!r}; stages are {', '.join(STAGES)}")
+    last = STAGES.index(until) if until else len(STAGES) - 1
+    for stage in STAGES[: last + 1]:
+        runner, loader = STAGE_RUNNERS[stage]
+        if resume and stage_done(out, stage, cfg):
+            loader(state)
+            bus.emit(Message("info", f"{stage}: already done, reloaded from {out}"))
+            continue
+        t0 = time.time()
+        summary = runner(state, bus)
+        summary["seconds"] = time.time() - t0
+        _mark_done(state, stage, summary)
+        bus.emit(StageDone(stage, summary["seconds"], summary))
+    return state
