@@ -1,0 +1,148 @@
+"""DSM evaluation: alignment recovery, metrics, refusals, outputs."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import rasterio
+from rasterio.crs import CRS
+from rasterio.transform import Affine
+
+from recon_core.errors import InputError
+from recon_core.evaluate import evaluate_dsm, height_metrics, main
+
+EPSG = 32631
+X0, Y0 = 500_000.0, 4_650_000.0          # top-left corner of the GT
+SHIFT = (1.5, -2.0, 0.7)                  # the DSM's displacement: east, north, up
+NOISE = 0.15
+
+
+BUILDINGS = [  # (u centre, v centre, width, depth, height, rotation in degrees), not grid-aligned
+    (35.4, 29.7, 30.3, 18.6, 12.0, 17.0), (78.2, 50.9, 16.5, 40.2, 25.0, 0.0),
+    (137.7, 102.3, 35.1, 25.8, 9.0, 63.0), (47.3, 107.6, 14.2, 14.9, 30.0, 38.0),
+    (160.6, 35.1, 20.4, 30.7, 15.0, 81.0)]
+
+
+def surface(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Analytic terrain with rotated box buildings and a gable roof (heights in metres)."""
+    u, v = x - X0, Y0 - y
+    z = 100.0 + 3.0 * np.sin(u / 37.0) + 2.0 * np.cos(v / 23.0)
+    for (cu, cv, w, d, h, a) in BUILDINGS:
+        a = np.radians(a)
+        p = (u - cu) * np.cos(a) + (v - cv) * np.sin(a)
+        q = -(u - cu) * np.sin(a) + (v - cv) * np.cos(a)
+        z = np.where((np.abs(p) < w / 2) & (np.abs(q) < d / 2), z + h, z)
+    gable = (u >= 100.3) & (u < 140.6) & (v >= 40.2) & (v < 52.2)
+    return np.where(gable, z + 6.0 + 4.0 * (1 - np.abs(v - 46.2) / 6.0), z)
+
+
+def from_origin(x0: float, y0: float, rx: float, ry: float) -> Affine:
+    return Affine(rx, 0.0, x0, 0.0, -ry, y0)
+
+
+def centres(x0: float, y0: float, res: float, w: int, h: int):
+    xs = x0 + (np.arange(w) + 0.5) * res
+    ys = y0 - (np.arange(h) + 0.5) * res
+    return np.meshgrid(xs, ys)
+
+
+def write_tif(path, arr, x0, y0, res, crs=CRS.from_epsg(EPSG), nodata=np.nan):
+    with rasterio.open(path, "w", driver="GTiff", width=arr.shape[1], height=arr.shape[0],
+                       count=1, dtype="float32", crs=crs, transform=from_origin(x0, y0, res, res),
+                       nodata=nodata) as dst:
+        dst.write(arr.astype(np.float32), 1)
+    return path
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """GT at 1 m (200 x 160) and a shifted, noisy DSM at 0.5 m with a 30 m x 30 m void."""
+    d = tmp_path_factory.mktemp("eval")
+    X, Y = centres(X0, Y0, 1.0, 200, 160)
+    gt = surface(X, Y)
+    gt[:3, :] = np.nan                                      # some GT nodata
+    gt_w = np.where(np.isfinite(gt), gt, -9999.0)
+    write_tif(d / "gt.tif", gt_w, X0, Y0, 1.0, nodata=-9999.0)
+    dx0, dy0, res = X0 - 15.25, Y0 + 14.9, 0.5             # DSM grid: bigger, offset origin
+    Xd, Yd = centres(dx0, dy0, res, 460, 380)
+    rng = np.random.default_rng(0)
+    dsm = surface(Xd - SHIFT[0], Yd - SHIFT[1]) + SHIFT[2] + rng.normal(0, NOISE, Xd.shape)
+    void = (Xd >= X0 + 150) & (Xd < X0 + 180) & (Yd <= Y0 - 110) & (Yd > Y0 - 140)
+    dsm[void] = np.nan
+    write_tif(d / "dsm.tif", dsm, dx0, dy0, res)
+    return d
+
+
+def test_alignment_recovers_shift_and_offset(site, tmp_path):
+    r = evaluate_dsm(site / "dsm.tif", site / "gt.tif", tmp_path / "out")
+    a = r["alignment"]
+    assert abs(a["dx_m"] - SHIFT[0]) < 0.25 and abs(a["dy_m"] - SHIFT[1]) < 0.25
+    assert abs(a["dz_m"] - SHIFT[2]) < 0.05
+    al, un = r["aligned"], r["unaligned"]
+    assert al["median_abs_err_m"] < 0.674 * NOISE * 1.5         # ~ the noise
+    assert al["n_gt_cells"] == 200 * 157
+    void_pct = 100.0 * 900 / al["n_gt_cells"]                  # the GT cells under the void
+    assert al["coverage_pct"] == pytest.approx(100 - void_pct, abs=0.5)
+    assert 100 - void_pct - 4 < al["completeness_pct"] <= 100 - void_pct + 0.5
+    assert un["median_abs_err_m"] > 2 * al["median_abs_err_m"]
+    assert un["completeness_pct"] < al["completeness_pct"] - 3
+    assert un["rmse_m"] > al["rmse_m"] and abs(un["mean_err_m"]) > 0.5
+    assert not r["warnings"]
+
+
+def test_outputs_written(site, tmp_path):
+    out = tmp_path / "out"
+    r = evaluate_dsm(site / "dsm.tif", site / "gt.tif", out, max_shift_m=4.0)
+    assert json.loads((out / "eval.json").read_text())["alignment"] == r["alignment"]
+    with rasterio.open(out / "height_error.tif") as src:
+        assert src.crs.to_epsg() == EPSG and src.shape == (160, 200) and np.isnan(src.nodata)
+        assert src.transform == from_origin(X0, Y0, 1.0, 1.0)
+        err = src.read(1)
+    assert np.isnan(err[:3]).all() and np.isnan(err[115, 160])  # GT nodata; DSM void
+    assert np.nanmedian(np.abs(err)) == pytest.approx(r["aligned"]["median_abs_err_m"], rel=1e-5)
+    for name in ("height_error.png", "dsm_vs_gt.png"):
+        img = cv2.imread(str(out / name))
+        assert img is not None and img.shape[0] >= 300 and img.shape[1] >= 400
+    assert sorted(p.name for p in out.iterdir()) == ["dsm_vs_gt.png", "eval.json",
+                                                     "height_error.png", "height_error.tif"]
+
+
+def test_refusals_name_the_file(site, tmp_path):
+    arr = np.ones((50, 50), np.float32)
+    with rasterio.open(tmp_path / "nocrs.tif", "w", driver="GTiff", width=50, height=50, count=1,
+                       dtype="float32", transform=from_origin(X0, Y0, 1, 1)) as dst:
+        dst.write(arr, 1)
+    with pytest.raises(InputError, match=r"nocrs\.tif.*no CRS"):
+        evaluate_dsm(tmp_path / "nocrs.tif", site / "gt.tif")
+    write_tif(tmp_path / "far.tif", arr, X0 + 5000, Y0, 1.0)
+    with pytest.raises(InputError, match=r"far\.tif.*does not overlap"):
+        evaluate_dsm(tmp_path / "far.tif", site / "gt.tif")
+    local = CRS.from_wkt('LOCAL_CS["site grid",LOCAL_DATUM["unknown",32767],'
+                         'UNIT["metre",1],AXIS["Easting",EAST],AXIS["Northing",NORTH]]')
+    write_tif(tmp_path / "local.tif", arr, 0.0, 50.0, 1.0, crs=local)
+    with pytest.raises(InputError, match=r"local\.tif.*cannot be reprojected"):
+        evaluate_dsm(tmp_path / "local.tif", site / "gt.tif")
+    with pytest.raises(InputError, match=r"missing\.tif"):
+        evaluate_dsm(tmp_path / "missing.tif", site / "gt.tif")
+
+
+def test_metrics_on_known_errors():
+    err = np.array([[0.5, -0.5, 2.0], [np.nan, 0.1, -0.1]])
+    gt_valid = np.array([[True, True, True], [True, True, False]])
+    m = height_metrics(err, gt_valid)
+    e = np.array([0.5, -0.5, 2.0, 0.1])
+    assert m["n_gt_cells"] == 5 and m["n_compared"] == 4
+    assert m["completeness_pct"] == pytest.approx(100 * 3 / 5)     # the NaN cell fails
+    assert m["median_abs_err_m"] == pytest.approx(np.median(np.abs(e)))
+    assert m["rmse_m"] == pytest.approx(np.sqrt(np.mean(e ** 2)))
+    assert m["nmad_m"] == pytest.approx(1.4826 * np.median(np.abs(e - np.median(e))))
+
+
+def test_cli_prints_table(site, capsys):
+    assert main([str(site / "dsm.tif"), str(site / "gt.tif"), "--max-shift", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "completeness (%)" in out and "aligned" in out and "dx +1.5" in out
+    assert main([str(site / "nope.tif"), str(site / "gt.tif")]) == 2

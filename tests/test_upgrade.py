@@ -1,0 +1,183 @@
+"""Euclidean upgrade: H_A recovery, RANSAC, conditioning, residual report."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from recon_core.errors import ReconstructionError
+from recon_core.upgrade import (GcpInput, accuracy_stats, apply_h, conditioning,
+                                fit_affine_upgrade, fit_upgrade_ransac, upgrade)
+
+
+def random_affine(rng: np.random.Generator) -> np.ndarray:
+    """A well-conditioned random 4x4 affine map (ENU -> affine frame), in the style of a real one:
+    anisotropic scale, shear, large translation."""
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    A = Q @ np.diag(rng.uniform(0.5, 3.0, 3)) @ (np.eye(3) + 0.3 * np.triu(rng.normal(size=(3, 3)), 1))
+    M = np.eye(4)
+    M[:3, :3] = A
+    M[:3, 3] = rng.uniform(-1e3, 1e3, 3)
+    return M
+
+
+def scene(rng: np.random.Generator, n: int, relief_m: float = 60.0):
+    """n surveyed points (ENU metres) spread over 1 km with `relief_m` of height, their affine
+    positions, and the true H (affine -> ENU)."""
+    enu = np.column_stack([rng.uniform(-500, 500, n), rng.uniform(-500, 500, n),
+                           rng.uniform(0, relief_m, n)])
+    M = random_affine(rng)                       # ENU -> affine
+    aff = apply_h(M, enu)
+    return enu, aff, np.linalg.inv(M)
+
+
+def gcps_from(enu, aff, roles=None, **kw) -> list[GcpInput]:
+    roles = roles or ["control"] * len(enu)
+    return [GcpInput(id=f"G{i:02d}", role=r, affine_xyz=a, enu=e, **kw)
+            for i, (e, a, r) in enumerate(zip(enu, aff, roles))]
+
+
+def test_exact_recovery_from_four_points():
+    rng = np.random.default_rng(1)
+    enu, aff, H_true = scene(rng, 30)
+    H = fit_affine_upgrade(aff[:4], enu[:4])
+    assert np.allclose(H[3], [0, 0, 0, 1])
+    rel = np.linalg.norm(H - H_true) / np.linalg.norm(H_true)
+    assert rel < 1e-9
+    # independent check: the 26 points not used map onto their surveyed positions
+    assert np.abs(apply_h(H, aff[4:]) - enu[4:]).max() < 1e-6
+
+
+def test_ransac_rejects_exactly_the_outliers():
+    rng = np.random.default_rng(2)
+    enu, aff, _ = scene(rng, 12)
+    obs = enu + rng.normal(0, 0.2, enu.shape)
+    bad = np.array([2, 7, 10])
+    obs[bad] += rng.choice([-1, 1], (3, 3)) * rng.uniform(20, 50, (3, 3))
+    H, inl = fit_upgrade_ransac(aff, obs, thresh_m=2.0, iters=1000, rng=np.random.default_rng(0))
+    assert set(np.flatnonzero(~inl)) == set(bad)
+    res = upgrade(gcps_from(aff=aff, enu=obs), ransac_thresh_m=2.0)
+    rejected = {r["id"] for r in res.rejections}
+    assert rejected == {f"G{i:02d}" for i in bad}
+    assert all("RANSAC outlier" in r["reason"] for r in res.rejections)
+    assert res.n_control_used == 9 and res.dof == 3 * 9 - 12
+    assert res.stats["control"]["rmse_3d_m"] < 0.6
+
+
+def test_random_sampling_path_with_many_points():
+    rng = np.random.default_rng(3)
+    enu, aff, H_true = scene(rng, 40)
+    obs = enu.copy()
+    obs[:5, 2] += 30.0
+    H, inl = fit_upgrade_ransac(aff, obs, thresh_m=1.0, iters=300, rng=np.random.default_rng(0))
+    assert not inl[:5].any() and inl[5:].all()
+    assert np.linalg.norm(H - H_true) / np.linalg.norm(H_true) < 1e-9
+
+
+def test_exactly_coplanar_or_collinear_raises():
+    rng = np.random.default_rng(4)
+    enu, aff, _ = scene(rng, 6, relief_m=0.0)         # all at U = 0: exactly coplanar
+    with pytest.raises(ReconstructionError, match="coplanar"):
+        upgrade(gcps_from(enu, aff))
+    t = np.linspace(0, 1, 5)[:, None]
+    line = t * np.array([[100.0, 50.0, 10.0]])
+    with pytest.raises(ReconstructionError, match="collinear"):
+        upgrade(gcps_from(line, line * 2.0 + 1.0))
+
+
+def test_nearly_coplanar_warns_with_expected_error_in_metres():
+    rng = np.random.default_rng(5)
+    enu, _, H_true = scene(rng, 6, relief_m=0.0)
+    enu[:, 2] = rng.choice([-0.5, 0.5], 6)            # <= 0.5 m RMS off a plane
+    aff = apply_h(np.linalg.inv(H_true), enu)
+    res = upgrade(gcps_from(enu, aff))
+    c = res.conditioning
+    d = conditioning(enu)["plane_rms_m"]
+    assert c["plane_rms_m"] == pytest.approx(d) and d < 0.51
+    assert c["expected_height_error_m"] == pytest.approx(0.4 / d * 40.0, rel=1e-6)
+    assert c["level"] == "poor"
+    assert res.warnings and "m on a 40 m structure" in res.warnings[0]
+    assert "off that plane" in res.warnings[0]
+    # a set with real relief is fine: 0.4 / ~14 m * 40 m < 2 m
+    enu2, _, _ = scene(np.random.default_rng(6), 12, relief_m=60.0)
+    assert conditioning(enu2)["warning"] is None
+
+
+def test_four_points_no_redundancy_and_check_points_are_only_scored():
+    rng = np.random.default_rng(7)
+    enu, aff, H_true = scene(rng, 8)
+    roles = ["control"] * 4 + ["check"] * 4
+    obs = enu.copy()
+    obs[4:] += rng.normal(0, 0.5, (4, 3))             # check points with survey errors
+    res = upgrade(gcps_from(obs, aff, roles, reproj_rms_px=0.3))
+    assert res.dof == 0 and res.n_control_used == 4
+    assert any("no redundancy" in n for n in res.notes)
+    assert res.stats["control"]["rmse_3d_m"] < 1e-6    # zero by construction
+    assert res.stats["check"]["n"] == 4
+    expected = np.sqrt(np.mean((enu[4:] - obs[4:]) ** 2, axis=0))
+    assert res.stats["check"]["rmse_E_m"] == pytest.approx(expected[0], rel=1e-6)
+    # H without the check points is the same H
+    res_ctrl = upgrade(gcps_from(obs[:4], aff[:4]))
+    assert np.array_equal(res.H, res_ctrl.H)
+    assert {p["status"] for p in res.points} == {"used", "check"}
+    json.dumps(res.to_dict())
+
+
+def test_check_points_never_change_h_with_ransac():
+    rng = np.random.default_rng(8)
+    enu, aff, _ = scene(rng, 14)
+    obs = enu + rng.normal(0, 0.2, enu.shape)
+    obs[12:] += 100.0                                 # wild check points
+    base = upgrade(gcps_from(obs[:12], aff[:12]))
+    full = upgrade(gcps_from(obs, aff, ["control"] * 12 + ["check"] * 2))
+    assert np.array_equal(base.H, full.H)
+    assert full.stats["check"]["rmse_E_m"] > 90
+
+
+def test_leave_one_out_residuals():
+    rng = np.random.default_rng(9)
+    enu, aff, _ = scene(rng, 7)
+    obs = enu + rng.normal(0, 0.3, enu.shape)
+    res = upgrade(gcps_from(obs, aff))
+    assert res.stats["loo"]["n"] == 7
+    row = next(p for p in res.points if p["id"] == "G03")
+    H = fit_affine_upgrade(np.delete(aff, 3, 0), np.delete(obs, 3, 0))   # independent refit
+    r = apply_h(H, aff[3:4])[0] - obs[3]
+    assert [row["loo_dE"], row["loo_dN"], row["loo_dU"]] == pytest.approx(list(r), abs=1e-9)
+    # LOO residuals are larger than the fit residuals (they are prediction errors)
+    assert res.stats["loo"]["rmse_3d_m"] > res.stats["control"]["rmse_3d_m"]
+    four = upgrade(gcps_from(obs[:4], aff[:4]))
+    assert "loo" not in four.stats and "loo_dE" not in four.points[0]
+
+
+def test_ce90_le90_formulas():
+    res = np.array([[1.0, 2.0, 3.0], [-1.0, -2.0, -3.0]])
+    s = accuracy_stats(res)
+    assert s["rmse_horizontal_m"] == pytest.approx(np.sqrt((1 + 4) / 2))
+    assert s["ce90_m"] == pytest.approx(2.146 * np.sqrt(2.5))
+    assert s["le90_m"] == pytest.approx(1.645 * 3.0)
+    assert s["rmse_radial_m"] == pytest.approx(np.sqrt(5.0))
+
+
+def test_unusable_gcps_and_too_few_controls():
+    rng = np.random.default_rng(10)
+    enu, aff, _ = scene(rng, 6)
+    g = gcps_from(enu, aff)
+    g[1].affine_xyz = None
+    res = upgrade(g)
+    row = next(p for p in res.points if p["id"] == "G01")
+    assert row["status"] == "unusable" and "no affine position" in row["reason"]
+    assert {"id": "G01", "reason": row["reason"]} in res.rejections
+    g[2].affine_xyz = None
+    g[3].affine_xyz = None
+    with pytest.raises(ReconstructionError, match=r"only 3 usable control GCPs.*G01, G02, G03"):
+        upgrade(g)
+
+
+def test_apply_maps_affine_to_enu():
+    rng = np.random.default_rng(11)
+    enu, aff, _ = scene(rng, 10)
+    res = upgrade(gcps_from(enu[:6], aff[:6]))
+    assert np.abs(res.apply(aff) - enu).max() < 1e-6
