@@ -166,7 +166,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--restart", action="store_true", help="ignore finished stages and recompute")
     s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=cmd_run)
+    _add_plugin_commands(sub)
     return p
+
+
+def _add_plugin_commands(sub) -> None:
+    """Subcommands contributed by other packages through the `aerec.commands` entry point group.
+
+    The viewer registers `aerec view` this way, so the core never imports the viewer.
+    """
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group="aerec.commands"):
+        try:
+            register = ep.load()
+        except Exception as exc:  # a broken optional plugin must not break the core commands
+            print(f"aerec: warning: command plugin {ep.name} failed to load ({exc})", file=sys.stderr)
+            continue
+        register(sub)
 
 
 def main(argv: list[str] | None = None) -> int:

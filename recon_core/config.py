@@ -58,6 +58,27 @@ class BundleConfig:
 
 
 @dataclass
+class DenseConfig:
+    step: int = 1                     # stride of the reference-pixel grid (1 = every pixel)
+    block_size: int = 5               # SGBM matching block (odd)
+    p1: int = 8                       # SGBM smoothness penalty P1, times block_size^2
+    p2: int = 32                      # SGBM smoothness penalty P2, times block_size^2
+    uniqueness: int = 10              # SGBM uniqueness ratio (%)
+    speckle_window: int = 100         # SGBM speckle filter: max region size (px) to remove
+    speckle_range: int = 2            # SGBM speckle filter: max disparity variation (px)
+    lr_max_diff_px: float = 1.0       # left-right consistency tolerance (px)
+    disp_margin_px: float = 8.0       # margin added around the sparse disparity percentiles
+    disp_margin_frac: float = 0.25    # ... plus this fraction of the percentile range
+    min_pair_matches: int = 20        # a tile pair needs this many sparse matches to be matched
+    min_parallax_ratio: float = 3.0   # sigma3/sigma4 of the pair's sparse matches (baseline test)
+    ncc_radius: int = 2               # photometric check patch radius (5 x 5 patches)
+    min_ncc: float = 0.3              # links with a lower NCC are dropped
+    max_reproj_px: float = 1.0        # views with a larger error are dropped from a track
+    workers: int | None = None        # local worker processes (None = all cores, 1 = serial)
+    scheduler: str | None = None      # dask.distributed scheduler address (None = local pool)
+
+
+@dataclass
 class Config:
     grouping: GroupingConfig = field(default_factory=GroupingConfig)
     tiling: TilingConfig = field(default_factory=TilingConfig)
@@ -65,6 +86,7 @@ class Config:
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     sfm: SfmConfig = field(default_factory=SfmConfig)
     bundle: BundleConfig = field(default_factory=BundleConfig)
+    dense: DenseConfig = field(default_factory=DenseConfig)
     seed: int = 0                     # seeds every random choice (RANSAC, sampling)
 
     def to_dict(self) -> dict:

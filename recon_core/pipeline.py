@@ -20,7 +20,7 @@ from .grouping import Group, group_by_date
 from .io_utils import write_json
 from .site import Site, load_site
 
-STAGES = ("sparse",)
+STAGES = ("sparse", "dense")
 
 
 @dataclass
@@ -32,6 +32,7 @@ class RunState:
     cfg: Config
     groups: list[Group]
     models: dict = field(default_factory=dict)      # group index -> SparseModel
+    dense: dict = field(default_factory=dict)       # group index -> (xyz, gray, n_views, reproj)
     report: dict = field(default_factory=dict)
 
 
@@ -87,7 +88,29 @@ def load_sparse(state: RunState) -> None:
             state.models[g.index] = load_model(state.out, g.index)
 
 
-STAGE_RUNNERS = {"sparse": (run_sparse, load_sparse)}
+def run_dense(state: RunState, bus: EventBus) -> dict:
+    from .dense import reconstruct_dense_group, save_dense
+
+    out = {"groups": {}}
+    for g, model in sorted(state.models.items()):
+        images = {im.name: im for im in state.site.images}
+        cloud, summary = reconstruct_dense_group(model, images, state.cfg.dense, bus)
+        save_dense(state.out, g, cloud)
+        state.dense[g] = cloud
+        out["groups"][str(g)] = summary
+    return out
+
+
+def load_dense(state: RunState) -> None:
+    from .dense import load_dense_group
+
+    for g in state.models:
+        cloud = load_dense_group(state.out, g)
+        if cloud is not None:
+            state.dense[g] = cloud
+
+
+STAGE_RUNNERS = {"sparse": (run_sparse, load_sparse), "dense": (run_dense, load_dense)}
 
 
 def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,

@@ -1,0 +1,102 @@
+"""One small interface for tile-pair work: a local process pool, or a Dask cluster.
+
+Jobs are small picklable records (file paths, windows, cameras), never image arrays: each worker
+reads the windows it needs from the GeoTIFFs, so no process holds a copy of a whole image.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from typing import Callable, Iterable, Iterator
+
+
+def _init_worker() -> None:
+    """Two cores shared by several processes: one thread per library inside each worker."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+class Executor:
+    """map_unordered(fn, jobs) yields fn(job) results as they finish."""
+
+    def map_unordered(self, fn: Callable, jobs: Iterable) -> Iterator:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class SerialExecutor(Executor):
+    def map_unordered(self, fn, jobs):
+        for job in jobs:
+            yield fn(job)
+
+
+class LocalExecutor(Executor):
+    """A process pool with at most `workers` jobs in flight (bounded memory)."""
+
+    def __init__(self, workers: int | None = None):
+        self.workers = workers or max(1, os.cpu_count() or 1)
+        # Never fork: a forked child inherits OpenCV's and GDAL's thread state and can deadlock.
+        ctx = multiprocessing.get_context("forkserver")
+        self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_init_worker)
+
+    def map_unordered(self, fn, jobs):
+        jobs = iter(jobs)
+        pending = set()
+        for job in jobs:
+            pending.add(self.pool.submit(fn, job))
+            if len(pending) >= 2 * self.workers:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in done:
+                    yield f.result()
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for f in done:
+                yield f.result()
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+class DaskExecutor(Executor):
+    """Sends jobs to a dask.distributed scheduler (as CNES CARS does for production DSMs)."""
+
+    def __init__(self, address_or_client):
+        try:
+            from distributed import Client
+        except ImportError as exc:  # pragma: no cover - depends on the optional extra
+            raise RuntimeError("--scheduler needs dask.distributed: pip install 'aerec[dask]'") from exc
+        self._own = not isinstance(address_or_client, Client)
+        self.client = Client(address_or_client) if self._own else address_or_client
+
+    def map_unordered(self, fn, jobs):
+        from distributed import as_completed
+
+        futures = [self.client.submit(fn, job, pure=False) for job in jobs]
+        for fut in as_completed(futures):
+            yield fut.result()
+
+    def close(self) -> None:
+        if self._own:
+            self.client.close()
+
+
+def make_executor(scheduler: str | None = None, workers: int | None = None) -> Executor:
+    """None -> local process pool (serial with workers=1); an address -> Dask."""
+    if scheduler:
+        return DaskExecutor(scheduler)
+    if workers == 1:
+        return SerialExecutor()
+    return LocalExecutor(workers)
