@@ -118,7 +118,8 @@ def cmd_run(args) -> int:
     prog = ProgressPrinter(not args.quiet)
     t0 = time.time()
     try:
-        state = run(args.site, args.out, cfg, until=args.stage, bus=EventBus(prog), resume=not args.restart)
+        state = run(args.site, args.out, cfg, until=args.stage, bus=EventBus(prog), resume=not args.restart,
+                    redo_from=args.redo_from)
     finally:
         prog.close()
     print_summary(state.report)
@@ -164,8 +165,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--tile-size", type=int, default=None, help="tile side d in pixels (default 1000)")
     s.add_argument("--seed", type=int, default=None)
     s.add_argument("--restart", action="store_true", help="ignore finished stages and recompute")
+    s.add_argument("--redo-from", default=None, metavar="STAGE",
+                   help="recompute this stage and the later ones (sparse, dense, upgrade, dsm, eval)")
     s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=cmd_run)
+    s = sub.add_parser("eval", help="score a DSM against a ground-truth (or reference) DSM",
+                       add_help=False)
+    s.add_argument("rest", nargs=argparse.REMAINDER)
+    s.set_defaults(func=lambda a: __import__("recon_core.evaluate", fromlist=["main"]).main(a.rest))
+
     _add_plugin_commands(sub)
     return p
 

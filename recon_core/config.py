@@ -79,6 +79,19 @@ class DenseConfig:
 
 
 @dataclass
+class UpgradeConfig:
+    ransac_thresh_m: float = 2.0      # GCP inlier threshold of the H_A RANSAC (metres)
+
+
+@dataclass
+class DsmConfig:
+    resolution_m: float | None = None  # output cell size; None = site.json's, else the GSD
+    stat: str = "median"              # per-cell statistic: median | upper_median | max
+    fill_holes_px: int = 2            # fill only holes this small (radius, cells) with support
+    icp_max_corr_m: float = 3.0       # ICP correspondence distance when fusing date groups
+
+
+@dataclass
 class Config:
     grouping: GroupingConfig = field(default_factory=GroupingConfig)
     tiling: TilingConfig = field(default_factory=TilingConfig)
@@ -87,6 +100,8 @@ class Config:
     sfm: SfmConfig = field(default_factory=SfmConfig)
     bundle: BundleConfig = field(default_factory=BundleConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
+    upgrade: UpgradeConfig = field(default_factory=UpgradeConfig)
+    dsm: DsmConfig = field(default_factory=DsmConfig)
     seed: int = 0                     # seeds every random choice (RANSAC, sampling)
 
     def to_dict(self) -> dict:

@@ -159,9 +159,6 @@ def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: Part
     if len(x1) < cfg.min_pair_matches:
         info.skipped = f"{len(x1)} sparse matches < {cfg.min_pair_matches}"
         return None, info
-    if par < cfg.min_parallax_ratio:
-        info.skipped = f"no parallax (sigma3/sigma4 = {par:.2f} < {cfg.min_parallax_ratio})"
-        return None, info
     try:
         F = affine.affine_fundamental_from_cameras(P1, P2)
         H1, H2 = affine.rectifying_maps(F, x1, x2)
@@ -185,9 +182,15 @@ def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: Part
         info.skipped = "rectified tiles share fewer than 16 rows"
         return None, info
     pad = int(np.ceil(max(abs(d_lo), abs(d_hi)))) + cfg.block_size + 2
-    u0 = int(np.floor(c1[:, 0].min())) - pad
+    # columns of the reference whose match can fall on the partner: u = x2' - d
+    ua = max(c1[:, 0].min(), c2[:, 0].min() - d_hi)
+    ub = min(c1[:, 0].max(), c2[:, 0].max() - d_lo)
+    if ub - ua < 16:
+        info.skipped = "rectified tiles share fewer than 16 columns"
+        return None, info
+    u0 = int(np.floor(ua)) - pad
     v0 = int(np.floor(v0))
-    W = int(np.ceil(c1[:, 0].max())) + pad - u0
+    W = int(np.ceil(ub)) + pad - u0
     Hh = int(np.ceil(v1)) - v0
     T = np.array([[1.0, 0, -u0], [0, 1.0, -v0], [0, 0, 1.0]])
     A1, A2 = T @ H1, T @ H2
@@ -228,7 +231,7 @@ def sample_disparity(d: np.ndarray, uv: np.ndarray) -> np.ndarray:
     q = np.stack([d[y0, x0], d[y0, x0 + 1], d[y0 + 1, x0], d[y0 + 1, x0 + 1]], 1)
     bil = (q[:, 0] * (1 - fx) * (1 - fy) + q[:, 1] * fx * (1 - fy) + q[:, 2] * (1 - fx) * fy
            + q[:, 3] * fx * fy)
-    spread = np.nanmax(q, axis=1) - np.nanmin(q, axis=1) if q.size else np.zeros(0)
+    spread = q.max(axis=1) - q.min(axis=1)          # NaN where a neighbour is invalid
     near = d[np.clip(np.round(v).astype(np.int64), 0, h - 1), np.clip(np.round(u).astype(np.int64), 0, w - 1)]
     val = np.where(np.all(np.isfinite(q), axis=1) & (spread <= 1.0), bil, near)
     out[np.flatnonzero(inside)] = val
@@ -383,6 +386,23 @@ def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig) -> list[Den
     jobs = []
     reg = np.flatnonzero(model.registered)
     by_tile = {t: (track_of[tile_of == t], xy_of[tile_of == t]) for t in reg}
+    # Baseline test per IMAGE pair (GEOMETRY_NOTES: drop near-zero-baseline pairs): the best
+    # sigma3/sigma4 over its tile pairs. A flat tile pair of a good image pair is still matched:
+    # its low ratio says "no relief", not "no baseline".
+    best_par: dict[tuple[str, str], float] = {}
+    for r in reg:
+        for t in reg:
+            a, b = model.tiles[r].image, model.tiles[t].image
+            if order[a] >= order[b]:
+                continue
+            common, ia, ib = np.intersect1d(by_tile[r][0], by_tile[t][0], return_indices=True)
+            if len(common) >= max(cfg.min_pair_matches, 30):
+                par = affine.parallax_ratio(by_tile[r][1][ia], by_tile[t][1][ib])
+                best_par[(a, b)] = max(best_par.get((a, b), 0.0), par)
+
+    def _image_pair_has_parallax(a: str, b: str) -> bool:
+        return best_par.get((a, b), 0.0) >= cfg.min_parallax_ratio
+
     for r in reg:
         rt = model.tiles[r]
         tr_r, xy_r = by_tile[r]
@@ -397,6 +417,9 @@ def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig) -> list[Den
                 continue
             partners.append(PartnerSpec(TileSpec(images[tt.image], tt, model.cams[t].copy()),
                                         xy_r[ia], xy_t[ib]))
+        if not partners:
+            continue
+        partners = [p for p in partners if _image_pair_has_parallax(rt.image, p.spec.image.name)]
         if not partners:
             continue
         same = [t for t in model.tiles if t.image == rt.image]

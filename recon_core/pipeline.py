@@ -20,7 +20,16 @@ from .grouping import Group, group_by_date
 from .io_utils import write_json
 from .site import Site, load_site
 
-STAGES = ("sparse", "dense")
+STAGES = ("sparse", "dense", "upgrade", "dsm", "eval")
+# Configuration sections each stage depends on (its own and upstream ones): a stage is redone
+# only when one of these changed (or, for "upgrade", the GCP file).
+STAGE_SECTIONS = {
+    "sparse": ("grouping", "tiling", "features", "matching", "sfm", "bundle", "seed"),
+    "dense": ("dense",),
+    "upgrade": ("upgrade",),
+    "dsm": ("dsm",),
+    "eval": (),
+}
 
 
 @dataclass
@@ -32,7 +41,8 @@ class RunState:
     cfg: Config
     groups: list[Group]
     models: dict = field(default_factory=dict)      # group index -> SparseModel
-    dense: dict = field(default_factory=dict)       # group index -> (xyz, gray, n_views, reproj)
+    dense: dict = field(default_factory=dict)       # group index -> DenseCloud
+    upgrade: tuple | None = None                    # ({group: H_A}, LocalFrame)
     report: dict = field(default_factory=dict)
 
 
@@ -40,22 +50,34 @@ def config_hash(cfg: Config) -> str:
     return hashlib.sha1(json.dumps(cfg.to_dict(), sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
+def stage_hash(cfg: Config, stage: str, site: Site) -> str:
+    """Hash of what a stage's result depends on: its and its upstream stages' parameters."""
+    d = cfg.to_dict()
+    keys = [k for s in STAGES[: STAGES.index(stage) + 1] for k in STAGE_SECTIONS[s]]
+    blob = {k: d[k] for k in keys}
+    if STAGES.index(stage) >= STAGES.index("upgrade"):
+        gcp_file = site.root / "gcps.geojson"
+        blob["gcps"] = gcp_file.read_text() if gcp_file.exists() else ""
+    return hashlib.sha1(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
 def _stage_file(out: Path, stage: str) -> Path:
     return out / "stages" / f"{stage}.json"
 
 
-def stage_done(out: Path, stage: str, cfg: Config) -> bool:
+def stage_done(out: Path, stage: str, cfg: Config, site: Site) -> bool:
     f = _stage_file(out, stage)
     if not f.exists():
         return False
     try:
-        return json.loads(f.read_text()).get("config_hash") == config_hash(cfg)
+        return json.loads(f.read_text()).get("stage_hash") == stage_hash(cfg, stage, site)
     except ValueError:
         return False
 
 
 def _mark_done(state: RunState, stage: str, summary: dict) -> None:
-    write_json(_stage_file(state.out, stage), {"config_hash": config_hash(state.cfg), "summary": summary})
+    write_json(_stage_file(state.out, stage), {"stage_hash": stage_hash(state.cfg, stage, state.site),
+                                               "summary": summary})
     state.report.setdefault("stages", {})[stage] = summary
     write_json(state.out / "report.json", state.report)
 
@@ -110,12 +132,75 @@ def load_dense(state: RunState) -> None:
             state.dense[g] = cloud
 
 
-STAGE_RUNNERS = {"sparse": (run_sparse, load_sparse), "dense": (run_dense, load_dense)}
+def run_upgrade(state: RunState, bus: EventBus) -> dict:
+    from .euclidean import upgrade_groups
+
+    Hs, frame, report = upgrade_groups(state.site, state.models, state.cfg, state.out)
+    state.upgrade = (Hs, frame)
+    for g, r in report["groups"].items():
+        if "error" in r:
+            bus.message(r["error"], "error", int(g))
+        for w in r.get("warnings", []) + ([r["conditioning"]["warning"]] if r.get("conditioning", {}).get("warning") else []):
+            bus.message(f"group {g}: {w}", "warning", int(g))
+    return report
+
+
+def load_upgrade_state(state: RunState) -> None:
+    from .euclidean import load_upgrade
+
+    state.upgrade = load_upgrade(state.out)
+
+
+def run_dsm(state: RunState, bus: EventBus) -> dict:
+    from .euclidean import make_dsm
+
+    if state.upgrade is None:
+        raise ReconstructionError("the DSM needs the upgrade stage")
+    Hs, frame = state.upgrade
+    clouds = {}
+    for g in Hs:
+        if g in state.dense and len(state.dense[g]):
+            clouds[g] = (state.dense[g].xyz, state.dense[g].gray)
+        elif g in state.models:
+            m = state.models[g]
+            ids = m.point_ids()
+            clouds[g] = (m.X[ids], m.gray[ids])
+            bus.message(f"group {g}: no dense cloud, the DSM uses the sparse points", "warning", g)
+    ups = state.report.get("stages", {}).get("upgrade", {}).get("groups", {})
+    gsd = min((v["gsd_m"] for v in ups.values() if "gsd_m" in v), default=0.5)
+    return make_dsm(state.site, clouds, Hs, frame, gsd, state.cfg, state.out)
+
+
+def run_eval(state: RunState, bus: EventBus) -> dict:
+    from .evaluate import evaluate_dsm
+
+    if state.site.gt_dsm is None:
+        return {"skipped": "the site has no gt_dsm.tif"}
+    res = evaluate_dsm(state.out / "dsm.tif", state.site.gt_dsm, state.out / "eval")
+    a, u = res["aligned"], res["unaligned"]
+    bus.message(f"DSM vs GT: median |error| {a['median_abs_err_m']:.3f} m, completeness "
+                f"{a['completeness_pct']:.1f} % (aligned); unaligned {u['median_abs_err_m']:.3f} m, "
+                f"{u['completeness_pct']:.1f} %")
+    return res
+
+
+def _noop_loader(state: RunState) -> None:
+    pass
+
+
+STAGE_RUNNERS = {"sparse": (run_sparse, load_sparse), "dense": (run_dense, load_dense),
+                 "upgrade": (run_upgrade, load_upgrade_state), "dsm": (run_dsm, _noop_loader),
+                 "eval": (run_eval, _noop_loader)}
 
 
 def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
-        until: str | None = None, bus: EventBus | None = None, resume: bool = True) -> RunState:
-    """Run the pipeline on a site up to and including stage `until` (default: all)."""
+        until: str | None = None, bus: EventBus | None = None, resume: bool = True,
+        redo_from: str | None = None) -> RunState:
+    """Run the pipeline on a site up to and including stage `until` (default: all).
+
+    Finished stages are reloaded when `resume` (unless their parameters changed); `redo_from`
+    recomputes that stage and every later one.
+    """
     cfg = cfg or Config()
     bus = bus or EventBus()
     site = load_site(site_path)
@@ -130,12 +215,14 @@ def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
                    "groups": [{"index": g.index, "images": [im.name for im in g.images],
                                "span_days": g.span_days} for g in groups]})
     state = RunState(site, out, cfg, groups, report=report)
-    if until is not None and until not in STAGES:
-        raise InputError(None, f"unknown stage {until!r}; stages are {', '.join(STAGES)}")
+    for name in (until, redo_from):
+        if name is not None and name not in STAGES:
+            raise InputError(None, f"unknown stage {name!r}; stages are {', '.join(STAGES)}")
+    first_redo = STAGES.index(redo_from) if redo_from else len(STAGES)
     last = STAGES.index(until) if until else len(STAGES) - 1
     for stage in STAGES[: last + 1]:
         runner, loader = STAGE_RUNNERS[stage]
-        if resume and stage_done(out, stage, cfg):
+        if resume and STAGES.index(stage) < first_redo and stage_done(out, stage, cfg, site):
             loader(state)
             bus.emit(Message("info", f"{stage}: already done, reloaded from {out}"))
             continue
