@@ -618,16 +618,37 @@ def triangulate_tracks(cams, cam_idx, pt_idx, xy, n_points, weights=None, rcond=
         # Cheap conditioning test (no eigen-decomposition: this runs on millions of dense
         # points): 27 det / trace^3 lies in [0, 1] and scales like lambda_min / lambda_max.
         Ao = A[ok]
-        tr = np.trace(Ao, axis1=1, axis2=2)
-        c = 27.0 * np.linalg.det(Ao) / np.maximum(tr, 1e-300) ** 3
+        tr = Ao[:, 0, 0] + Ao[:, 1, 1] + Ao[:, 2, 2]
+        det = (Ao[:, 0, 0] * (Ao[:, 1, 1] * Ao[:, 2, 2] - Ao[:, 1, 2] * Ao[:, 2, 1])
+               - Ao[:, 0, 1] * (Ao[:, 1, 0] * Ao[:, 2, 2] - Ao[:, 1, 2] * Ao[:, 2, 0])
+               + Ao[:, 0, 2] * (Ao[:, 1, 0] * Ao[:, 2, 1] - Ao[:, 1, 1] * Ao[:, 2, 0]))
+        c = 27.0 * det / np.maximum(tr, 1e-300) ** 3
         good = c > rcond
         ok[np.flatnonzero(ok)[~good]] = False
     if np.any(ok):
         Ao, bo = A[ok], rhs[ok]
-        Xo = np.linalg.solve(Ao, bo[..., None])
-        Xo += np.linalg.solve(Ao, bo[..., None] - Ao @ Xo)  # iterative refinement
-        X[ok] = Xo[..., 0]
+        Xo = solve3x3(Ao, bo)
+        Xo += solve3x3(Ao, bo - np.einsum("nij,nj->ni", Ao, Xo))  # iterative refinement
+        X[ok] = Xo
     return X, ok
+
+
+def solve3x3(A, b) -> np.ndarray:
+    """Solve many 3x3 systems A (n, 3, 3) x = b (n, 3) in closed form (adjugate / determinant).
+
+    Several times faster than np.linalg.solve on millions of tiny systems; callers screen
+    ill-conditioned systems first and may add a step of iterative refinement.
+    """
+    a, bb, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    d, e, f = A[:, 1, 0], A[:, 1, 1], A[:, 1, 2]
+    g, h, i = A[:, 2, 0], A[:, 2, 1], A[:, 2, 2]
+    c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * c00 + bb * c01 + c * c02
+    inv_det = 1.0 / det
+    x0 = (c00 * b[:, 0] + (c * h - bb * i) * b[:, 1] + (bb * f - c * e) * b[:, 2]) * inv_det
+    x1 = (c01 * b[:, 0] + (a * i - c * g) * b[:, 1] + (c * d - a * f) * b[:, 2]) * inv_det
+    x2 = (c02 * b[:, 0] + (bb * g - a * h) * b[:, 1] + (a * e - bb * d) * b[:, 2]) * inv_det
+    return np.stack([x0, x1, x2], axis=1)
 
 
 def reprojection_errors(cams, cam_idx, pt_idx, xy, X) -> np.ndarray:

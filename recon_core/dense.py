@@ -321,7 +321,11 @@ def run_job(job: DenseJob) -> DenseResult:
 
 
 def _triangulate(pix, cams, best_q, best_cam, max_err):
-    """Multi-view triangulation of reference pixels with their links; drop views with large error."""
+    """Multi-view triangulation of reference pixels with their links.
+
+    A point whose worst view is off by more than max_err loses that view (if it keeps >= 2)
+    and is re-triangulated, at most twice; points still off are dropped.
+    """
     n = len(pix)
     cams = np.array(cams)
     obs_pt, obs_cam, obs_xy = [np.arange(n)], [np.zeros(n, np.int64)], [pix.astype(np.float64)]
@@ -332,26 +336,19 @@ def _triangulate(pix, cams, best_q, best_cam, max_err):
         obs_xy.append(best_q[im][sel])
     pt, cam, xy = np.concatenate(obs_pt), np.concatenate(obs_cam), np.concatenate(obs_xy)
     use = np.ones(len(pt), bool)
-    for _ in range(2):
+    for it in range(3):
         X, ok = affine.triangulate_tracks(cams, cam[use], pt[use], xy[use], n)
-        err = np.full(len(pt), np.inf)
         good = use & ok[pt]
-        err[good] = affine.reprojection_errors(cams, cam[good], pt[good], xy[good], np.nan_to_num(X))
-        # drop the worst view of points whose worst view is too far off
-        worst = np.full(n, -1.0)
+        err = np.zeros(len(pt))
+        err[good] = affine.reprojection_errors(cams, cam[good], pt[good], xy[good], X)
+        nv = np.bincount(pt[good], minlength=n)
+        worst = np.zeros(n)
         np.maximum.at(worst, pt[good], err[good])
-        bad_pt = worst > max_err
-        if not bad_pt.any():
+        fixable = ok & (worst > max_err) & (nv >= 3)
+        if it == 2 or not fixable.any():
             break
-        is_worst = good & bad_pt[pt] & (err >= worst[pt])
-        use &= ~is_worst
-    X, ok = affine.triangulate_tracks(cams, cam[use], pt[use], xy[use], n)
-    good = use & ok[pt]
-    err = affine.reprojection_errors(cams, cam[good], pt[good], xy[good], np.nan_to_num(X))
-    nv = np.bincount(pt[good], minlength=n)
-    sq = np.bincount(pt[good], err ** 2, minlength=n)
-    worst = np.zeros(n)
-    np.maximum.at(worst, pt[good], err)
+        use &= ~(good & fixable[pt] & (err >= worst[pt]))
+    sq = np.bincount(pt[good], err[good] ** 2, minlength=n)
     keep = ok & (nv >= 2) & (worst <= max_err)
     rms = np.sqrt(sq / np.maximum(nv, 1))
     idx = np.flatnonzero(keep)
