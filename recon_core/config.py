@@ -22,7 +22,7 @@ class TilingConfig:
 
 @dataclass
 class FeatureConfig:
-    max_features_per_mpx: int = 8000  # SIFT keypoints kept per megapixel (strongest first)
+    max_features_per_mpx: int = 30000  # SIFT keypoints kept per megapixel (strongest first)
     contrast_threshold: float = 0.01  # SIFT contrast threshold on the 8-bit detection image
     detect_block: int = 2048          # images are read by window of this many pixels
     stretch_percentiles: tuple[float, float] = (0.5, 99.5)  # uint16 -> 8-bit robust stretch

@@ -199,8 +199,8 @@ class IncrementalSfM:
         self._triangulate_new()
         self._filter_outliers()
         self._bundle("global")
-        for t in (ta, tb):
-            self._emit_tile(t, int(np.sum(o.tile[m.active_obs()] == t)))
+        for k, t in enumerate((ta, tb)):
+            self._emit_tile(t, int(np.sum(o.tile[m.active_obs()] == t)), order=k)
         self._emit_points()
         info["init_points"] = int(m.has_point.sum())
         return info
@@ -345,10 +345,11 @@ class IncrementalSfM:
             self._emit_model()
 
     # -- events ------------------------------------------------------------------------------
-    def _emit_tile(self, t: int, n_inliers: int) -> None:
+    def _emit_tile(self, t: int, n_inliers: int, order: int | None = None) -> None:
         m = self.m
+        order = m.register_order.index(t) if order is None else order
         self.bus.emit(TileRegistered(m.group, m.tiles[t].id, m.tiles[t].image, m.cams[t].copy(),
-                                     m.footprint(t), n_inliers, len(m.register_order) - 1, len(m.tiles)))
+                                     m.footprint(t), n_inliers, order, len(m.tiles)))
 
     def _emit_points(self) -> None:
         m = self.m

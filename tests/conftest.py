@@ -50,3 +50,26 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared real data not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def tiny_site(tmp_path_factory) -> Path:
+    """The synthetic `tiny` site (seed 0), generated once per test session."""
+    from recon_core.synthetic import generate_site
+
+    site = tmp_path_factory.mktemp("tiny") / "site"
+    generate_site(site, preset="tiny", seed=0)
+    return site
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tiny_site, tmp_path_factory):
+    """The full pipeline on `tiny` with the tiny preset, with every event recorded."""
+    from recon_core.config import preset
+    from recon_core.events import EventBus
+    from recon_core.pipeline import run
+
+    events: list = []
+    out = tmp_path_factory.mktemp("tiny_out")
+    state = run(tiny_site, out, preset("tiny"), bus=EventBus(events.append), resume=False)
+    return state, events
