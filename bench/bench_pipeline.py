@@ -1,0 +1,152 @@
+"""Benchmark the pipeline on a synthetic preset or a real site; prints figures, asserts nothing.
+
+    python bench/bench_pipeline.py --preset demo                 # generates /tmp/aerec_bench/demo
+    python bench/bench_pipeline.py --preset demo --until sparse  # the sparse issue's figures
+    python bench/bench_pipeline.py --site ../shared/data/reunion_pair --tile-size 400 \
+        --reference ../shared/data/reunion_pair/ref_dsm_s2p.tif
+
+Figures: seconds per stage (features, matching, SfM, of which BA; dense, of which the SGBM
+kernel; upgrade; DSM; eval), peak memory (RSS high-water mark of this process and of the
+dense workers), tiles registered, points, reprojection error, for synthetic sites the sparse
+and dense structure against the truth up to one best-fit affine map, GCP check residuals and
+the DSM metrics.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from recon_core.config import preset as make_preset  # noqa: E402
+from recon_core.events import BundleAdjusted, EventBus  # noqa: E402
+from recon_core.pipeline import run  # noqa: E402
+
+
+def peak_rss_mb() -> tuple[float, float]:
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    return own, kids
+
+
+def ensure_site(preset: str, seed: int, root: Path) -> Path:
+    from recon_core.synthetic import generate_site
+
+    site = root / f"{preset}_s{seed}"
+    if not (site / "site.json").exists():
+        t0 = time.time()
+        generate_site(site, preset=preset, seed=seed)
+        print(f"generated {preset} site in {time.time() - t0:.1f} s -> {site}")
+    return site
+
+
+def truth_figures(site: Path, state) -> dict:
+    from recon_core.georef import frame_for
+    from recon_core.truth import sparse_vs_truth
+
+    if not (site / "truth" / "cameras.json").exists():
+        return {}
+    frame = frame_for(state.site.gcps)
+    out = {}
+    for g, m in state.models.items():
+        r = sparse_vs_truth(site, m, frame)
+        out[g] = {"sparse_affine_rms_m": r["rms_m"], "sparse_rms_xyz_m": r["rms_xyz_m"],
+                  "sparse_p95_m": r["p95_m"], "n": r["n"]}
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--preset", default=None, help="synthetic preset: tiny, demo, large")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--site", type=Path, default=None, help="a site folder instead of a preset")
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--until", default=None)
+    ap.add_argument("--tile-size", type=int, default=None)
+    ap.add_argument("--config-preset", default="default")
+    ap.add_argument("--reference", type=Path, default=None, help="reference DSM to compare with (aerec eval)")
+    ap.add_argument("--root", type=Path, default=Path("/tmp/aerec_bench"))
+    args = ap.parse_args(argv)
+
+    site = args.site or ensure_site(args.preset or "demo", args.seed, args.root)
+    out = args.out or args.root / f"out_{site.name}"
+    cfg = make_preset(args.config_preset)
+    if args.tile_size:
+        cfg = cfg.with_overrides({"tiling.tile_size": args.tile_size})
+    ba = {"seconds": 0.0, "runs": 0}
+
+    def listen(ev):
+        if isinstance(ev, BundleAdjusted):
+            ba["seconds"] += ev.seconds
+            ba["runs"] += 1
+
+    t0 = time.time()
+    state = run(site, out, cfg, until=args.until, bus=EventBus(listen), resume=False)
+    wall = time.time() - t0
+    st = state.report["stages"]
+    print(f"\n== {site} (tile size {cfg.tiling.tile_size}) total {wall:.1f} s ==")
+    for g, s in st["sparse"]["groups"].items():
+        if "error" in s:
+            print(f"group {g}: {s['error']}")
+            continue
+        t = s["timings_s"]
+        print(f"group {g} sparse: features {t['features']:.1f} s, matching {t['matching']:.1f} s, "
+              f"SfM {t['sfm']:.1f} s; tiles {s['tiles_registered']}/{s['tiles_total']}, "
+              f"points {s['points']}, mean reprojection {s['mean_reproj_px']:.3f} px "
+              f"(RMS {s['rms_reproj_px']:.3f})")
+    print(f"bundle adjustment: {ba['seconds']:.1f} s in {ba['runs']} runs (inside SfM)")
+    for g, f in truth_figures(site, state).items():
+        print(f"group {g} sparse vs truth (one best-fit affine map): RMS {f['sparse_affine_rms_m']:.3f} m "
+              f"(E/N/U {', '.join(f'{v:.3f}' for v in f['sparse_rms_xyz_m'])}), p95 {f['sparse_p95_m']:.3f} m, "
+              f"{f['n']} points")
+    if "dense" in st:
+        for g, d in st["dense"]["groups"].items():
+            print(f"group {g} dense: {d['pairs_matched']}/{d['tile_pairs']} tile pairs, {d['points']} points, "
+                  f"views {d['views_histogram']}, wall {d['wall_s']:.1f} s, SGBM kernel {d['matcher_kernel_s']:.1f} s, "
+                  f"job CPU / kernel = {d['overhead_ratio_cpu'] or float('nan'):.2f}, "
+                  f"rectified row error {d['median_rectified_row_err_px'] or float('nan'):.3f} px")
+        print(f"dense stage: {st['dense']['seconds']:.1f} s")
+    if "upgrade" in st:
+        for g, u in st["upgrade"]["groups"].items():
+            if "error" in u:
+                print(f"group {g} upgrade: {u['error']}")
+                continue
+            c = u["stats"].get("check", {})
+            if c.get("n"):
+                print(f"group {g} upgrade: {u['n_control_used']} control GCPs; {c['n']} check points: "
+                      f"RMSE E {c['rmse_E_m']:.3f} N {c['rmse_N_m']:.3f} U {c['rmse_U_m']:.3f} m, "
+                      f"CE90 {c['ce90_m']:.3f} m, LE90 {c['le90_m']:.3f} m")
+    if "dsm" in st:
+        d = st["dsm"]
+        print(f"DSM: {d['width']} x {d['height']} at {d['resolution_m']} m, {d['points']} points, "
+              f"valid {100 * d['valid_fraction']:.1f} % ({st['dsm']['seconds']:.1f} s)")
+    if "eval" in st and "aligned" in st["eval"]:
+        for k in ("aligned", "unaligned"):
+            e = st["eval"][k]
+            print(f"vs GT ({k}): median |error| {e['median_abs_err_m']:.3f} m, completeness "
+                  f"{e['completeness_pct']:.1f} %, RMSE {e['rmse_m']:.3f} m, NMAD {e['nmad_m']:.3f} m")
+        a = st["eval"]["alignment"]
+        print(f"alignment (DSM - GT): dx {a['dx_m']:+.2f} dy {a['dy_m']:+.2f} dz {a['dz_m']:+.2f} m")
+    if args.reference and (out / "dsm.tif").exists():
+        from recon_core.evaluate import evaluate_dsm
+
+        r = evaluate_dsm(out / "dsm.tif", args.reference, out / "eval_reference")
+        for k in ("aligned", "unaligned"):
+            e = r[k]
+            print(f"vs reference ({k}): median |diff| {e['median_abs_err_m']:.3f} m, within 1 m "
+                  f"{e['completeness_pct']:.1f} %, RMSE {e['rmse_m']:.3f} m")
+    own, kids = peak_rss_mb()
+    print(f"seconds per stage: " + ", ".join(f"{k} {v.get('seconds', 0):.1f}" for k, v in st.items()))
+    print(f"peak memory: main process {own:.0f} MB, largest worker {kids:.0f} MB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
