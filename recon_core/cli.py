@@ -114,6 +114,10 @@ def cmd_run(args) -> int:
         overrides["tiling.tile_size"] = args.tile_size
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if args.scheduler:
+        overrides["dense.scheduler"] = args.scheduler
+    if args.workers:
+        overrides["dense.workers"] = args.workers
     cfg = cfg.with_overrides(overrides)
     prog = ProgressPrinter(not args.quiet)
     t0 = time.time()
@@ -164,6 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--preset", default="default", help="parameter preset (default, tiny)")
     s.add_argument("--tile-size", type=int, default=None, help="tile side d in pixels (default 1000)")
     s.add_argument("--seed", type=int, default=None)
+    s.add_argument("--workers", type=int, default=None, help="local dense worker processes (default: all cores)")
+    s.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="send dense tile-pair work to a Dask distributed scheduler (tcp://host:8786)")
     s.add_argument("--restart", action="store_true", help="ignore finished stages and recompute")
     s.add_argument("--redo-from", default=None, metavar="STAGE",
                    help="recompute this stage and the later ones (sparse, dense, upgrade, dsm, eval)")
