@@ -124,26 +124,44 @@ def overlapping_tile_pairs(tiles_i: list[Tile], tiles_j: list[Tile], A_ji: np.nd
 
 def guided_matches(fi: ImageFeatures, fj: ImageFeatures, A_ji: np.ndarray, tiles_i: list[Tile],
                    cfg: MatchingConfig, margin_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Match tile by tile of image i against the features of j predicted near that tile."""
+    """Match image i against image j, each feature only against those predicted near it.
+
+    The coarse map A_ji predicts where j's features fall in i; image i is cut into square cells
+    (side ~2 x margin) and each cell's features are matched (ratio test, mutual check) against
+    the j features predicted inside the cell grown by the margin. Exact nearest neighbours,
+    and the cost grows linearly with the image area instead of quadratically.
+    """
     pred = apply_affine_2d(A_ji, fj.xy)          # j's features in i's pixels
+    if len(fi) == 0 or len(fj) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    cell = max(64.0, 2.0 * margin_px)
+    lo = fi.xy.min(axis=0)
+    ci = np.floor((fi.xy - lo) / cell).astype(np.int64)
+    ncol = int(ci[:, 0].max()) + 1
+    key_i = ci[:, 1] * ncol + ci[:, 0]
+    order_j = np.argsort(pred[:, 0], kind="stable")
+    px_sorted = pred[order_j, 0]
     pairs = []
-    for t in tiles_i:
-        sel_i = np.flatnonzero(t.contains(fi.xy))
-        sel_j = np.flatnonzero(t.contains(pred, margin=-margin_px))
-        if len(sel_i) < 2 or len(sel_j) < 2:
+    for key in np.unique(key_i):
+        sel_i = np.flatnonzero(key_i == key)
+        r, c = divmod(int(key), ncol)
+        x0, y0 = lo[0] + c * cell - margin_px, lo[1] + r * cell - margin_px
+        x1, y1 = x0 + cell + 2 * margin_px, y0 + cell + 2 * margin_px
+        a, b = np.searchsorted(px_sorted, [x0, x1])
+        cand = order_j[a:b]
+        cand = cand[(pred[cand, 1] >= y0) & (pred[cand, 1] < y1)]
+        if len(sel_i) < 1 or len(cand) < 2:
             continue
-        a, b = match_descriptors(fi.desc[sel_i], fj.desc[sel_j], cfg.ratio, cfg.mutual)
-        ia, jb = sel_i[a], sel_j[b]
+        ia, jb = match_descriptors(fi.desc[sel_i], fj.desc[cand], cfg.ratio, cfg.mutual)
+        ia, jb = sel_i[ia], cand[jb]
         near = np.linalg.norm(pred[jb] - fi.xy[ia], axis=1) < margin_px
         pairs.append(np.stack([ia[near], jb[near]], axis=1))
     if not pairs:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    m = np.unique(np.concatenate(pairs), axis=0)
-    # A feature matched to two different partners (from different tiles) is ambiguous: drop it.
-    _, ci = np.unique(m[:, 0], return_counts=True)
-    _, cj = np.unique(m[:, 1], return_counts=True)
-    ok = (np.isin(m[:, 0], np.unique(m[:, 0])[ci == 1]) & np.isin(m[:, 1], np.unique(m[:, 1])[cj == 1]))
-    m = m[ok]
+    m = np.concatenate(pairs)
+    # a j feature claimed by two i features (neighbouring cells) is ambiguous: drop it
+    _, inv, cnt = np.unique(m[:, 1], return_inverse=True, return_counts=True)
+    m = m[cnt[inv] == 1]
     return m[:, 0], m[:, 1]
 
 

@@ -270,7 +270,8 @@ class IncrementalSfM:
         o.valid[sel[~inl]] = False
         self._triangulate_new()
         self._bundle("local", around=t)
-        if m.registered.sum() >= (1.0 + self.cfg.global_ba_growth) * max(self._ba_at, 1):
+        n_reg = int(m.registered.sum())
+        if n_reg >= max((1.0 + self.cfg.global_ba_growth) * self._ba_at, self._ba_at + 4):
             self._filter_outliers()
             self._bundle("global")
         self._emit_tile(t, int(inl.sum()))
@@ -337,7 +338,7 @@ class IncrementalSfM:
             free_pts = np.unique(o.track[idx][np.isin(o.tile[idx], free_cams)])
         res = bundle_adjust(m.cams, m.X, o.tile[idx], o.track[idx], o.xy[idx], free_cams, free_pts,
                             m.fixed, loss=self.ba_cfg.loss, f_scale=self.ba_cfg.loss_scale_px,
-                            max_nfev=self.ba_cfg.max_nfev if scope == "global" else 15)
+                            max_nfev=self.ba_cfg.max_nfev if scope == "global" else 10)
         m.cams, m.X = res.cams, res.X
         self.bus.emit(BundleAdjusted(m.group, scope, res.cost_before, res.cost_after, res.rms_px,
                                      len(free_cams), len(free_pts), res.seconds))
