@@ -477,16 +477,26 @@ def resect(X, x, weights=None) -> np.ndarray:
     x = _as_points(x, 2, "x")
     if len(X) != len(x) or len(X) < 4:
         raise ValueError(f"resect needs >= 4 matching 3D/2D points, got {len(X)}/{len(x)}")
-    Xn, T3 = normalize_points(X)
-    xn, T2 = normalize_points(x)
+    q, T3, T2 = _normalised_affine_lstsq(X, x, weights)
+    return _denormalise_camera(q.T, T2, T3)
+
+
+def _normalised_affine_lstsq(X, Y, weights=None):
+    """Weighted least squares of Y ~ q^T [X, 1] on similarity-normalised data.
+
+    X: (n, 3), Y: (n, k). Returns (q (4, k) in normalised coordinates, T_X (4, 4), T_Y (k+1,
+    k+1)), the normalisations to undo. Shared by resection (k = 2) and 3D affine fits (k = 3).
+    """
+    Xn, TX = normalize_points(X)
+    Yn, TY = normalize_points(Y)
     A = np.concatenate([Xn, np.ones((len(Xn), 1))], axis=1)
-    b = xn
+    b = Yn
     if weights is not None:
         sw = np.sqrt(np.clip(np.asarray(weights, dtype=np.float64), 0.0, None))[:, None]
         A = A * sw
         b = b * sw
-    q, *_ = np.linalg.lstsq(A, b, rcond=None)  # (4, 2)
-    return _denormalise_camera(q.T, T2, T3)
+    q, *_ = np.linalg.lstsq(A, b, rcond=None)
+    return q, TX, TY
 
 
 def resect_ransac(X, x, thresh_px=2.0, iters=500, rng=None, min_inliers=6, confidence=0.999,
@@ -970,15 +980,7 @@ def fit_affine_3d(X_src, X_dst, weights=None) -> np.ndarray:
     Xd = _as_points(X_dst, 3, "X_dst")
     if len(Xs) != len(Xd) or len(Xs) < 4:
         raise ValueError(f"fit_affine_3d needs >= 4 point pairs, got {len(Xs)}/{len(Xd)}")
-    Sn, Ts = normalize_points(Xs)
-    Dn, Td = normalize_points(Xd)
-    A = np.concatenate([Sn, np.ones((len(Sn), 1))], axis=1)
-    b = Dn
-    if weights is not None:
-        sw = np.sqrt(np.clip(np.asarray(weights, dtype=np.float64), 0.0, None))[:, None]
-        A = A * sw
-        b = b * sw
-    q, *_ = np.linalg.lstsq(A, b, rcond=None)  # (4, 3)
+    q, Ts, Td = _normalised_affine_lstsq(Xs, Xd, weights)  # q: (4, 3)
     Q = np.eye(4)
     Q[:3] = q.T
     return (np.linalg.inv(Td) @ Q @ Ts)[:3]

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from .affine import fit_affine_3d
 from .errors import ReconstructionError
 
 CE90_FACTOR = 2.146
@@ -69,22 +70,6 @@ class GcpInput:
     enu: np.ndarray
     sigma_m: float | None = None
     reproj_rms_px: float | None = None
-
-
-def _normaliser(X: np.ndarray) -> np.ndarray:
-    """4x4 similarity T with T [X, 1] centred and of RMS norm sqrt(3). X: (n, 3)."""
-    c = X.mean(axis=0)
-    rms = np.sqrt(np.mean(np.sum((X - c) ** 2, axis=1)))
-    s = np.sqrt(3.0) / rms if rms > 0 else 1.0
-    T = np.eye(4)
-    T[:3, :3] *= s
-    T[:3, 3] = -s * c
-    return T
-
-
-def _homog(X: np.ndarray) -> np.ndarray:
-    """(n, 3) -> (n, 4) with a column of ones."""
-    return np.hstack([X, np.ones((len(X), 1))])
 
 
 def apply_h(H: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -134,14 +119,8 @@ def fit_affine_upgrade(X_aff: np.ndarray, X_enu: np.ndarray) -> np.ndarray:
         raise ReconstructionError(f"an affine upgrade needs >= 4 points, got {len(X_aff)}")
     if _rank(X_aff) < 3:
         raise ReconstructionError("the affine points are collinear or coplanar: H_A is undetermined")
-    Ta, Te = _normaliser(X_aff), _normaliser(X_enu)
-    A = _homog(apply_h(Ta, X_aff))                       # (n, 4)
-    B = apply_h(Te, X_enu)                               # (n, 3)
-    M, *_ = np.linalg.lstsq(A, B, rcond=None)            # (4, 3): B ~ A M
-    Hn = np.eye(4)
-    Hn[:3, :] = M.T
-    H = np.linalg.inv(Te) @ Hn @ Ta
-    H[3] = [0.0, 0.0, 0.0, 1.0]
+    H = np.eye(4)
+    H[:3] = fit_affine_3d(X_aff, X_enu)                  # normalised linear least squares
     return H
 
 
