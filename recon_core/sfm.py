@@ -87,8 +87,7 @@ class SparseModel:
         n = len(self.X)
         sq = np.bincount(tr, err ** 2, minlength=n)
         cnt = np.bincount(tr, minlength=n)
-        pairs = np.unique(np.stack([tr, self.obs.img[idx]], 1), axis=0)
-        nimg = np.bincount(pairs[:, 0], minlength=n)
+        nimg = images_per_track(tr, self.obs.img[idx], n)
         ids = self.point_ids()
         return ids, nimg[ids], np.sqrt(sq[ids] / np.maximum(cnt[ids], 1))
 
@@ -107,6 +106,13 @@ class SparseModel:
             b = np.array([u[0] - P[0, 3], u[1] - P[1, 3], n @ c])
             out.append(np.linalg.lstsq(A, b, rcond=None)[0])
         return np.array(out)
+
+
+def images_per_track(track: np.ndarray, img: np.ndarray, n: int) -> np.ndarray:
+    """(n,) number of distinct images among the observations of each track."""
+    n_img = int(img.max()) + 1 if len(img) else 1
+    keys = np.unique(track.astype(np.int64) * n_img + img)
+    return np.bincount(keys // n_img, minlength=n)
 
 
 def build_observations(tiles: list[Tile], image_names: list[str], feats: list[ImageFeatures],
@@ -293,8 +299,7 @@ class IncrementalSfM:
         use = np.flatnonzero(o.valid & m.registered[o.tile] & ~m.has_point[o.track])
         if len(use) == 0:
             return
-        pairs = np.unique(np.stack([o.track[use], o.img[use]], 1), axis=0)
-        nimg = np.bincount(pairs[:, 0], minlength=len(m.X))
+        nimg = images_per_track(o.track[use], o.img[use], len(m.X))
         use = use[nimg[o.track[use]] >= 2]
         if len(use) == 0:
             return
@@ -315,8 +320,7 @@ class IncrementalSfM:
         idx, err = m.reprojection()
         o.valid[idx[err > self.cfg.max_reproj_px]] = False
         idx = m.active_obs()
-        pairs = np.unique(np.stack([o.track[idx], o.img[idx]], 1), axis=0)
-        nimg = np.bincount(pairs[:, 0], minlength=len(m.X))
+        nimg = images_per_track(o.track[idx], o.img[idx], len(m.X))
         m.has_point &= nimg >= 2
 
     # -- bundle adjustment --------------------------------------------------------------------
