@@ -110,13 +110,14 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
             m = (a >= 0) & (b >= 0)
             rows_u.append(a[m]); cols_u.append(b[m]); vals_u.append(v[m])
         U = np.zeros((nc, nc))
-        if nc:
-            np.add.at(U, (np.concatenate(rows_u), np.concatenate(cols_u)), np.concatenate(vals_u))
+        if nc:   # bincount on flat indices: np.add.at is ~20x slower on millions of entries
+            flat_idx = np.concatenate(rows_u) * nc + np.concatenate(cols_u)
+            U = np.bincount(flat_idx, np.concatenate(vals_u), minlength=nc * nc).reshape(nc, nc)
         g_c = np.zeros(nc)
         for row, cols in enumerate((cols0, cols1)):
             v = wh * r[:, row:row + 1]
             m = cols >= 0
-            np.add.at(g_c, cols[m], v[m])
+            g_c += np.bincount(cols[m], v[m], minlength=nc)
         # W entries: d r_row / d P[row, j] * d r_row / d X_i = h_j * M[row, i]
         wr, wc, wv = [], [], []
         for row, cols in enumerate((cols0, cols1)):
@@ -153,7 +154,7 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
                 improved = True
                 break
             lam *= 4.0
-        if not improved or rel < 1e-7:
+        if not improved or rel < 1e-6:      # relative decrease of the robust cost
             break
     rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
     return BAResult(cams, X, cost0, cost, rms, K, time.time() - t0, it)
