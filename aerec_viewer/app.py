@@ -1,0 +1,774 @@
+"""The viewer application: viser server, layout, and the update thread.
+
+Threads:
+- the worker's thread runs the pipeline (worker.py) and never calls viser;
+- viser's own threads run GUI and click callbacks: they only `submit` commands;
+- one update thread (`ViewerApp._loop`) executes the queued commands in order and applies the
+  newest worker snapshot inside `server.atomic()`, at most `update_hz` times a second. It is
+  the only code that changes scene nodes and panel contents, so no viser state needs a lock.
+
+The scene and the GUI are server-wide (not per client): every browser tab sees the same state.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+import traceback
+from collections import deque
+from concurrent.futures import Future
+from dataclasses import replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from recon_core.errors import AerecError
+
+from .display import COLOR_MODES, DisplayTransform, closest_point_to_ray, image_footprint
+from .gcp_panel import (GcpError, GcpPanel, PickPlane, add_observation, layout_pick_plane,
+                        new_gcp, open_session, picked_for_group, pixel_from_ray,
+                        set_affine_position)
+from .imagery import ImageSource, ImageWindow
+from .results import DsmPanel, UpgradeOutcome, gcp_readiness, n_ready, outcome_markdown, run_upgrade
+from .scene import SceneView, safe_name, tile_windows_for
+from .worker import DisplaySnapshot, ReconWorker
+
+log = logging.getLogger("aerec.viewer")
+
+MARK_SEL = (255, 220, 0)
+MARK = (230, 40, 40)
+MARK_CHECK = (40, 200, 255)
+
+
+class ViewerApp:
+    """The AE-Rec viewer around one reconstruction.
+
+    Args:
+        out: output folder (created if needed).
+        site: site folder; None when reopening an OUT whose report.json names its site.
+        cfg: pipeline configuration (recon_core.config.Config); None: the report's (reopen)
+            or the defaults.
+        mode: "run" (run or resume the pipeline) or "reopen" (show what OUT holds, compute
+            nothing).
+        host, port: where to serve (port 0: any free port; a busy port moves to the next one,
+            so read `port` after construction).
+        update_hz: scene updates per second at most.
+    """
+
+    def __init__(self, out: str | Path, site: str | Path | None = None, cfg=None, *,
+                 mode: str = "run", host: str = "127.0.0.1", port: int = 8080,
+                 update_hz: float = 4.0, until: str | None = None):
+        import viser
+
+        from recon_core.config import Config, config_from_dict
+        from recon_core.site import load_site
+
+        self.out = Path(out)
+        self.mode = mode
+        report = _read_report(self.out)
+        if site is None:
+            site = _site_from_report(self.out, report)
+        if cfg is None:
+            cfg = config_from_dict(report["config"]) if report.get("config") else Config()
+        self.cfg = cfg
+        self.site = load_site(Path(site).resolve())
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.scene.set_up_direction("+z")
+        self.server.gui.configure_theme(control_width="large", dark_mode=False)
+        self.worker = ReconWorker(self.site.root, self.out, cfg, mode=mode, until=until)
+        self.images = ImageSource(self.site.images)
+        self.scene = SceneView(self.server, self.images,
+                               tile_windows_for(self.site.images, cfg.tiling.tile_size,
+                                                cfg.tiling.overlap))
+        self.session = open_session(self.out, self.site)
+        self.models: dict = {}
+        self._models_version = 0
+        self.upgrade: UpgradeOutcome | None = None
+        self.frame = "affine"
+        self.pick_plane: PickPlane | None = None
+        self.last_click: tuple | None = None          # (gcp id, image, col, row) of the last pick
+        self.update_hz = update_hz
+        self._euclid: dict[int, DisplayTransform] = {}
+        self._shifted: dict = {}
+        self._offsets: dict[int, float] = {}
+        self._queue: queue.Queue = queue.Queue()
+        self.tick_log: deque = deque(maxlen=100_000)   # (start, seconds, points sent)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._seen_version = -1
+        self._framed = False
+        self._plane_handle = None
+        self._plane_key = None
+        self._plane_token = None
+        self._reframe_on_plane = False
+        self._marks: dict[str, tuple] = {}   # path -> (sphere, label, colour, radius, pos)
+        self._marks_key = None
+        self._armed = None
+        self._gui_cache: dict[str, object] = {}
+        self._tri_cache: dict = {}
+        self._build_gui()
+        self.server.on_client_connect(lambda client: self.submit(lambda: self._frame_client(client)))
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    @property
+    def port(self) -> int:
+        return self.server.get_port()
+
+    @property
+    def url(self) -> str:
+        host = self.server.get_host()
+        host = "127.0.0.1" if host in ("0.0.0.0", "") else host
+        return f"http://{host}:{self.port}"
+
+    def start(self) -> "ViewerApp":
+        # warm the shared tone curve (reads every image's overview) before the first tiles
+        threading.Thread(target=lambda: self.images.tone, name="aerec-tone", daemon=True).start()
+        self.worker.start()
+        self._thread = threading.Thread(target=self._loop, name="aerec-viewer", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self.worker.stop(timeout=2.0)
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+        self.server.stop()
+
+    def submit(self, fn: Callable[[], object]) -> Future:
+        """Queue work for the update thread (what every GUI callback does)."""
+        fut: Future = Future()
+        self._queue.put((fn, fut))
+        self._wake.set()
+        return fut
+
+    def call(self, fn: Callable[[], object], timeout: float = 30.0):
+        """Run fn on the update thread and return its result (tests use this)."""
+        return self.submit(fn).result(timeout)
+
+    def wait_idle(self, timeout: float = 10.0) -> None:
+        """Return once the newest worker state has been applied."""
+        self.call(lambda: None, timeout)
+        self.call(self._tick, timeout)
+
+    def _loop(self) -> None:
+        period = 1.0 / self.update_hz
+        while not self._stop.is_set():
+            t0 = time.time()
+            self._drain()
+            try:
+                sent = self._tick()
+            except Exception:
+                sent = -1
+                log.error("viewer update failed:\n%s", traceback.format_exc())
+            self.tick_log.append((t0, time.time() - t0, sent))
+            self._wake.wait(max(0.0, period - (time.time() - t0)))
+            self._wake.clear()
+        self._drain()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                fn, fut = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                fut.set_result(fn())
+            except (AerecError, GcpError) as exc:
+                self.note(str(exc), "error")
+                fut.set_exception(exc)
+            except Exception as exc:
+                log.error("viewer command failed:\n%s", traceback.format_exc())
+                self.note(f"{type(exc).__name__}: {exc}", "error")
+                fut.set_exception(exc)
+
+    # -- the update -----------------------------------------------------------------------------
+    def _tick(self) -> int | None:
+        """Apply the newest worker state; returns the number of points sent (None: no change)."""
+        snap = self.worker.snapshot()
+        if self.worker.models_version != self._models_version:
+            self._models_version = self.worker.models_version
+            self.models = dict(self.worker.models)
+            self._marks_key = None
+            self._update_upgrade_button()
+        if snap.version == self._seen_version and self._marks_key is not None:
+            return None
+        self._seen_version = snap.version
+        with self.server.atomic():
+            sent = self.scene.sync(snap, self.transforms(snap))
+            if snap.status in ("done", "reopened"):
+                self.scene.finish()
+            self._update_panel(snap)
+            self._relayout_plane()
+            if sent and not self._framed:
+                self._framed = True
+                if self.pick_plane is None:
+                    self._reframe_on_plane = True
+                    self.show_image_plane()
+                for client in self.server.get_clients().values():
+                    self._frame_client(client)
+            self._draw_marks()
+            self.dsm_panel.refresh(snap)
+        return sent
+
+    def transforms(self, snap: DisplaySnapshot) -> dict[int, DisplayTransform | None]:
+        """The display transform of each group in the current frame.
+
+        Euclidean: every upgraded group in the shared ENU frame. Affine: each group's own frame;
+        groups after the first are shifted east, side by side (their frames are unrelated)."""
+        if self.frame == "euclidean":
+            return {g: self._euclid.get(g) for g in snap.groups}
+        out = {}
+        for g, gs in sorted(snap.groups.items()):
+            T = gs.transform
+            if T is None:
+                out[g] = None
+                continue
+            dx = self._group_offset(g, snap)
+            if dx == 0.0:
+                out[g] = T
+                continue
+            key = (g, id(T))
+            if key not in self._shifted:
+                self._shifted = {k: v for k, v in self._shifted.items() if k[0] != g}
+                self._shifted[key] = replace(T, b=T.b + np.array([dx, 0.0, 0.0]),
+                                             label=T.label)
+            out[g] = self._shifted[key]
+        return out
+
+    def _group_offset(self, g: int, snap: DisplaySnapshot) -> float:
+        """East shift of group g's affine display: the widths of the groups before it + gaps."""
+        if g in self._offsets:
+            return self._offsets[g]
+        x = 0.0
+        for h in sorted(snap.groups):
+            if h >= g:
+                break
+            lo, hi = self._group_extent(h, snap)
+            x += (hi - lo) * 1.15
+        if g > 0 and x == 0.0:
+            return 0.0                         # the earlier groups have no extent yet
+        lo, hi = self._group_extent(g, snap)
+        self._offsets[g] = x - lo if g > 0 else 0.0
+        return self._offsets[g]
+
+    def _group_extent(self, g: int, snap: DisplaySnapshot) -> tuple[float, float]:
+        """x range of group g's first image footprint in its own affine display."""
+        gs = snap.groups.get(g)
+        first = None if gs is None else min(gs.tiles.values(), key=lambda t: t.order, default=None)
+        if gs is None or gs.transform is None or first is None:
+            return 0.0, 0.0
+        im = self.images.images.get(first.image)
+        fp = image_footprint(gs.transform, first.camera, im.width, im.height)
+        return float(fp[:, 0].min()), float(fp[:, 0].max())
+
+    # -- panel ----------------------------------------------------------------------------------
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        tabs = gui.add_tab_group()
+        with tabs.add_tab("Reconstruction"):
+            self.g_title = gui.add_markdown(f"### AE-Rec · {self.site.name}")
+            self.g_status = gui.add_markdown("starting…")
+            self.g_progress = gui.add_progress_bar(0.0, animated=True)
+            self.g_stats = gui.add_markdown("")
+            self.g_frame = gui.add_markdown("")
+            self.g_pause = gui.add_button("Pause", hint="pauses the reconstruction at its next step")
+            with gui.add_folder("Display"):
+                self.g_size = gui.add_slider("Point size", 0.1, 5.0, 0.1, 1.0)
+                self.g_color = gui.add_dropdown("Colour by", list(COLOR_MODES),
+                                                initial_value=self.scene.settings.color_mode)
+                self.g_budget = gui.add_slider("Point budget (k)", 10, 2000, 10,
+                                               self.scene.settings.budget // 1000,
+                                               hint="points displayed at most; the full cloud "
+                                                    "stays on disk")
+                self.g_tiles = gui.add_dropdown("Tiles", ["textured", "outlines", "hidden"],
+                                                initial_value=self.scene.settings.tiles)
+                self.g_sparse = gui.add_checkbox("Sparse points", True)
+                self.g_dense = gui.add_checkbox("Dense points", True)
+                self.g_reset = gui.add_button("Reset view")
+            self.g_messages = gui.add_markdown("")
+        with tabs.add_tab("GCPs"):
+            self.gcp_panel = GcpPanel(self, gui)
+        with tabs.add_tab("Results"):
+            self.g_upgrade = gui.add_button("Upgrade to Euclidean", disabled=True)
+            self.g_ready = gui.add_markdown("")
+            with gui.add_folder("GCP placement", expand_by_default=False):
+                self.g_ready_list = gui.add_markdown("")
+            self.g_frame_sel = gui.add_dropdown("Frame", ["affine", "Euclidean"],
+                                                initial_value="affine", disabled=True)
+            self.g_upgrade_md = gui.add_markdown("")
+            self.dsm_panel = DsmPanel(self, gui)
+        self._wire()
+        self.gcp_panel.refresh()
+        self._set_regions()
+
+    def _wire(self) -> None:
+        s = self.scene.settings
+        sub = self.submit
+
+        def setter(fn):
+            return lambda _: sub(fn)
+
+        self.g_pause.on_click(setter(self.toggle_pause))
+        self.g_size.on_update(setter(lambda: (setattr(s, "point_size", float(self.g_size.value)),
+                                              self.scene.apply_point_size())))
+        self.g_color.on_update(setter(lambda: (setattr(s, "color_mode", self.g_color.value),
+                                               self.scene.apply_colors())))
+        self.g_budget.on_update(setter(lambda: (setattr(s, "budget", int(self.g_budget.value) * 1000),
+                                                self._force())))
+        self.g_tiles.on_update(setter(lambda: (setattr(s, "tiles", self.g_tiles.value),
+                                               self.scene.set_tiles_visible(self.g_tiles.value != "hidden"),
+                                               self._force())))
+        self.g_sparse.on_update(setter(lambda: (setattr(s, "show_sparse", self.g_sparse.value),
+                                                self.scene.apply_visibility())))
+        self.g_dense.on_update(setter(lambda: (setattr(s, "show_dense", self.g_dense.value),
+                                               self.scene.apply_visibility(), self._force())))
+        self.g_reset.on_click(lambda ev: sub(lambda: self._frame_client(ev.client)))
+        self.g_upgrade.on_click(setter(self.do_upgrade))
+        self.g_frame_sel.on_update(setter(lambda: self.set_frame(
+            "euclidean" if self.g_frame_sel.value == "Euclidean" else "affine")))
+
+    def _force(self) -> None:
+        self._seen_version = -1
+
+    def _set_md(self, handle, text: str) -> None:
+        key = id(handle)
+        if self._gui_cache.get(key) != text:
+            self._gui_cache[key] = text
+            handle.content = text
+
+    def _update_panel(self, snap: DisplaySnapshot) -> None:
+        status = {"running": "running", "paused": "**paused**", "done": "finished",
+                  "reopened": "reopened (nothing recomputed)", "failed": "**failed**",
+                  "stopped": "stopped", "starting": "starting"}.get(snap.status, snap.status)
+        stage = ""
+        if snap.stage:
+            grp = "" if snap.stage_group is None else f" [group {snap.stage_group}]"
+            stage = f" · stage **{snap.stage}**{grp} {snap.stage_done}/{snap.stage_total}"
+            if snap.stage_message:
+                stage += f" · {snap.stage_message}"
+        text = f"{status}{stage}"
+        if snap.error:
+            text += f"\n\n**Error:** {snap.error}"
+        self._set_md(self.g_status, text)
+        if snap.stage_total:
+            self.g_progress.value = float(100.0 * snap.stage_done / snap.stage_total)
+        done = snap.status in ("done", "reopened", "failed", "stopped")
+        if done:
+            self.g_progress.value = 100.0
+        self.g_progress.animated = not done and snap.status != "paused"
+        self.g_pause.label = "Resume" if snap.status == "paused" else "Pause"
+        self.g_pause.disabled = done
+        self._set_md(self.g_stats, self._stats_md(snap))
+        label = next((T.label for T in self.transforms(snap).values() if T is not None), "")
+        self._set_md(self.g_frame, f"*Frame:* {label}" if label else "")
+        msgs = [m for m in snap.messages if m[0] != "debug"][-6:]
+        self._set_md(self.g_messages, "\n".join(f"- {lvl}: {txt}" for lvl, txt in msgs))
+        self._update_upgrade_button()
+
+    def _stats_md(self, snap: DisplaySnapshot) -> str:
+        rows = ["| | |", "|---|---:|"]
+        for g, gs in sorted(snap.groups.items()):
+            pre = f"g{g} " if len(snap.groups) > 1 else ""
+            rows.append(f"| {pre}tiles registered | {len(gs.tiles)} / {gs.total_tiles} |")
+            rows.append(f"| {pre}sparse points | {gs.sparse.n:,} |")
+            if gs.dense.n:
+                thin = "" if gs.dense.kept_fraction >= 1 else f" (kept 1/{1 / gs.dense.kept_fraction:.0f})"
+                rows.append(f"| {pre}dense points | {gs.dense.n:,}{thin} |")
+            if gs.ba:
+                rows.append(f"| {pre}reprojection RMS (last BA) | {gs.ba['rms_px']:.3f} px |")
+                rows.append(f"| {pre}BA cost ({gs.ba['scope']}) | {gs.ba['cost_before']:.4g} → "
+                            f"{gs.ba['cost_after']:.4g} |")
+        rows.append(f"| points displayed | {self.scene.displayed_points():,} |")
+        for k, v in snap.stages_finished.items():
+            rows.append(f"| {k} done | {v:.1f} s |")
+        return "\n".join(rows)
+
+    def toggle_pause(self) -> None:
+        if self.worker.paused:
+            self.worker.resume()
+        else:
+            self.worker.pause()
+
+    def note(self, text: str, level: str = "info") -> None:
+        """Show a one-line status in the GCP tab and in the messages list."""
+        self.gcp_panel.status.content = f"**{level}:** {text}" if level != "info" else text
+        self.worker.message(text, level)
+
+    # -- cameras --------------------------------------------------------------------------------
+    def scene_bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Bounds of the displayed cloud joined with the ground each group's first image covers
+        (so the view and the picking plane fit the whole site while the cloud still grows)."""
+        b = self.scene.bounds()
+        if b is None:
+            return None
+        lo, hi = (np.asarray(v, dtype=np.float64) for v in b)
+        snap = self.worker.snapshot()
+        for g, T in self.transforms(snap).items():
+            tiles = snap.groups[g].tiles
+            first = min(tiles.values(), key=lambda t: t.order, default=None)
+            if T is None or first is None or first.image not in self.images.images:
+                continue
+            im = self.images.images[first.image]
+            try:
+                fp = image_footprint(T, first.camera, im.width, im.height, z=float(lo[2]))
+            except np.linalg.LinAlgError:
+                continue
+            lo[:2] = np.minimum(lo[:2], fp[:, :2].min(axis=0))
+            hi[:2] = np.maximum(hi[:2], fp[:, :2].max(axis=0))
+        return lo, hi
+
+    def _frame_client(self, client) -> None:
+        """Point a client's camera at the cloud, obliquely from the south, leaving room for the
+        panel on the right (the picking plane lies further east: "Look at the image plane")."""
+        b = self.scene_bounds()
+        if b is None:
+            return
+        lo, hi = (np.asarray(v, dtype=np.float64) for v in b)
+        c = (lo + hi) / 2
+        size = float(max(hi[0] - lo[0], hi[1] - lo[1], 1e-6))
+        look = c + np.array([0.22 * size, 0.0, 0.0])      # the panel covers the right side
+        client.camera.far = 50.0 * size
+        client.camera.near = 1e-4 * size
+        client.camera.max_orbit_distance = 20.0 * size
+        client.camera.up_direction = (0.0, 0.0, 1.0)
+        client.camera.position = tuple(look + size * np.array([0.0, -0.6, 0.7]))
+        client.camera.look_at = tuple(look)
+
+    def look_at_plane(self, client) -> None:
+        """Put a client's camera straight above the picking plane (for precise clicks)."""
+        p = self.pick_plane
+        if p is None:
+            return
+        size = max(p.render_width, p.render_height)
+        client.camera.far = 50.0 * size
+        client.camera.up_direction = (0.0, 1.0, 0.0)
+        client.camera.position = tuple(p.position + np.array([0.0, -1e-3 * size, 1.25 * size]))
+        client.camera.look_at = tuple(p.position)
+
+    # -- GCPs -----------------------------------------------------------------------------------
+    def _set_regions(self) -> None:
+        img = self.gcp_panel.image.value
+        self._regions = {"whole image": self.images.whole(img)}
+        for tid, win in sorted(self.scene.tile_windows.items()):
+            if win.image == img:
+                self._regions[f"tile {tid.split(':')[-1]} ({win.width} x {win.height} at "
+                              f"{win.col0}, {win.row0})"] = win
+        self.gcp_panel.set_regions(list(self._regions)[1:])
+
+    def current_window(self) -> ImageWindow:
+        self._set_regions()
+        return self._regions.get(self.gcp_panel.region.value, self.images.whole(self.gcp_panel.image.value))
+
+    def show_image_plane(self, wait: bool = False) -> None:
+        """(Re)draw the picking plane for the image and region chosen in the GCP tab.
+
+        The texture (at most 2048 px a side) is read on a helper thread, so a first read of a
+        large image never stalls the scene updates; `wait` reads it here (tests)."""
+        if not self.gcp_panel.show_plane.value:
+            if self._plane_handle is not None:
+                self._plane_handle.remove()
+            self._plane_handle, self.pick_plane, self._plane_key = None, None, None
+            self._marks_key = None
+            return
+        win = self.current_window()
+        token = self._plane_token = object()
+        if wait:
+            self._place_plane(win, self.images.read(win, 2048), token)
+            return
+
+        def read() -> None:
+            try:
+                tex = self.images.read(win, 2048)
+            except Exception as exc:
+                self.submit(lambda: self.note(f"cannot read {win.image}: {exc}", "error"))
+                return
+            self.submit(lambda: self._place_plane(win, tex, token))
+
+        threading.Thread(target=read, name="aerec-plane-read", daemon=True).start()
+
+    def _place_plane(self, win: ImageWindow, tex: np.ndarray, token: object) -> None:
+        if token is not self._plane_token:            # a newer choice superseded this one
+            return
+        plane = layout_pick_plane(win, self.scene_bounds())
+        h = self.server.scene.add_image("/gcp/plane", np.repeat(tex[..., None], 3, axis=2),
+                                        plane.render_width, plane.render_height, format="jpeg",
+                                        jpeg_quality=90, wxyz=plane.wxyz, position=plane.position,
+                                        cast_shadow=False, receive_shadow=False)
+        h.on_click(lambda ev: self.submit(lambda: self.on_plane_click(ev.ray_origin, ev.ray_direction)))
+        self._plane_handle, self.pick_plane = h, plane
+        self._plane_key = self._bounds_key()
+        self._marks_key = None
+        self._draw_marks()
+        if self._reframe_on_plane:                    # the first view should show the plane too
+            self._reframe_on_plane = False
+            for client in self.server.get_clients().values():
+                self._frame_client(client)
+
+    def _bounds_key(self):
+        b = self.scene_bounds()
+        return None if b is None else (self.frame, tuple(np.round(np.r_[b[0], b[1]], 3)))
+
+    def _relayout_plane(self) -> None:
+        if self.pick_plane is None or self._plane_handle is None:
+            return
+        key = self._bounds_key()
+        if key is None or key == self._plane_key:
+            return
+        old = self.pick_plane
+        new = layout_pick_plane(old.window, self.scene_bounds())
+        grow = new.render_width / old.render_width
+        if key[0] != (self._plane_key or (None,))[0] or not (0.8 < grow < 1.25):
+            self.show_image_plane(wait=True)            # the texture is cached by now
+            return
+        moved = np.linalg.norm(new.position - old.position) / old.render_width
+        if moved > 0.05:
+            self._plane_handle.position = tuple(new.position)
+            self.pick_plane = PickPlane(old.window, new.position, old.wxyz, old.render_width,
+                                        old.render_height)
+            self._marks_key = None
+        self._plane_key = key
+
+    def on_plane_click(self, ray_origin, ray_direction) -> tuple[float, float] | None:
+        """A click on the picking plane: an observation of the selected (or a new) GCP."""
+        if self._armed is not None or self.pick_plane is None:
+            return None
+        pix = pixel_from_ray(self.pick_plane, ray_origin, ray_direction)
+        if pix is None:
+            self.note("the click missed the image", "warning")
+            return None
+        gid = self.gcp_panel.selected()
+        if gid is None:
+            x, y, h, epsg = self.gcp_panel._ground()
+            if x == 0.0 and y == 0.0:
+                raise GcpError("select a GCP, or type the new GCP's ground coordinates "
+                               "(or take one from the site list) before clicking")
+            gid = new_gcp(self.session, self.gcp_panel.gid.value or None, x=x, y=y, h=h,
+                          epsg=epsg, role=self.gcp_panel.role.value).id
+        image = self.pick_plane.window.image
+        add_observation(self.session, gid, image, *pix)
+        self.last_click = (gid, image, pix[0], pix[1])
+        self.gcps_changed(select=gid, note=f"{gid}: observed in {image} at col {pix[0]:.2f}, "
+                                           f"row {pix[1]:.2f}")
+        return pix
+
+    def arm_cloud_pick(self) -> None:
+        """The next click in the scene sets the selected GCP's affine position."""
+        gid = self.gcp_panel.selected()
+        if gid is None:
+            raise GcpError("select a GCP first")
+        if self._armed is not None:
+            self.server.scene.remove_click_callback(self._armed)
+
+        def on_click(ev) -> None:
+            self.submit(lambda: self.on_cloud_click(gid, ev.ray_origin, ev.ray_direction))
+
+        self._armed = on_click
+        self.server.scene.on_click()(on_click)
+        self.note(f"click a point of the cloud to place {gid}")
+
+    def on_cloud_click(self, gcp_id: str, ray_origin, ray_direction) -> np.ndarray | None:
+        """Set a GCP's affine position to the displayed point nearest to the click ray."""
+        if self._armed is not None:
+            self.server.scene.remove_click_callback(self._armed)
+            self._armed = None
+        best = self.pick_cloud_point(ray_origin, ray_direction)
+        if best is None:
+            self.note("no point of the cloud near the click; press the button and try again",
+                      "warning")
+            return None
+        g, xyz = best
+        set_affine_position(self.session, gcp_id, g, xyz)
+        self.gcps_changed(select=gcp_id, note=f"{gcp_id}: affine position picked on the cloud "
+                                              f"of group {g}")
+        return xyz
+
+    def pick_cloud_point(self, ray_origin, ray_direction) -> tuple[int, np.ndarray] | None:
+        """(group, affine xyz) of the displayed point nearest to a ray, or None."""
+        best = None
+        for (g, kind), st in self.scene._clouds.items():
+            if st.transform is None:
+                continue
+            for ch in st.chunks:
+                k = closest_point_to_ray(ch.xyz, ray_origin, ray_direction, max_angle=0.02)
+                if k is None:
+                    continue
+                d = np.asarray(ray_direction, float)
+                v = ch.xyz[k] - np.asarray(ray_origin, float)
+                ang = np.linalg.norm(np.cross(v, d / np.linalg.norm(d))) / max(v @ d, 1e-12)
+                if best is None or ang < best[0]:
+                    best = (ang, g, st.transform.inverse(ch.xyz[k:k + 1])[0])
+        return None if best is None else (best[1], best[2])
+
+    def gcps_changed(self, select: str | None = "keep", note: str | None = None) -> None:
+        self.gcp_panel.refresh(select)
+        self._marks_key = None
+        if note:
+            self.note(note)
+        self._update_upgrade_button()
+        self._draw_marks()
+
+    def gcp_affine_positions(self, g: int) -> dict[str, np.ndarray]:
+        """Affine position of every GCP placeable in group g (picked, else triangulated)."""
+        from recon_core.georef import triangulate_gcp
+
+        model = self.models.get(g)
+        out = dict(picked_for_group(self.session, g))
+        if model is None:
+            return out
+        for gcp in self.session.gcps:
+            if gcp.id in out:
+                continue
+            key = (g, gcp.id, tuple(sorted(gcp.observations.items())))
+            if key not in self._tri_cache:
+                self._tri_cache[key] = triangulate_gcp(model, gcp.observations).xyz
+            if self._tri_cache[key] is not None:
+                out[gcp.id] = self._tri_cache[key]
+        return out
+
+    def marker_positions(self) -> dict[str, tuple[np.ndarray, tuple[int, int, int], str]]:
+        """Scene path -> (display position, colour, label) of every GCP marker to show: on the
+        picking plane for observations in its window, on each group's cloud for placed GCPs."""
+        snap_T = {g: T for g, T in self.transforms(self.worker.snapshot()).items() if T is not None}
+        sel = self.gcp_panel.selected()
+        roles = {g.id: g.role for g in self.session.gcps}
+
+        def colour(gid):
+            return MARK_SEL if gid == sel else (MARK_CHECK if roles.get(gid) == "check" else MARK)
+
+        want = {}
+        r = self._marker_radius()
+        if self.pick_plane is not None:
+            win = self.pick_plane.window
+            for gcp in self.session.gcps:
+                ob = gcp.observations.get(win.image)
+                if ob is not None and win.contains(*ob):
+                    want[f"/gcp/plane_marks/{safe_name(gcp.id)}"] = (
+                        self.pick_plane.point_of(ob[0], ob[1], lift=0.5 * r), colour(gcp.id), gcp.id)
+        shown: set[str] = set()
+        for g, T in sorted(snap_T.items()):
+            for gid, xyz in self.gcp_affine_positions(g).items():
+                if self.frame == "euclidean" and gid in shown:
+                    continue                  # groups share the ENU frame: one marker per GCP
+                shown.add(gid)
+                want[f"/gcp/cloud/g{g}/{safe_name(gid)}"] = (
+                    T.apply(np.asarray(xyz)[None])[0].astype(float), colour(gid), gid)
+        return want
+
+    def _marker_radius(self) -> float:
+        b = self.scene_bounds()
+        size = 1000.0 if b is None else float(max(b[1][0] - b[0][0], b[1][1] - b[0][1], 1e-6))
+        return size / 90.0
+
+    def _draw_marks(self) -> None:
+        """Add, move, recolour or remove GCP markers (spheres with labels) to match the state."""
+        snap_T = self.transforms(self.worker.snapshot())
+        key = (self.session.version, self.gcp_panel.select.value, self.frame,
+               None if self.pick_plane is None else (self.pick_plane.window, tuple(self.pick_plane.position)),
+               tuple((g, id(T)) for g, T in sorted(snap_T.items())), len(self.models))
+        if key == self._marks_key:
+            return
+        self._marks_key = key
+        want = self.marker_positions()
+        r = self._marker_radius()
+        sc = self.server.scene
+        for name in [n for n in self._marks if n not in want]:
+            for h in self._marks.pop(name)[:2]:
+                h.remove()
+        for name, (pos, col, text) in want.items():
+            have = self._marks.get(name)
+            if have is not None and have[2] == col and abs(have[3] / r - 1) < 0.3:
+                if np.linalg.norm(have[4] - pos) > 1e-6 * r:
+                    have[0].position = tuple(pos)
+                    have[1].position = tuple(pos)
+                    self._marks[name] = (have[0], have[1], col, have[3], pos)
+                continue
+            if have is not None:
+                have[0].remove()
+                have[1].remove()
+            sphere = sc.add_icosphere(name, radius=r, color=col, position=tuple(pos),
+                                      cast_shadow=False, subdivisions=2)
+            label = sc.add_label(f"{name}_label", text, position=tuple(pos), anchor="bottom-left",
+                                 font_screen_scale=0.7)
+            self._marks[name] = (sphere, label, col, r, pos)
+
+    # -- upgrade --------------------------------------------------------------------------------
+    def _update_upgrade_button(self) -> None:
+        ready = gcp_readiness(self.session, self.models)
+        n = n_ready(self.session, self.models)
+        can = bool(self.models) and n >= 4
+        self.g_upgrade.disabled = not can
+        why = ("waiting for the sparse model" if not self.models else
+               f"{n} control GCP(s) placeable, 4 needed" if n < 4 else
+               f"{n} control GCPs placeable")
+        stale = ""
+        if self.upgrade is not None and self.upgrade.gcps_version != self.session.version:
+            stale = "\n\n*The GCPs changed since the last upgrade: press Upgrade again.*"
+        self._set_md(self.g_ready, f"{why}.{stale}")
+        self._set_md(self.g_ready_list, "\n".join(f"- {gid} ({self.session.get(gid).role}): {txt}"
+                                                  for gid, (_, txt) in ready.items()))
+
+    def do_upgrade(self) -> UpgradeOutcome:
+        """The Upgrade button: fit H_A, switch the scene to the Euclidean frame, show residuals."""
+        try:
+            outcome = run_upgrade(self.session, self.models, out=self.out)
+        except AerecError as exc:
+            self._set_md(self.g_upgrade_md, f"**Upgrade failed:** {exc}")
+            raise
+        self.upgrade = outcome
+        self._euclid = {g: outcome.transform(g) for g in outcome.results}
+        self._set_md(self.g_upgrade_md, outcome_markdown(outcome))
+        self.g_frame_sel.disabled = False
+        self.set_frame("euclidean")
+        self._update_upgrade_button()
+        return outcome
+
+    def set_frame(self, frame: str) -> None:
+        if frame == "euclidean" and not self._euclid:
+            frame = "affine"
+        want = "Euclidean" if frame == "euclidean" else "affine"
+        if self.g_frame_sel.value != want:
+            self.g_frame_sel.value = want
+        if frame == self.frame:
+            return
+        self.frame = frame
+        self.scene.clear()
+        self._force()
+        self._framed = False
+        self._marks_key = None
+        self._plane_key = ("reset",)
+        self._tick()
+        self.dsm_panel.frame_changed()
+
+
+def _read_report(out: Path) -> dict:
+    import json
+
+    p = out / "report.json"
+    if not p.exists():
+        return {}
+    try:
+        return json.loads(p.read_text())
+    except ValueError:
+        return {}
+
+
+def _site_from_report(out: Path, report: dict) -> Path:
+    from recon_core.errors import InputError
+
+    site = report.get("site")
+    if not site:
+        raise InputError(out / "report.json", "names no site; pass the site folder with --site")
+    for cand in (Path(site), out.parent / site, out / site):   # relative paths: try near OUT
+        if cand.is_dir():
+            return cand
+    if not Path(site).is_dir():
+        raise InputError(Path(site), f"the site named by {out / 'report.json'} is not there; "
+                                     "pass the site folder with --site")
+    return Path(site)

@@ -1,0 +1,156 @@
+"""`aerec view [SITE_OR_OUT]`: the browser viewer, registered through the `aerec.commands` entry point.
+
+- no argument: the bundled demo site, generated offline on first use into the cache folder
+  ($AEREC_CACHE, else $XDG_CACHE_HOME/aerec, else ~/.cache/aerec) as `demo_site/`, reconstructed
+  into `demo_site_aerec_out/` beside it;
+- a folder with `images/`: a site, reconstructed live into OUT (default
+  `<site>/../<site name>_aerec_out`, or `<cache>/runs/<site name>_aerec_out` when the site's
+  parent is not writable; `--out` to choose);
+- a folder with `report.json` or `affine/`: a finished OUT, reopened without recomputing (the
+  report names the site; `--site` when it moved).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+
+def cache_dir() -> Path:
+    base = os.environ.get("AEREC_CACHE")
+    if base:
+        return Path(base)
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "aerec"
+
+
+def demo_site(progress=None) -> Path:
+    """The demo site, generated (offline, seed 0) on first use; atomic (tmp folder + rename)."""
+    site = cache_dir() / "demo_site"
+    if (site / "images").is_dir():
+        return site
+    from recon_core.synthetic import generate_site
+
+    tmp = site.with_name(f".demo_site.tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.parent.mkdir(parents=True, exist_ok=True)
+    generate_site(tmp, preset="demo", seed=0, progress=progress)
+    try:
+        os.replace(tmp, site)
+    except OSError:                       # another process won the race
+        shutil.rmtree(tmp, ignore_errors=True)
+    return site
+
+
+def _demo_progress():
+    """A progress printer for the first-run generation of the demo site (None when cached)."""
+    if (cache_dir() / "demo_site" / "images").is_dir():
+        return None
+    from recon_core.cli import ProgressPrinter
+
+    print(f"aerec view: generating the demo site into {cache_dir() / 'demo_site'} "
+          "(first run only, offline)", file=sys.stderr)
+    return ProgressPrinter(True)
+
+
+def is_out_folder(p: Path) -> bool:
+    return (p / "report.json").exists() or (p / "affine").is_dir()
+
+
+def default_out(site: Path) -> Path:
+    """<site>/../<name>_aerec_out, or the cache when the site's parent is not writable."""
+    site = site.resolve()
+    cand = site.parent / f"{site.name}_aerec_out"
+    if os.access(site.parent, os.W_OK) or (cand.exists() and os.access(cand, os.W_OK)):
+        return cand
+    return cache_dir() / "runs" / f"{site.name}_aerec_out"
+
+
+def resolve_target(target: Path | None, out: Path | None, site: Path | None
+                   ) -> tuple[str, Path | None, Path]:
+    """(mode, site, out) for the command-line arguments. mode: "run" or "reopen"."""
+    from recon_core.errors import InputError
+
+    if target is None:
+        s = site or demo_site(progress=_demo_progress())
+        return "run", s, out or default_out(s)
+    target = Path(target)
+    if not target.is_dir():
+        raise InputError(target, "is neither a site folder (with images/) nor an output folder "
+                                 "(with report.json)")
+    if (target / "images").is_dir():
+        return "run", target, out or default_out(target)
+    if is_out_folder(target):
+        return "reopen", site, target
+    raise InputError(target, "is neither a site folder (with images/) nor an output folder "
+                             "(with report.json or affine/)")
+
+
+def cmd_view(args) -> int:
+    from recon_core.config import preset
+
+    from .app import ViewerApp
+
+    mode, site, out = resolve_target(args.target, args.out, args.site)
+    cfg = None
+    if mode == "run" or args.preset or args.tile_size:
+        cfg = preset(args.preset or "default")
+        if args.tile_size:
+            cfg = cfg.with_overrides({"tiling.tile_size": args.tile_size})
+    app = ViewerApp(out, site, cfg, mode=mode, host=args.host, port=args.port)
+    app.start()
+    what = "reopening" if mode == "reopen" else "reconstructing"
+    print(f"aerec view: {what} {app.site.root} -> {out}")
+    print(f"aerec view: open {app.url}")
+    if not args.no_browser_hint:
+        if args.host in ("127.0.0.1", "localhost"):
+            print("  (bound to this machine only; from another machine use "
+                  f"`ssh -L {app.port}:127.0.0.1:{app.port} HOST` or --host 0.0.0.0)")
+        print("  Ctrl-C to quit; picked GCPs are saved to "
+              f"{app.session.path} after every change.")
+    sys.stdout.flush()
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        print("aerec view: stopping", file=sys.stderr)
+    finally:
+        app.stop()
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add the `view` subcommand to the `aerec` command (entry point `aerec.commands`)."""
+    s = subparsers.add_parser("view", help="browser viewer: live reconstruction, GCP picking, "
+                                           "Euclidean upgrade, DSM and error maps")
+    s.add_argument("target", type=Path, nargs="?", default=None,
+                   help="site folder (reconstruct it) or output folder (reopen it); "
+                        "none: the demo site")
+    s.add_argument("--out", type=Path, default=None, help="output folder for a site")
+    s.add_argument("--site", type=Path, default=None,
+                   help="the site of a reopened OUT, when report.json's path moved")
+    s.add_argument("--host", default="127.0.0.1", help="interface to serve on (default 127.0.0.1)")
+    s.add_argument("--port", type=int, default=8080, help="port (a busy one moves to the next)")
+    s.add_argument("--tile-size", type=int, default=None, help="tile side d in pixels")
+    s.add_argument("--preset", default=None, help="parameter preset (default, tiny)")
+    s.add_argument("--no-browser-hint", action="store_true",
+                   help="print only the URL, not the ssh-tunnel and save-file hints")
+    s.set_defaults(func=cmd_view)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m aerec_viewer [SITE_OR_OUT] ...`: the same as `aerec view ...`."""
+    from recon_core.errors import AerecError
+
+    p = argparse.ArgumentParser(prog="python -m aerec_viewer")
+    sub = p.add_subparsers(dest="command")
+    register(sub)
+    args = p.parse_args(["view", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        return int(args.func(args) or 0)
+    except AerecError as exc:
+        print(f"aerec view: error: {exc}", file=sys.stderr)
+        return 2

@@ -1,0 +1,378 @@
+"""Euclidean upgrade from the working GCP set, its residual table, and the DSM / error-map panel.
+
+`run_upgrade` is what the "Upgrade" button calls: one H_A per date group (recon_core.georef),
+all in one local ENU frame at the control GCPs' centroid, so upgraded groups share the scene.
+Its outcome is also written to OUT/viewer_upgrade.json. `DsmPanel` shows OUT/dsm.tif and the
+evaluation (recon_core.evaluate) once the later stages wrote them, and drapes the error map.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from recon_core.errors import AerecError, ReconstructionError
+from recon_core.io_utils import write_json
+
+from .display import DisplayTransform, euclidean_display_transform
+from .gcp_panel import GcpSession, picked_for_group
+
+
+@dataclass
+class UpgradeOutcome:
+    """Result of an upgrade over every group.
+
+    Attributes:
+        results: group -> UpgradeResult (recon_core.upgrade) of the groups that succeeded.
+        errors: group -> message of the groups that could not be upgraded.
+        frame: the shared LocalFrame (None when no GCP at all).
+        affine: group -> {gcp id: GcpAffine} (how each GCP was placed in that group).
+        gcps_version: the GcpSession version the upgrade used.
+    """
+
+    results: dict = field(default_factory=dict)
+    errors: dict[int, str] = field(default_factory=dict)
+    frame: object | None = None
+    affine: dict = field(default_factory=dict)
+    gcps_version: int = -1
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.results)
+
+    def transform(self, g: int) -> DisplayTransform | None:
+        r = self.results.get(g)
+        return None if r is None else euclidean_display_transform(r.H, self.frame.origin_llh)
+
+    def to_dict(self) -> dict:
+        return {"frame_origin_llh": None if self.frame is None else self.frame.origin_llh.tolist(),
+                "groups": {str(g): r.to_dict() for g, r in self.results.items()},
+                "errors": {str(g): e for g, e in self.errors.items()}}
+
+
+def gcp_readiness(session: GcpSession, models: dict) -> dict[str, tuple[bool, str]]:
+    """GCP id -> (can get an affine position, how): >= 2 observed images of a group, or picked."""
+    out = {}
+    for g in session.gcps:
+        if session.picked.get(g.id):
+            out[g.id] = (True, "picked on the cloud")
+            continue
+        n = max((sum(1 for im in g.observations if im in m.images) for m in models.values()),
+                default=len(g.observations))
+        out[g.id] = (n >= 2, f"observed in {n} image(s)" + ("" if n >= 2 else
+                                                           ": needs 2, or a pick on the cloud"))
+    return out
+
+
+def n_ready(session: GcpSession, models: dict, role: str | None = "control") -> int:
+    """Number of GCPs (of a role) that can get an affine position."""
+    ready = gcp_readiness(session, models)
+    return sum(1 for g in session.gcps if ready[g.id][0] and (role is None or g.role == role))
+
+
+def run_upgrade(session: GcpSession, models: dict, *, out: str | Path | None = None,
+                ransac_thresh_m: float = 2.0) -> UpgradeOutcome:
+    """Fit H_A for every group from the working GCP set (what the Upgrade button does).
+
+    Raises:
+        ReconstructionError: no model yet, or no group could be upgraded (the message of each
+            group's failure, e.g. too few usable control GCPs, is in it).
+    """
+    from recon_core.georef import frame_for, upgrade_group
+
+    if not models:
+        raise ReconstructionError("no sparse model yet: wait for the sparse stage to finish")
+    gcps = list(session.gcps)
+    frame = frame_for(gcps)
+    outcome = UpgradeOutcome(frame=frame, gcps_version=session.version)
+    for g, model in sorted(models.items()):
+        try:
+            res, _, aff = upgrade_group(model, gcps, frame, picked_for_group(session, g),
+                                        ransac_thresh_m=ransac_thresh_m)
+        except AerecError as exc:
+            outcome.errors[g] = str(exc)
+            continue
+        outcome.results[g] = res
+        outcome.affine[g] = aff
+    if out is not None:
+        write_json(Path(out) / "viewer_upgrade.json", outcome.to_dict())
+    if not outcome.results:
+        raise ReconstructionError("; ".join(f"group {g}: {e}" for g, e in outcome.errors.items()))
+    return outcome
+
+
+def _f(v, fmt: str = "+.2f") -> str:
+    return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, fmt)
+
+
+def residual_table_markdown(result: dict) -> str:
+    """The GCP residual table (control and check points) of an UpgradeResult.to_dict()."""
+    rows = ["| GCP | role | status | dE m | dN m | dU m | reproj px |",
+            "|---|---|---|---:|---:|---:|---:|"]
+    order = {"used": 0, "rejected": 1, "check": 2, "unusable": 3}
+    for p in sorted(result["points"], key=lambda p: (order.get(p["status"], 9), p["id"])):
+        flag = " ⚠" if p.get("reproj_suspect") else ""
+        rows.append(f"| {p['id']} | {p['role']} | {p['status']} | {_f(p['dE'])} | {_f(p['dN'])} | "
+                    f"{_f(p['dU'])} | {_f(p.get('reproj_rms_px'), '.2f')}{flag} |")
+    lines = ["\n".join(rows), ""]
+    for name in ("control", "check", "loo"):
+        st = result["stats"].get(name) or {}
+        if st.get("n"):
+            lines.append(f"- **{name}** (n = {st['n']}): RMSE E {st['rmse_E_m']:.3f}, "
+                         f"N {st['rmse_N_m']:.3f}, U {st['rmse_U_m']:.3f} m; "
+                         f"CE90 {st['ce90_m']:.3f} m, LE90 {st['le90_m']:.3f} m")
+    cond = result.get("conditioning") or {}
+    if cond.get("warning"):
+        lines.append(f"\n**Conditioning warning:** {cond['warning']}")
+    elif cond:
+        lines.append(f"- conditioning: {cond.get('level', '?')} (GCPs {cond.get('plane_rms_m', 0):.1f} m "
+                     "RMS off their plane)")
+    for w in result.get("warnings", []):
+        if w != cond.get("warning"):
+            lines.append(f"\n**Warning:** {w}")
+    for n in result.get("notes", []):
+        lines.append(f"\n*Note:* {n}")
+    for r in result.get("rejections", []):
+        lines.append(f"- {r['id']} not used: {r['reason']}")
+    return "\n".join(lines)
+
+
+def outcome_markdown(outcome: UpgradeOutcome) -> str:
+    parts = []
+    for g, r in sorted(outcome.results.items()):
+        parts.append(f"#### Group {g}: Euclidean upgrade ({r.n_control_used} control GCPs, "
+                     f"{r.dof} dof)\n\n" + residual_table_markdown(r.to_dict()))
+    for g, e in sorted(outcome.errors.items()):
+        parts.append(f"#### Group {g}: not upgraded\n\n{e}")
+    return "\n\n".join(parts)
+
+
+# -- DSM and evaluation ---------------------------------------------------------------------
+@dataclass(frozen=True)
+class DsmProducts:
+    """What OUT holds for the DSM panel."""
+
+    dsm: Path | None
+    eval_json: Path | None
+    error_png: Path | None
+    comparison_png: Path | None
+    error_tif: Path | None = None
+
+
+def find_dsm_products(out: str | Path) -> DsmProducts:
+    """OUT/dsm.tif and the evaluation files (eval.json, height_error.png) in OUT or OUT/eval."""
+    out = Path(out)
+
+    def first(name: str) -> Path | None:
+        for d in (out, out / "eval", out / "evaluation"):
+            if (d / name).exists():
+                return d / name
+        return None
+
+    dsm = out / "dsm.tif"
+    return DsmProducts(dsm if dsm.exists() else None, first("eval.json"), first("height_error.png"),
+                       first("dsm_vs_gt.png"), first("height_error.tif"))
+
+
+def core_has(module: str, name: str) -> bool:
+    """Whether recon_core.<module> exists and defines `name` (parts land at different times)."""
+    if importlib.util.find_spec(f"recon_core.{module}") is None:
+        return False
+    return hasattr(importlib.import_module(f"recon_core.{module}"), name)
+
+
+def dsm_preview(dsm_path: Path, max_side: int = 640) -> np.ndarray:
+    """Shaded-relief RGB of a DSM with a height colour bar (for the panel)."""
+    from recon_core import colormap as cm
+    from recon_core.dsm import read_dsm
+
+    H, grid = read_dsm(dsm_path)
+    ok = np.isfinite(H)
+    lo, hi = (np.percentile(H[ok], [2, 98]) if ok.any() else (0.0, 1.0))
+    rgb = cm.resize_for_display(cm.shaded(H, grid.res, lo, hi),
+                                200, max_side)
+    bar = cm.colorbar(rgb.shape[0], float(lo), float(hi), lambda v: cm.sequential(v, lo, hi))
+    return cm.hstack([rgb, bar])
+
+
+def read_png(path: Path) -> np.ndarray:
+    import cv2
+
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise OSError(f"cannot read {path}")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def eval_markdown(ev: dict) -> str:
+    """Median error, completeness, RMSE and alignment of an evaluate_dsm result."""
+    a = ev.get("aligned", {})
+    al = ev.get("alignment", {})
+
+    def g(d, *keys):
+        for k in keys:
+            if d.get(k) is not None:
+                return d[k]
+        return None
+
+    med, comp, rmse = g(a, "median_abs_err_m"), g(a, "completeness_pct", "completeness"), g(a, "rmse_m")
+    lines = ["| figure | value |", "|---|---:|",
+             f"| median abs. height error | {_f(med, '.3f')} m |",
+             f"| completeness (abs. error < 1 m) | {_f(comp, '.1f')} % |",
+             f"| RMSE | {_f(rmse, '.3f')} m |",
+             f"| alignment dx, dy, dz | {_f(al.get('dx_m'))}, {_f(al.get('dy_m'))}, "
+             f"{_f(al.get('dz_m'))} m |"]
+    for w in ev.get("warnings", []):
+        lines.append(f"\n**Warning:** {w}")
+    return "\n".join(lines)
+
+
+def evaluate_now(out: Path, gt: Path) -> dict:
+    """Run recon_core.evaluate.evaluate_dsm(OUT/dsm.tif, gt) into OUT/eval."""
+    from recon_core.evaluate import evaluate_dsm
+
+    return evaluate_dsm(out / "dsm.tif", gt, out / "eval")
+
+
+def load_eval(p: DsmProducts) -> dict | None:
+    if p.eval_json is None:
+        return None
+    try:
+        return json.loads(p.eval_json.read_text())
+    except ValueError:
+        return None
+
+
+def error_map_drape(error_tif: Path, frame, clip_m: float = 3.0,
+                    max_side: int = 1024) -> tuple[np.ndarray, np.ndarray]:
+    """The height-error raster as an RGBA texture and its 4 corners in the local ENU frame.
+
+    Returns (rgba (h, w, 4) uint8: diverging colours clipped at +-clip_m, NaN transparent;
+    corners (4, 3): top-left, top-right, bottom-right, bottom-left, ENU metres, z = 0).
+    """
+    import rasterio
+
+    from recon_core import colormap as cm
+    from recon_core.geodesy import projected_to_geodetic
+
+    with rasterio.open(error_tif) as ds:
+        f = max(1, int(np.ceil(max(ds.width, ds.height) / max_side)))
+        err = ds.read(1, out_shape=(max(1, ds.height // f), max(1, ds.width // f)),
+                      masked=True).astype(np.float32).filled(np.nan)
+        t, epsg = ds.transform, ds.crs.to_epsg()
+        W, H = ds.width, ds.height
+    rgba = np.dstack([cm.diverging(err, clip_m), np.where(np.isfinite(err), 235, 0).astype(np.uint8)])
+    xy = np.array([t @ (0, 0), t @ (W, 0), t @ (W, H), t @ (0, H)], dtype=np.float64)
+    h0 = float(frame.origin_llh[2])
+    llh = projected_to_geodetic(np.column_stack([xy, np.full(4, h0)]), int(epsg))
+    enu = frame.geodetic_to_enu(llh)
+    enu[:, 2] = 0.0
+    return rgba, enu
+
+
+class DsmPanel:
+    """The "DSM and height error" folder of the Results tab, and the error-map drape.
+
+    Shows OUT/dsm.tif (shaded relief with a colour bar) once the DSM stage wrote it; the
+    evaluation (OUT/eval: figures and height-error map) when present, or an Evaluate button when
+    only the site's gt_dsm.tif exists; drapes the error raster under the Euclidean cloud.
+    """
+
+    def __init__(self, app, gui):
+        self.app = app
+        self.drape_handle = None
+        self._key = None
+        with gui.add_folder("DSM and height error"):
+            self.md = gui.add_markdown("No DSM yet (OUT/dsm.tif).")
+            self.evaluate = gui.add_button("Evaluate the DSM against gt_dsm.tif", visible=False)
+            self.dsm_img = gui.add_image(np.full((8, 8, 3), 255, np.uint8), label="DSM",
+                                         visible=False)
+            self.err_img = gui.add_image(np.full((8, 8, 3), 255, np.uint8),
+                                         label="Height error (DSM - GT)", visible=False)
+            self.drape = gui.add_checkbox("Drape the error map in the scene", False, visible=False,
+                                          hint="in the Euclidean frame, under the cloud")
+            self.refresh_button = gui.add_button("Refresh")
+        self.evaluate.on_click(lambda _: app.submit(self.evaluate_async))
+        self.refresh_button.on_click(lambda _: app.submit(lambda: self.refresh(None, force=True)))
+        self.drape.on_update(lambda _: app.submit(self.show_drape))
+
+    def refresh(self, snap=None, force: bool = False) -> None:
+        """Re-read OUT's DSM products when a stage finished (or when forced)."""
+        key = None if snap is None else (tuple(sorted(snap.stages_finished)), snap.status)
+        if not force and key == self._key:
+            return
+        self._key = key
+        app = self.app
+        p = find_dsm_products(app.out)
+        if p.dsm is None:
+            self.md.content = "No DSM yet (OUT/dsm.tif): it appears here when the DSM stage has run."
+            return
+        ev = load_eval(p)
+        md = [f"DSM: `{p.dsm}`"]
+        if ev is not None:
+            md.append(eval_markdown(ev))
+        elif app.site.gt_dsm is not None and core_has("evaluate", "evaluate_dsm"):
+            md.append("The site has a ground-truth DSM: press Evaluate for the error map.")
+        self.evaluate.visible = ev is None and app.site.gt_dsm is not None
+        try:
+            self.dsm_img.image = dsm_preview(p.dsm)
+            self.dsm_img.visible = True
+        except Exception as exc:                  # a DSM the preview cannot read: say so
+            md.append(f"(cannot preview the DSM: {exc})")
+        self.md.content = "\n\n".join(md)
+        if p.error_png is not None:
+            self.err_img.image = read_png(p.error_png)
+            self.err_img.visible = True
+        self.drape.visible = p.error_tif is not None
+
+    def evaluate_async(self) -> None:
+        """Evaluate OUT/dsm.tif against the site's GT on a helper thread, then refresh."""
+        app = self.app
+        gt = app.site.gt_dsm
+        if gt is None:
+            raise ReconstructionError("the site has no gt_dsm.tif")
+        self.md.content += "\n\nevaluating…"
+
+        def work() -> None:
+            try:
+                evaluate_now(app.out, gt)
+                app.submit(lambda: self.refresh(None, force=True))
+            except Exception as exc:
+                app.submit(lambda: app.note(f"evaluation failed: {exc}", "error"))
+
+        import threading
+
+        threading.Thread(target=work, name="aerec-evaluate", daemon=True).start()
+
+    def show_drape(self) -> bool:
+        """Show (or hide) the height-error raster as a coloured sheet under the Euclidean cloud."""
+        from .display import quad_image
+
+        app = self.app
+        p = find_dsm_products(app.out)
+        if self.drape_handle is not None:
+            self.drape_handle.remove()
+            self.drape_handle = None
+        if not self.drape.value or p.error_tif is None:
+            return False
+        if app.frame != "euclidean" or app.upgrade is None:
+            app.note("the error map is in metres: press Upgrade first (Results tab)", "warning")
+            return False
+        rgba, corners = error_map_drape(p.error_tif, app.upgrade.frame)
+        b = app.scene_bounds()
+        if b is not None:
+            corners[:, 2] = float(b[0][2]) - 0.02 * float(np.ptp(corners[:, 0]))
+        q = quad_image(corners, rgba, max_side=max(rgba.shape[:2]))
+        self.drape_handle = app.server.scene.add_image(
+            "/results/height_error", q.rgba, q.render_width, q.render_height, format="png",
+            wxyz=q.wxyz, position=q.position, cast_shadow=False, receive_shadow=False)
+        return True
+
+    def frame_changed(self) -> None:
+        if self.drape.value or self.drape_handle is not None:
+            self.show_drape()

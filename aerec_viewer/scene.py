@@ -1,0 +1,346 @@
+"""Stable scene handles for clouds, tiles, GCP markers and the picking image plane.
+
+`SceneView.sync` applies a worker snapshot to the scene. It is called from the viewer's update
+thread only, inside `server.atomic()`. Scene paths are stable, so updates replace nodes:
+
+  /recon/g<g>/<kind>/chunk_<k>     point-cloud chunks (kind: sparse, dense); float32, local origin
+  /recon/g<g>/tiles/<tile>/outline registered tile footprints (and /image: textured quad)
+  /recon/g<g>/tiles/newest         the newest tile, highlighted
+  /gcp/plane                       the picking image plane; /gcp/plane_marks/<id>, /gcp/cloud/<id>
+
+Points are sent as new chunks as they arrive (reassigning a node's points resends all of them,
+see VIEWER_NOTES); a new generation (ModelUpdated), a new frame transform, a budget change or
+too many chunks rebuilds the group's chunks. Display decimation follows the point budget.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .display import (ColorRanges, DisplayTransform, color_ranges, display_fraction,
+                      cloud_salt, keep_mask, point_colors, quad_frame, quad_image, QuadFrame)
+from .imagery import ImageSource, ImageWindow
+from .worker import CloudView, DisplaySnapshot, PointBatch, TileView, concat_batches
+
+CHUNK_MAX = 250_000           # points per chunk node at a rebuild
+MAX_CHUNKS = 48               # more incremental chunks than this: consolidate
+PALETTE = np.array([(80, 160, 255), (255, 140, 60), (120, 210, 120), (220, 110, 220),
+                    (240, 220, 80), (90, 220, 220)], dtype=np.uint8)
+NEWEST = (255, 230, 0)
+
+
+def safe_name(text: str) -> str:
+    """A scene-path component from any id (tile ids hold ':' and '.')."""
+    return re.sub(r"[^A-Za-z0-9_-]", "_", text)
+
+
+@dataclass
+class Settings:
+    """Display settings the panel controls."""
+
+    point_size: float = 1.0              # multiple of the automatic size (extent / 200)
+    color_mode: str = "height"
+    budget: int = 150_000                # points displayed at most (all groups and kinds); 100 k
+                                         # draw at ~37 fps in software WebGL, 300 k at ~2 fps
+    tiles: str = "textured"              # textured, outlines, hidden
+    show_sparse: bool = True
+    show_dense: bool = True
+
+
+@dataclass
+class _Chunk:
+    handle: object
+    xyz: np.ndarray                      # display coordinates sent
+    batch: PointBatch                    # displayed subset (for recolouring)
+    t_sent: float
+    t_added: tuple[float, ...]           # t_added of the worker batches it holds
+
+
+@dataclass
+class _Cloud:
+    generation: int = -1
+    transform: DisplayTransform | None = None
+    fraction: float = 1.0
+    n_batches: int = 0
+    chunks: list[_Chunk] = field(default_factory=list)
+    ranges: ColorRanges = field(default_factory=ColorRanges)
+    extent: float = 1.0
+    next_k: int = 0
+    kept: float = 1.0                    # the store's own thinning when this generation began
+
+
+@dataclass
+class _TileNode:
+    version: int
+    transform: DisplayTransform
+    corners: np.ndarray
+    outline: object
+    image: object | None = None
+    frame: object | None = None          # QuadFrame the texture was warped for
+
+
+class SceneView:
+    """Owns the reconstruction's scene nodes and keeps them equal to the newest snapshot."""
+
+    def __init__(self, server, images: ImageSource, tile_windows: dict[str, ImageWindow] | None = None):
+        self.server = server
+        self.tile_windows = dict(tile_windows or {})
+        self.scene = server.scene
+        self.images = images
+        self.settings = Settings()
+        self._clouds: dict[tuple[int, str], _Cloud] = {}
+        self._tiles: dict[tuple[int, str], _TileNode] = {}
+        self._newest: dict[int, tuple[str, int, int]] = {}
+        self._newest_nodes: dict[int, tuple[object, object]] = {}
+        self._tile_mode = self.settings.tiles
+        self.finished = False
+        self.sent_log: list[dict] = []    # one entry per point chunk sent (for the bench)
+        self.image_index = {name: k for k, name in enumerate(sorted(images.images))}
+
+    # -- points -------------------------------------------------------------------------------
+    def sync(self, snap: DisplaySnapshot, transforms: dict[int, DisplayTransform | None]) -> int:
+        """Apply a snapshot; returns the number of points sent."""
+        total = sum(g.sparse.n + (g.dense.n if self.settings.show_dense else 0)
+                    for g in snap.groups.values())
+        frac = display_fraction(total, self.settings.budget)
+        sent = 0
+        for g, gs in snap.groups.items():
+            T = transforms.get(g)
+            if T is None:
+                continue
+            for kind, cloud in (("sparse", gs.sparse), ("dense", gs.dense)):
+                sent += self._sync_cloud(g, kind, cloud, T, frac)
+            self._sync_tiles(g, gs.tiles, gs.newest_tile, T)
+        if sent and any(c.handle.point_size != self.point_size()
+                        for st in self._clouds.values() for c in st.chunks):
+            self.apply_point_size()
+        return sent
+
+    def _sync_cloud(self, g: int, kind: str, cloud: CloudView, T: DisplayTransform,
+                    frac: float) -> int:
+        key = (g, kind)
+        st = self._clouds.setdefault(key, _Cloud())
+        visible = self.settings.show_sparse if kind == "sparse" else self.settings.show_dense
+        rebuild = (st.generation != cloud.generation or st.transform is not T
+                   or frac < st.fraction / 1.5 or (frac > st.fraction * 1.5 and st.fraction < 1.0)
+                   or len(st.chunks) > MAX_CHUNKS or len(cloud.batches) < st.n_batches)
+        if rebuild:
+            return self._rebuild(key, st, cloud, T, frac, visible)
+        if len(cloud.batches) == st.n_batches:
+            return 0
+        new = cloud.batches[st.n_batches:]
+        st.n_batches = len(cloud.batches)
+        return self._add_chunk(key, st, new, T, visible)
+
+    def _rebuild(self, key, st: _Cloud, cloud: CloudView, T: DisplayTransform, frac: float,
+                 visible: bool) -> int:
+        for c in st.chunks:
+            c.handle.remove()
+        st.chunks = []
+        st.generation, st.transform, st.fraction = cloud.generation, T, frac
+        st.kept = cloud.kept_fraction
+        st.n_batches = len(cloud.batches)
+        st.next_k = 0
+        allb = concat_batches(cloud.batches)
+        if len(allb) == 0:
+            return 0
+        sub = allb.subset(keep_mask(allb.ids, frac * cloud.kept_fraction, cloud_salt(*key)))
+        xyz = T.apply(sub.xyz)
+        if len(xyz):
+            st.ranges = color_ranges(xyz[:, 2], sub.n_views, sub.reproj)
+            span = np.percentile(xyz[:, :2], 98, axis=0) - np.percentile(xyz[:, :2], 2, axis=0)
+            st.extent = float(max(np.max(span), 1e-6))
+        sent = 0
+        for s in range(0, len(sub), CHUNK_MAX):
+            part = sub.subset(slice(s, s + CHUNK_MAX))
+            sent += self._send(key, st, part, xyz[s:s + CHUNK_MAX], visible,
+                               tuple(b.t_added for b in cloud.batches))
+        return sent
+
+    def _add_chunk(self, key, st: _Cloud, batches: tuple[PointBatch, ...], T: DisplayTransform,
+                   visible: bool) -> int:
+        b = concat_batches(batches)
+        sub = b.subset(keep_mask(b.ids, st.fraction * st.kept, cloud_salt(*key)))
+        if len(sub) == 0:
+            return 0
+        if not st.chunks:                  # first points of this generation: fix the ranges
+            xyz = T.apply(sub.xyz)
+            st.ranges = color_ranges(xyz[:, 2], sub.n_views, sub.reproj)
+            span = np.percentile(xyz[:, :2], 98, axis=0) - np.percentile(xyz[:, :2], 2, axis=0)
+            st.extent = float(max(np.max(span), 1e-6))
+        return self._send(key, st, sub, T.apply(sub.xyz), visible,
+                          tuple(x.t_added for x in batches))
+
+    def _send(self, key, st: _Cloud, sub: PointBatch, xyz: np.ndarray, visible: bool,
+              t_added: tuple[float, ...]) -> int:
+        g, kind = key
+        name = f"/recon/g{g}/{kind}/chunk_{st.next_k}"
+        st.next_k += 1
+        colors = point_colors(self.settings.color_mode, sub.rgb, xyz[:, 2], sub.n_views,
+                              sub.reproj, st.ranges)
+        h = self.scene.add_point_cloud(name, xyz.astype(np.float32), colors,
+                                       point_size=self.point_size(), precision="float32",
+                                       point_shape="rounded", point_shading="flat",
+                                       visible=visible)
+        now = time.time()
+        st.chunks.append(_Chunk(h, xyz, sub, now, t_added))
+        self.sent_log.append({"name": name, "n": len(sub), "t_sent": now, "t_added": t_added,
+                              "bytes": int(xyz.nbytes + colors.nbytes)})
+        return len(sub)
+
+    def point_size(self) -> float:
+        """Point size in scene units: the setting times 1/200 of the largest cloud extent."""
+        ext = max((c.extent for c in self._clouds.values() if c.generation >= 0), default=1000.0)
+        return float(self.settings.point_size * ext / 200.0)
+
+    def apply_point_size(self) -> None:
+        size = self.point_size()
+        for st in self._clouds.values():
+            for c in st.chunks:
+                c.handle.point_size = size
+
+    def apply_colors(self) -> None:
+        for st in self._clouds.values():
+            for c in st.chunks:
+                c.handle.colors = point_colors(self.settings.color_mode, c.batch.rgb, c.xyz[:, 2],
+                                               c.batch.n_views, c.batch.reproj, st.ranges)
+
+    def apply_visibility(self) -> None:
+        for (g, kind), st in self._clouds.items():
+            vis = self.settings.show_sparse if kind == "sparse" else self.settings.show_dense
+            for c in st.chunks:
+                c.handle.visible = vis
+
+    def displayed_points(self) -> int:
+        return sum(len(c.batch) for st in self._clouds.values() for c in st.chunks)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(min, max) of the displayed points (2nd-98th percentiles), or None."""
+        pts = [c.xyz for st in self._clouds.values() for c in st.chunks if len(c.xyz)]
+        if not pts:
+            return None
+        P = np.concatenate(pts)
+        return np.percentile(P, 2, axis=0), np.percentile(P, 98, axis=0)
+
+    # -- tiles --------------------------------------------------------------------------------
+    def _sync_tiles(self, g: int, tiles: dict[str, TileView], newest: str | None,
+                    T: DisplayTransform) -> None:
+        mode = self.settings.tiles
+        if mode != self._tile_mode:
+            self._tile_mode = mode
+            for node in self._tiles.values():
+                node.outline.visible = mode != "hidden"
+                if node.image is not None:
+                    node.image.visible = mode == "textured"
+        side = 160 if len(tiles) <= 100 else 96          # texture budget for many tiles
+        for tid, tv in tiles.items():
+            node = self._tiles.get((g, tid))
+            if node is not None and node.version == tv.version and node.transform is T \
+                    and (node.image is not None or mode != "textured"):
+                continue
+            corners = T.apply(tv.footprint).astype(np.float64)
+            diag = float(np.linalg.norm(corners[2] - corners[0]))
+            if node is not None and np.max(np.abs(corners - node.corners)) < 0.005 * diag \
+                    and (node.image is not None or mode != "textured"):
+                node.version, node.transform = tv.version, T
+                continue
+            self._tiles[(g, tid)] = self._draw_tile(g, tv, corners, T, mode, node, side)
+        self._sync_newest(g, tiles, newest, T)
+
+    def _draw_tile(self, g: int, tv: TileView, corners: np.ndarray, T: DisplayTransform,
+                   mode: str, old: _TileNode | None, side: int) -> _TileNode:
+        """Outline (always resent: ~100 bytes) and textured quad (moved when only its pose
+        changed, re-textured when its shape changed)."""
+        base = f"/recon/g{g}/tiles/{safe_name(tv.tile_id)}"
+        col = PALETTE[self.image_index.get(tv.image, 0) % len(PALETTE)]
+        seg = np.stack([corners, np.roll(corners, -1, axis=0)], axis=1).astype(np.float32)
+        diag = float(np.linalg.norm(corners[2] - corners[0]))
+        outline = self.scene.add_line_segments(f"{base}/outline", seg, tuple(int(c) for c in col),
+                                               thickness=0.002 * diag, visible=mode != "hidden")
+        image, frame = (old.image, old.frame) if old is not None else (None, None)
+        if mode == "textured":
+            lowered = corners + np.array([0.0, 0.0, -0.02 * diag])   # just under the points
+            new = quad_frame(lowered)
+            if image is not None and frame is not None and new.similar(frame):
+                image.position = tuple(new.centre)
+                image.wxyz = tuple(new.wxyz)
+                frame = QuadFrame(new.a, new.b, new.n, frame.top, frame.shear, frame.height,
+                                  frame.xmin, frame.bw, frame.bh, new.centre)
+            else:
+                image, frame = self._tile_image(base, tv, lowered, side)
+        return _TileNode(tv.version, T, corners, outline, image, frame)
+
+    def _tile_image(self, base: str, tv: TileView, corners: np.ndarray, side: int):
+        tile = self.tile_windows.get(tv.tile_id)
+        if tile is None or tile.image not in self.images.images:
+            return None, None
+        q = quad_image(corners, self.images.read(tile, side), max_side=side)
+        q.rgba[..., 3] = np.where(q.rgba[..., 3] > 0, 215, 0)
+        h = self.scene.add_image(f"{base}/image", q.rgba, q.render_width, q.render_height,
+                                 format="png", wxyz=q.wxyz, position=q.position,
+                                 cast_shadow=False, receive_shadow=False)
+        return h, quad_frame(corners)
+
+    def _sync_newest(self, g: int, tiles: dict[str, TileView], newest: str | None,
+                     T: DisplayTransform) -> None:
+        if newest is None or newest not in tiles:
+            return
+        tv = tiles[newest]
+        key = (newest, tv.version, id(T))
+        if self._newest.get(g) == key:
+            return
+        self._newest[g] = key
+        corners = T.apply(tv.footprint).astype(np.float64)
+        lift = np.array([0.0, 0.0, 0.01 * float(np.linalg.norm(corners[2] - corners[0]))])
+        seg = np.stack([corners + lift, np.roll(corners + lift, -1, axis=0)], axis=1).astype(np.float32)
+        width = 0.008 * float(np.linalg.norm(corners[2] - corners[0]))
+        line = self.scene.add_line_segments(f"/recon/g{g}/tiles/newest", seg, NEWEST, thickness=width)
+        label = self.scene.add_label(f"/recon/g{g}/tiles/newest_label",
+                                     f"{newest} (#{tv.order + 1})", position=tuple(corners[0] + lift),
+                                     anchor="bottom-left", visible=not self.finished)
+        self._newest_nodes[g] = (line, label)
+
+    def finish(self) -> None:
+        """The run is over: drop the newest-tile labels (the outlines stay highlighted)."""
+        if self.finished:
+            return
+        self.finished = True
+        for line, label in self._newest_nodes.values():
+            label.visible = False
+
+    def set_tiles_visible(self, visible: bool) -> None:
+        for line, label in self._newest_nodes.values():
+            line.visible = visible
+            label.visible = visible and not self.finished
+
+    def clear(self) -> None:
+        """Remove every reconstruction node (used when the frame changes wholesale)."""
+        for st in self._clouds.values():
+            for c in st.chunks:
+                c.handle.remove()
+        self._clouds.clear()
+        for node in self._tiles.values():
+            node.outline.remove()
+            if node.image is not None:
+                node.image.remove()
+        self._tiles.clear()
+        for line, label in self._newest_nodes.values():
+            line.remove()
+            label.remove()
+        self._newest_nodes.clear()
+        self._newest.clear()
+
+
+def tile_windows_for(images: list, tile_size: int, overlap: int | None) -> dict[str, ImageWindow]:
+    """Windows of every tile of the images (recon_core.tiling), keyed by tile id."""
+    from recon_core.tiling import tile_image
+
+    out = {}
+    for im in images:
+        for t in tile_image(im.name, im.width, im.height, tile_size, overlap):
+            out[t.id] = ImageWindow(t.image, t.col0, t.row0, t.width, t.height)
+    return out

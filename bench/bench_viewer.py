@@ -1,0 +1,253 @@
+"""Viewer figures: launch -> first points on a connected client, tile registration -> its points
+on the client, and bytes sent per update.
+
+A minimal websocket client (the viser wire protocol: 16-byte header, zstd msgpack, raw binary
+buffers) connects like a browser tab (it sends a camera message, which is what registers a
+client) and timestamps every frame it receives. With --browser, headless Chromium is also
+connected and the time until the first points are rendered on its screen is measured.
+
+    python bench/bench_viewer.py                      # the demo site (generated on first use)
+    python bench/bench_viewer.py --site /work/shared/data/reunion_pair --tile-size 400
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+class WireClient:
+    """Connects to a viser server like a browser tab and logs (t, bytes, messages) per frame."""
+
+    def __init__(self, port: int):
+        import msgspec
+        import viser
+        import zstandard
+        from websockets.sync.client import connect
+
+        from viser import _messages
+
+        self.frames: list[tuple[float, int, list[tuple[str, str]]]] = []
+        self._ws = connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"],
+                           max_size=None)
+        self._dec = zstandard.ZstdDecompressor()
+        self._msgpack = msgspec.msgpack
+        cam = _messages.ViewerCameraMessage(
+            wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, 10.0), fov=1.3, near=0.01, far=1e5,
+            image_height=900, image_width=1400, look_at=(0.0, 0.0, 0.0), up_direction=(0.0, 0.0, 1.0))
+        self._ws.send(msgspec.msgpack.encode(cam.as_serializable_dict()))
+        self._stop = False
+        self._thread = threading.Thread(target=self._recv, daemon=True)
+        self._thread.start()
+
+    def _recv(self) -> None:
+        while not self._stop:
+            try:
+                raw = self._ws.recv(timeout=0.5)
+            except TimeoutError:
+                continue
+            except Exception:
+                return
+            t = time.time()
+            n_inner = int.from_bytes(raw[0:8], "little")
+            n_comp = int.from_bytes(raw[8:16], "little")
+            inner = self._msgpack.decode(self._dec.decompress(raw[16:16 + n_comp], max_output_size=n_inner))
+            msgs = [(m.get("type", "?"), str(m.get("name", ""))) for m in inner["messages"]]
+            self.frames.append((t, len(raw), msgs))
+
+    def close(self) -> None:
+        self._stop = True
+        self._thread.join(2.0)
+        self._ws.close()
+
+    def first(self, mtype: str, after: float = 0.0, name: str | None = None) -> float | None:
+        for t, _, msgs in self.frames:
+            if t >= after and any(m == mtype and (name is None or n == name) for m, n in msgs):
+                return t
+        return None
+
+
+def pct(v: list[float], q: float) -> float:
+    return float(np.percentile(v, q)) if v else float("nan")
+
+
+def run(args) -> None:
+    from aerec_viewer.app import ViewerApp
+    from aerec_viewer.cli import demo_site
+    from recon_core.config import preset
+    from recon_core.events import PointsAdded, TileRegistered
+
+    t_gen = time.time()
+    site = Path(args.site) if args.site else demo_site()
+    t_gen = time.time() - t_gen
+    cfg = preset(args.preset)
+    if args.tile_size:
+        cfg = cfg.with_overrides({"tiling.tile_size": args.tile_size})
+    out = Path(tempfile.mkdtemp(prefix="bench_viewer_"))
+    reg: dict[str, float] = {}
+    batches: list[tuple[float, str | None]] = []        # (t_added of a sparse batch, tile before it)
+    last_tile: list[str | None] = [None]
+
+    t0 = time.time()
+    app = ViewerApp(out, site, cfg, mode="run", port=0, until=args.until)
+    real = app.worker.handle
+
+    def spy(ev):
+        if isinstance(ev, TileRegistered):
+            reg[ev.tile_id] = time.time()
+            last_tile[0] = ev.tile_id
+        real(ev)
+        if isinstance(ev, PointsAdded) and ev.kind == "sparse":
+            st = app.worker._groups[ev.group].sparse
+            batches.append((st.batches[-1].t_added, last_tile[0]))
+
+    app.worker.handle = spy
+    client = WireClient(app.port)
+    browser = None
+    if args.browser:
+        browser = BrowserProbe(app.url)
+    app.start()
+    t_launch_done = time.time() - t0
+    while not app.worker.done.is_set():
+        time.sleep(0.2)
+    app.wait_idle()
+    time.sleep(1.0)
+    snap = app.worker.snapshot()
+
+    # a late tab: everything it must download to catch up
+    late = WireClient(app.port)
+    time.sleep(3.0)
+    late.close()
+    client.close()
+    t_screen = browser.finish() if browser else None
+    app.stop()
+
+    first_points = client.first("PointCloudMessage")
+    print(f"site: {site} ({'generated in %.1f s' % t_gen if t_gen > 1 else 'cached'}), "
+          f"preset {args.preset}, tile size {cfg.tiling.tile_size}, until {args.until}")
+    print(f"status {snap.status}; tiles registered {sum(len(g.tiles) for g in snap.groups.values())}, "
+          f"points {snap.n_points:,}")
+    print(f"viewer constructed and started in {t_launch_done:.2f} s")
+    if first_points:
+        print(f"launch -> first points on the connected client: {first_points - t0:.2f} s "
+              f"(the worker had its first points {snap.t_first_points - t0:.2f} s after launch)")
+    if t_screen is not None:
+        print(f"launch -> first points rendered in headless Chromium: {t_screen - t0:.2f} s")
+
+    # tile registration -> the first chunk holding its points (or a newer model) on the client
+    delays = []
+    for tile, t_reg in reg.items():
+        entry = next((e for e in app.scene.sent_log if max(e["t_added"]) >= t_reg), None)
+        if entry is None:
+            continue
+        t_recv = client.first("PointCloudMessage", after=entry["t_sent"] - 0.05, name=entry["name"])
+        if t_recv is not None:
+            delays.append(t_recv - t_reg)
+    if delays:
+        print(f"tile registered -> its points on the client: median {statistics.median(delays) * 1000:.0f} ms, "
+              f"p90 {pct(delays, 90) * 1000:.0f} ms, max {max(delays) * 1000:.0f} ms "
+              f"over {len(delays)} tiles (viewer update rate {app.update_hz:g} Hz)")
+
+    busy = [dt for _, dt, sent in app.tick_log if sent is not None]
+    if busy:
+        print(f"viewer updates that changed something: {len(busy)}, duration median "
+              f"{statistics.median(busy) * 1000:.0f} ms, p90 {pct(busy, 90) * 1000:.0f} ms, "
+              f"max {max(busy) * 1000:.0f} ms")
+    if delays:
+        lag = []
+        for tile, t_reg in reg.items():
+            e = next((e for e in app.scene.sent_log if max(e["t_added"]) >= t_reg), None)
+            if e is not None:
+                lag.append(e["t_sent"] - t_reg)
+        print(f"  of which registration -> chunk sent by the viewer: median "
+              f"{statistics.median(lag) * 1000:.0f} ms, max {max(lag) * 1000:.0f} ms")
+
+    sizes = [n for _, n, _ in client.frames]
+    kinds: dict[str, int] = {}
+    for _, _, m in client.frames:
+        for t, _ in m:
+            kinds[t] = kinds.get(t, 0) + 1
+    print(f"websocket frames (one per viewer update): {len(sizes)}, total {sum(sizes) / 1e6:.2f} MB; "
+          f"per frame median {statistics.median(sizes) / 1e3:.1f} kB, p90 {pct(sizes, 90) / 1e3:.1f} kB, "
+          f"max {max(sizes) / 1e3:.1f} kB")
+    top = sorted(kinds.items(), key=lambda kv: -kv[1])[:6]
+    print("messages: " + ", ".join(f"{k} x{v}" for k, v in top))
+    n_sent = sum(e["n"] for e in app.scene.sent_log)
+    b_pts = sum(e["bytes"] for e in app.scene.sent_log)
+    print(f"point payload: {n_sent:,} points in {len(app.scene.sent_log)} chunks, {b_pts / 1e6:.2f} MB "
+          f"({b_pts / max(n_sent, 1):.0f} B per point: float32 xyz + RGB); "
+          f"{n_sent / max(snap.n_points, 1):.2f} x the final cloud (rebuilds at each global BA)")
+    lsz = sum(n for _, n, _ in late.frames)
+    print(f"a tab opened at the end downloads {lsz / 1e6:.2f} MB in {len(late.frames)} frames")
+    if not args.keep:
+        shutil.rmtree(out, ignore_errors=True)
+
+
+class BrowserProbe:
+    """Headless Chromium on the page; a thread notes when points first appear on its screen."""
+
+    def __init__(self, url: str):
+        self.url = url
+        self.t_points: float | None = None
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        from playwright.sync_api import sync_playwright
+
+        flags = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+                 "--disable-quic", "--no-first-run", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync"]
+        with sync_playwright() as pw:
+            b = pw.chromium.launch(executable_path="/usr/bin/chromium", args=flags, headless=True)
+            page = b.new_page(viewport={"width": 1000, "height": 700})
+            page.goto(self.url)
+            # the scene starts empty: points (and tiles) change the canvas left of the panel
+            import cv2
+
+            def grab():
+                png = page.screenshot()
+                img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+                return img[200:650, 150:560].astype(np.int16)
+
+            time.sleep(2.0)
+            base = grab()
+            while not self._done.is_set() and self.t_points is None:
+                t = time.time()
+                if (np.abs(grab() - base) > 30).mean() > 0.002:
+                    self.t_points = t
+                time.sleep(0.2)
+            self._done.wait(120)
+            b.close()
+
+    def finish(self) -> float | None:
+        self._done.set()
+        self._thread.join(30)
+        return self.t_points
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--site", default=None, help="site folder (default: the demo site)")
+    p.add_argument("--preset", default="tiny")
+    p.add_argument("--tile-size", type=int, default=None)
+    p.add_argument("--until", default="sparse", help="last pipeline stage (default sparse)")
+    p.add_argument("--browser", action="store_true", help="also time the first points on a "
+                                                          "headless Chromium screen")
+    p.add_argument("--keep", action="store_true", help="keep the output folder")
+    run(p.parse_args())
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,163 @@
+"""The viewer in a real browser: Debian's headless Chromium (SwiftShader WebGL) driven by
+Playwright. Loads the page, waits for the client, clicks GUI buttons, clicks a known pixel of the
+image plane and checks the pixel the server recorded, checks a second tab sees the same state,
+runs the upgrade, and saves screenshots (pytest's tmp dir, copies in /tmp/viewer_shots/)."""
+
+from __future__ import annotations
+
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from aerec_viewer.display import quat_to_matrix
+from recon_core.events import TileRegistered
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM = Path("/usr/bin/chromium")
+FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+         "--disable-quic", "--no-first-run", "--disable-background-networking",
+         "--disable-component-update", "--disable-sync"]
+SHOTS = Path("/tmp/viewer_shots")
+VIEW = {"width": 1400, "height": 900}
+
+
+def wait_for(cond, timeout: float, what: str, step: float = 0.1):
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        v = cond()
+        if v:
+            return v
+        time.sleep(step)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def project(client, p: np.ndarray) -> tuple[float, float]:
+    """Screen position (CSS px) of a world point in a client's current camera (OpenCV camera
+    convention of viser: +z forward, +y down; fov is vertical)."""
+    cam = client.camera
+    R = quat_to_matrix(cam.wxyz)
+    pc = R.T @ (np.asarray(p, float) - cam.position)
+    f = (VIEW["height"] / 2) / np.tan(cam.fov / 2)
+    return VIEW["width"] / 2 + f * pc[0] / pc[2], VIEW["height"] / 2 + f * pc[1] / pc[2]
+
+
+@pytest.fixture(scope="module")
+def browser_app(tmp_path_factory):
+    if not CHROMIUM.exists():
+        pytest.skip("/usr/bin/chromium is not installed")
+    from playwright.sync_api import sync_playwright
+
+    from aerec_viewer.app import ViewerApp
+    from tests.test_viewer import _small_site
+
+    root = tmp_path_factory.mktemp("browser")
+    site, cfg = _small_site(root)
+    app = ViewerApp(root / "out", site, cfg, mode="run", port=0, until="sparse")
+    shots = root / "shots"
+    shots.mkdir()
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=FLAGS, headless=True)
+        ctx = browser.new_context(viewport=VIEW)
+        page = ctx.new_page()
+        t0 = time.time()
+        page.goto(app.url)
+        wait_for(lambda: app.server.get_clients(), 30, "the page to register as a client")
+        t_client = time.time() - t0
+        real, held = app.worker.handle, []
+
+        def hold_half_way(ev):                 # pause once half of the tiles are registered
+            if isinstance(ev, TileRegistered) and not held and ev.order + 1 >= ev.total_tiles // 2:
+                held.append(ev.order)
+                app.worker.pause()
+            real(ev)
+
+        app.worker.handle = hold_half_way
+        app.start()
+        yield app, page, ctx, shots, t_client
+        browser.close()
+    app.stop()
+
+
+def shot(page, shots: Path, name: str) -> Path:
+    path = shots / f"{name}.png"
+    page.screenshot(path=str(path))
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    shutil.copy(path, SHOTS / path.name)
+    return path
+
+
+def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
+    app, page, ctx, shots, t_client = browser_app
+    assert t_client < 20
+    # during SfM: the worker is held half way (as the Pause button does); the panel offers
+    # Resume, and the browser's click on it releases the reconstruction
+    wait_for(lambda: app.worker.paused and app.scene.displayed_points() > 0, 120,
+             "the first half of the tiles on the client")
+    page.get_by_role("button", name="Resume").wait_for(timeout=20_000)
+    time.sleep(2.0)
+    shot(page, shots, "1_during_sfm")
+    snap = app.worker.snapshot()
+    assert snap.status == "paused" and 0 < len(snap.groups[0].tiles) < snap.groups[0].total_tiles
+    page.get_by_role("button", name="Resume").click()
+    wait_for(lambda: not app.worker.paused, 20, "the Resume button click to reach the server")
+    assert app.worker.join(240), "the reconstruction did not finish"
+    app.wait_idle()
+    time.sleep(2.0)
+    shot(page, shots, "2_after_sfm")
+    # the rendered frame is not blank (WebGL works headless)
+    client = next(iter(app.server.get_clients().values()))
+    img = np.asarray(client.get_render(300, 460))
+    assert img.std() > 5
+
+    # GUI: open the GCP tab, select a GCP, press "Look at the image plane"
+    page.get_by_role("tab", name="GCPs").click()
+    gid = app.session.ids[0]
+    app.call(lambda: setattr(app.gcp_panel.select, "value", gid))
+    page.get_by_role("button", name="Look at the image plane").click()
+    plane = app.pick_plane
+    top = plane.position + np.array([0.0, 0.0, 1.0])
+    wait_for(lambda: np.linalg.norm(client.camera.position[:2] - plane.position[:2])
+             < 0.01 * plane.render_width and client.camera.position[2] > top[2], 20,
+             "the camera to move above the image plane (GUI button click)")
+    time.sleep(1.0)                      # let the client finish its camera transition
+    win = plane.window
+    target = (win.col0 + 0.43 * win.width, win.row0 + 0.57 * win.height)
+    x, y = project(client, plane.point_of(*target))
+    assert 0 < x < 950 and 0 < y < VIEW["height"], (x, y)
+    before = app.last_click
+    page.mouse.click(x, y)
+    wait_for(lambda: app.last_click is not before and app.last_click is not None, 20,
+             "the click on the image plane to reach the server")
+    got_gid, image, col, row = app.last_click
+    px_per_css = win.width / (plane.render_width * (VIEW["height"] / 2) / np.tan(client.camera.fov / 2)
+                              / np.linalg.norm(client.camera.position - plane.position))
+    assert got_gid == gid and image == win.image
+    assert abs(col - target[0]) <= max(2.0, px_per_css) and abs(row - target[1]) <= max(2.0, px_per_css), \
+        (col, row, target, px_per_css)
+    assert np.allclose(app.session.get(gid).observations[image], (col, row))
+    time.sleep(1.5)
+    shot(page, shots, "3_gcp_pick")
+
+    # a second tab sees the same state (server-wide GUI and scene)
+    page2 = ctx.new_page()
+    page2.goto(app.url)
+    wait_for(lambda: len(app.server.get_clients()) >= 2, 60, "the second tab")
+    # the pick shows in the second tab's message list (its Reconstruction tab is open)
+    page2.get_by_text(f"{gid}: observed in {image}").filter(visible=True).first.wait_for(
+        timeout=60_000)
+    page2.close()
+
+    # upgrade from the browser, then the Euclidean scene and the residual table
+    page.get_by_role("tab", name="Results").click()
+    page.get_by_role("button", name="Upgrade to Euclidean").click()
+    wait_for(lambda: app.frame == "euclidean", 30, "the upgrade button to reach the server")
+    app.wait_idle()
+    app.call(lambda: app._frame_client(client))
+    page.get_by_role("cell", name="check").first.wait_for(timeout=15_000)
+    time.sleep(2.5)
+    shot(page, shots, "4_after_upgrade")
+    assert "Euclidean" in app.g_frame.content
