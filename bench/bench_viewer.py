@@ -144,34 +144,31 @@ def run(args) -> None:
     if t_screen is not None:
         print(f"launch -> first points rendered in headless Chromium: {t_screen - t0:.2f} s")
 
-    # tile registration -> the first chunk holding its points (or a newer model) on the client
-    delays = []
-    for tile, t_reg in reg.items():
-        entry = next((e for e in app.scene.sent_log if max(e["t_added"]) >= t_reg), None)
+    # tile registration -> the first chunk holding the points added with it (the batch itself,
+    # or a newer model that includes them) on the client; tiles that added no point are skipped
+    delays, lag = [], []
+    for t_added, tile in batches:
+        if tile is None or tile not in reg:
+            continue
+        entry = next((e for e in app.scene.sent_log if max(e["t_added"]) >= t_added), None)
         if entry is None:
             continue
         t_recv = client.first("PointCloudMessage", after=entry["t_sent"] - 0.05, name=entry["name"])
         if t_recv is not None:
-            delays.append(t_recv - t_reg)
+            delays.append(t_recv - reg[tile])
+            lag.append(entry["t_sent"] - reg[tile])
     if delays:
         print(f"tile registered -> its points on the client: median {statistics.median(delays) * 1000:.0f} ms, "
               f"p90 {pct(delays, 90) * 1000:.0f} ms, max {max(delays) * 1000:.0f} ms "
               f"over {len(delays)} tiles (viewer update rate {app.update_hz:g} Hz)")
+        print(f"  of which registration -> chunk sent by the viewer: median "
+              f"{statistics.median(lag) * 1000:.0f} ms, max {max(lag) * 1000:.0f} ms")
 
     busy = [dt for _, dt, sent in app.tick_log if sent is not None]
     if busy:
         print(f"viewer updates that changed something: {len(busy)}, duration median "
               f"{statistics.median(busy) * 1000:.0f} ms, p90 {pct(busy, 90) * 1000:.0f} ms, "
               f"max {max(busy) * 1000:.0f} ms")
-    if delays:
-        lag = []
-        for tile, t_reg in reg.items():
-            e = next((e for e in app.scene.sent_log if max(e["t_added"]) >= t_reg), None)
-            if e is not None:
-                lag.append(e["t_sent"] - t_reg)
-        print(f"  of which registration -> chunk sent by the viewer: median "
-              f"{statistics.median(lag) * 1000:.0f} ms, max {max(lag) * 1000:.0f} ms")
-
     sizes = [n for _, n, _ in client.frames]
     kinds: dict[str, int] = {}
     for _, _, m in client.frames:
