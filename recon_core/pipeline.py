@@ -18,7 +18,7 @@ from .errors import InputError, ReconstructionError
 from .events import EventBus, Message, StageDone
 from .grouping import Group, group_by_date
 from .io_utils import write_json
-from .site import Site, load_site
+from .site import Site, load_site, read_gcps_geojson
 
 STAGES = ("sparse", "dense", "upgrade", "dsm", "eval")
 # Configuration sections each stage depends on (its own and upstream ones): a stage is redone
@@ -50,13 +50,21 @@ def config_hash(cfg: Config) -> str:
     return hashlib.sha1(json.dumps(cfg.to_dict(), sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
-def stage_hash(cfg: Config, stage: str, site: Site) -> str:
-    """Hash of what a stage's result depends on: its and its upstream stages' parameters."""
+def gcp_source(site: Site, out: Path) -> Path:
+    """The GCP file a run uses: OUT/gcps.geojson (the viewer's working set) when it exists,
+    else the site's own gcps.geojson."""
+    own = Path(out) / "gcps.geojson"
+    return own if own.exists() else site.root / "gcps.geojson"
+
+
+def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None) -> str:
+    """Hash of what a stage's result depends on: its and its upstream stages' parameters, and
+    for the upgrade and later stages the GCP file's content."""
     d = cfg.to_dict()
     keys = [k for s in STAGES[: STAGES.index(stage) + 1] for k in STAGE_SECTIONS[s]]
     blob = {k: d[k] for k in keys}
     if STAGES.index(stage) >= STAGES.index("upgrade"):
-        gcp_file = site.root / "gcps.geojson"
+        gcp_file = gcp_source(site, out) if out is not None else site.root / "gcps.geojson"
         blob["gcps"] = gcp_file.read_text() if gcp_file.exists() else ""
     return hashlib.sha1(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
@@ -70,13 +78,13 @@ def stage_done(out: Path, stage: str, cfg: Config, site: Site) -> bool:
     if not f.exists():
         return False
     try:
-        return json.loads(f.read_text()).get("stage_hash") == stage_hash(cfg, stage, site)
+        return json.loads(f.read_text()).get("stage_hash") == stage_hash(cfg, stage, site, out)
     except ValueError:
         return False
 
 
 def _mark_done(state: RunState, stage: str, summary: dict) -> None:
-    write_json(_stage_file(state.out, stage), {"stage_hash": stage_hash(state.cfg, stage, state.site),
+    write_json(_stage_file(state.out, stage), {"stage_hash": stage_hash(state.cfg, stage, state.site, state.out),
                                                "summary": summary})
     state.report.setdefault("stages", {})[stage] = summary
     write_json(state.out / "report.json", state.report)
@@ -208,10 +216,14 @@ def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
     if out.exists() and not out.is_dir():
         raise InputError(out, "output path exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
+    gcp_path = gcp_source(site, out)
+    if gcp_path != site.root / "gcps.geojson":
+        site.gcps = read_gcps_geojson(gcp_path, {im.name: im for im in site.images})
+        bus.emit(Message("info", f"GCPs from {gcp_path} (the viewer's working set), not the site's file"))
     groups = group_by_date(site.images, cfg.grouping.max_gap_days, cfg.grouping.max_span_days)
     report_path = out / "report.json"
     report = json.loads(report_path.read_text()) if (resume and report_path.exists()) else {}
-    report.update({"site": str(site.root), "config": cfg.to_dict(), "config_hash": config_hash(cfg),
+    report.update({"site": str(site.root.resolve()), "gcp_file": str(gcp_path.resolve()), "config": cfg.to_dict(), "config_hash": config_hash(cfg),
                    "groups": [{"index": g.index, "images": [im.name for im in g.images],
                                "span_days": g.span_days} for g in groups]})
     state = RunState(site, out, cfg, groups, report=report)

@@ -86,3 +86,25 @@ def test_run_without_gcps_keeps_affine_outputs(tiny_run, tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "no GCP" in err and "Traceback" not in err
     assert (out / "affine" / "group_0" / "dense.ply").exists()
+
+
+def test_out_gcp_file_wins_and_redoes_upgrade(tiny_run, tmp_path):
+    """The viewer's working set OUT/gcps.geojson feeds the upgrade (and its stage hash)."""
+    import shutil
+
+    state, _ = tiny_run
+    out = tmp_path / "out"
+    shutil.copytree(state.out, out)
+    doc = json.loads((state.site.root / "gcps.geojson").read_text())
+    doc["features"] = doc["features"][:-2]
+    (out / "gcps.geojson").write_text(json.dumps(doc))
+    msgs: list = []
+    run(state.site.root, out, preset("tiny"), bus=EventBus(msgs.append))
+    texts = [m.text for m in msgs if isinstance(m, Message)]
+    assert any("viewer's working set" in t for t in texts)
+    reloaded = {t.split(":")[0] for t in texts if "already done" in t}
+    assert reloaded == {"sparse", "dense"}
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["gcp_file"].endswith("out/gcps.geojson")
+    n_pts = len(rep["stages"]["upgrade"]["groups"]["0"]["points"])
+    assert n_pts == len(doc["features"])
