@@ -131,6 +131,13 @@ def cmd_run(args) -> int:
     return 0
 
 
+def cmd_eval(args) -> int:
+    """`aerec eval DSM GT [--out DIR] [--max-shift M]`: its own parser lives in evaluate.main."""
+    from .evaluate import main as eval_main
+
+    return eval_main(args.rest)
+
+
 def print_summary(report: dict) -> None:
     sparse = report.get("stages", {}).get("sparse", {})
     for g, s in sparse.get("groups", {}).items():
@@ -179,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("eval", help="score a DSM against a ground-truth (or reference) DSM",
                        add_help=False)
     s.add_argument("rest", nargs=argparse.REMAINDER)
-    s.set_defaults(func=lambda a: __import__("recon_core.evaluate", fromlist=["main"]).main(a.rest))
+    s.set_defaults(func=cmd_eval)
 
     _add_plugin_commands(sub)
     return p
