@@ -27,6 +27,18 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "aerec"
 
 
+def _remove_stale_tmp(site: Path) -> None:
+    """Delete half-written demo folders left by an interrupted first run (their process is gone)."""
+    for tmp in site.parent.glob(".demo_site.tmp*"):
+        try:
+            pid = int(tmp.name.rsplit("tmp", 1)[1])
+            os.kill(pid, 0)                   # still generating in another process: keep it
+        except (ValueError, ProcessLookupError):
+            shutil.rmtree(tmp, ignore_errors=True)
+        except PermissionError:
+            pass
+
+
 def demo_site(progress=None) -> Path:
     """The demo site, generated (offline, seed 0) on first use; atomic (tmp folder + rename)."""
     site = cache_dir() / "demo_site"
@@ -34,6 +46,7 @@ def demo_site(progress=None) -> Path:
         return site
     from recon_core.synthetic import generate_site
 
+    _remove_stale_tmp(site)
     tmp = site.with_name(f".demo_site.tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.parent.mkdir(parents=True, exist_ok=True)
