@@ -487,7 +487,8 @@ class ViewerApp:
             try:
                 tex = self.images.read(win, 2048)
             except Exception as exc:
-                self.submit(lambda: self.note(f"cannot read {win.image}: {exc}", "error"))
+                msg = f"cannot read {win.image}: {exc}"   # exc is unbound once the block ends
+                self.submit(lambda: self.note(msg, "error"))
                 return
             self.submit(lambda: self._place_plane(win, tex, token))
 

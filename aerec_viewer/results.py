@@ -8,8 +8,6 @@ evaluation (recon_core.evaluate) once the later stages wrote them, and drapes th
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -179,13 +177,6 @@ def find_dsm_products(out: str | Path) -> DsmProducts:
                        first("dsm_vs_gt.png"), first("height_error.tif"))
 
 
-def core_has(module: str, name: str) -> bool:
-    """Whether recon_core.<module> exists and defines `name` (parts land at different times)."""
-    if importlib.util.find_spec(f"recon_core.{module}") is None:
-        return False
-    return hasattr(importlib.import_module(f"recon_core.{module}"), name)
-
-
 def dsm_preview(dsm_path: Path, max_side: int = 640) -> np.ndarray:
     """Shaded-relief RGB of a DSM with a height colour bar (for the panel)."""
     from recon_core import colormap as cm
@@ -316,7 +307,7 @@ class DsmPanel:
         md = [f"DSM: `{p.dsm}`"]
         if ev is not None:
             md.append(eval_markdown(ev))
-        elif app.site.gt_dsm is not None and core_has("evaluate", "evaluate_dsm"):
+        elif app.site.gt_dsm is not None:
             md.append("The site has a ground-truth DSM: press Evaluate for the error map.")
         self.evaluate.visible = ev is None and app.site.gt_dsm is not None
         try:
@@ -343,7 +334,8 @@ class DsmPanel:
                 evaluate_now(app.out, gt)
                 app.submit(lambda: self.refresh(None, force=True))
             except Exception as exc:
-                app.submit(lambda: app.note(f"evaluation failed: {exc}", "error"))
+                msg = f"evaluation failed: {exc}"        # exc is unbound once the block ends
+                app.submit(lambda: app.note(msg, "error"))
 
         import threading
 

@@ -15,13 +15,11 @@ the DSM metrics.
 from __future__ import annotations
 
 import argparse
-import json
 import resource
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -143,7 +141,7 @@ def main(argv=None) -> int:
             print(f"vs reference ({k}): median |diff| {e['median_abs_err_m']:.3f} m, within 1 m "
                   f"{e['completeness_pct']:.1f} %, RMSE {e['rmse_m']:.3f} m")
     own, kids = peak_rss_mb()
-    print(f"seconds per stage: " + ", ".join(f"{k} {v.get('seconds', 0):.1f}" for k, v in st.items()))
+    print("seconds per stage: " + ", ".join(f"{k} {v.get('seconds', 0):.1f}" for k, v in st.items()))
     print(f"peak memory: main process {own:.0f} MB, largest worker {kids:.0f} MB")
     return 0
 

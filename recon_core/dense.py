@@ -149,7 +149,6 @@ def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: Part
                cfg: DenseConfig) -> tuple[dict | None, PairInfo]:
     """Rectify and match one tile pair; returns the rectified disparity field and its maps."""
     rt, pt = ref.tile, p.spec.tile
-    name = f"{rt.id}~{pt.id}"
     P1, P2 = local_camera(ref.camera, rt), local_camera(p.spec.camera, pt)
     x1 = p.x_ref - (rt.col0, rt.row0)
     x2 = p.x_partner - (pt.col0, pt.row0)

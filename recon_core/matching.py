@@ -99,19 +99,10 @@ def coarse_link(name_i: str, ov_i, name_j: str, ov_j, min_inliers: int = 12) -> 
                       float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))))
 
 
-def apply_affine_2d(A: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    return np.asarray(xy, np.float64) @ A[:, :2].T + A[:, 2]
-
-
-def invert_affine_2d(A: np.ndarray) -> np.ndarray:
-    M = np.linalg.inv(A[:, :2])
-    return np.hstack([M, -M @ A[:, 2:3]])
-
-
 def tile_overlap_fraction(ti: Tile, tj: Tile, A_ji: np.ndarray) -> float:
     """Fraction of tile i's area covered by tile j mapped into image i (polygon intersection)."""
     pi = ti.corners().astype(np.float32)
-    pj = apply_affine_2d(A_ji, tj.corners()).astype(np.float32)
+    pj = affine.apply_affine_2d(A_ji, tj.corners()).astype(np.float32)
     area, _ = cv2.intersectConvexConvex(pi, pj)
     return float(area) / (ti.width * ti.height)
 
@@ -131,7 +122,7 @@ def guided_matches(fi: ImageFeatures, fj: ImageFeatures, A_ji: np.ndarray, tiles
     the j features predicted inside the cell grown by the margin. Exact nearest neighbours,
     and the cost grows linearly with the image area instead of quadratically.
     """
-    pred = apply_affine_2d(A_ji, fj.xy)          # j's features in i's pixels
+    pred = affine.apply_affine_2d(A_ji, fj.xy)          # j's features in i's pixels
     if len(fi) == 0 or len(fj) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     cell = max(64.0, 2.0 * margin_px)

@@ -69,8 +69,3 @@ def tile_image(name: str, width: int, height: int, d: int = 1000, overlap: int |
     rows, h = tile_layout(height, d, overlap, slack)
     cols, w = tile_layout(width, d, overlap, slack)
     return [Tile(name, ti, tj, c0, r0, w, h) for ti, r0 in enumerate(rows) for tj, c0 in enumerate(cols)]
-
-
-def tiles_containing(tiles: list[Tile], xy: np.ndarray, margin: float = 0.0) -> np.ndarray:
-    """(n, 2) points -> (n, len(tiles)) bool membership matrix."""
-    return np.stack([t.contains(xy, margin) for t in tiles], axis=1) if tiles else np.zeros((len(xy), 0), bool)
