@@ -500,15 +500,19 @@ def replay_model(model, listener) -> None:
                           np.stack([g, g, g], 1), n_img, rms))
 
 
-def replay_dense(out: Path, g: int, listener) -> int:
-    """Feed a saved dense cloud (recon_core.dense, when present) to a listener; its size."""
+def replay_dense(out: Path, g: int, listener, chunk: int = 2_000_000) -> int:
+    """Feed a saved dense cloud (recon_core.dense, when present) to a listener by chunks; its size."""
     try:
-        from recon_core.dense import load_dense_group
+        from recon_core.dense import dense_path
+        from recon_core.dsm import open_ply, ply_fields
     except ImportError:
         return 0
-    cloud = load_dense_group(out, g)
-    if cloud is None or not len(cloud):
+    path = dense_path(out, g)
+    if not path.exists():
         return 0
-    listener(PointsAdded(g, np.arange(len(cloud)), cloud.xyz, np.repeat(cloud.gray[:, None], 3, 1),
-                         cloud.n_views, cloud.reproj_px, kind="dense"))
-    return len(cloud)
+    rec = open_ply(path)
+    for a in range(0, len(rec), chunk):
+        xyz, rgb, extra = ply_fields(rec[a:a + chunk])
+        listener(PointsAdded(g, np.arange(a, a + len(xyz)), xyz, rgb, extra["n_views"].astype(np.int64),
+                             extra["reproj_px"], kind="dense"))
+    return len(rec)

@@ -18,6 +18,7 @@ Jobs (`DenseJob`) hold paths, windows and cameras, never image arrays: workers r
 
 from __future__ import annotations
 
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -438,8 +439,14 @@ class DenseCloud:
 
 
 def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfig, bus=None,
-                            executor=None) -> tuple[DenseCloud, dict]:
-    """Run every reference-tile job of a group through the executor and gather the cloud."""
+                            executor=None, path: Path | None = None) -> tuple[DenseCloud | None, dict]:
+    """Run every reference-tile job of a group through the executor and gather the cloud.
+
+    With `path` the cloud is streamed to that PLY (`save_dense`'s format) and not held in
+    memory: each job's points go to a scratch file as they arrive, then are copied in a fixed
+    order (by reference tile, whatever the executor's completion order) into the PLY. Returns
+    (None, summary) then; without `path`, (the cloud in memory, summary).
+    """
     from .events import EventBus, PointsAdded
     from .executor import make_executor
 
@@ -449,64 +456,106 @@ def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfi
     n_pairs = sum(len(j.partners) for j in jobs)
     own = executor is None
     ex = executor or make_executor(cfg.scheduler, cfg.workers)
-    parts, pairs, kernel, job_s = [], [], 0.0, 0.0
+    pairs, kernel, job_s = [], 0.0, 0.0
     next_id = 0
-    try:
-        for k, res in enumerate(ex.map_unordered(run_job, jobs)):
-            parts.append(res)
-            pairs += res.pairs
-            kernel += res.kernel_s
-            job_s += res.seconds
-            if res.message:
-                bus.message(res.message, "warning", model.group)
-            ids = np.arange(next_id, next_id + len(res.xyz))
-            next_id += len(res.xyz)
-            if len(res.xyz):
-                bus.emit(PointsAdded(model.group, ids, res.xyz, np.repeat(res.gray[:, None], 3, 1),
-                                     res.n_views.astype(np.int64), res.reproj_px, kind="dense"))
-            bus.progress("dense", k + 1, len(jobs), f"{next_id} points", group=model.group)
-    finally:
-        if own:
-            ex.close()
-    parts.sort(key=lambda r: r.ref)            # deterministic order whatever the executor
-    cloud = DenseCloud(*(np.concatenate([getattr(r, f) for r in parts]) if parts else
-                         np.zeros((0, 3) if f == "xyz" else 0, dt)
-                         for f, dt in (("xyz", float), ("gray", np.uint8), ("n_views", np.uint8),
-                                       ("reproj_px", np.float32))))
+    views_hist = np.zeros(256, np.int64)
+    err_edges = np.linspace(0.0, max(cfg.max_reproj_px, 1e-3) * 1.001, 2001)
+    err_hist = np.zeros(len(err_edges) - 1, np.int64)
+    if path is not None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".dense_parts_", dir=None if path is None else Path(path).parent) as scratch:
+        parts: dict[str, Path] = {}
+        try:
+            for k, res in enumerate(ex.map_unordered(run_job, jobs)):
+                pairs += res.pairs
+                kernel += res.kernel_s
+                job_s += res.seconds
+                if res.message:
+                    bus.message(res.message, "warning", model.group)
+                ids = np.arange(next_id, next_id + len(res.xyz))
+                next_id += len(res.xyz)
+                if len(res.xyz):
+                    views_hist += np.bincount(res.n_views, minlength=256)
+                    err_hist += np.histogram(np.minimum(res.reproj_px, err_edges[-1] * 0.999), err_edges)[0]
+                    rec = np.empty(len(res.xyz), _PART_DTYPE)
+                    rec["xyz"], rec["gray"], rec["n_views"], rec["reproj_px"] = (res.xyz, res.gray,
+                                                                                res.n_views, res.reproj_px)
+                    parts[res.ref] = Path(scratch) / f"{len(parts):06d}.npy"
+                    np.save(parts[res.ref], rec)
+                    bus.emit(PointsAdded(model.group, ids, res.xyz, np.repeat(res.gray[:, None], 3, 1),
+                                         res.n_views.astype(np.int64), res.reproj_px, kind="dense"))
+                del res
+                bus.progress("dense", k + 1, len(jobs), f"{next_id} points", group=model.group)
+        finally:
+            if own:
+                ex.close()
+        order = sorted(parts)            # deterministic order whatever the executor
+        if path is not None:
+            with _dense_writer(path) as w:
+                for ref in order:
+                    rec = np.load(parts[ref])
+                    w.append(rec["xyz"], rec["gray"][:, None], {"n_views": rec["n_views"].astype(np.float32),
+                                                               "reproj_px": rec["reproj_px"]})
+            cloud = None
+        else:
+            recs = [np.load(parts[ref]) for ref in order]
+            rec = np.concatenate(recs) if recs else np.zeros(0, _PART_DTYPE)
+            cloud = DenseCloud(rec["xyz"].copy(), rec["gray"].copy(), rec["n_views"].copy(),
+                               rec["reproj_px"].copy())
+    n_points = int(views_hist.sum())
     matched = [p for p in pairs if p.skipped is None]
     wall = time.time() - t0
+    med_err = None
+    if n_points:
+        k = int(np.searchsorted(np.cumsum(err_hist), (n_points + 1) / 2))
+        med_err = float(0.5 * (err_edges[k] + err_edges[k + 1]))
     summary = {"jobs": len(jobs), "tile_pairs": n_pairs, "pairs_matched": len(matched),
                "pairs_skipped": {f"{p.ref}~{p.partner}": p.skipped for p in pairs if p.skipped},
-               "points": len(cloud),
-               "views_histogram": np.bincount(cloud.n_views).tolist() if len(cloud) else [],
-               "median_reproj_px": float(np.median(cloud.reproj_px)) if len(cloud) else None,
+               "points": n_points,
+               "views_histogram": np.trim_zeros(views_hist, "b").tolist(),
+               "median_reproj_px": med_err,
                "median_rectified_row_err_px": float(np.median([p.row_err_px for p in matched])) if matched else None,
                "median_fa_cam_rms_px": float(np.median([p.fa_cam_rms_px for p in matched])) if matched else None,
                "median_fa_gs_rms_px": float(np.median([p.fa_gs_rms_px for p in matched])) if matched else None,
                "matcher_kernel_s": kernel, "job_s": job_s, "wall_s": wall,
                "overhead_ratio_cpu": job_s / kernel if kernel > 0 else None}
-    if not len(cloud):
+    if path is not None:
+        summary["path"] = str(path)
+    if not n_points:
         bus.message(f"group {model.group}: dense matching produced no point", "warning", model.group)
     return cloud, summary
 
 
-def save_dense(out: Path, g: int, cloud: DenseCloud) -> Path:
-    """affine/group_<g>/dense.ply: x y z (float64, affine frame), grey as RGB, n_views, reproj_px."""
-    from .dsm import write_ply
+_PART_DTYPE = np.dtype([("xyz", "<f8", 3), ("gray", "u1"), ("n_views", "u1"), ("reproj_px", "<f4")])
+
+
+def _dense_writer(path: Path):
+    from .dsm import PlyWriter
+
+    return PlyWriter(path, ["n_views", "reproj_px"], with_colors=True)
+
+
+def dense_path(out: Path, g: int) -> Path:
     from .sparse import group_dir
 
-    path = group_dir(out, g) / "dense.ply"
-    write_ply(path, cloud.xyz, np.repeat(cloud.gray[:, None], 3, 1),
-              {"n_views": cloud.n_views.astype(np.float32), "reproj_px": cloud.reproj_px})
+    return group_dir(out, g) / "dense.ply"
+
+
+def save_dense(out: Path, g: int, cloud: DenseCloud) -> Path:
+    """affine/group_<g>/dense.ply: x y z (float64, affine frame), grey as RGB, n_views, reproj_px."""
+    path = dense_path(out, g)
+    with _dense_writer(path) as w:
+        w.append(cloud.xyz, cloud.gray[:, None], {"n_views": cloud.n_views.astype(np.float32),
+                                                  "reproj_px": cloud.reproj_px})
     return path
 
 
 def load_dense_group(out: Path, g: int) -> DenseCloud | None:
-    from .dsm import read_ply
-    from .sparse import group_dir
+    """The whole dense cloud of a group in memory (small sites; large ones: `dsm.open_ply`)."""
+    from .dsm import ply_fields, open_ply
 
-    path = group_dir(out, g) / "dense.ply"
+    path = dense_path(out, g)
     if not path.exists():
         return None
-    xyz, rgb, extra = read_ply(path)
+    xyz, rgb, extra = ply_fields(open_ply(path))
     return DenseCloud(xyz, rgb[:, 0].copy(), extra["n_views"].astype(np.uint8), extra["reproj_px"])

@@ -430,24 +430,96 @@ def write_ply(path: str | Path, xyz: np.ndarray, colors: np.ndarray | None = Non
         colors = np.asarray(colors).reshape(-1, 3)
         if len(colors) != n:
             raise ValueError(f"{len(colors)} colours for {n} points")
-    dt = _ply_dtype(list(extra), colors is not None)
-    header = ["ply", "format binary_little_endian 1.0", "comment written by AE-Rec",
-              f"element vertex {n}"]
-    ply_name = {np.dtype("<f8"): "double", np.dtype("u1"): "uchar", np.dtype("<f4"): "float"}
-    header += [f"property {ply_name[dt[k]]} {k}" for k in dt.names]
-    header.append("end_header")
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
+    with PlyWriter(path, list(extra), colors is not None) as w:
         for a in range(0, n, chunk):
             b = min(n, a + chunk)
-            rec = np.empty(b - a, dtype=dt)
-            rec["x"], rec["y"], rec["z"] = xyz[a:b, 0], xyz[a:b, 1], xyz[a:b, 2]
-            if colors is not None:
-                rec["red"], rec["green"], rec["blue"] = (colors[a:b, i] for i in range(3))
-            for k, v in extra.items():
-                rec[k] = v[a:b]
-            rec.tofile(f)
+            w.append(xyz[a:b], None if colors is None else colors[a:b],
+                     {k: v[a:b] for k, v in extra.items()})
     return Path(path)
+
+
+class PlyWriter:
+    """Streaming binary little-endian PLY writer: append chunks, the count is set on close.
+
+    The file is written under a temporary name and renamed onto `path` only when the block
+    ends without an exception (a crash leaves no half-written cloud). The header is written
+    first with room for any count (a padding comment absorbs the difference), so closing only
+    rewrites the header in place: no second copy of a cloud of hundreds of millions of points.
+    """
+
+    _COUNT_DIGITS = 20
+
+    def __init__(self, path: str | Path, extra: list[str] | tuple[str, ...] = (), with_colors: bool = True):
+        for k in extra:
+            if not k.isidentifier():
+                raise ValueError(f"extra field {k!r}: bad name")
+        self.path = Path(path)
+        self.dtype = _ply_dtype(list(extra), with_colors)
+        self.extra, self.with_colors = list(extra), with_colors
+        self.n = 0
+        self._ctx = atomic_path(self.path)
+        self._tmp = self._ctx.__enter__()
+        self._f = open(self._tmp, "wb")
+        self._header_len = len(self._header(10 ** (self._COUNT_DIGITS - 1), 0)) + 10
+        self._f.write(self._header(0, self._header_len))
+
+    def _header(self, n: int, size: int) -> bytes:
+        ply_name = {np.dtype("<f8"): "double", np.dtype("u1"): "uchar", np.dtype("<f4"): "float"}
+        head = ["ply", "format binary_little_endian 1.0", "comment written by AE-Rec",
+                f"element vertex {n}"]
+        head += [f"property {ply_name[self.dtype[k]]} {k}" for k in self.dtype.names]
+        text = "\n".join(head) + "\n"
+        tail = "end_header\n"
+        if size:
+            pad = size - len(text) - len(tail) - len("comment \n")
+            text += "comment " + " " * pad + "\n"
+        return (text + tail).encode("ascii")
+
+    def append(self, xyz: np.ndarray, colors: np.ndarray | None = None,
+               extra: dict[str, np.ndarray] | None = None) -> None:
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        m = len(xyz)
+        rec = np.empty(m, dtype=self.dtype)
+        rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        if self.with_colors:
+            if colors is None:
+                raise ValueError("this PLY has colours: pass them")
+            colors = np.asarray(colors).reshape(m, -1)
+            for i, c in enumerate(("red", "green", "blue")):
+                rec[c] = colors[:, i if colors.shape[1] == 3 else 0]
+        extra = extra or {}
+        if set(extra) != set(self.extra):
+            raise ValueError(f"extra fields {sorted(extra)} != {sorted(self.extra)}")
+        for k, v in extra.items():
+            rec[k] = np.asarray(v).reshape(-1)
+        rec.tofile(self._f)
+        self.n += m
+
+    def close(self, ok: bool = True) -> None:
+        """Finish the file (ok) or discard it (not ok, e.g. after an exception)."""
+        if self._f is None:
+            return
+        f, self._f = self._f, None
+        try:
+            if ok:
+                f.seek(0)
+                f.write(self._header(self.n, self._header_len))
+            f.close()
+        except BaseException as exc:
+            f.close()
+            self._ctx.__exit__(type(exc), exc, exc.__traceback__)
+            raise
+        if ok:
+            self._ctx.__exit__(None, None, None)
+        else:
+            err = RuntimeError("PLY writing aborted")
+            self._ctx.__exit__(RuntimeError, err, None)
+
+    def __enter__(self) -> "PlyWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close(ok=exc_type is None)
 
 
 def _read_ply_header(f, path) -> tuple[int, np.dtype]:
@@ -481,18 +553,35 @@ def _read_ply_header(f, path) -> tuple[int, np.dtype]:
     return n, np.dtype(fields)
 
 
-def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, np.ndarray]]:
-    """Read a binary little-endian PLY: (xyz (n, 3) float64, colors (n, 3) uint8 or None, extra)."""
+def open_ply(path: str | Path) -> np.ndarray:
+    """Memory-map the vertices of a binary PLY as a structured array (nothing read yet)."""
+    path = Path(path)
     with open(path, "rb") as f:
         n, dt = _read_ply_header(f, path)
-        rec = np.fromfile(f, dtype=dt, count=n)
-    if len(rec) != n:
-        raise InputError(path, f"PLY file truncated: {len(rec)} of {n} vertices")
-    names = set(dt.names)
-    if not {"x", "y", "z"} <= names:
+        offset = f.tell()
+    size = path.stat().st_size
+    if size < offset + n * dt.itemsize:
+        raise InputError(path, f"PLY file truncated: {(size - offset) // dt.itemsize} of {n} vertices")
+    if not {"x", "y", "z"} <= set(dt.names):
         raise InputError(path, "PLY vertices lack x, y, z")
+    if n == 0:
+        return np.zeros(0, dtype=dt)
+    return np.memmap(path, dtype=dt, mode="r", offset=offset, shape=(n,))
+
+
+def ply_fields(rec: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, dict[str, np.ndarray]]:
+    """(xyz (n, 3) float64, colors (n, 3) uint8 or None, extra) of PLY vertex records (copies)."""
+    names = set(rec.dtype.names)
     xyz = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
     rgb = ("red", "green", "blue")
     colors = np.column_stack([rec[c] for c in rgb]).astype(np.uint8) if set(rgb) <= names else None
-    extra = {k: rec[k].copy() for k in dt.names if k not in ("x", "y", "z", *rgb)}
+    extra = {k: np.array(rec[k]) for k in rec.dtype.names if k not in ("x", "y", "z", *rgb)}
     return xyz, colors, extra
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, dict[str, np.ndarray]]:
+    """Read a binary little-endian PLY: (xyz (n, 3) float64, colors (n, 3) uint8 or None, extra)."""
+    rec = open_ply(path)
+    out = ply_fields(rec)
+    del rec
+    return out

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import Config
-from .dsm import Grid, fill_small_holes, rasterize, write_dsm, write_ply
+from .dsm import DsmAccumulator, Grid, PlyWriter, fill_small_holes, open_ply, ply_fields, write_dsm
 from .errors import ReconstructionError
 from .geodesy import LocalFrame
 from .georef import enu_to_output, frame_for, output_epsg, upgrade_group
@@ -75,27 +75,62 @@ def load_upgrade(out: Path) -> tuple[dict, LocalFrame] | None:
     return Hs, frame
 
 
-def euclidean_cloud(clouds: dict, Hs: dict, cfg: Config) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Upgrade each group's cloud to ENU, refine groups onto the largest by ICP, merge."""
+class PointSource:
+    """A group's affine cloud, read by slices: a memory-mapped PLY on disk, or arrays."""
+
+    def __init__(self, xyz: np.ndarray | None = None, gray: np.ndarray | None = None,
+                 ply: Path | None = None):
+        self._rec = open_ply(ply) if ply is not None else None
+        self._xyz, self._gray = xyz, gray
+
+    def __len__(self) -> int:
+        return len(self._rec) if self._rec is not None else len(self._xyz)
+
+    def read(self, a: int, b: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """(xyz (k, 3) float64, grey (k,) uint8) of points a, a + step, ... < b."""
+        if self._rec is None:
+            return np.asarray(self._xyz[a:b:step], np.float64), np.asarray(self._gray[a:b:step], np.uint8)
+        xyz, rgb, _ = ply_fields(self._rec[a:b:step])
+        return xyz, (rgb[:, 0] if rgb is not None else np.full(len(xyz), 128, np.uint8))
+
+    def sample(self, max_n: int) -> np.ndarray:
+        """At most max_n points spread evenly through the cloud (every k-th)."""
+        return self.read(0, len(self), max(1, -(-len(self) // max_n)))[0]
+
+
+ICP_SAMPLE = 3_000_000        # points per group given to ICP and to the grid extent
+CHUNK = 4_000_000             # points per chunk when streaming clouds into the DSM
+SPILL_ABOVE = 20_000_000      # DSM accumulation goes to disk above this many points
+
+
+def _to_enu(H: np.ndarray, xyz: np.ndarray, T: np.ndarray | None = None) -> np.ndarray:
+    enu = xyz @ H[:3, :3].T + H[:3, 3]
+    return enu if T is None else enu @ T[:3, :3].T + T[:3, 3]
+
+
+def fuse_transforms(sources: dict, Hs: dict, cfg: Config) -> tuple[dict, dict, dict]:
+    """Per group: the ICP refinement T onto the largest group (identity for it), computed on
+    evenly spread samples of the upgraded clouds. Returns ({g: T}, {g: sample ENU after T}, report)."""
     from .fusion import icp_refine
 
-    enu = {g: clouds[g][0] @ Hs[g][:3, :3].T + Hs[g][:3, 3] for g in Hs if g in clouds}
-    if not enu:
+    groups = [g for g in sorted(Hs) if g in sources and len(sources[g])]
+    if not groups:
         raise ReconstructionError("no upgraded group has a cloud")
-    ref = max(enu, key=lambda g: len(enu[g]))
+    ref = max(groups, key=lambda g: len(sources[g]))
+    samples = {g: _to_enu(Hs[g], sources[g].sample(ICP_SAMPLE)) for g in groups}
     report = {"reference_group": ref, "icp": {}}
-    for g in enu:
-        if g == ref or len(enu[g]) < 100:
+    Ts = {g: np.eye(4) for g in groups}
+    for g in groups:
+        if g == ref or len(samples[g]) < 100:
             continue
-        T, fitness, rmse = icp_refine(enu[g], enu[ref], max_corr_m=cfg.dsm.icp_max_corr_m)
+        T, fitness, rmse = icp_refine(samples[g], samples[ref], max_corr_m=cfg.dsm.icp_max_corr_m)
         ok = fitness >= 0.3
         report["icp"][str(g)] = {"fitness": fitness, "inlier_rmse_m": rmse, "applied": ok,
                                  "translation_m": T[:3, 3].tolist()}
         if ok:
-            enu[g] = enu[g] @ T[:3, :3].T + T[:3, 3]
-    xyz = np.concatenate([enu[g] for g in sorted(enu)])
-    gray = np.concatenate([clouds[g][1] for g in sorted(enu)])
-    return xyz, gray, report
+            Ts[g] = T
+            samples[g] = samples[g] @ T[:3, :3].T + T[:3, 3]
+    return Ts, samples, report
 
 
 def output_grid(site: Site, xyh: np.ndarray, epsg: int, res: float) -> Grid:
@@ -107,21 +142,41 @@ def output_grid(site: Site, xyh: np.ndarray, epsg: int, res: float) -> Grid:
     return Grid.from_points(np.stack([lo, hi]), res, epsg, margin=2 * res)
 
 
-def make_dsm(site: Site, clouds: dict, Hs: dict, frame: LocalFrame, gsd: float, cfg: Config,
-             out: Path) -> dict:
-    """Write cloud.ply (Euclidean, output CRS) and dsm.tif; return the summary."""
-    xyz_enu, gray, fusion = euclidean_cloud(clouds, Hs, cfg)
+def make_dsm(site: Site, sources: dict, Hs: dict, frame: LocalFrame, gsd: float, cfg: Config,
+             out: Path, bus=None) -> dict:
+    """Write cloud.ply (Euclidean, output CRS) and dsm.tif; return the summary.
+
+    Streams: each group's cloud is read by chunks (upgrade, ICP refinement, conversion to the
+    output CRS), appended to cloud.ply and filed into the DSM accumulator, which reduces one
+    block of grid rows at a time; memory does not grow with the number of points.
+    """
+    Ts, samples, fusion = fuse_transforms(sources, Hs, cfg)
     epsg = output_epsg(site.hints, frame)
-    xyh = enu_to_output(xyz_enu, frame, epsg)
-    write_ply(out / "cloud.ply", xyh, np.repeat(gray[:, None], 3, 1))
     res = float(cfg.dsm.resolution_m or site.hints.get("resolution_m") or max(0.5, round(gsd * 2) / 2))
-    grid = output_grid(site, xyh, epsg, res)
-    H, count = rasterize(xyh, grid, stat=cfg.dsm.stat)
+    grid = output_grid(site, enu_to_output(np.concatenate(list(samples.values())), frame, epsg), epsg, res)
+    total = sum(len(sources[g]) for g in Ts)
+    acc = DsmAccumulator(grid, stat=cfg.dsm.stat, spill_dir=out if total > SPILL_ABOVE else None)
+    done = 0
+    try:
+        with PlyWriter(out / "cloud.ply") as w:
+            for g in sorted(Ts):
+                src = sources[g]
+                for a in range(0, len(src), CHUNK):
+                    xyz, gray = src.read(a, min(a + CHUNK, len(src)))
+                    xyh = enu_to_output(_to_enu(Hs[g], xyz, Ts[g]), frame, epsg)
+                    acc.add(xyh)
+                    w.append(xyh, gray[:, None])
+                    done += len(xyz)
+                    if bus is not None:
+                        bus.progress("dsm", done, total, f"group {g}")
+        H, count = acc.finish()
+    finally:
+        acc.close()
     raw_valid = float(np.isfinite(H).mean())
     if cfg.dsm.fill_holes_px > 0:
         H = fill_small_holes(H, max_hole_px=cfg.dsm.fill_holes_px)
     write_dsm(out / "dsm.tif", H, grid)
     return {"crs_epsg": epsg, "resolution_m": res, "width": grid.width, "height": grid.height,
-            "points": int(len(xyh)), "valid_fraction_raw": raw_valid,
+            "points": int(total), "points_in_grid": int(count.sum()), "valid_fraction_raw": raw_valid,
             "valid_fraction": float(np.isfinite(H).mean()), "stat": cfg.dsm.stat, "fusion": fusion,
             "gsd_m": gsd}

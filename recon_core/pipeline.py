@@ -41,7 +41,7 @@ class RunState:
     cfg: Config
     groups: list[Group]
     models: dict = field(default_factory=dict)      # group index -> SparseModel
-    dense: dict = field(default_factory=dict)       # group index -> DenseCloud
+    dense: dict = field(default_factory=dict)       # group index -> dense.ply path
     upgrade: tuple | None = None                    # ({group: H_A}, LocalFrame)
     report: dict = field(default_factory=dict)
 
@@ -119,25 +119,24 @@ def load_sparse(state: RunState) -> None:
 
 
 def run_dense(state: RunState, bus: EventBus) -> dict:
-    from .dense import reconstruct_dense_group, save_dense
+    from .dense import dense_path, reconstruct_dense_group
 
     out = {"groups": {}}
+    images = {im.name: im for im in state.site.images}
     for g, model in sorted(state.models.items()):
-        images = {im.name: im for im in state.site.images}
-        cloud, summary = reconstruct_dense_group(model, images, state.cfg.dense, bus)
-        save_dense(state.out, g, cloud)
-        state.dense[g] = cloud
+        path = dense_path(state.out, g)
+        _, summary = reconstruct_dense_group(model, images, state.cfg.dense, bus, path=path)
+        state.dense[g] = path
         out["groups"][str(g)] = summary
     return out
 
 
 def load_dense(state: RunState) -> None:
-    from .dense import load_dense_group
+    from .dense import dense_path
 
     for g in state.models:
-        cloud = load_dense_group(state.out, g)
-        if cloud is not None:
-            state.dense[g] = cloud
+        if dense_path(state.out, g).exists():
+            state.dense[g] = dense_path(state.out, g)
 
 
 def run_upgrade(state: RunState, bus: EventBus) -> dict:
@@ -165,18 +164,21 @@ def run_dsm(state: RunState, bus: EventBus) -> dict:
     if state.upgrade is None:
         raise ReconstructionError("the DSM needs the upgrade stage")
     Hs, frame = state.upgrade
-    clouds = {}
+    from .euclidean import PointSource
+
+    sources = {}
     for g in Hs:
-        if g in state.dense and len(state.dense[g]):
-            clouds[g] = (state.dense[g].xyz, state.dense[g].gray)
+        src = PointSource(ply=state.dense[g]) if g in state.dense else None
+        if src is not None and len(src):
+            sources[g] = src
         elif g in state.models:
             m = state.models[g]
             ids = m.point_ids()
-            clouds[g] = (m.X[ids], m.gray[ids])
+            sources[g] = PointSource(m.X[ids], m.gray[ids])
             bus.message(f"group {g}: no dense cloud, the DSM uses the sparse points", "warning", g)
     ups = state.report.get("stages", {}).get("upgrade", {}).get("groups", {})
     gsd = min((v["gsd_m"] for v in ups.values() if "gsd_m" in v), default=0.5)
-    return make_dsm(state.site, clouds, Hs, frame, gsd, state.cfg, state.out)
+    return make_dsm(state.site, sources, Hs, frame, gsd, state.cfg, state.out, bus)
 
 
 def run_eval(state: RunState, bus: EventBus) -> dict:

@@ -120,12 +120,13 @@ def test_dense_tiny_against_truth(tiny_run, tiny_site):
     from recon_core.dsm import Grid, rasterize
     from recon_core.georef import frame_for
     from recon_core.geodesy import geodetic_to_projected
+    from recon_core.dense import load_dense_group
     from recon_core.truth import sparse_vs_truth
 
     state, _ = tiny_run
     frame = frame_for(state.site.gcps)
     fit = sparse_vs_truth(tiny_site, state.models[0], frame)
-    cloud = state.dense[0]
+    cloud = load_dense_group(state.out, 0)
     enu = affine.apply_affine_3d(fit["A"], cloud.xyz)
     with rasterio.open(tiny_site / "gt_dsm.tif") as ds:
         gt = ds.read(1).astype(np.float64)

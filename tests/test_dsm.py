@@ -166,3 +166,33 @@ def test_ply_round_trip_keeps_utm_exactly(tmp_path):
     p2 = write_ply(tmp_path / "bare.ply", xyz[:5], chunk=2)
     xyz3, rgb3, extra3 = read_ply(p2)
     assert np.array_equal(xyz3, xyz[:5]) and rgb3 is None and extra3 == {}
+
+
+def test_ply_writer_streams_and_is_atomic(tmp_path):
+    """Chunks appended to a PlyWriter read back as one cloud; an exception leaves no file."""
+    from recon_core.dsm import PlyWriter, open_ply, ply_fields
+
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(size=(1000, 3)) * 1e5
+    grey = rng.integers(0, 255, 1000).astype(np.uint8)
+    nv = rng.integers(2, 4, 1000).astype(np.float32)
+    path = tmp_path / "s.ply"
+    with PlyWriter(path, ["n_views"]) as w:
+        for a in range(0, 1000, 300):
+            w.append(xyz[a:a + 300], grey[a:a + 300, None], {"n_views": nv[a:a + 300]})
+    x2, c2, e2 = read_ply(path)
+    np.testing.assert_array_equal(x2, xyz)
+    np.testing.assert_array_equal(c2[:, 1], grey)
+    np.testing.assert_array_equal(e2["n_views"], nv)
+    rec = open_ply(path)
+    assert len(rec) == 1000
+    np.testing.assert_array_equal(ply_fields(rec[10:20])[0], xyz[10:20])
+    o3d = pytest.importorskip("open3d")
+    assert len(o3d.io.read_point_cloud(str(path)).points) == 1000   # other readers accept the padding
+
+    bad = tmp_path / "bad.ply"
+    with pytest.raises(ZeroDivisionError):
+        with PlyWriter(bad) as w:
+            w.append(xyz[:10], grey[:10, None])
+            1 / 0
+    assert not bad.exists() and not list(tmp_path.glob(".bad*"))
