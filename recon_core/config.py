@@ -71,6 +71,7 @@ class DenseConfig:
     disp_margin_frac: float = 0.25    # ... plus this fraction of the percentile range
     min_pair_matches: int = 20        # a tile pair needs this many sparse matches to be matched
     min_parallax_ratio: float = 3.0   # sigma3/sigma4 of the pair's sparse matches (baseline test)
+    core_margin_px: int = 48          # context matched around the part of a tile it owns (px)
     ncc_radius: int = 2               # photometric check patch radius (5 x 5 patches)
     min_ncc: float = 0.3              # links with a lower NCC are dropped
     max_reproj_px: float = 1.0        # views with a larger error are dropped from a track

@@ -45,6 +45,7 @@ class PartnerSpec:
     spec: TileSpec
     x_ref: np.ndarray                  # (n, 2) sparse matches in the reference image (full pixels)
     x_partner: np.ndarray              # (n, 2) the same in the partner image
+    core: tuple[int, int, int, int] | None = None   # the partner tile's own part (full image)
 
 
 @dataclass
@@ -147,8 +148,11 @@ def lr_consistent(D_left: np.ndarray, D_right: np.ndarray, tol: float) -> np.nda
 
 
 def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: PartnerSpec,
-               cfg: DenseConfig) -> tuple[dict | None, PairInfo]:
-    """Rectify and match one tile pair; returns the rectified disparity field and its maps."""
+               cfg: DenseConfig, ref_core: tuple[int, int, int, int] | None = None) -> tuple[dict | None, PairInfo]:
+    """Rectify and match one tile pair; returns the rectified disparity field and its maps.
+
+    ref_core / p.core: the full-image boxes each tile owns (None = the whole tile).
+    """
     rt, pt = ref.tile, p.spec.tile
     P1, P2 = local_camera(ref.camera, rt), local_camera(p.spec.camera, pt)
     x1 = p.x_ref - (rt.col0, rt.row0)
@@ -173,10 +177,13 @@ def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: Part
     d_lo, d_hi = disparity_range(d_sparse, cfg.disp_margin_px, cfg.disp_margin_frac)
     info.disp_range = (d_lo, d_hi)
 
-    # Canvas: the reference tile's rectified box, rows limited to those the partner covers,
-    # padded horizontally so the whole disparity range stays inside the partner's canvas.
-    c1 = affine.apply_affine_2d(H1, _corners(rt))
-    c2 = affine.apply_affine_2d(H2, _corners(pt))
+    # Canvas: the rectified box of the reference pixels this job owns (the core), rows limited
+    # to those the partner's own part covers, padded horizontally so the whole disparity range
+    # stays inside the partner's canvas. Tiles of one image overlap (d/3): matching only the
+    # cores (plus a context margin for the aggregation paths) avoids matching every pixel pair
+    # about 2.25 x 2.25 times; the neighbouring tile pairs cover the rest.
+    c1 = affine.apply_affine_2d(H1, _box_corners(ref_core, rt, cfg.core_margin_px))
+    c2 = affine.apply_affine_2d(H2, _box_corners(p.core, pt, cfg.core_margin_px))
     v0, v1 = max(c1[:, 1].min(), c2[:, 1].min()), min(c1[:, 1].max(), c2[:, 1].max())
     if v1 - v0 < 16:
         info.skipped = "rectified tiles share fewer than 16 rows"
@@ -215,6 +222,18 @@ def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: Part
 def _corners(t: Tile) -> np.ndarray:
     return np.array([[-0.5, -0.5], [t.width - 0.5, -0.5], [t.width - 0.5, t.height - 0.5],
                      [-0.5, t.height - 0.5]])
+
+
+def _box_corners(core: tuple[int, int, int, int] | None, t: Tile, margin: int) -> np.ndarray:
+    """Tile-local corners of a full-image box (c0, r0, c1, r1) grown by margin, clipped to the tile."""
+    if core is None:
+        return _corners(t)
+    c0, r0, c1, r1 = core
+    a0 = max(c0 - margin - t.col0, 0) - 0.5
+    b0 = max(r0 - margin - t.row0, 0) - 0.5
+    a1 = min(c1 + margin - t.col0, t.width) - 0.5
+    b1 = min(r1 + margin - t.row0, t.height) - 0.5
+    return np.array([[a0, b0], [a1, b0], [a1, b1], [a0, b1]])
 
 
 def sample_disparity(d: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -287,17 +306,19 @@ def run_job(job: DenseJob) -> DenseResult:
     for p in job.partners:
         pt = p.spec.tile
         part_img = read_window(p.spec.image, pt.col0, pt.row0, pt.width, pt.height)
-        res, info = match_pair(ref_img, ref, part_img, p, cfg)
+        res, info = match_pair(ref_img, ref, part_img, p, cfg, job.core)
         infos.append(info)
         kernel += info.kernel_s
         if res is None:
             continue
         uv = affine.apply_affine_2d(res["A1"], loc.astype(np.float64))
-        d = sample_disparity(res["d"], uv)
+        hh, ww = res["d"].shape
+        idx = np.flatnonzero((uv[:, 0] >= 0) & (uv[:, 0] <= ww - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= hh - 1))
+        d = sample_disparity(res["d"], uv[idx])
         ok = np.isfinite(d)
-        info.valid_frac = float(ok.mean())
-        idx = np.flatnonzero(ok)
-        q_rect = uv[idx] + np.stack([d[idx], np.zeros(len(idx))], 1)
+        info.valid_frac = float(ok.sum() / max(len(idx), 1))
+        idx, d = idx[ok], d[ok]
+        q_rect = uv[idx] + np.stack([d, np.zeros(len(idx))], 1)
         q = affine.apply_affine_2d(np.linalg.inv(res["A2"]), q_rect)         # partner tile-local
         inside = (q[:, 0] >= 0) & (q[:, 0] <= pt.width - 1) & (q[:, 1] >= 0) & (q[:, 1] <= pt.height - 1)
         idx, q = idx[inside], q[inside]
@@ -400,6 +421,9 @@ def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig) -> list[Den
     def _image_pair_has_parallax(a: str, b: str) -> bool:
         return best_par.get((a, b), 0.0) >= cfg.min_parallax_ratio
 
+    same_of: dict[str, list[Tile]] = {}
+    for t in model.tiles:
+        same_of.setdefault(t.image, []).append(t)
     for r in reg:
         rt = model.tiles[r]
         tr_r, xy_r = by_tile[r]
@@ -413,15 +437,14 @@ def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig) -> list[Den
             if len(common) < cfg.min_pair_matches:
                 continue
             partners.append(PartnerSpec(TileSpec(images[tt.image], tt, model.cams[t].copy()),
-                                        xy_r[ia], xy_t[ib]))
+                                        xy_r[ia], xy_t[ib], tile_core(tt, same_of[tt.image])))
         if not partners:
             continue
         partners = [p for p in partners if _image_pair_has_parallax(rt.image, p.spec.image.name)]
         if not partners:
             continue
-        same = [t for t in model.tiles if t.image == rt.image]
         jobs.append(DenseJob(model.group, TileSpec(images[rt.image], rt, model.cams[r].copy()),
-                             tile_core(rt, same), partners, cfg))
+                             tile_core(rt, same_of[rt.image]), partners, cfg))
     return jobs
 
 

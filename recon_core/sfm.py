@@ -230,7 +230,7 @@ class IncrementalSfM:
             cand = [t for t in range(len(m.tiles)) if not m.registered[t] and t not in failed]
             if not cand:
                 break
-            counts = np.array([self._n_correspondences(t) for t in cand])
+            counts = self._correspondence_counts()[cand]
             best = int(np.argmax(counts))
             if counts[best] < self.cfg.resect_min_inliers:
                 break
@@ -250,9 +250,10 @@ class IncrementalSfM:
                    "seconds": time.time() - t0}
         return m
 
-    def _n_correspondences(self, t: int) -> int:
+    def _correspondence_counts(self) -> np.ndarray:
+        """(T,) number of 2D-3D correspondences of every tile (one pass over the observations)."""
         o = self.m.obs
-        return int(np.sum((o.tile == t) & o.valid & self.m.has_point[o.track]))
+        return np.bincount(o.tile[o.valid & self.m.has_point[o.track]], minlength=len(self.m.tiles))
 
     def _register(self, t: int) -> bool:
         m, o = self.m, self.m.obs
