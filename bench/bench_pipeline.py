@@ -71,6 +71,8 @@ def main(argv=None) -> int:
     ap.add_argument("--config-preset", default="default")
     ap.add_argument("--reference", type=Path, default=None, help="reference DSM to compare with (aerec eval)")
     ap.add_argument("--root", type=Path, default=Path("/tmp/aerec_bench"))
+    ap.add_argument("--resume", action="store_true",
+                    help="reuse the finished stages of OUT (their seconds are those of the earlier run)")
     args = ap.parse_args(argv)
 
     site = args.site or ensure_site(args.preset or "demo", args.seed, args.root)
@@ -86,7 +88,7 @@ def main(argv=None) -> int:
             ba["runs"] += 1
 
     t0 = time.time()
-    state = run(site, out, cfg, until=args.until, bus=EventBus(listen), resume=False)
+    state = run(site, out, cfg, until=args.until, bus=EventBus(listen), resume=args.resume)
     wall = time.time() - t0
     st = state.report["stages"]
     print(f"\n== {site} (tile size {cfg.tiling.tile_size}) total {wall:.1f} s ==")

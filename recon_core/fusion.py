@@ -25,6 +25,13 @@ def _o3d_cloud(xyz: np.ndarray, voxel_m: float):
     return pc.voxel_down_sample(voxel_m) if voxel_m > 0 else pc
 
 
+def _random_subset(pc, n_max: int, rng: np.random.Generator):
+    n = len(pc.points)
+    if n <= n_max:
+        return pc
+    return pc.select_by_index(np.sort(rng.choice(n, n_max, replace=False)).tolist())
+
+
 def _translation(t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, 3] = t
@@ -32,7 +39,8 @@ def _translation(t: np.ndarray) -> np.ndarray:
 
 
 def icp_refine(source_xyz: np.ndarray, target_xyz: np.ndarray, max_corr_m: float = 3.0,
-               voxel_m: float = 1.0, max_iter: int = 60) -> tuple[np.ndarray, float, float]:
+               voxel_m: float = 1.0, max_iter: int = 60, max_source: int = 200_000,
+               max_target: int = 500_000, seed: int = 0) -> tuple[np.ndarray, float, float]:
     """Rigid point-to-plane ICP of a source cloud onto a target cloud, from the identity.
 
     Args:
@@ -40,6 +48,8 @@ def icp_refine(source_xyz: np.ndarray, target_xyz: np.ndarray, max_corr_m: float
         max_corr_m: maximum correspondence distance (metres).
         voxel_m: voxel size for downsampling both clouds (metres; 0 = none). Target normals are
             estimated within 3 voxels (at least 1.5 m).
+        max_source, max_target: after downsampling, at most this many points are kept (a seeded
+            random subset): six parameters need far fewer, and ICP's cost grows with both.
     Returns:
         T: (4, 4) rigid map, x_target ~ T [x_source, 1], in the input coordinates.
         fitness: fraction of (downsampled) source points with a correspondence.
@@ -53,6 +63,8 @@ def icp_refine(source_xyz: np.ndarray, target_xyz: np.ndarray, max_corr_m: float
         raise ReconstructionError(f"ICP needs >= 10 points per cloud, got {len(src)} and {len(tgt)}")
     c = np.concatenate([src, tgt]).mean(axis=0)
     ps, pt = _o3d_cloud(src - c, voxel_m), _o3d_cloud(tgt - c, voxel_m)
+    rng = np.random.default_rng(seed)
+    ps, pt = _random_subset(ps, max_source, rng), _random_subset(pt, max_target, rng)
     radius = max(3.0 * voxel_m, 1.5)
     pt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
     reg = o3d.pipelines.registration
