@@ -24,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recon_core.config import preset as make_preset  # noqa: E402
-from recon_core.events import BundleAdjusted, EventBus  # noqa: E402
+from recon_core.events import BundleAdjusted, EventBus, Message, StageDone, StageProgress, TileRegistered  # noqa: E402
 from recon_core.pipeline import run  # noqa: E402
 
 
@@ -71,6 +71,7 @@ def main(argv=None) -> int:
     ap.add_argument("--config-preset", default="default")
     ap.add_argument("--reference", type=Path, default=None, help="reference DSM to compare with (aerec eval)")
     ap.add_argument("--root", type=Path, default=Path("/tmp/aerec_bench"))
+    ap.add_argument("--log", action="store_true", help="print progress lines with timestamps as it runs")
     ap.add_argument("--resume", action="store_true",
                     help="reuse the finished stages of OUT (their seconds are those of the earlier run)")
     args = ap.parse_args(argv)
@@ -81,11 +82,31 @@ def main(argv=None) -> int:
     if args.tile_size:
         cfg = cfg.with_overrides({"tiling.tile_size": args.tile_size})
     ba = {"seconds": 0.0, "runs": 0}
+    t_start = time.time()
+    last = {}
+
+    def log(text):
+        print(f"[{time.time() - t_start:7.1f} s] {text}", flush=True)
 
     def listen(ev):
         if isinstance(ev, BundleAdjusted):
             ba["seconds"] += ev.seconds
             ba["runs"] += 1
+            if args.log and ev.scope == "global":
+                log(f"group {ev.group} global BA: {ev.n_cameras} cameras, {ev.n_points} points, "
+                    f"{ev.seconds:.1f} s, RMS {ev.rms_px:.3f} px")
+        elif args.log and isinstance(ev, StageProgress):
+            key = (ev.stage, ev.group)
+            if ev.done in (0, ev.total) or time.time() - last.get(key, 0.0) > 60:
+                last[key] = time.time()
+                log(f"group {ev.group} {ev.stage} {ev.done}/{ev.total} {ev.message}")
+        elif args.log and isinstance(ev, TileRegistered):
+            key = ("sfm", ev.group)
+            if time.time() - last.get(key, 0.0) > 60:
+                last[key] = time.time()
+                log(f"group {ev.group} sfm: {ev.order + 1} tiles registered of {ev.total_tiles}")
+        elif args.log and isinstance(ev, (StageDone, Message)):
+            log(f"{type(ev).__name__}: {getattr(ev, 'stage', '')} {getattr(ev, 'text', '')}".strip())
 
     t0 = time.time()
     state = run(site, out, cfg, until=args.until, bus=EventBus(listen), resume=args.resume)
