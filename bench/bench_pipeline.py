@@ -129,7 +129,8 @@ def main(argv=None) -> int:
               f"{f['n']} points")
     if "dense" in st:
         for g, d in st["dense"]["groups"].items():
-            print(f"group {g} dense: {d['pairs_matched']}/{d['tile_pairs']} tile pairs, {d['points']} points, "
+            print(f"group {g} dense: {d['pairs_matched']}/{d['tile_pairs']} tile pairs matched "
+                  f"({d.get('pairs_not_needed', 0)} not needed: their cores do not overlap), {d['points']} points, "
                   f"views {d['views_histogram']}, wall {d['wall_s']:.1f} s, SGBM kernel {d['matcher_kernel_s']:.1f} s, "
                   f"job CPU / kernel = {d['overhead_ratio_cpu'] or float('nan'):.2f}, "
                   f"rectified row error {d['median_rectified_row_err_px'] or float('nan'):.3f} px")

@@ -186,14 +186,14 @@ def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: Part
     c2 = affine.apply_affine_2d(H2, _box_corners(p.core, pt, cfg.core_margin_px))
     v0, v1 = max(c1[:, 1].min(), c2[:, 1].min()), min(c1[:, 1].max(), c2[:, 1].max())
     if v1 - v0 < 16:
-        info.skipped = "rectified tiles share fewer than 16 rows"
+        info.skipped = NOT_NEEDED if p.core or ref_core else "rectified tiles share fewer than 16 rows"
         return None, info
     pad = int(np.ceil(max(abs(d_lo), abs(d_hi)))) + cfg.block_size + 2
     # columns of the reference whose match can fall on the partner: u = x2' - d
     ua = max(c1[:, 0].min(), c2[:, 0].min() - d_hi)
     ub = min(c1[:, 0].max(), c2[:, 0].max() - d_lo)
     if ub - ua < 16:
-        info.skipped = "rectified tiles share fewer than 16 columns"
+        info.skipped = NOT_NEEDED if p.core or ref_core else "rectified tiles share fewer than 16 columns"
         return None, info
     u0 = int(np.floor(ua)) - pad
     v0 = int(np.floor(v0))
@@ -217,6 +217,9 @@ def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: Part
     ok &= np.take_along_axis(m2, xs, axis=1)
     d = np.where(ok, -D, np.nan).astype(np.float32)     # d = x2' - x1'
     return {"A1": A1, "A2": A2, "d": d, "J": np.linalg.inv(H2[:2, :2]) @ H1[:2, :2]}, info
+
+
+NOT_NEEDED = "the parts the two tiles own do not overlap (neighbouring tile pairs cover it)"
 
 
 def _corners(t: Tile) -> np.ndarray:
@@ -533,7 +536,9 @@ def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfi
         k = int(np.searchsorted(np.cumsum(err_hist), (n_points + 1) / 2))
         med_err = float(0.5 * (err_edges[k] + err_edges[k + 1]))
     summary = {"jobs": len(jobs), "tile_pairs": n_pairs, "pairs_matched": len(matched),
-               "pairs_skipped": {f"{p.ref}~{p.partner}": p.skipped for p in pairs if p.skipped},
+               "pairs_not_needed": sum(p.skipped == NOT_NEEDED for p in pairs),
+               "pairs_skipped": {f"{p.ref}~{p.partner}": p.skipped for p in pairs
+                                 if p.skipped and p.skipped != NOT_NEEDED},
                "points": n_points,
                "views_histogram": np.trim_zeros(views_hist, "b").tolist(),
                "median_reproj_px": med_err,
