@@ -339,7 +339,10 @@ def run_job(job: DenseJob) -> DenseResult:
     xyz, nv, err, keep_idx = _triangulate(pix, cams, best_q, best_cam, cfg.max_reproj_px)
     g8, _ = to_8bit_pair(ref_img, ref_img)
     gray = g8[loc[keep_idx, 1], loc[keep_idx, 0]]
-    msg = None if len(xyz) else f"{rt.id}: no dense points ({'; '.join(i.skipped or 'no valid disparity' for i in infos) or 'no partner'})"
+    needed = [i for i in infos if i.skipped != NOT_NEEDED]
+    # a tile whose owned part overlaps no partner's owned part is covered by its neighbours' jobs
+    msg = None if len(xyz) or not needed else \
+        f"{rt.id}: no dense points ({'; '.join(i.skipped or 'no valid disparity' for i in needed)})"
     return DenseResult(job.group, rt.id, xyz, gray, nv.astype(np.uint8), err.astype(np.float32), infos,
                        time.time() - t_start, kernel, msg)
 
