@@ -6,7 +6,7 @@
         --reference ../shared/data/reunion_pair/ref_dsm_s2p.tif
 
 Figures: seconds per stage (features, matching, SfM, of which BA; dense, of which the SGBM
-kernel; upgrade; DSM; eval), peak memory (RSS high-water mark of this process and of the
+kernel; upgrade; DSM; eval), peak memory (RSS high-water mark of this process, after each stage; not the
 dense workers), tiles registered, points, reprojection error, for synthetic sites the sparse
 and dense structure against the truth up to one best-fit affine map, GCP check residuals and
 the DSM metrics.
@@ -28,10 +28,10 @@ from recon_core.events import BundleAdjusted, EventBus, Message, StageDone, Stag
 from recon_core.pipeline import run  # noqa: E402
 
 
-def peak_rss_mb() -> tuple[float, float]:
-    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
-    return own, kids
+def peak_rss_mb() -> float:
+    """RSS high-water mark of this process. The dense workers are not included: they are
+    children of the forkserver, not of this process (each holds one job: a few tiles)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def ensure_site(preset: str, seed: int, root: Path) -> Path:
@@ -84,6 +84,7 @@ def main(argv=None) -> int:
     ba = {"seconds": 0.0, "runs": 0}
     t_start = time.time()
     last = {}
+    peaks: list[str] = []
 
     def log(text):
         print(f"[{time.time() - t_start:7.1f} s] {text}", flush=True)
@@ -105,6 +106,10 @@ def main(argv=None) -> int:
             if time.time() - last.get(key, 0.0) > 60:
                 last[key] = time.time()
                 log(f"group {ev.group} sfm: {ev.order + 1} tiles registered of {ev.total_tiles}")
+        elif isinstance(ev, StageDone) and ev.group is None:
+            peaks.append(f"{ev.stage} {peak_rss_mb():.0f} MB")
+            if args.log:
+                log(f"StageDone: {ev.stage}; peak memory so far {peak_rss_mb():.0f} MB")
         elif args.log and isinstance(ev, (StageDone, Message)):
             log(f"{type(ev).__name__}: {getattr(ev, 'stage', '')} {getattr(ev, 'text', '')}".strip())
 
@@ -164,9 +169,8 @@ def main(argv=None) -> int:
             e = r[k]
             print(f"vs reference ({k}): median |diff| {e['median_abs_err_m']:.3f} m, within 1 m "
                   f"{e['completeness_pct']:.1f} %, RMSE {e['rmse_m']:.3f} m")
-    own, kids = peak_rss_mb()
     print("seconds per stage: " + ", ".join(f"{k} {v.get('seconds', 0):.1f}" for k, v in st.items()))
-    print(f"peak memory: main process {own:.0f} MB, largest worker {kids:.0f} MB")
+    print(f"peak memory: main process {peak_rss_mb():.0f} MB (stage by stage: {', '.join(peaks)})")
     return 0
 
 

@@ -369,8 +369,30 @@ def write_outputs(out: Path, result: dict, err: np.ndarray, dsm_aligned: np.ndar
     return paths
 
 
+def reduce_for_display(v: np.ndarray, max_side: int = 3200) -> tuple[np.ndarray, int]:
+    """NaN-aware block mean by the smallest integer factor k that brings the longer side to
+    <= max_side (k = 1: unchanged). Colouring and hill-shading then work on at most ~10 M cells
+    whatever the DSM size (a 7000 x 7700 grid shaded at full size took over 5 GB). Returns (v, k)."""
+    h, w = v.shape
+    k = max(1, math.ceil(max(h, w) / max_side))
+    if k == 1:
+        return v, 1
+    hh, ww = -(-h // k) * k, -(-w // k) * k
+    pad = np.full((hh, ww), np.nan, np.float32)
+    pad[:h, :w] = v
+    blocks = pad.reshape(hh // k, k, ww // k, k)
+    ok = np.isfinite(blocks)
+    n = ok.sum(axis=(1, 3))
+    tot = np.where(ok, blocks, 0.0).sum(axis=(1, 3), dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (tot / n).astype(np.float32)
+    out[n == 0] = np.nan
+    return out, k
+
+
 def error_map_image(err: np.ndarray, clip_m: float | None = 3.0) -> np.ndarray:
     """Diverging colour map of signed errors (NaN grey) with a colour bar in metres. RGB uint8."""
+    err, _ = reduce_for_display(err)
     fin = np.abs(err[np.isfinite(err)])
     clip = clip_m if clip_m else (float(np.percentile(fin, 95)) if fin.size else 1.0)
     clip = max(clip, 1e-3)
@@ -382,6 +404,9 @@ def error_map_image(err: np.ndarray, clip_m: float | None = 3.0) -> np.ndarray:
 
 def comparison_image(dsm: np.ndarray, gt: np.ndarray, res: float) -> np.ndarray:
     """Side-by-side shaded relief of the aligned DSM and the GT, common height range. RGB uint8."""
+    dsm, k = reduce_for_display(dsm)
+    gt, _ = reduce_for_display(gt)
+    res = res * k
     fin = gt[np.isfinite(gt)]
     lo, hi = (np.percentile(fin, [1, 99]) if fin.size else (0.0, 1.0))
     hi = hi if hi > lo else lo + 1.0

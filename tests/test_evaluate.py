@@ -146,3 +146,18 @@ def test_cli_prints_table(site, capsys):
     out = capsys.readouterr().out
     assert "completeness (%)" in out and "aligned" in out and "dx +1.5" in out
     assert main([str(site / "nope.tif"), str(site / "gt.tif")]) == 2
+
+
+def test_reduce_for_display_is_a_nan_aware_block_mean():
+    from recon_core.evaluate import reduce_for_display
+
+    v = np.arange(7 * 5, dtype=np.float32).reshape(7, 5)
+    v[0, 0] = np.nan
+    same, k = reduce_for_display(v, max_side=10)
+    assert k == 1 and same is v
+    r, k = reduce_for_display(v, max_side=3)
+    assert k == 3 and r.shape == (3, 2)
+    assert r[0, 0] == np.mean(v[:3, :3][np.isfinite(v[:3, :3])])      # NaN left out
+    assert r[2, 1] == np.mean(v[6:, 3:])                                # partial edge block
+    allnan = np.full((9, 9), np.nan, np.float32)
+    assert np.isnan(reduce_for_display(allnan, max_side=3)[0]).all()
