@@ -45,6 +45,8 @@ class SfmConfig:
     resect_min_inliers: int = 12      # a tile needs this many 2D-3D inliers to register
     max_reproj_px: float = 2.0        # triangulated points with a larger error are dropped
     min_points_conditioning: float = 0.01  # resection points flatter than this are regularised
+    min_triangulation_ratio: float = 0.3  # drop points whose conditioning (~ B/H of their views) is below
+                                      # this fraction of the model's 90th percentile (0 = off)
     global_ba_growth: float = 0.15    # run a global BA when tiles grew by this fraction
     local_ba_window: int = 6          # cameras refined in a local BA after each registration
 

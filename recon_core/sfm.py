@@ -115,6 +115,25 @@ def images_per_track(track: np.ndarray, img: np.ndarray, n: int) -> np.ndarray:
     return np.bincount(keys // n_img, minlength=n)
 
 
+def point_conditioning(cams: np.ndarray, obs_cam: np.ndarray, obs_pt: np.ndarray, n: int) -> np.ndarray:
+    """(n,) sqrt(lambda_min / lambda_max) of sum M^T M over each point's observations.
+
+    The affine counterpart of a triangulation angle: for two orthographic views it is
+    sin(angle / 2), about B/H / 2 (0 for identical views); repeated views do not change it. The affine frame distorts it by one global
+    factor, so it is compared with the model's own best points (90th percentile), never with an
+    absolute threshold; not with the median either, which a weak pair's many matches can own.
+    """
+    M = cams[obs_cam, :, :3]
+    MtM = np.einsum("kri,krj->kij", M, M)
+    A = np.zeros((n, 9))
+    for c in range(9):
+        A[:, c] = np.bincount(obs_pt, MtM.reshape(-1, 9)[:, c], minlength=n)
+    ev = np.linalg.eigvalsh(A.reshape(n, 3, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.sqrt(np.clip(ev[:, 0], 0, None) / ev[:, 2])
+    return np.nan_to_num(out, nan=0.0)
+
+
 def build_observations(tiles: list[Tile], image_names: list[str], feats: list[ImageFeatures],
                        tracks: Tracks) -> Observations:
     """Expand track nodes to one observation per tile containing the feature."""
@@ -316,13 +335,21 @@ class IncrementalSfM:
         m.has_point[bad] = False
 
     def _filter_outliers(self) -> None:
-        """Invalidate observations with large error; drop points left with < 2 images."""
+        """Invalidate observations with large error; drop points left with < 2 images, and
+        points triangulated from views too close in angle (`SfmConfig.min_triangulation_ratio`)."""
         m, o = self.m, self.m.obs
         idx, err = m.reprojection()
         o.valid[idx[err > self.cfg.max_reproj_px]] = False
         idx = m.active_obs()
         nimg = images_per_track(o.track[idx], o.img[idx], len(m.X))
         m.has_point &= nimg >= 2
+        if self.cfg.min_triangulation_ratio > 0:
+            idx = m.active_obs()
+            cond = point_conditioning(m.cams, o.tile[idx], o.track[idx], len(m.X))
+            ids = m.point_ids()
+            if len(ids):
+                ref = np.percentile(cond[ids], 90)
+                m.has_point[ids] &= cond[ids] >= self.cfg.min_triangulation_ratio * ref
 
     # -- bundle adjustment --------------------------------------------------------------------
     def _bundle(self, scope: str, around: int | None = None) -> None:

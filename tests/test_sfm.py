@@ -143,3 +143,33 @@ def test_textureless_tile_is_left_unregistered(tiny_site, tmp_path):
     assert not m.registered[flat].any()
     assert m.registered[[k for k, t in enumerate(m.tiles) if t.image != "img_02.tif"]].sum() >= 4
     assert any("img_02.tif" in u for u in m.stats["unregistered"])
+
+
+def _view(angle_deg: float, azimuth_deg: float = 0.0) -> np.ndarray:
+    """Affine (orthographic) camera looking down at off-nadir `angle_deg`: 2 x 4, 1 px per m."""
+    a, z = np.radians(angle_deg), np.radians(azimuth_deg)
+    d = np.array([np.sin(a) * np.cos(z), np.sin(a) * np.sin(z), -np.cos(a)])      # view direction
+    u = np.cross(d, [0.0, 0.0, 1.0]) if abs(d[2]) < 0.999 else np.array([1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(d, u)
+    return np.vstack([np.r_[u, 0.0], np.r_[v, 0.0]])
+
+
+def test_point_conditioning_grows_with_the_baseline():
+    """sqrt(l_min / l_max) of sum M^T M: ~0 for identical views, increasing with the angle
+    between two views (exactly sin(angle / 2) for two orthographic views: sum M^T M =
+    2 I - d1 d1^T - d2 d2^T has eigenvalues 2 and 1 -+ cos(angle)), and not fooled by repeating
+    the same two views (tiles of one image observing the same feature)."""
+    from recon_core.sfm import point_conditioning
+
+    angles = [0.0, 3.0, 7.0, 15.0, 30.0]
+    cams = np.stack([_view(0.0)] + [_view(a) for a in angles])
+    # point k seen by camera 0 and camera k + 1
+    obs_cam = np.concatenate([[0, k + 1] for k in range(len(angles))])
+    obs_pt = np.repeat(np.arange(len(angles)), 2)
+    c = point_conditioning(cams, obs_cam, obs_pt, len(angles))
+    assert c[0] < 1e-6
+    assert np.all(np.diff(c) > 0)
+    np.testing.assert_allclose(c, np.sin(np.radians(angles) / 2), atol=1e-9)
+    twice = point_conditioning(cams, np.r_[obs_cam, obs_cam], np.r_[obs_pt, obs_pt], len(angles))
+    np.testing.assert_allclose(twice, c, rtol=1e-9)
