@@ -333,6 +333,23 @@ class IncrementalSfM:
         err = affine.reprojection_errors(m.cams, o.tile[sel], o.track[sel], o.xy[sel], m.X)
         bad = np.unique(o.track[sel][err > self.cfg.max_reproj_px])
         m.has_point[bad] = False
+        # new points from views too close in angle never enter (rather than appearing and
+        # being dropped at the next global adjustment)
+        if self.cfg.min_triangulation_ratio > 0:
+            old = m.has_point.copy()
+            old[new] = False
+            ref_ids = np.flatnonzero(old) if old.sum() >= 50 else m.point_ids()
+            cond = point_conditioning(m.cams, o.tile[use], o.track[use], len(m.X))
+            if len(ref_ids):
+                ref_pts = self._conditioning()[ref_ids] if old.sum() >= 50 else cond[ref_ids]
+                thresh = self.cfg.min_triangulation_ratio * np.percentile(ref_pts, 90)
+                m.has_point[new[cond[new] < thresh]] = False
+
+    def _conditioning(self) -> np.ndarray:
+        """(N,) point_conditioning of every track over the active observations."""
+        m, o = self.m, self.m.obs
+        idx = m.active_obs()
+        return point_conditioning(m.cams, o.tile[idx], o.track[idx], len(m.X))
 
     def _filter_outliers(self) -> None:
         """Invalidate observations with large error; drop points left with < 2 images, and
@@ -344,8 +361,7 @@ class IncrementalSfM:
         nimg = images_per_track(o.track[idx], o.img[idx], len(m.X))
         m.has_point &= nimg >= 2
         if self.cfg.min_triangulation_ratio > 0:
-            idx = m.active_obs()
-            cond = point_conditioning(m.cams, o.tile[idx], o.track[idx], len(m.X))
+            cond = self._conditioning()
             ids = m.point_ids()
             if len(ids):
                 ref = np.percentile(cond[ids], 90)
