@@ -336,13 +336,12 @@ class IncrementalSfM:
         # new points from views too close in angle never enter (rather than appearing and
         # being dropped at the next global adjustment)
         if self.cfg.min_triangulation_ratio > 0:
+            cond = self._conditioning()
             old = m.has_point.copy()
             old[new] = False
-            ref_ids = np.flatnonzero(old) if old.sum() >= 50 else m.point_ids()
-            cond = point_conditioning(m.cams, o.tile[use], o.track[use], len(m.X))
-            if len(ref_ids):
-                ref_pts = self._conditioning()[ref_ids] if old.sum() >= 50 else cond[ref_ids]
-                thresh = self.cfg.min_triangulation_ratio * np.percentile(ref_pts, 90)
+            ref = cond[old] if old.sum() >= 50 else cond[m.has_point]   # the model's points so far
+            if len(ref):
+                thresh = self.cfg.min_triangulation_ratio * np.percentile(ref, 90)
                 m.has_point[new[cond[new] < thresh]] = False
 
     def _conditioning(self) -> np.ndarray:
