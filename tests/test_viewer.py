@@ -361,13 +361,20 @@ def live(tmp_path_factory):
     app.worker.handle = lambda ev: (events.append((type(ev).__name__, time.time(), ev)), real(ev))[1]
     trace = []
     app.start()
-    t0 = time.time()
-    while not app.worker.done.is_set() and time.time() - t0 < 240:
+
+    def sample():
         s = app.worker.snapshot()
         trace.append((s.status, sum(len(g.tiles) for g in s.groups.values()),
                       app.scene.displayed_points(), s.stage, s.stage_done, s.stage_total))
-        time.sleep(0.1)
+
+    t0 = time.time()
+    while not app.worker.done.wait(0.1) and time.time() - t0 < 240:
+        sample()
+    assert app.worker.done.is_set(), "the live run did not finish in 240 s"
+    # the loop above samples while the run goes on; the last row must be the display once the
+    # worker's final state has been applied, not whatever the last sample caught (a race)
     app.wait_idle()
+    sample()
     yield app, events, trace, out, site, cfg
     app.stop()
 
