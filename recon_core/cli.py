@@ -157,7 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("synth", help="write a synthetic pushbroom site with known truth")
     s.add_argument("out", type=Path, help="site folder to write")
-    s.add_argument("--preset", default="demo", choices=["tiny", "demo", "large"])
+    s.add_argument("--preset", default="demo", choices=["tiny", "tiny2", "demo", "large"])
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_synth)

@@ -109,6 +109,9 @@ class SynthPreset:
 PRESETS: dict[str, SynthPreset] = {
     "tiny": SynthPreset(name="tiny", groups=(3,), group_months=(4,), image_size=(400, 400),
                         n_gcps=12, block_rows=64),
+    # two date groups of 2 small images: the smallest site that exercises fusion (ICP)
+    "tiny2": SynthPreset(name="tiny2", groups=(2, 2), group_months=(4, 9), image_size=(400, 400),
+                         n_gcps=12, block_rows=64),
     "demo": SynthPreset(name="demo", groups=(3, 3), group_months=(3, 8),
                         image_size=(2000, 2000), n_gcps=16),
     "large": SynthPreset(name="large", groups=(3, 3, 3), group_months=(2, 6, 10),
