@@ -26,12 +26,13 @@ from typing import Callable
 import numpy as np
 
 from recon_core.errors import AerecError
+from recon_core.io.gcps import picked_positions
+from recon_core.model.tiling import Window
 
-from .display import COLOR_MODES, DisplayTransform, closest_point_to_ray, image_footprint
-from .gcp_panel import (GcpError, GcpPanel, PickPlane, add_observation, layout_pick_plane,
-                        new_gcp, open_session, picked_for_group, pixel_from_ray,
-                        set_affine_position)
-from .imagery import ImageSource, ImageWindow
+from .display import COLOR_MODES, DisplayTransform, image_footprint
+from .gcp_panel import GcpPanel, PickPlane, layout_pick_plane, pixel_from_ray
+from .gcp_session import GcpError, add_observation, new_gcp, open_session, set_affine_position
+from .imagery import ImageSource
 from .results import DsmPanel, UpgradeOutcome, gcp_readiness, n_ready, outcome_markdown, run_upgrade
 from .scene import SceneView, safe_name, tile_windows_for
 from .worker import DisplaySnapshot, ReconWorker
@@ -64,7 +65,7 @@ class ViewerApp:
         import viser
 
         from recon_core.config import Config, config_from_dict
-        from recon_core.site import load_site
+        from recon_core.io.site import load_site
 
         self.out = Path(out)
         self.mode = mode
@@ -88,6 +89,7 @@ class ViewerApp:
         self.models: dict = {}
         self._models_version = 0
         self.upgrade: UpgradeOutcome | None = None
+        self._dsm_rerun_pending = False
         self.frame = "affine"
         self.pick_plane: PickPlane | None = None
         self.last_click: tuple | None = None          # (gcp id, image, col, row) of the last pick
@@ -197,6 +199,8 @@ class ViewerApp:
             self.models = dict(self.worker.models)
             self._marks_key = None
             self._update_upgrade_button()
+        if self._dsm_rerun_pending and self.worker.done.is_set():
+            self._start_dsm_rerun()
         if snap.version == self._seen_version and self._marks_key is not None:
             return None
         self._seen_version = snap.version
@@ -462,7 +466,7 @@ class ViewerApp:
                               f"{win.col0}, {win.row0})"] = win
         self.gcp_panel.set_regions(list(self._regions)[1:])
 
-    def current_window(self) -> ImageWindow:
+    def current_window(self) -> Window:
         self._set_regions()
         return self._regions.get(self.gcp_panel.region.value, self.images.whole(self.gcp_panel.image.value))
 
@@ -494,7 +498,7 @@ class ViewerApp:
 
         threading.Thread(target=read, name="aerec-plane-read", daemon=True).start()
 
-    def _place_plane(self, win: ImageWindow, tex: np.ndarray, token: object) -> None:
+    def _place_plane(self, win: Window, tex: np.ndarray, token: object) -> None:
         if token is not self._plane_token:            # a newer choice superseded this one
             return
         plane = layout_pick_plane(win, self.scene_bounds())
@@ -546,7 +550,7 @@ class ViewerApp:
             return None
         gid = self.gcp_panel.selected()
         if gid is None:
-            x, y, h, epsg = self.gcp_panel._ground()
+            x, y, h, epsg = self.gcp_panel.ground()
             if x == 0.0 and y == 0.0:
                 raise GcpError("select a GCP, or type the new GCP's ground coordinates "
                                "(or take one from the site list) before clicking")
@@ -592,20 +596,7 @@ class ViewerApp:
 
     def pick_cloud_point(self, ray_origin, ray_direction) -> tuple[int, np.ndarray] | None:
         """(group, affine xyz) of the displayed point nearest to a ray, or None."""
-        best = None
-        for (g, kind), st in self.scene._clouds.items():
-            if st.transform is None:
-                continue
-            for ch in st.chunks:
-                k = closest_point_to_ray(ch.xyz, ray_origin, ray_direction, max_angle=0.02)
-                if k is None:
-                    continue
-                d = np.asarray(ray_direction, float)
-                v = ch.xyz[k] - np.asarray(ray_origin, float)
-                ang = np.linalg.norm(np.cross(v, d / np.linalg.norm(d))) / max(v @ d, 1e-12)
-                if best is None or ang < best[0]:
-                    best = (ang, g, st.transform.inverse(ch.xyz[k:k + 1])[0])
-        return None if best is None else (best[1], best[2])
+        return self.scene.nearest_point(ray_origin, ray_direction)
 
     def gcps_changed(self, select: str | None = "keep", note: str | None = None) -> None:
         self.gcp_panel.refresh(select)
@@ -617,10 +608,10 @@ class ViewerApp:
 
     def gcp_affine_positions(self, g: int) -> dict[str, np.ndarray]:
         """Affine position of every GCP placeable in group g (picked, else triangulated)."""
-        from recon_core.georef import triangulate_gcp
+        from recon_core.euclidean.georef import triangulate_gcp
 
         model = self.models.get(g)
-        out = dict(picked_for_group(self.session, g))
+        out = picked_positions(self.session.gcps, g)
         if model is None:
             return out
         for gcp in self.session.gcps:
@@ -649,7 +640,7 @@ class ViewerApp:
             win = self.pick_plane.window
             for gcp in self.session.gcps:
                 ob = gcp.observations.get(win.image)
-                if ob is not None and win.contains(*ob):
+                if ob is not None and win.contains([ob])[0]:
                     want[f"/gcp/plane_marks/{safe_name(gcp.id)}"] = (
                         self.pick_plane.point_of(ob[0], ob[1], lift=0.5 * r), colour(gcp.id), gcp.id)
         shown: set[str] = set()
@@ -716,9 +707,11 @@ class ViewerApp:
                                                   for gid, (_, txt) in ready.items()))
 
     def do_upgrade(self) -> UpgradeOutcome:
-        """The Upgrade button: fit H_A, switch the scene to the Euclidean frame, show residuals."""
+        """The Upgrade button: fit H_A with the pipeline's own function, switch the scene to
+        the Euclidean frame, show the residuals, then recompute the DSM and the error map from
+        this GCP set (the pipeline from its upgrade stage, as `aerec run --redo-from upgrade`)."""
         try:
-            outcome = run_upgrade(self.session, self.models, out=self.out)
+            outcome = run_upgrade(self.session, self.models, self.cfg)
         except AerecError as exc:
             self._set_md(self.g_upgrade_md, f"**Upgrade failed:** {exc}")
             raise
@@ -728,7 +721,16 @@ class ViewerApp:
         self.g_frame_sel.disabled = False
         self.set_frame("euclidean")
         self._update_upgrade_button()
+        self._dsm_rerun_pending = True
+        self._start_dsm_rerun()
         return outcome
+
+    def _start_dsm_rerun(self) -> None:
+        """Start the pending re-run from the upgrade stage once the worker is free."""
+        if self._dsm_rerun_pending and self.worker.rerun_from("upgrade"):
+            self._dsm_rerun_pending = False
+            self.note("recomputing the upgrade records, the DSM and the error map from the "
+                      "working GCP set (as `aerec run --redo-from upgrade`)")
 
     def set_frame(self, frame: str) -> None:
         if frame == "euclidean" and not self._euclid:

@@ -44,7 +44,7 @@ def demo_site(progress=None) -> Path:
     site = cache_dir() / "demo_site"
     if (site / "images").is_dir():
         return site
-    from recon_core.synthetic import generate_site
+    from recon_core.synthetic.generator import generate_site
 
     _remove_stale_tmp(site)
     tmp = site.with_name(f".demo_site.tmp{os.getpid()}")

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from recon_core.colormap import sequential
+from recon_core.evaluation.colormap import sequential
 
 COLOR_MODES = ("image colour", "height", "number of views", "reprojection error")
 

@@ -1,63 +1,67 @@
-"""Euclidean upgrade from the working GCP set, its residual table, and the DSM / error-map panel.
+"""The Euclidean upgrade from the working GCP set, its residual table, and the DSM / error-map panel.
 
-`run_upgrade` is what the "Upgrade" button calls: one H_A per date group (recon_core.georef),
-all in one local ENU frame at the control GCPs' centroid, so upgraded groups share the scene.
-Its outcome is also written to OUT/viewer_upgrade.json. `DsmPanel` shows OUT/dsm.tif and the
-evaluation (recon_core.evaluate) once the later stages wrote them, and drapes the error map.
+`run_upgrade` is what the "Upgrade" button calls: recon_core.euclidean.upgrade_stage.upgrade_models,
+the function `aerec run` uses, on the working set as OUT/gcps.geojson holds it. The viewer then
+re-runs the pipeline from the upgrade stage (ReconWorker.rerun_from), which writes the same
+upgrade records, cloud.ply, dsm.tif and evaluation as `aerec run --redo-from upgrade`.
+`DsmPanel` shows OUT/dsm.tif and the evaluation, and drapes the error map.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from recon_core.errors import AerecError, ReconstructionError
-from recon_core.io_utils import write_json
+from recon_core.config import Config
+from recon_core.errors import ReconstructionError
+from recon_core.euclidean.upgrade_stage import Upgrade, upgrade_models
+from recon_core.io.gcps import read_gcps_geojson
+from recon_core.io.layout import OutLayout
 
 from .display import DisplayTransform, euclidean_display_transform
-from .gcp_panel import GcpSession, picked_for_group
+from .gcp_session import GcpSession
 
 
 @dataclass
 class UpgradeOutcome:
-    """Result of an upgrade over every group.
+    """The viewer's upgrade: the core's Upgrade and the GCP session version it used."""
 
-    Attributes:
-        results: group -> UpgradeResult (recon_core.upgrade) of the groups that succeeded.
-        errors: group -> message of the groups that could not be upgraded.
-        frame: the shared LocalFrame (None when no GCP at all).
-        affine: group -> {gcp id: GcpAffine} (how each GCP was placed in that group).
-        gcps_version: the GcpSession version the upgrade used.
-    """
+    upgrade: Upgrade
+    gcps_version: int
 
-    results: dict = field(default_factory=dict)
-    errors: dict[int, str] = field(default_factory=dict)
-    frame: object | None = None
-    affine: dict = field(default_factory=dict)
-    gcps_version: int = -1
+    @property
+    def results(self) -> dict:
+        return self.upgrade.results
+
+    @property
+    def errors(self) -> dict[int, str]:
+        return self.upgrade.errors
+
+    @property
+    def frame(self):
+        return self.upgrade.frame
+
+    @property
+    def affine(self) -> dict:
+        return self.upgrade.affine
 
     @property
     def ok(self) -> bool:
-        return bool(self.results)
+        return bool(self.upgrade.results)
 
     def transform(self, g: int) -> DisplayTransform | None:
         r = self.results.get(g)
         return None if r is None else euclidean_display_transform(r.H, self.frame.origin_llh)
-
-    def to_dict(self) -> dict:
-        return {"frame_origin_llh": None if self.frame is None else self.frame.origin_llh.tolist(),
-                "groups": {str(g): r.to_dict() for g, r in self.results.items()},
-                "errors": {str(g): e for g, e in self.errors.items()}}
 
 
 def gcp_readiness(session: GcpSession, models: dict) -> dict[str, tuple[bool, str]]:
     """GCP id -> (can get an affine position, how): >= 2 observed images of a group, or picked."""
     out = {}
     for g in session.gcps:
-        if session.picked.get(g.id):
+        if g.affine_picked:
             out[g.id] = (True, "picked on the cloud")
             continue
         n = max((sum(1 for im in g.observations if im in m.images) for m in models.values()),
@@ -73,35 +77,18 @@ def n_ready(session: GcpSession, models: dict, role: str | None = "control") -> 
     return sum(1 for g in session.gcps if ready[g.id][0] and (role is None or g.role == role))
 
 
-def run_upgrade(session: GcpSession, models: dict, *, out: str | Path | None = None,
-                ransac_thresh_m: float = 2.0) -> UpgradeOutcome:
-    """Fit H_A for every group from the working GCP set (what the Upgrade button does).
+def run_upgrade(session: GcpSession, models: dict, cfg: Config) -> UpgradeOutcome:
+    """Fit H_A for every group from the working GCP set (what the Upgrade button does), with the
+    run's configuration (RANSAC threshold, seed), exactly as the pipeline's upgrade stage does.
 
     Raises:
         ReconstructionError: no model yet, or no group could be upgraded (the message of each
             group's failure, e.g. too few usable control GCPs, is in it).
     """
-    from recon_core.georef import frame_for, upgrade_group
-
     if not models:
         raise ReconstructionError("no sparse model yet: wait for the sparse stage to finish")
-    gcps = list(session.gcps)
-    frame = frame_for(gcps)
-    outcome = UpgradeOutcome(frame=frame, gcps_version=session.version)
-    for g, model in sorted(models.items()):
-        try:
-            res, _, aff = upgrade_group(model, gcps, frame, picked_for_group(session, g),
-                                        ransac_thresh_m=ransac_thresh_m)
-        except AerecError as exc:
-            outcome.errors[g] = str(exc)
-            continue
-        outcome.results[g] = res
-        outcome.affine[g] = aff
-    if out is not None:
-        write_json(Path(out) / "viewer_upgrade.json", outcome.to_dict())
-    if not outcome.results:
-        raise ReconstructionError("; ".join(f"group {g}: {e}" for g, e in outcome.errors.items()))
-    return outcome
+    gcps = read_gcps_geojson(session.path)        # what a run on OUT reads: the same numbers
+    return UpgradeOutcome(upgrade_models(gcps, models, cfg), session.version)
 
 
 def _f(v, fmt: str = "+.2f") -> str:
@@ -163,24 +150,20 @@ class DsmProducts:
 
 
 def find_dsm_products(out: str | Path) -> DsmProducts:
-    """OUT/dsm.tif and the evaluation files (eval.json, height_error.png) in OUT or OUT/eval."""
-    out = Path(out)
+    """OUT/dsm.tif and the evaluation files of OUT (recon_core.io.layout), those that exist."""
+    lay = OutLayout(out)
 
-    def first(name: str) -> Path | None:
-        for d in (out, out / "eval", out / "evaluation"):
-            if (d / name).exists():
-                return d / name
-        return None
+    def have(p: Path) -> Path | None:
+        return p if p.exists() else None
 
-    dsm = out / "dsm.tif"
-    return DsmProducts(dsm if dsm.exists() else None, first("eval.json"), first("height_error.png"),
-                       first("dsm_vs_gt.png"), first("height_error.tif"))
+    return DsmProducts(have(lay.dsm), have(lay.eval_json), have(lay.height_error_png),
+                       have(lay.dsm_vs_gt_png), have(lay.height_error_tif))
 
 
 def dsm_preview(dsm_path: Path, max_side: int = 640) -> np.ndarray:
     """Shaded-relief RGB of a DSM with a height colour bar (for the panel)."""
-    from recon_core import colormap as cm
-    from recon_core.dsm import read_dsm
+    from recon_core.evaluation import colormap as cm
+    from recon_core.io.raster import read_dsm
 
     H, grid = read_dsm(dsm_path)
     ok = np.isfinite(H)
@@ -224,10 +207,11 @@ def eval_markdown(ev: dict) -> str:
 
 
 def evaluate_now(out: Path, gt: Path) -> dict:
-    """Run recon_core.evaluate.evaluate_dsm(OUT/dsm.tif, gt) into OUT/eval."""
-    from recon_core.evaluate import evaluate_dsm
+    """Run recon_core.evaluation.evaluate.evaluate_dsm(OUT/dsm.tif, gt) into OUT/eval."""
+    from recon_core.evaluation.evaluate import evaluate_dsm
 
-    return evaluate_dsm(out / "dsm.tif", gt, out / "eval")
+    lay = OutLayout(out)
+    return evaluate_dsm(lay.dsm, gt, lay.eval_dir)
 
 
 def load_eval(p: DsmProducts) -> dict | None:
@@ -248,8 +232,8 @@ def error_map_drape(error_tif: Path, frame, clip_m: float = 3.0,
     """
     import rasterio
 
-    from recon_core import colormap as cm
-    from recon_core.geodesy import projected_to_geodetic
+    from recon_core.evaluation import colormap as cm
+    from recon_core.geometry.geodesy import projected_to_geodetic
 
     with rasterio.open(error_tif) as ds:
         f = max(1, int(np.ceil(max(ds.width, ds.height) / max_side)))

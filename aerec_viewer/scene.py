@@ -21,9 +21,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .display import (ColorRanges, DisplayTransform, color_ranges, display_fraction,
-                      cloud_salt, keep_mask, point_colors, quad_frame, quad_image, QuadFrame)
-from .imagery import ImageSource, ImageWindow
+from recon_core.model.tiling import Window
+
+from .display import (
+    ColorRanges,
+    DisplayTransform,
+    QuadFrame,
+    closest_point_to_ray,
+    cloud_salt,
+    color_ranges,
+    display_fraction,
+    keep_mask,
+    point_colors,
+    quad_frame,
+    quad_image,
+)
+from .imagery import ImageSource
 from .worker import CloudView, DisplaySnapshot, PointBatch, TileView, concat_batches
 
 CHUNK_MAX = 250_000           # points per chunk node at a rebuild
@@ -86,7 +99,7 @@ class _TileNode:
 class SceneView:
     """Owns the reconstruction's scene nodes and keeps them equal to the newest snapshot."""
 
-    def __init__(self, server, images: ImageSource, tile_windows: dict[str, ImageWindow] | None = None):
+    def __init__(self, server, images: ImageSource, tile_windows: dict[str, Window] | None = None):
         self.server = server
         self.tile_windows = dict(tile_windows or {})
         self.scene = server.scene
@@ -215,6 +228,26 @@ class SceneView:
             for c in st.chunks:
                 c.handle.visible = vis
 
+    def nearest_point(self, ray_origin, ray_direction, max_angle: float = 0.02
+                      ) -> tuple[int, np.ndarray] | None:
+        """(group, affine xyz) of the displayed point nearest in angle to a click ray (within
+        max_angle radians), or None: the scene answers picks on its own clouds."""
+        best = None
+        d = np.asarray(ray_direction, float)
+        d = d / np.linalg.norm(d)
+        for (g, kind), st in self._clouds.items():
+            if st.transform is None:
+                continue
+            for ch in st.chunks:
+                k = closest_point_to_ray(ch.xyz, ray_origin, ray_direction, max_angle=max_angle)
+                if k is None:
+                    continue
+                v = ch.xyz[k] - np.asarray(ray_origin, float)
+                ang = np.linalg.norm(np.cross(v, d)) / max(v @ d, 1e-12)
+                if best is None or ang < best[0]:
+                    best = (ang, g, st.transform.inverse(ch.xyz[k:k + 1])[0])
+        return None if best is None else (best[1], best[2])
+
     def displayed_points(self) -> int:
         return sum(len(c.batch) for st in self._clouds.values() for c in st.chunks)
 
@@ -335,12 +368,12 @@ class SceneView:
         self._newest.clear()
 
 
-def tile_windows_for(images: list, tile_size: int, overlap: int | None) -> dict[str, ImageWindow]:
-    """Windows of every tile of the images (recon_core.tiling), keyed by tile id."""
-    from recon_core.tiling import tile_image
+def tile_windows_for(images: list, tile_size: int, overlap: int | None) -> dict[str, Window]:
+    """Windows of every tile of the images (recon_core.model.tiling), keyed by tile id."""
+    from recon_core.model.tiling import tile_image
 
     out = {}
     for im in images:
         for t in tile_image(im.name, im.width, im.height, tile_size, overlap):
-            out[t.id] = ImageWindow(t.image, t.col0, t.row0, t.width, t.height)
+            out[t.id] = t
     return out

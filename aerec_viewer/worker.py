@@ -25,11 +25,29 @@ from pathlib import Path
 
 import numpy as np
 
-from recon_core.events import (BundleAdjusted, EventBus, Message, ModelUpdated, PointsAdded,
-                               StageDone, StageProgress, TileRegistered)
+from recon_core.errors import AerecError, InputError
+from recon_core.events import (
+    BundleAdjusted,
+    EventBus,
+    Message,
+    ModelsReady,
+    ModelUpdated,
+    PointsAdded,
+    StageDone,
+    StageProgress,
+    TileRegistered,
+)
+from recon_core.io.layout import OutLayout
+from recon_core.io.models import load_model
+from recon_core.io.ply import open_ply, ply_fields
 
-from .display import (DisplayTransform, affine_display_transform, cloud_salt, keep_mask,
-                      refine_affine_transform)
+from .display import (
+    DisplayTransform,
+    affine_display_transform,
+    cloud_salt,
+    keep_mask,
+    refine_affine_transform,
+)
 
 log = logging.getLogger("aerec.viewer")
 DENSE_CAP = 4_000_000       # dense points kept in memory per group (thinned beyond)
@@ -209,6 +227,7 @@ class ReconWorker:
         self.cfg = cfg
         self.mode = mode
         self.until = until
+        self.redo_from: str | None = None   # set by rerun_from for the next run
         self.models: dict = {}          # group -> SparseModel once the sparse stage is done
         self.models_version = 0         # bumped whenever `models` changes
         self.report: dict = {}
@@ -233,6 +252,26 @@ class ReconWorker:
         self._thread = threading.Thread(target=self._main, name="aerec-worker", daemon=True)
         self._thread.start()
         return self
+
+    def rerun_from(self, stage: str) -> bool:
+        """Run the pipeline again from `stage` (e.g. "upgrade" after the operator's upgrade:
+        the same code and files as `aerec run --redo-from upgrade`). Returns False, doing
+        nothing, while a run is still going, when there is no site to run on, or when the
+        worker was told to stop before that stage (`until`)."""
+        from recon_core.pipeline import STAGES
+
+        if not self.done.is_set() or self.site is None:
+            return False
+        if self.until is not None and STAGES.index(self.until) < STAGES.index(stage):
+            return False
+        if self._thread is not None:
+            self._thread.join()
+        self.mode, self.redo_from = "run", stage
+        self._cancel = False
+        self._resume_gate.set()
+        self.done.clear()
+        self._set_status("starting")
+        return self.start() is not None
 
     def pause(self) -> None:
         with self._lock:
@@ -269,8 +308,9 @@ class ReconWorker:
         with self._lock:
             self._fold(ev, now)
             self._version += 1
-        if isinstance(ev, StageDone) and ev.stage == "sparse" and ev.group is None:
-            self._load_saved_models()          # outside the lock: snapshots never wait on IO
+        if isinstance(ev, ModelsReady):
+            self.models = dict(ev.models)      # replaced whole: readers never see it change
+            self.models_version += 1
         self._gate()
 
     def _gate(self) -> None:
@@ -307,6 +347,8 @@ class ReconWorker:
                                         "seconds": ev.seconds}
         elif isinstance(ev, Message):
             self._messages.append((ev.level, ev.text))
+        elif isinstance(ev, ModelsReady):
+            pass                                  # handled outside the lock (handle)
         else:                                     # an event type added later: show its name
             self._messages.append(("debug", f"event {type(ev).__name__}"))
 
@@ -373,8 +415,6 @@ class ReconWorker:
 
     # -- the thread -----------------------------------------------------------------------------
     def _main(self) -> None:
-        from recon_core.errors import AerecError
-
         try:
             self._set_status("running" if self._resume_gate.is_set() else "paused")
             if self.mode == "reopen":
@@ -396,79 +436,40 @@ class ReconWorker:
     def _run_pipeline(self) -> None:
         from recon_core import pipeline
         from recon_core.config import Config
+        from recon_core.io.site import load_site
 
         cfg = self.cfg or Config()
-        done = finished_stages(self.out, cfg, self.site)
+        done = pipeline.finished_stages(self.out, cfg, load_site(self.site)) if self.redo_from is None else set()
         if "sparse" in done:
             self._replay_saved(dense="dense" in done)
         state = pipeline.run(self.site, self.out, cfg, until=self.until,
-                             bus=EventBus(self.handle), resume=True)
+                             bus=EventBus(self.handle), resume=True, redo_from=self.redo_from)
         self.models = dict(state.models)
         self.models_version += 1
         self.report = dict(state.report)
 
     def _reopen(self) -> None:
-        rp = self.out / "report.json"
-        if rp.exists():
-            self.report = json.loads(rp.read_text())
+        lay = OutLayout(self.out)
+        if lay.report.exists():
+            self.report = json.loads(lay.report.read_text())
         self._replay_saved(dense=True)
         if not self.models:
             raise_missing(self.out)
 
-    def _load_saved_models(self) -> None:
-        """The sparse stage saved its models: load them now (GCP triangulation and the upgrade
-        need them while the later stages still run)."""
-        from recon_core.sparse import load_model
-
-        models = dict(self.models)
-        for d in sorted(self.out.glob("affine/group_*")):
-            if (d / "cameras.json").exists():
-                g = int(d.name.split("_")[-1])
-                models[g] = load_model(self.out, g)
-        self.models = models                  # replaced whole: readers never see it change
-        self.models_version += 1
-
     def _replay_saved(self, dense: bool) -> None:
         """Show the saved models (and dense clouds) of OUT as if they were being computed."""
-        from recon_core.sparse import load_model
-
-        for d in sorted(self.out.glob("affine/group_*")):
-            if not (d / "cameras.json").exists():
-                continue
-            g = int(d.name.split("_")[-1])
-            model = load_model(self.out, g)
+        lay = OutLayout(self.out)
+        for g in lay.model_groups():
+            model = load_model(lay, g)
             self.models = {**self.models, g: model}
             self.models_version += 1
             replay_model(model, self.handle)
-            n_dense = replay_dense(self.out, g, self.handle) if dense else 0
-            self.message(f"group {g}: loaded the saved model from {d}"
+            n_dense = replay_dense(lay, g, self.handle) if dense else 0
+            self.message(f"group {g}: loaded the saved model from {lay.group_dir(g)}"
                          + (f" ({n_dense} dense points)" if n_dense else ""))
 
 
-def finished_stages(out: Path, cfg, site_path: Path | None) -> set[str]:
-    """Stages OUT holds up to date for cfg (the pipeline would reload, not recompute, them)."""
-    import inspect
-
-    from recon_core import pipeline
-    from recon_core.site import load_site
-
-    needs_site = "site" in inspect.signature(pipeline.stage_done).parameters
-    site = load_site(site_path) if needs_site and site_path is not None else None
-    done = set()
-    for stage in pipeline.STAGES:
-        try:
-            ok = (pipeline.stage_done(out, stage, cfg, site) if needs_site
-                  else pipeline.stage_done(out, stage, cfg))
-        except Exception:                  # an unreadable stage file: it will be recomputed
-            ok = False
-        if ok:
-            done.add(stage)
-    return done
-
-
 def raise_missing(out: Path) -> None:
-    from recon_core.errors import InputError
-
     raise InputError(out, "holds no saved model (affine/group_*/cameras.json): run the "
                           "reconstruction first (aerec view SITE or aerec run)")
 
@@ -500,14 +501,9 @@ def replay_model(model, listener) -> None:
                           np.stack([g, g, g], 1), n_img, rms))
 
 
-def replay_dense(out: Path, g: int, listener, chunk: int = 2_000_000) -> int:
-    """Feed a saved dense cloud (recon_core.dense, when present) to a listener by chunks; its size."""
-    try:
-        from recon_core.dense import dense_path
-        from recon_core.dsm import open_ply, ply_fields
-    except ImportError:
-        return 0
-    path = dense_path(out, g)
+def replay_dense(out: OutLayout, g: int, listener, chunk: int = 2_000_000) -> int:
+    """Feed a saved dense cloud to a listener by chunks (as dense PointsAdded events); its size."""
+    path = out.dense_ply(g)
     if not path.exists():
         return 0
     rec = open_ply(path)

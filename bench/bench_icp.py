@@ -1,4 +1,4 @@
-"""Benchmark of the fusion ICP: recon_core.fusion.icp_refine against open3d's point-to-plane ICP
+"""Benchmark of the fusion ICP: recon_core.euclidean.fusion.icp_refine against open3d's point-to-plane ICP
 (when open3d is importable; it is not a dependency of the project).
 
 Two independent noisy samplings of a procedural city (ground, boxes, walls, gable roofs) of
@@ -21,7 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from recon_core.fusion import apply_rigid, icp_refine  # noqa: E402
+from recon_core.euclidean.fusion import apply_rigid, icp_refine  # noqa: E402
 
 
 def city(size: float, spacing: float, rng: np.random.Generator) -> np.ndarray:

@@ -20,7 +20,6 @@ import sys
 import time
 from pathlib import Path
 
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recon_core.config import preset as make_preset  # noqa: E402
@@ -35,7 +34,7 @@ def peak_rss_mb() -> float:
 
 
 def ensure_site(preset: str, seed: int, root: Path) -> Path:
-    from recon_core.synthetic import generate_site
+    from recon_core.synthetic.generator import generate_site
 
     site = root / f"{preset}_s{seed}"
     if not (site / "site.json").exists():
@@ -46,12 +45,12 @@ def ensure_site(preset: str, seed: int, root: Path) -> Path:
 
 
 def truth_figures(site: Path, state) -> dict:
-    from recon_core.georef import frame_for
-    from recon_core.truth import sparse_vs_truth
+    from recon_core.euclidean.georef import frame_for
+    from recon_core.evaluation.truth import sparse_vs_truth
 
     if not (site / "truth" / "cameras.json").exists():
         return {}
-    frame = frame_for(state.site.gcps)
+    frame = frame_for(state.gcps)
     out = {}
     for g, m in state.models.items():
         r = sparse_vs_truth(site, m, frame)
@@ -162,7 +161,7 @@ def main(argv=None) -> int:
         a = st["eval"]["alignment"]
         print(f"alignment (DSM - GT): dx {a['dx_m']:+.2f} dy {a['dy_m']:+.2f} dz {a['dz_m']:+.2f} m")
     if args.reference and (out / "dsm.tif").exists():
-        from recon_core.evaluate import evaluate_dsm
+        from recon_core.evaluation.evaluate import evaluate_dsm
 
         r = evaluate_dsm(out / "dsm.tif", args.reference, out / "eval_reference")
         for k in ("aligned", "unaligned"):

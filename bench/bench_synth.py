@@ -21,7 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from recon_core import synthetic as syn  # noqa: E402
+from recon_core.synthetic import generator as syn  # noqa: E402
 
 
 def _progress():

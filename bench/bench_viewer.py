@@ -33,9 +33,8 @@ class WireClient:
         import msgspec
         import viser
         import zstandard
-        from websockets.sync.client import connect
-
         from viser import _messages
+        from websockets.sync.client import connect
 
         self.frames: list[tuple[float, int, list[tuple[str, str]]]] = []
         self._ws = connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"],

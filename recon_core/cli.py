@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import AerecError
+from recon_core.errors import AerecError
 
 
 class ProgressPrinter:
@@ -18,7 +18,7 @@ class ProgressPrinter:
         self._bars: dict[str, object] = {}
 
     def __call__(self, stage, done=None, total=None, message: str = "") -> None:
-        from .events import Message, StageDone, StageProgress
+        from recon_core.events import Message, StageDone, StageProgress
 
         if isinstance(stage, StageProgress):
             ev = stage
@@ -63,7 +63,7 @@ class ProgressPrinter:
 
 
 def cmd_synth(args) -> int:
-    from .synthetic import generate_site
+    from recon_core.synthetic.generator import generate_site
 
     t0 = time.time()
     prog = ProgressPrinter(not args.quiet)
@@ -74,8 +74,8 @@ def cmd_synth(args) -> int:
 
 
 def cmd_info(args) -> int:
-    from .grouping import group_by_date
-    from .site import load_site
+    from recon_core.io.site import load_site
+    from recon_core.model.grouping import group_by_date
 
     site = load_site(args.site, require_times=False)
     print(f"site {site.name} at {site.root}")
@@ -104,9 +104,9 @@ def cmd_info(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from .config import preset
-    from .events import EventBus
-    from .pipeline import run
+    from recon_core.config import preset
+    from recon_core.events import EventBus
+    from recon_core.pipeline import run
 
     cfg = preset(args.preset)
     overrides = {}
@@ -133,7 +133,7 @@ def cmd_run(args) -> int:
 
 def cmd_eval(args) -> int:
     """`aerec eval DSM GT [--out DIR] [--max-shift M]`: its own parser lives in evaluate.main."""
-    from .evaluate import main as eval_main
+    from recon_core.evaluation.evaluate import main as eval_main
 
     return eval_main(args.rest)
 

@@ -47,6 +47,9 @@ class SfmConfig:
     min_points_conditioning: float = 0.01  # resection points flatter than this are regularised
     min_triangulation_ratio: float = 0.3  # drop points whose conditioning (~ B/H of their views) is below
                                       # this fraction of the model's 90th percentile (0 = off)
+    init_min_parallax: float = 3.0    # sigma3/sigma4 of an initial tile pair's matches below
+                                      # this: no usable parallax (the measurement matrix is near rank 2)
+    init_min_inliers: int = 60        # the initial tile pair needs at least this many verified matches
     global_ba_growth: float = 0.15    # run a global BA when tiles grew by this fraction
     local_ba_window: int = 6          # cameras refined in a local BA after each registration
 
@@ -55,7 +58,8 @@ class SfmConfig:
 class BundleConfig:
     loss: str = "huber"               # robust loss of scipy.optimize.least_squares
     loss_scale_px: float = 1.0        # f_scale of the robust loss, pixels
-    max_nfev: int = 50                # iteration cap per adjustment
+    max_nfev: int = 50                # LM iteration cap of a global adjustment
+    local_max_nfev: int = 10          # LM iteration cap of a local adjustment (after each tile)
     smoothness_weight: float = 0.0    # prior tying adjacent tile cameras of one image (0 = off)
 
 
@@ -77,6 +81,7 @@ class DenseConfig:
     ncc_radius: int = 2               # photometric check patch radius (5 x 5 patches)
     min_ncc: float = 0.3              # links with a lower NCC are dropped
     max_reproj_px: float = 1.0        # views with a larger error are dropped from a track
+    view_drop_rounds: int = 3         # rounds of dropping a track's worst view and re-triangulating
     workers: int | None = None        # local worker processes (None = all cores, 1 = serial)
     scheduler: str | None = None      # dask.distributed scheduler address (None = local pool)
 
@@ -92,6 +97,16 @@ class DsmConfig:
     stat: str = "median"              # per-cell statistic: median | upper_median | max
     fill_holes_px: int = 2            # fill only holes this small (radius, cells) with support
     icp_max_corr_m: float = 3.0       # ICP correspondence distance when fusing date groups
+    icp_voxel_m: float = 1.0          # both clouds are reduced to voxel centroids of this size
+    icp_max_iter: int = 60            # ICP iteration cap (it stops earlier when converged)
+    icp_max_source: int = 200_000     # ICP keeps at most this many moving points (6 unknowns)
+    icp_max_target: int = 500_000     # ... and this many reference points (after voxels)
+    icp_min_fitness: float = 0.3      # below this fraction of matched points a group keeps its
+                                      # GCP-based position (too little overlap to trust ICP)
+    icp_sample_points: int = 3_000_000  # evenly spread points per group given to ICP and to
+                                      # the grid extent (the clouds themselves are streamed)
+    chunk_points: int = 4_000_000     # points per chunk when streaming clouds into the DSM
+    spill_above_points: int = 20_000_000  # above this many points the DSM accumulates on disk
 
 
 @dataclass

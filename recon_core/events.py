@@ -85,7 +85,16 @@ class Message:
     group: int | None = None
 
 
-Event = StageProgress | StageDone | TileRegistered | PointsAdded | ModelUpdated | BundleAdjusted | Message
+@dataclass
+class ModelsReady:
+    """The sparse models of every reconstructed group (group -> SparseModel), once the sparse
+    stage has computed or reloaded them: GCP tools and the upgrade need them while the later
+    stages still run. Listeners must treat the models as read-only."""
+
+    models: dict
+
+
+Event = StageProgress | StageDone | TileRegistered | PointsAdded | ModelUpdated | BundleAdjusted | Message | ModelsReady
 Listener = Callable[[object], None]
 
 

@@ -55,7 +55,7 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def tiny_site(tmp_path_factory) -> Path:
     """The synthetic `tiny` site (seed 0), generated once per test session."""
-    from recon_core.synthetic import generate_site
+    from recon_core.synthetic.generator import generate_site
 
     site = tmp_path_factory.mktemp("tiny") / "site"
     generate_site(site, preset="tiny", seed=0)

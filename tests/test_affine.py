@@ -1,12 +1,12 @@
-"""Tests of recon_core.affine against independent checks (ground truth, never its own output)."""
+"""Tests of recon_core.geometry.affine against independent checks (ground truth, never its own output)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from recon_core import affine as af
 from recon_core.errors import ReconstructionError
+from recon_core.geometry import affine as af
 
 SCENE_CENTRE = np.array([500.0, 500.0, 25.0])
 

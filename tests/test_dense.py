@@ -7,13 +7,23 @@ import cv2
 import numpy as np
 import pytest
 
-from recon_core import affine
 from recon_core.config import DenseConfig, preset
-from recon_core.dense import (DenseJob, PartnerSpec, TileSpec, _triangulate, disparity_range,
-                              lr_consistent, patch_ncc, run_job, run_sgbm, sample_disparity,
-                              sgbm_params)
-from recon_core.site import open_image
-from recon_core.tiling import Tile
+from recon_core.dense.reconstruct import (
+    DenseJob,
+    PartnerSpec,
+    TileSpec,
+    _triangulate,
+    disparity_range,
+    lr_consistent,
+    patch_ncc,
+    run_job,
+    run_sgbm,
+    sample_disparity,
+    sgbm_params,
+)
+from recon_core.geometry import affine
+from recon_core.io.site import open_image
+from recon_core.model.tiling import Tile
 from tests.conftest import write_tiff
 
 
@@ -105,8 +115,8 @@ def test_textureless_pair_gives_no_points_and_a_message(tmp_path):
     rng = np.random.default_rng(1)
     X = rng.uniform([10, 10, -20], [110, 110, 20], (40, 3))
     x = affine.project(cams, X)
-    ref = TileSpec(open_image(p1), Tile("a.tif", 0, 0, 0, 0, 120, 120), cams[0])
-    part = TileSpec(open_image(p2), Tile("b.tif", 0, 0, 0, 0, 120, 120), cams[1])
+    ref = TileSpec(open_image(p1), Tile("a.tif", 0, 0, 120, 120), cams[0])
+    part = TileSpec(open_image(p2), Tile("b.tif", 0, 0, 120, 120), cams[1])
     job = DenseJob(0, ref, (0, 0, 120, 120), [PartnerSpec(part, x[0], x[1])], DenseConfig())
     res = run_job(job)
     assert len(res.xyz) == 0 and res.message and "no dense points" in res.message
@@ -117,16 +127,17 @@ def test_dense_tiny_against_truth(tiny_run, tiny_site):
     median |height error| < 0.5 m, and > 80 % of the area seen by >= 2 images covered."""
     import rasterio
 
-    from recon_core.dsm import Grid, rasterize
-    from recon_core.georef import frame_for
-    from recon_core.geodesy import geodetic_to_projected
-    from recon_core.dense import load_dense_group
-    from recon_core.truth import sparse_vs_truth
+    from recon_core.euclidean.dsm import rasterize
+    from recon_core.euclidean.georef import frame_for
+    from recon_core.evaluation.truth import sparse_vs_truth
+    from recon_core.geometry.geodesy import geodetic_to_projected
+    from recon_core.io.models import load_dense
+    from recon_core.io.raster import Grid
 
     state, _ = tiny_run
-    frame = frame_for(state.site.gcps)
+    frame = frame_for(state.gcps)
     fit = sparse_vs_truth(tiny_site, state.models[0], frame)
-    cloud = load_dense_group(state.out, 0)
+    cloud = load_dense(state.layout, 0)
     enu = affine.apply_affine_3d(fit["A"], cloud.xyz)
     with rasterio.open(tiny_site / "gt_dsm.tif") as ds:
         gt = ds.read(1).astype(np.float64)
@@ -145,12 +156,11 @@ def test_dense_tiny_against_truth(tiny_run, tiny_site):
 def test_dense_summary_accounts_for_every_tile_pair(tiny_run):
     """Each planned tile pair is matched, not needed (the parts the two tiles own do not
     overlap), or skipped with a reason; the streamed PLY holds exactly the counted points."""
-    from recon_core.dense import dense_path
-    from recon_core.dsm import open_ply
+    from recon_core.io.ply import open_ply
 
     state, _ = tiny_run
     d = state.report["stages"]["dense"]["groups"]["0"]
     assert d["pairs_matched"] > 0
     assert d["pairs_matched"] + d["pairs_not_needed"] + len(d["pairs_skipped"]) == d["tile_pairs"]
-    assert len(open_ply(dense_path(state.out, 0))) == d["points"] == sum(d["views_histogram"])
+    assert len(open_ply(state.layout.dense_ply(0))) == d["points"] == sum(d["views_histogram"])
     assert 0 <= d["median_reproj_px"] <= preset("tiny").dense.max_reproj_px

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import rasterio
 
-from recon_core.dsm import (DsmAccumulator, Grid, fill_small_holes, rasterize, read_dsm,
-                            read_ply, write_dsm, write_ply)
 from recon_core.errors import InputError
+from recon_core.euclidean.dsm import DsmAccumulator, fill_small_holes, rasterize
+from recon_core.io.ply import read_ply, write_ply
+from recon_core.io.raster import Grid, read_dsm, write_dsm
 
 EPSG = 32631
 X0, Y0 = 500_000.0, 4_650_000.0
@@ -170,7 +171,7 @@ def test_ply_round_trip_keeps_utm_exactly(tmp_path):
 
 def test_ply_writer_streams_and_is_atomic(tmp_path):
     """Chunks appended to a PlyWriter read back as one cloud; an exception leaves no file."""
-    from recon_core.dsm import PlyWriter, open_ply, ply_fields
+    from recon_core.io.ply import PlyWriter, open_ply, ply_fields
 
     rng = np.random.default_rng(3)
     xyz = rng.normal(size=(1000, 3)) * 1e5

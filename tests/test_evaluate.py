@@ -12,7 +12,7 @@ from rasterio.crs import CRS
 from rasterio.transform import Affine
 
 from recon_core.errors import InputError
-from recon_core.evaluate import evaluate_dsm, height_metrics, main
+from recon_core.evaluation.evaluate import evaluate_dsm, height_metrics, main
 
 EPSG = 32631
 X0, Y0 = 500_000.0, 4_650_000.0          # top-left corner of the GT
@@ -149,7 +149,7 @@ def test_cli_prints_table(site, capsys):
 
 
 def test_reduce_for_display_is_a_nan_aware_block_mean():
-    from recon_core.evaluate import reduce_for_display
+    from recon_core.evaluation.evaluate import reduce_for_display
 
     v = np.arange(7 * 5, dtype=np.float32).reshape(7, 5)
     v[0, 0] = np.nan

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from recon_core.config import preset
-from recon_core.dense import reconstruct_dense_group
-from recon_core.executor import LocalExecutor, SerialExecutor
+from recon_core.dense.executor import LocalExecutor, SerialExecutor
+from recon_core.dense.reconstruct import reconstruct_dense_group
 
 
 def _cloud(state, executor):
@@ -28,7 +28,7 @@ def test_process_pool_matches_serial(tiny_run):
 
 def test_dask_local_cluster_matches_local(tiny_run):
     distributed = pytest.importorskip("distributed")
-    from recon_core.executor import DaskExecutor
+    from recon_core.dense.executor import DaskExecutor
 
     state, _ = tiny_run
     a, _ = _cloud(state, SerialExecutor())

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from recon_core.fusion import apply_rigid, fuse_groups, icp_refine, rigid_summary
+from recon_core.config import DsmConfig
+from recon_core.euclidean.fusion import align_groups, icp_refine, rigid_summary
+from recon_core.geometry.affine import apply_affine_3d as apply_rigid
 
 X0, Y0 = 500_000.0, 4_650_000.0
 
@@ -62,20 +64,22 @@ def test_icp_recovers_small_rigid_motion():
     assert abs(s["rotation_deg"] - 0.3) < 0.02
 
 
-def test_fuse_groups_reports_and_merges():
+def test_align_groups_refines_onto_the_largest_and_keeps_what_it_cannot_align():
     rng = np.random.default_rng(1)
     ref = city(rng, spacing=1.0)
+    ref = np.vstack([ref, ref + rng.normal(0, 0.03, ref.shape)])    # the largest group
     T_true = rigid(0.3, [0, 0, 1], [0.5, 0.0, 0.0], ref.mean(axis=0))
     moved = apply_rigid(T_true, city(rng, spacing=1.0))
-    far = ref + [5000.0, 0.0, 0.0]                        # no overlap: must be kept as is
-    rgb = np.full((len(ref), 3), 200, np.uint8)
-    xyz, colors, report = fuse_groups([(ref, rgb), (moved, None), (far, None)], reference=0)
-    assert xyz.shape == (len(ref) + len(moved) + len(far), 3) and colors.shape == xyz.shape
-    assert (colors[len(ref):] == 128).all()
-    assert report[0]["reference"] and report[1]["accepted"] and report[1]["fitness"] > 0.9
-    assert abs(report[1]["rotation_deg"] - 0.3) < 0.03
-    aligned = xyz[len(ref):len(ref) + len(moved)]
-    back = apply_rigid(np.linalg.inv(T_true), moved)      # where the moved points belong
-    assert np.abs(aligned - back).max() < 0.1
-    assert not report[2]["accepted"] and "fitness" in report[2]["reason"]
-    assert np.array_equal(xyz[-len(far):], far)
+    far = ref[: len(moved)] + [5000.0, 0.0, 0.0]                      # no overlap
+    Ts, report = align_groups({0: moved, 1: ref, 2: far}, DsmConfig())
+    assert report["reference_group"] == 1 and np.array_equal(Ts[1], np.eye(4))
+    r0 = report["icp"]["0"]
+    assert r0["applied"] and r0["fitness"] > 0.9 and r0["reason"] is None
+    assert abs(r0["rotation_deg"] - 0.3) < 0.03
+    back = apply_rigid(np.linalg.inv(T_true), moved)                  # where the moved points belong
+    assert np.abs(apply_rigid(Ts[0], moved) - back).max() < 0.1
+    r2 = report["icp"]["2"]
+    assert not r2["applied"] and "fitness" in r2["reason"] and np.array_equal(Ts[2], np.eye(4))
+    # the threshold is the configuration's
+    Ts, report = align_groups({0: moved, 1: ref}, DsmConfig(icp_min_fitness=1.01))
+    assert not report["icp"]["0"]["applied"] and np.array_equal(Ts[0], np.eye(4))

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recon_core.grouping import group_by_date
-from recon_core.site import ImageInfo
-from recon_core.tiling import tile_image, tile_layout
+from recon_core.io.site import ImageInfo
+from recon_core.model.grouping import group_by_date
+from recon_core.model.tiling import tile_image, tile_layout
 
 
 def _im(name: str, day: float) -> ImageInfo:

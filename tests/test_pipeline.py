@@ -109,20 +109,19 @@ def test_out_gcp_file_wins_and_redoes_upgrade(tiny_run, tmp_path):
     assert n_pts == len(doc["features"])
 
 
-def test_dsm_by_small_chunks_and_spilled_blocks_is_identical(tiny_run, tmp_path, monkeypatch):
+def test_dsm_by_small_chunks_and_spilled_blocks_is_identical(tiny_run, tmp_path):
     """The DSM stage streams clouds by chunks and spills grid blocks to disk on large sites:
     forcing both on the tiny site gives the same DSM and cloud as the in-memory path."""
     import shutil
 
-    import recon_core.euclidean as euclidean
-    from recon_core.dsm import read_dsm, read_ply
+    from recon_core.io.ply import read_ply
+    from recon_core.io.raster import read_dsm
 
     state, _ = tiny_run
     out = tmp_path / "out"
     shutil.copytree(state.out, out)
-    monkeypatch.setattr(euclidean, "CHUNK", 5000)
-    monkeypatch.setattr(euclidean, "SPILL_ABOVE", 0)
-    run(state.site.root, out, preset("tiny"), until="dsm", redo_from="dsm")
+    cfg = preset("tiny").with_overrides({"dsm.chunk_points": 5000, "dsm.spill_above_points": 0})
+    run(state.site.root, out, cfg, until="dsm", redo_from="dsm")
     assert not list(out.glob("dsm_blocks_*")), "spilled blocks were not removed"
     H0, g0 = read_dsm(state.out / "dsm.tif")
     H1, g1 = read_dsm(out / "dsm.tif")

@@ -7,9 +7,9 @@ import warnings
 import numpy as np
 import pytest
 
-from recon_core import rpc as R
-from recon_core import synthetic as syn
-from recon_core.scene_model import SceneModel
+from recon_core.synthetic import generator as syn
+from recon_core.synthetic import rpc as R
+from recon_core.synthetic.scene_model import SceneModel
 
 
 def _camera(size=(1200, 1000), seed=0, index=1, off_nadir=None):

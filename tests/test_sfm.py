@@ -8,17 +8,17 @@ import shutil
 import numpy as np
 import pytest
 
-from recon_core import affine
-from recon_core.bundle import bundle_adjust
 from recon_core.config import preset
 from recon_core.errors import ReconstructionError
+from recon_core.euclidean.georef import frame_for
+from recon_core.evaluation.truth import sparse_vs_truth
 from recon_core.events import BundleAdjusted, ModelUpdated, PointsAdded, TileRegistered
-from recon_core.georef import frame_for
-from recon_core.matching import PairMatches
+from recon_core.geometry import affine
+from recon_core.io.models import load_model
 from recon_core.pipeline import run
-from recon_core.sparse import load_model
-from recon_core.tracks import build_tracks
-from recon_core.truth import sparse_vs_truth
+from recon_core.sparse.bundle import bundle_adjust
+from recon_core.sparse.matching import PairMatches
+from recon_core.sparse.tracks import build_tracks
 from tests.conftest import write_tiff
 
 
@@ -29,7 +29,7 @@ def test_sparse_tiny_against_truth(tiny_run, tiny_site):
     assert s["tiles_registered"] >= 0.9 * s["tiles_total"]
     assert s["mean_reproj_px"] < 0.5
     # The structure equals the truth up to ONE 3D affine map (fitted here, never in the pipeline).
-    r = sparse_vs_truth(tiny_site, m, frame_for(state.site.gcps))
+    r = sparse_vs_truth(tiny_site, m, frame_for(state.gcps))
     assert r["n"] > 300
     assert r["rms_m"] < 0.5, r
 
@@ -160,7 +160,7 @@ def test_point_conditioning_grows_with_the_baseline():
     between two views (exactly sin(angle / 2) for two orthographic views: sum M^T M =
     2 I - d1 d1^T - d2 d2^T has eigenvalues 2 and 1 -+ cos(angle)), and not fooled by repeating
     the same two views (tiles of one image observing the same feature)."""
-    from recon_core.sfm import point_conditioning
+    from recon_core.sparse.sfm import point_conditioning
 
     angles = [0.0, 3.0, 7.0, 15.0, 30.0]
     cams = np.stack([_view(0.0)] + [_view(a) for a in angles])

@@ -10,7 +10,8 @@ import pytest
 
 from recon_core.cli import main
 from recon_core.errors import InputError
-from recon_core.site import GCP, load_site, read_gcps_geojson, read_window, write_gcps_geojson
+from recon_core.io.gcps import GCP, read_gcps_geojson, write_gcps_geojson
+from recon_core.io.site import load_site, read_window
 from tests.conftest import gcp_feature, write_tiff
 
 

@@ -15,10 +15,10 @@ import pytest
 import rasterio
 from rasterio.errors import NotGeoreferencedWarning
 
-from recon_core import synthetic as syn
-from recon_core.geodesy import geodetic_to_ecef
-from recon_core.rpc import RPCModel
-from recon_core.scene_model import SceneModel
+from recon_core.geometry.geodesy import geodetic_to_ecef
+from recon_core.synthetic import generator as syn
+from recon_core.synthetic.rpc import RPCModel
+from recon_core.synthetic.scene_model import SceneModel
 
 MICRO = replace(syn.PRESETS["tiny"], name="micro", groups=(2,), image_size=(160, 160),
                 n_gcps=6)

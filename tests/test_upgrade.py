@@ -8,8 +8,15 @@ import numpy as np
 import pytest
 
 from recon_core.errors import ReconstructionError
-from recon_core.upgrade import (GcpInput, accuracy_stats, apply_h, conditioning,
-                                fit_affine_upgrade, fit_upgrade_ransac, upgrade)
+from recon_core.euclidean.upgrade import (
+    GcpInput,
+    accuracy_stats,
+    conditioning,
+    fit_affine_upgrade,
+    fit_upgrade_ransac,
+    upgrade,
+)
+from recon_core.geometry.affine import apply_affine_3d as apply_h
 
 
 def random_affine(rng: np.random.Generator) -> np.ndarray:

@@ -13,13 +13,28 @@ import numpy as np
 import pytest
 
 from aerec_viewer import display as dp
-from aerec_viewer.gcp_panel import (GcpError, PickPlane, add_observation, delete_gcp, edit_gcp,
-                                    import_site_gcps, layout_pick_plane, new_gcp, open_session,
-                                    pixel_from_ray, remove_observation, set_affine_position)
-from aerec_viewer.imagery import ImageWindow
+from aerec_viewer.gcp_panel import PickPlane, layout_pick_plane, pixel_from_ray
+from aerec_viewer.gcp_session import (
+    GcpError,
+    add_observation,
+    delete_gcp,
+    edit_gcp,
+    import_site_gcps,
+    new_gcp,
+    open_session,
+    remove_observation,
+    set_affine_position,
+)
 from aerec_viewer.worker import ReconWorker
-from recon_core.events import (BundleAdjusted, Message, ModelUpdated, PointsAdded, StageProgress,
-                               TileRegistered)
+from recon_core.events import (
+    BundleAdjusted,
+    Message,
+    ModelUpdated,
+    PointsAdded,
+    StageProgress,
+    TileRegistered,
+)
+from recon_core.model.tiling import Window as ImageWindow
 
 
 # -- display maths --------------------------------------------------------------------------
@@ -278,7 +293,8 @@ class _Img:
 
 
 def test_gcp_session_edits_are_saved_atomically_and_restored(small_site, tmp_path):
-    from recon_core.site import load_site, read_gcps_geojson
+    from recon_core.io.gcps import read_gcps_geojson
+    from recon_core.io.site import load_site
 
     site = load_site(small_site)
     out = tmp_path / "out"
@@ -302,15 +318,15 @@ def test_gcp_session_edits_are_saved_atomically_and_restored(small_site, tmp_pat
     assert by["P7"].observations == {"a.tif": (10.25, 20.5)} and by["P7"].role == "control"
     # reopening restores everything, picked positions included
     s2 = open_session(out, site)
-    assert s2.ids == ["G1", "P7"] and np.allclose(s2.picked["G1"][0], [1, 2, 3])
+    assert s2.ids == ["G1", "P7"] and np.allclose(s2.get("G1").affine_picked[0], [1, 2, 3])
     delete_gcp(s2, "G1")
     assert open_session(out, site).ids == ["P7"]
     assert import_site_gcps(s2) == ["G1"]                 # back from the site's list
 
 
 def test_gcp_from_projected_coordinates(small_site, tmp_path):
-    from recon_core.geodesy import geodetic_to_projected
-    from recon_core.site import load_site
+    from recon_core.geometry.geodesy import geodetic_to_projected
+    from recon_core.io.site import load_site
 
     s = open_session(tmp_path / "out", load_site(small_site))
     e, n, h = geodetic_to_projected(np.array([10.5, 45.25, 300.0]), 32632)
@@ -333,7 +349,7 @@ def _small_site(tmp_root: Path) -> tuple[Path, object]:
     from recon_core.config import preset
 
     try:
-        from recon_core.synthetic import generate_site
+        from recon_core.synthetic.generator import generate_site
 
         site = tmp_root / "tiny_site"
         generate_site(site, "tiny", seed=0)
@@ -465,7 +481,7 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     xyz = app.call(lambda: app.on_cloud_click("NEW-1", target + [0, 0, 50.0], [0, 0, -1.0]))
     T = app.scene._clouds[(0, "sparse")].transform
     assert np.allclose(T.apply(xyz[None])[0], target, atol=1e-2)
-    assert app._armed is None and 0 in app.session.picked["NEW-1"]
+    assert app._armed is None and 0 in app.session.get("NEW-1").affine_picked
     # markers: on the plane for observations in this image, on the cloud for placed GCPs
     app.wait_idle()
     names = set(app._marks)
@@ -485,7 +501,8 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     md = app.g_upgrade_md.content
     assert "| GCP | role | status | dE m | dN m | dU m | reproj px |" in md and "check" in md
     assert "N = 4" in md or "LOO" in md.upper() or "loo" in md
-    assert (out / "viewer_upgrade.json").exists()
+    assert not (out / "viewer_upgrade.json").exists()      # one upgrade record: the pipeline's
+    assert not app.worker.rerun_from("upgrade")            # this run stops after sparse
     app.wait_idle()
     st = app.scene._clouds[(0, "sparse")]
     assert st.transform.kind == "euclidean" and "Euclidean frame" in app.g_frame.content
@@ -497,14 +514,15 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
 
 
 def test_upgrade_with_too_few_gcps_explains_itself(live, tmp_path):
-    from recon_core.errors import ReconstructionError
-    from aerec_viewer.gcp_panel import GcpSession
+    from aerec_viewer.gcp_session import GcpSession, save
     from aerec_viewer.results import run_upgrade
+    from recon_core.errors import ReconstructionError
 
     app = live[0]
     s = GcpSession(tmp_path / "g.geojson", dict(app.session.images), gcps=app.session.gcps[:3])
+    save(s)
     with pytest.raises(ReconstructionError, match="need >= 4|4"):
-        run_upgrade(s, app.models)
+        run_upgrade(s, app.models, app.cfg)
 
 
 def test_dsm_and_height_error_panel(live):
@@ -596,3 +614,58 @@ def test_cli_resolves_sites_outputs_and_the_demo(tmp_path, small_site, monkeypat
     a = p.parse_args(["view", str(small_site), "--port", "0", "--host", "127.0.0.1"])
     assert a.func is cli.cmd_view and a.port == 0 and a.target == small_site
     assert p.parse_args(["view"]).target is None
+
+
+def test_viewer_upgrade_equals_aerec_run_redo_from_upgrade(tiny_run, tmp_path):
+    """One upgrade path: the Upgrade button (on an operator's working set with changed roles and
+    a position picked on the cloud) and `aerec run --redo-from upgrade` on a copy of the same OUT
+    give the identical H_A and a byte-identical dsm.tif; the pick is honoured by both."""
+    import json
+    import shutil
+
+    from aerec_viewer.app import ViewerApp
+    from recon_core.cli import main as aerec
+    from recon_core.euclidean.georef import triangulate_gcp
+    from recon_core.io.gcps import read_gcps_geojson, write_gcps_geojson
+    from recon_core.io.layout import OutLayout
+
+    state, _ = tiny_run
+    a, b = tmp_path / "viewer_out", tmp_path / "cli_out"
+    shutil.copytree(state.out, a)
+    gcps = read_gcps_geojson(state.site.root / "gcps.geojson")
+    ctrl = [g for g in gcps if g.role == "control"]
+    check = [g for g in gcps if g.role == "check"]
+    check[0].role = "control"                                  # a fifth control point ...
+    picked = check[1]
+    picked.role = "control"                                    # ... and a sixth, picked on the cloud
+    X = triangulate_gcp(state.models[0], picked.observations).xyz
+    assert X is not None and len(ctrl) == 4
+    picked.affine_picked[0] = X + 0.05 * np.ptp(state.models[0].X[state.models[0].has_point], axis=0)
+    write_gcps_geojson(OutLayout(a).gcps, gcps)
+    shutil.copytree(a, b)
+
+    app = ViewerApp(a, state.site.root, None, mode="reopen", port=0, update_hz=20.0)
+    app.start()
+    try:
+        assert app.worker.done.wait(60) and app.worker.snapshot().status == "reopened"
+        app.wait_idle()
+        outcome = app.call(app.do_upgrade)
+        deadline = time.time() + 120
+        while not (app.worker.done.is_set() and app.worker.redo_from == "upgrade"):
+            assert time.time() < deadline, "the viewer's DSM re-run did not start and finish"
+            time.sleep(0.1)
+        assert app.worker.snapshot().status == "done", app.worker.snapshot().error
+    finally:
+        app.stop()
+    assert aerec(["run", str(state.site.root), "--out", str(b), "--preset", "tiny",
+                  "--redo-from", "upgrade", "--quiet"]) in (0, None)
+
+    rec_a = json.loads(OutLayout(a).upgrade_record(0).read_text())
+    rec_b = json.loads(OutLayout(b).upgrade_record(0).read_text())
+    assert rec_a["H"] == rec_b["H"]
+    assert np.array_equal(np.array(rec_a["H"]), outcome.results[0].H)        # what the viewer showed
+    assert rec_a["gcp_affine"][picked.id]["source"] == "picked"
+    before = json.loads(OutLayout(state.out).upgrade_record(0).read_text())["H"]
+    assert not np.allclose(before, rec_a["H"])                                  # the edits mattered
+    assert OutLayout(a).dsm.read_bytes() == OutLayout(b).dsm.read_bytes()
+    assert not (a / "viewer_upgrade.json").exists()

@@ -1,0 +1,222 @@
+"""The working GCP set of one output folder and every edit of it, with no widget in sight.
+
+The working set lives in OUT/gcps.geojson (recon_core.io.gcps reads and writes it, including the
+optional "affine_picked" positions). It is written atomically after every change, so a crash or
+a closed tab loses nothing, and it is read back when the viewer reopens the same OUT. On the
+first opening it starts as a copy of the site's gcps.geojson. The site's own file is never
+written: it is the user's input (and may be read-only); a run on OUT uses the working set.
+
+Everything a click handler does is a plain function of a `GcpSession` here (`add_observation`,
+`new_gcp`, `edit_gcp`, `delete_gcp`, `set_affine_position`, ...), so tests call the same code
+the browser triggers.
+"""
+
+from __future__ import annotations
+
+import copy
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from recon_core.io.gcps import GCP, read_gcps_geojson, write_gcps_geojson
+from recon_core.io.layout import OutLayout
+
+ROLES = ("control", "check")
+
+
+class GcpError(ValueError):
+    """A GCP edit that cannot be done (unknown id, pixel outside the image, ...)."""
+
+
+@dataclass
+class GcpSession:
+    """The working GCP set of one OUT folder.
+
+    Attributes:
+        path: OUT/gcps.geojson, rewritten atomically after every change.
+        images: image name -> (width, height) of the site's images.
+        gcps: the working GCPs (recon_core.io.site.GCP: lon, lat, h, role, observations).
+        picked: GCP id -> {group: (3,) affine position clicked on that group's cloud}.
+        catalogue: the site's gcps.geojson (ground coordinates to choose from).
+        version: bumped at every change (the panel and markers redraw on it).
+    """
+
+    path: Path
+    images: dict[str, tuple[int, int]]
+    gcps: list[GCP] = field(default_factory=list)
+    catalogue: list[GCP] = field(default_factory=list)
+    version: int = 0
+
+    def get(self, gcp_id: str) -> GCP:
+        for g in self.gcps:
+            if g.id == gcp_id:
+                return g
+        raise GcpError(f"no GCP {gcp_id!r}")
+
+    @property
+    def ids(self) -> list[str]:
+        return [g.id for g in self.gcps]
+
+
+# -- file -----------------------------------------------------------------------------------
+def open_session(out: str | Path, site) -> GcpSession:
+    """The working set of OUT: OUT/gcps.geojson if it exists, else a copy of the site's GCPs."""
+    path = OutLayout(out).gcps
+    infos = {im.name: im for im in site.images}
+    s = GcpSession(path, {im.name: (im.width, im.height) for im in site.images},
+                   catalogue=copy.deepcopy(site.gcps))
+    if path.exists():
+        s.gcps = read_gcps_geojson(path, infos)
+    else:
+        s.gcps = copy.deepcopy(site.gcps)
+        save(s)
+    return s
+
+
+def save(s: GcpSession) -> None:
+    """Write the working set atomically (recon_core.io.gcps: what the run reads back)."""
+    write_gcps_geojson(s.path, s.gcps, written_by="aerec view (working GCP set; the site's "
+                                                  "gcps.geojson is left untouched)")
+
+
+def _changed(s: GcpSession) -> None:
+    s.version += 1
+    save(s)
+
+
+# -- edits (what the click handlers call) -----------------------------------------------------
+def next_gcp_id(s: GcpSession) -> str:
+    nums = [int(m.group(1)) for g in s.gcps for m in [re.fullmatch(r"GCP-(\d+)", g.id)] if m]
+    return f"GCP-{max(nums, default=0) + 1:02d}"
+
+
+def ground_to_llh(x: float, y: float, h: float, epsg: int | None) -> tuple[float, float, float]:
+    """(lon, lat, h) or (easting, northing, h) in a projected EPSG -> (lon, lat, h)."""
+    vals = [float(v) for v in (x, y, h)]
+    if not all(np.isfinite(vals)):
+        raise GcpError("ground coordinates must be finite numbers")
+    if epsg is None or int(epsg) in (0, 4326, 4979):
+        if not (-180 <= vals[0] <= 180 and -90 <= vals[1] <= 90):
+            raise GcpError(f"lon/lat {vals[0]}, {vals[1]} out of range (for E/N give an EPSG code)")
+        return vals[0], vals[1], vals[2]
+    from recon_core.geometry.geodesy import projected_to_geodetic
+
+    try:
+        lon, lat, hh = projected_to_geodetic(np.array(vals), int(epsg))
+    except Exception as exc:
+        raise GcpError(f"cannot convert from EPSG:{epsg}: {exc}") from None
+    return float(lon), float(lat), float(hh)
+
+
+def new_gcp(s: GcpSession, gcp_id: str | None = None, *, x: float, y: float, h: float,
+            epsg: int | None = None, role: str = "control", sigma_m: float | None = None) -> GCP:
+    """Add a GCP with ground coordinates (lon, lat, h, or E, N, h in `epsg`); returns it."""
+    gid = (gcp_id or "").strip() or next_gcp_id(s)
+    if gid in s.ids:
+        raise GcpError(f"GCP {gid} already exists")
+    if role not in ROLES:
+        raise GcpError(f"role must be one of {ROLES}")
+    lon, lat, hh = ground_to_llh(x, y, h, epsg)
+    g = GCP(gid, lon, lat, hh, role, sigma_m, {})
+    s.gcps.append(g)
+    _changed(s)
+    return g
+
+
+def import_site_gcps(s: GcpSession, ids: list[str] | None = None, *,
+                     with_observations: bool = True) -> list[str]:
+    """Copy GCPs from the site's list (all when ids is None); ids already present are skipped."""
+    added = []
+    for g in s.catalogue:
+        if (ids is None or g.id in ids) and g.id not in s.ids:
+            c = copy.deepcopy(g)
+            if not with_observations:
+                c.observations = {}
+            s.gcps.append(c)
+            added.append(g.id)
+    if added:
+        _changed(s)
+    return added
+
+
+def edit_gcp(s: GcpSession, gcp_id: str, *, new_id: str | None = None, x: float | None = None,
+             y: float | None = None, h: float | None = None, epsg: int | None = None,
+             role: str | None = None) -> GCP:
+    """Change a GCP's id, role or ground coordinates (x, y, h all given, or none)."""
+    g = s.get(gcp_id)
+    if new_id is not None and new_id.strip() and new_id.strip() != gcp_id:
+        nid = new_id.strip()
+        if nid in s.ids:
+            raise GcpError(f"GCP {nid} already exists")
+        g.id = nid
+    if role is not None:
+        if role not in ROLES:
+            raise GcpError(f"role must be one of {ROLES}")
+        g.role = role
+    if x is not None or y is not None or h is not None:
+        if x is None or y is None or h is None:
+            raise GcpError("give all three ground coordinates")
+        g.lon, g.lat, g.h = ground_to_llh(x, y, h, epsg)
+    _changed(s)
+    return g
+
+
+def delete_gcp(s: GcpSession, gcp_id: str) -> None:
+    g = s.get(gcp_id)
+    s.gcps.remove(g)
+    _changed(s)
+
+
+def add_observation(s: GcpSession, gcp_id: str, image: str, col: float, row: float) -> GCP:
+    """Record (or replace) a GCP's observation in an image: full-image pixel (col, row)."""
+    g = s.get(gcp_id)
+    if image not in s.images:
+        raise GcpError(f"unknown image {image!r}")
+    w, h = s.images[image]
+    if not (-0.5 <= col <= w - 0.5 and -0.5 <= row <= h - 0.5):
+        raise GcpError(f"pixel ({col:.1f}, {row:.1f}) lies outside {image} ({w} x {h})")
+    g.observations[image] = (float(col), float(row))
+    _changed(s)
+    return g
+
+
+def remove_observation(s: GcpSession, gcp_id: str, image: str) -> None:
+    g = s.get(gcp_id)
+    if g.observations.pop(image, None) is None:
+        raise GcpError(f"{gcp_id} has no observation in {image}")
+    _changed(s)
+
+
+def set_affine_position(s: GcpSession, gcp_id: str, group: int, xyz: np.ndarray | None) -> None:
+    """Set (or clear, with None) a GCP's affine position picked on a group's cloud."""
+    g = s.get(gcp_id)
+    if xyz is None:
+        g.affine_picked.pop(group, None)
+    else:
+        g.affine_picked[group] = np.asarray(xyz, dtype=np.float64).reshape(3)
+    _changed(s)
+
+
+def describe(g: GCP) -> str:
+    """Markdown description of one GCP."""
+    lines = [f"**{g.id}** ({g.role}): lon {g.lon:.7f}, lat {g.lat:.7f}, h {g.h:.2f} m"]
+    if g.observations:
+        lines += [f"- {im}: col {c:.2f}, row {r:.2f}" for im, (c, r) in sorted(g.observations.items())]
+    else:
+        lines.append("- no observation yet: click its pixel on the image plane")
+    for grp in sorted(g.affine_picked):
+        lines.append(f"- picked on the cloud of group {grp}")
+    return "\n".join(lines)
+
+
+def default_epsg(site) -> int:
+    """The EPSG to offer for E, N input: site.json's crs_epsg, else the UTM zone of the GCPs."""
+    if site.hints.get("crs_epsg"):
+        return int(site.hints["crs_epsg"])
+    if site.gcps:
+        from recon_core.geometry.geodesy import utm_epsg_for
+
+        return int(utm_epsg_for(site.gcps[0].lon, site.gcps[0].lat))
+    return 32631

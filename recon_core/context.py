@@ -1,0 +1,39 @@
+"""What the stages of a run pass on to each other (reloaded from OUT when a stage resumes)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from recon_core.config import Config
+from recon_core.geometry.geodesy import LocalFrame
+from recon_core.io.gcps import GCP
+from recon_core.io.layout import OutLayout
+from recon_core.io.site import Site
+from recon_core.model.grouping import Group
+
+
+@dataclass
+class RunState:
+    """The state of one run.
+
+    Attributes:
+        site: the input site; gcps: the GCP set the run uses (the working set OUT/gcps.geojson
+        when it exists, else the site's); out: the output folder (layout: its files).
+        models: group -> SparseModel; dense: group -> dense.ply path;
+        upgrade: ({group: H_A}, LocalFrame) once upgraded; report: report.json's content.
+    """
+
+    site: Site
+    out: Path
+    cfg: Config
+    groups: list[Group]
+    gcps: list[GCP] = field(default_factory=list)
+    models: dict = field(default_factory=dict)
+    dense: dict = field(default_factory=dict)
+    upgrade: tuple[dict, LocalFrame] | None = None
+    report: dict = field(default_factory=dict)
+
+    @property
+    def layout(self) -> OutLayout:
+        return OutLayout(self.out)

@@ -1,0 +1,1 @@
+"""Step 3 of the method: per tile pair rectification and stereo matching, dense tracks, triangulation."""

@@ -1,0 +1,23 @@
+"""The dense stage: every group's dense affine cloud, streamed to affine/group_<k>/dense.ply."""
+
+from __future__ import annotations
+
+from recon_core.dense.reconstruct import reconstruct_dense_group
+from recon_core.events import EventBus
+
+
+def run(state, bus: EventBus) -> dict:
+    out = {"groups": {}}
+    images = {im.name: im for im in state.site.images}
+    for g, model in sorted(state.models.items()):
+        path = state.layout.dense_ply(g)
+        _, summary = reconstruct_dense_group(model, images, state.cfg.dense, bus, path=path)
+        state.dense[g] = path
+        out["groups"][str(g)] = summary
+    return out
+
+
+def load(state) -> None:
+    for g in state.models:
+        if state.layout.dense_ply(g).exists():
+            state.dense[g] = state.layout.dense_ply(g)

@@ -1,0 +1,499 @@
+"""Euclidean upgrade: one 3D affine map H_A from a group's affine frame to local ENU metres.
+
+An affine reconstruction is defined up to a 3D affine map (12 degrees of freedom, Hartley &
+Zisserman ch. 14). Given >= 4 non-coplanar ground control points (GCPs) with both an affine
+position (triangulated in the group's frame) and a surveyed ENU position, H_A is the 4 x 4 map
+
+    [E, N, U, 1]^T = H_A [x, y, z, 1]^T,   H_A[3] = [0, 0, 0, 1],
+
+fitted by linear least squares (12 unknowns, 3 equations per point). Gross outliers (a bad click,
+a wrong point) are rejected by RANSAC on minimal 4-point samples.
+
+Residuals are always "fitted minus surveyed": dE = E(H_A x) - E_surveyed (metres), etc.
+
+Conventions of the report (the photogrammetric ones):
+- RMSE per axis over the points of a set: RMSE_E, RMSE_N, RMSE_U.
+- RMSE_horizontal = sqrt((RMSE_E^2 + RMSE_N^2) / 2), the per-axis horizontal RMSE for which the
+  circular-normal factor 2.146 holds: CE90 = 2.146 * RMSE_horizontal. The radial RMSE
+  sqrt(RMSE_E^2 + RMSE_N^2) is reported too, labelled `rmse_radial_m`.
+- LE90 = 1.645 * RMSE_U.
+- Degrees of freedom of the fit: 3 N - 12 for N control points used. With N = 4 the control
+  residuals are zero by construction: only check points and reprojection residuals tell.
+- Leave-one-out (N >= 5): refit without each control point; its residual then is an honest
+  prediction error.
+
+Conditioning (flat land is the normal case): the height scale of H_A is set by how far the GCPs
+lie off their best-fit plane. Its relative error is about sigma / d_rms, where sigma is the
+height uncertainty of a GCP's affine point (in metres) and d_rms the RMS distance of the GCPs
+from their plane; on a structure of height h that is h * sigma / d_rms metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import combinations
+from typing import Any
+
+import numpy as np
+
+from recon_core.errors import ReconstructionError
+from recon_core.geometry.affine import apply_affine_3d, fit_affine_3d
+
+CE90_FACTOR = 2.146
+LE90_FACTOR = 1.645
+# Relative smallest/largest singular value below which a point set is rank deficient
+# ("exactly" collinear or coplanar, up to floating point).
+RANK_TOL = 1e-9
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs and basic fits
+# --------------------------------------------------------------------------------------------
+@dataclass
+class GcpInput:
+    """One ground control point as the upgrade sees it.
+
+    Attributes:
+        id: the GCP's identifier.
+        role: "control" (enters the fit) or "check" (only scored).
+        affine_xyz: (3,) position in the group's affine frame, or None when the point could not be
+            triangulated in this group (observed in fewer than two of its images).
+        enu: (3,) surveyed position in the local ENU frame (metres).
+        sigma_m: a-priori accuracy of the surveyed position (metres), if known.
+        reproj_rms_px: RMS reprojection residual of the GCP's image observations after
+            triangulation (pixels), if known. It catches a bad click even when N = 4.
+    """
+
+    id: str
+    role: str
+    affine_xyz: np.ndarray | None
+    enu: np.ndarray
+    sigma_m: float | None = None
+    reproj_rms_px: float | None = None
+
+
+def singular_ratio(X: np.ndarray) -> float:
+    """Smallest / largest singular value of the centred (n, 3) coordinates (0 if degenerate)."""
+    X = np.asarray(X, dtype=np.float64)
+    if len(X) < 3:
+        return 0.0
+    s = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
+    return float(s[-1] / s[0]) if len(s) == 3 and s[0] > 0 else 0.0
+
+
+def _rank(X: np.ndarray, tol: float = RANK_TOL) -> int:
+    """Numerical rank of the centred (n, 3) coordinates (0 to 3)."""
+    if len(X) < 2:
+        return 0
+    s = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
+    if s[0] <= 0:
+        return 0
+    return int(np.sum(s / s[0] > tol))
+
+
+def fit_affine_upgrade(X_aff: np.ndarray, X_enu: np.ndarray) -> np.ndarray:
+    """Least-squares 3D affine map from affine to ENU coordinates.
+
+    Both point sets are normalised (centroid to origin, RMS norm sqrt(3)) before the 12-unknown
+    linear solve, and the normalisation is undone afterwards.
+
+    Args:
+        X_aff: (n, 3) points in the affine frame, n >= 4, not coplanar.
+        X_enu: (n, 3) the same points in ENU metres.
+    Returns:
+        H: (4, 4) with last row [0, 0, 0, 1] and X_enu ~ H [X_aff, 1].
+    Raises:
+        ReconstructionError: fewer than 4 points or the affine points are rank deficient.
+    """
+    X_aff = np.asarray(X_aff, dtype=np.float64)
+    X_enu = np.asarray(X_enu, dtype=np.float64)
+    if X_aff.shape != X_enu.shape or X_aff.ndim != 2 or X_aff.shape[1] != 3:
+        raise ValueError(f"expected two (n, 3) arrays, got {X_aff.shape} and {X_enu.shape}")
+    if len(X_aff) < 4:
+        raise ReconstructionError(f"an affine upgrade needs >= 4 points, got {len(X_aff)}")
+    if _rank(X_aff) < 3:
+        raise ReconstructionError("the affine points are collinear or coplanar: H_A is undetermined")
+    H = np.eye(4)
+    H[:3] = fit_affine_3d(X_aff, X_enu)                  # normalised linear least squares
+    return H
+
+
+# --------------------------------------------------------------------------------------------
+# RANSAC
+# --------------------------------------------------------------------------------------------
+def _whitener(X: np.ndarray) -> np.ndarray:
+    """(3, 3) W with (X - mean) W isotropic; makes degeneracy tests affine invariant."""
+    C = np.cov((X - X.mean(axis=0)).T) + 1e-12 * np.eye(3)
+    w, V = np.linalg.eigh(C)
+    return V / np.sqrt(np.maximum(w, 1e-300))
+
+
+def _sample_degenerate(Xa_w: np.ndarray, Xe_w: np.ndarray, min_ratio: float) -> bool:
+    """True if a 4-point sample is nearly coplanar in either (whitened) space. (4, 3) inputs."""
+    return singular_ratio(Xa_w) < min_ratio or singular_ratio(Xe_w) < min_ratio
+
+
+def _samples(n: int, iters: int, rng: np.random.Generator) -> np.ndarray:
+    """(k, 4) index samples: all C(n, 4) combinations when that is <= iters, else random ones."""
+    n_comb = n * (n - 1) * (n - 2) * (n - 3) // 24
+    if n_comb <= iters:
+        return np.array(list(combinations(range(n), 4)), dtype=np.int64)
+    keys = rng.random((iters, n))
+    return np.argsort(keys, axis=1)[:, :4]
+
+
+def fit_upgrade_ransac(X_aff: np.ndarray, X_enu: np.ndarray, thresh_m: float = 2.0,
+                       iters: int = 1000, rng: np.random.Generator | None = None,
+                       min_ratio: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """RANSAC for H_A on minimal 4-point samples, then a least-squares refit on the inliers.
+
+    A sample is degenerate when its centred coordinates are nearly coplanar in either space:
+    smallest / largest singular value < `min_ratio`, measured after whitening each space by the
+    covariance of the whole set (so the test does not depend on the arbitrary affine frame, and a
+    flat-land GCP set is not rejected wholesale; the set's own flatness is `conditioning`'s job).
+    Samples are scored by inlier count (3D residual < thresh_m), ties broken by the sum of
+    truncated squared residuals (MSAC). When C(n, 4) <= iters every sample is tried.
+
+    Args:
+        X_aff: (n, 3) affine points; X_enu: (n, 3) ENU points (metres); n >= 4.
+        thresh_m: inlier threshold on the 3D residual norm (metres).
+        iters: maximum number of samples.
+        rng: random generator (default: seeded 0, so runs are reproducible).
+    Returns:
+        H: (4, 4) refitted on the inliers; inliers: (n,) bool.
+    Raises:
+        ReconstructionError: every sample is degenerate or fewer than 4 inliers remain.
+    """
+    X_aff = np.asarray(X_aff, dtype=np.float64)
+    X_enu = np.asarray(X_enu, dtype=np.float64)
+    n = len(X_aff)
+    if n < 4:
+        raise ReconstructionError(f"RANSAC for H_A needs >= 4 points, got {n}")
+    rng = np.random.default_rng(0) if rng is None else rng
+    Xa_w = (X_aff - X_aff.mean(axis=0)) @ _whitener(X_aff)
+    Xe_w = (X_enu - X_enu.mean(axis=0)) @ _whitener(X_enu)
+    best: tuple[int, float] | None = None
+    best_mask = None
+    for idx in _samples(n, iters, rng):
+        if _sample_degenerate(Xa_w[idx], Xe_w[idx], min_ratio):
+            continue
+        H = fit_affine_upgrade(X_aff[idx], X_enu[idx])
+        r2 = np.sum((apply_affine_3d(H, X_aff) - X_enu) ** 2, axis=1)
+        mask = r2 < thresh_m ** 2
+        score = (int(mask.sum()), -float(np.minimum(r2, thresh_m ** 2).sum()))
+        if best is None or score > best:
+            best, best_mask = score, mask
+    if best_mask is None:
+        raise ReconstructionError("every 4-point sample of GCPs is degenerate (nearly coplanar)")
+    return _refit_inliers(X_aff, X_enu, best_mask, thresh_m)
+
+
+def _refit_inliers(X_aff: np.ndarray, X_enu: np.ndarray, mask: np.ndarray,
+                   thresh_m: float, rounds: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """Alternate LS refit and inlier re-selection until the inlier set is stable."""
+    for _ in range(rounds):
+        if mask.sum() < 4 or _rank(X_aff[mask]) < 3:
+            raise ReconstructionError(
+                f"only {int(mask.sum())} GCPs agree within {thresh_m} m (need >= 4, non-coplanar)")
+        H = fit_affine_upgrade(X_aff[mask], X_enu[mask])
+        new = np.linalg.norm(apply_affine_3d(H, X_aff) - X_enu, axis=1) < thresh_m
+        if np.array_equal(new, mask) or new.sum() < 4:
+            break
+        mask = new
+    return H, mask
+
+
+# --------------------------------------------------------------------------------------------
+# Conditioning
+# --------------------------------------------------------------------------------------------
+def conditioning(X_enu: np.ndarray, affine_height_sigma_m: float = 0.4,
+                 structure_height_m: float = 40.0, warn_height_error_m: float = 2.0,
+                 poor_height_error_m: float = 5.0) -> dict[str, Any]:
+    """How well the control GCPs fix the height scale of H_A.
+
+    Fits a plane to the control points (SVD of the centred coordinates) and predicts the height
+    error, as GEOMETRY_NOTES says: relative height-scale error ~ sigma / d_rms (sigma: height
+    uncertainty of a GCP's affine point; d_rms: RMS distance of the GCPs from their plane), i.e.
+    structure_height_m * sigma / d_rms metres on a structure of that height. This is a per-point,
+    deliberately conservative figure (it ignores the averaging over N points).
+
+    Args:
+        X_enu: (n, 3) control GCPs in ENU metres.
+        affine_height_sigma_m: sigma above (metres).
+        structure_height_m: height of the structure the error is quoted for (e.g. a 40 m roof).
+        warn_height_error_m, poor_height_error_m: thresholds on the expected height error (m).
+    Returns:
+        dict with n, plane_normal, plane_rms_m (d_rms), plane_max_m, singular_ratio,
+        expected_height_scale_error (fraction), expected_height_error_m, structure_height_m,
+        level ("ok" | "warning" | "poor" | "degenerate") and warning (plain words or None).
+    """
+    X = np.asarray(X_enu, dtype=np.float64).reshape(-1, 3)
+    out: dict[str, Any] = {"n": len(X), "affine_height_sigma_m": float(affine_height_sigma_m),
+                           "structure_height_m": float(structure_height_m),
+                           "warn_height_error_m": float(warn_height_error_m),
+                           "poor_height_error_m": float(poor_height_error_m)}
+    if len(X) < 3:
+        out.update(level="degenerate", plane_rms_m=0.0, singular_ratio=0.0,
+                   expected_height_scale_error=float("inf"), expected_height_error_m=float("inf"),
+                   warning=f"only {len(X)} control GCPs: the height scale is undetermined; "
+                           "add GCPs, at least 4 and not all on one plane")
+        return out
+    Xc = X - X.mean(axis=0)
+    _, s, Vt = np.linalg.svd(Xc, full_matrices=False)
+    normal = Vt[-1] * (1.0 if Vt[-1][2] >= 0 else -1.0)
+    d = Xc @ normal
+    d_rms = float(np.sqrt(np.mean(d ** 2)))
+    frac = affine_height_sigma_m / d_rms if d_rms > 0 else float("inf")
+    err_m = frac * structure_height_m
+    level = "ok" if err_m <= warn_height_error_m else ("warning" if err_m <= poor_height_error_m
+                                                      else "poor")
+    out.update(plane_normal=normal.tolist(), plane_rms_m=d_rms, plane_max_m=float(np.abs(d).max()),
+               singular_ratio=float(s[-1] / s[0]) if s[0] > 0 else 0.0,
+               expected_height_scale_error=float(frac), expected_height_error_m=float(err_m),
+               level=level, warning=_conditioning_warning(level, d_rms, frac, err_m,
+                                                          structure_height_m,
+                                                          affine_height_sigma_m,
+                                                          warn_height_error_m))
+    return out
+
+
+def _conditioning_warning(level: str, d_rms: float, frac: float, err_m: float,
+                          h: float, sigma: float, target_m: float) -> str | None:
+    """Plain-words warning for a poorly conditioned (flat) GCP set, or None."""
+    if level == "ok":
+        return None
+    need = sigma * h / target_m
+    return (f"the control GCPs lie within {d_rms:.2f} m (RMS) of one plane, so the height scale "
+            f"is poorly fixed: expected height error about {100 * frac:.0f} %, i.e. "
+            f"{err_m:.1f} m on a {h:.0f} m structure. Add a GCP well off that plane (a roof, a "
+            f"hill top or a valley bottom); about {need:.0f} m RMS off-plane spread brings it "
+            f"to {target_m:g} m.")
+
+
+# --------------------------------------------------------------------------------------------
+# The full upgrade with its report
+# --------------------------------------------------------------------------------------------
+@dataclass
+class UpgradeResult:
+    """H_A with the report photogrammetrists expect (see the module docstring).
+
+    Attributes:
+        H: (4, 4) affine -> ENU map.
+        points: one dict per GCP: id, role, status ("used" | "rejected" | "check" | "unusable"),
+            reason, dE, dN, dU, horizontal_m, norm3d_m (None when no affine point),
+            reproj_rms_px, sigma_m, and loo_dE/loo_dN/loo_dU/loo_norm3d_m for used points when
+            N >= 5.
+        stats: {"control": {...}, "check": {...}, "loo": {...}} with n, rmse_E_m, rmse_N_m,
+            rmse_U_m, rmse_horizontal_m, rmse_radial_m, rmse_3d_m, ce90_m, le90_m.
+        dof: 3 N - 12.
+        rejections: [{"id", "reason"}] RANSAC rejections and unusable GCPs.
+        conditioning: dict of `conditioning`.
+        notes: plain-words remarks (no redundancy, ...); warnings: things to act on.
+    """
+
+    H: np.ndarray
+    points: list[dict[str, Any]]
+    stats: dict[str, dict[str, Any]]
+    dof: int
+    n_control_used: int
+    rejections: list[dict[str, str]]
+    conditioning: dict[str, Any]
+    notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+    def apply(self, X_aff: np.ndarray) -> np.ndarray:
+        """Affine-frame points (n, 3) -> ENU metres (n, 3)."""
+        return apply_affine_3d(self.H, X_aff)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict for report.json."""
+        return {
+            "H": self.H.tolist(), "n_control_used": self.n_control_used, "dof": self.dof,
+            "residual_convention": "fitted minus surveyed, metres, ENU axes",
+            "rmse_horizontal_definition": "sqrt((RMSE_E^2 + RMSE_N^2) / 2); "
+                                          "CE90 = 2.146 * that, LE90 = 1.645 * RMSE_U",
+            "points": self.points, "stats": self.stats, "rejections": self.rejections,
+            "conditioning": self.conditioning, "notes": self.notes, "warnings": self.warnings,
+        }
+
+
+def accuracy_stats(res: np.ndarray) -> dict[str, Any]:
+    """RMSE per axis, CE90 and LE90 from residuals (n, 3) in ENU metres."""
+    res = np.asarray(res, dtype=np.float64).reshape(-1, 3)
+    if len(res) == 0:
+        return {"n": 0}
+    rmse = np.sqrt(np.mean(res ** 2, axis=0))
+    rmse_h = float(np.sqrt((rmse[0] ** 2 + rmse[1] ** 2) / 2.0))
+    return {"n": len(res), "rmse_E_m": float(rmse[0]), "rmse_N_m": float(rmse[1]),
+            "rmse_U_m": float(rmse[2]), "rmse_horizontal_m": rmse_h,
+            "rmse_radial_m": float(np.hypot(rmse[0], rmse[1])),
+            "rmse_3d_m": float(np.sqrt(np.sum(rmse ** 2))),
+            "ce90_m": CE90_FACTOR * rmse_h, "le90_m": LE90_FACTOR * float(rmse[2])}
+
+
+def _usable(g: GcpInput) -> str | None:
+    """Reason a GCP cannot be used, or None."""
+    if g.role not in ("control", "check"):
+        return f"unknown role {g.role!r} (expected 'control' or 'check')"
+    if g.affine_xyz is None:
+        return "no affine position (observed in fewer than two images of this group)"
+    if not np.all(np.isfinite(np.asarray(g.affine_xyz, dtype=float))):
+        return "affine position is not finite"
+    if not np.all(np.isfinite(np.asarray(g.enu, dtype=float))):
+        return "surveyed position is not finite"
+    return None
+
+
+def _check_rank(ids: list[str], X_enu: np.ndarray, X_aff: np.ndarray) -> None:
+    """Raise if the control set is collinear or exactly coplanar in either space."""
+    for name, X in (("surveyed (ENU)", X_enu), ("affine", X_aff)):
+        r = _rank(X)
+        if r < 3:
+            shape = "all coincide" if r == 0 else ("are collinear" if r == 1 else
+                                                  "are exactly coplanar")
+            raise ReconstructionError(
+                f"the {len(ids)} usable control GCPs ({', '.join(ids)}) {shape} in {name} "
+                "coordinates: the system is rank deficient and H_A (in particular its height "
+                "scale) is undetermined; add a GCP off their plane")
+
+
+def _loo(X_aff: np.ndarray, X_enu: np.ndarray) -> np.ndarray:
+    """Leave-one-out residuals (n, 3): refit without point i, residual at i (NaN if degenerate)."""
+    n = len(X_aff)
+    out = np.full((n, 3), np.nan)
+    for i in range(n):
+        keep = np.arange(n) != i
+        if _rank(X_aff[keep]) < 3 or _rank(X_enu[keep]) < 3:
+            continue
+        H = fit_affine_upgrade(X_aff[keep], X_enu[keep])
+        out[i] = apply_affine_3d(H, X_aff[i:i + 1])[0] - X_enu[i]
+    return out
+
+
+def _combined_sigma(gcps: list[GcpInput], affine_height_sigma_m: float) -> float:
+    """Affine-point height sigma combined in quadrature with the RMS of the GCPs' sigma_m."""
+    s = [g.sigma_m for g in gcps if g.sigma_m is not None and np.isfinite(g.sigma_m)]
+    extra = float(np.sqrt(np.mean(np.square(s)))) if s else 0.0
+    return float(np.hypot(affine_height_sigma_m, extra))
+
+
+def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: int = 4,
+            rng: np.random.Generator | None = None, ransac_iters: int = 1000,
+            affine_height_sigma_m: float = 0.4, structure_height_m: float = 40.0,
+            warn_height_error_m: float = 2.0, poor_height_error_m: float = 5.0,
+            reproj_warn_px: float = 2.0) -> UpgradeResult:
+    """Fit H_A on the control GCPs (RANSAC when N >= 5) and build the full residual report.
+
+    Check points never enter the fit. GCPs without an affine position are listed as unusable.
+
+    Raises:
+        ReconstructionError: fewer than max(4, min_points) usable control GCPs (says how many and
+            which lack an affine point), or the control set is collinear / exactly coplanar.
+    """
+    min_points = max(4, int(min_points))
+    reasons = {i: _usable(g) for i, g in enumerate(gcps)}
+    ctrl = [i for i, g in enumerate(gcps) if g.role == "control" and reasons[i] is None]
+    if len(ctrl) < min_points:
+        lacking = [g.id for i, g in enumerate(gcps) if g.role == "control" and reasons[i]]
+        raise ReconstructionError(
+            f"only {len(ctrl)} usable control GCPs, need >= {min_points}"
+            + (f"; without an affine position: {', '.join(lacking)}" if lacking else "")
+            + "; observe more control GCPs in at least two images of this group")
+    Xa = np.array([gcps[i].affine_xyz for i in ctrl], dtype=np.float64)
+    Xe = np.array([gcps[i].enu for i in ctrl], dtype=np.float64)
+    _check_rank([gcps[i].id for i in ctrl], Xe, Xa)
+    if len(ctrl) > 4:
+        H, inl = fit_upgrade_ransac(Xa, Xe, ransac_thresh_m, ransac_iters, rng)
+    else:
+        H, inl = fit_affine_upgrade(Xa, Xe), np.ones(len(ctrl), bool)
+    used = [i for i, ok in zip(ctrl, inl) if ok]
+    return _build_result(gcps, reasons, ctrl, used, H, Xa[inl], Xe[inl], ransac_thresh_m,
+                         _combined_sigma([gcps[i] for i in used], affine_height_sigma_m),
+                         structure_height_m, warn_height_error_m, poor_height_error_m,
+                         reproj_warn_px)
+
+
+def _point_row(g: GcpInput, status: str, reason: str | None, r: np.ndarray | None) -> dict:
+    """One report row; r: (3,) residual or None."""
+    row: dict[str, Any] = {"id": g.id, "role": g.role, "status": status, "reason": reason,
+                           "sigma_m": g.sigma_m, "reproj_rms_px": g.reproj_rms_px}
+    if r is None:
+        row.update(dE=None, dN=None, dU=None, horizontal_m=None, norm3d_m=None)
+    else:
+        row.update(dE=float(r[0]), dN=float(r[1]), dU=float(r[2]),
+                   horizontal_m=float(np.hypot(r[0], r[1])), norm3d_m=float(np.linalg.norm(r)))
+    return row
+
+
+def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, sigma, struct_h,
+                  warn_m, poor_m, reproj_warn_px) -> UpgradeResult:
+    """Residual rows, statistics, LOO, rejections and notes for a fitted H."""
+    rows, rejections, res = [], [], {"control": [], "check": []}
+    for i, g in enumerate(gcps):
+        if reasons[i] is not None:
+            rows.append(_point_row(g, "unusable", reasons[i], None))
+            rejections.append({"id": g.id, "reason": reasons[i]})
+            continue
+        r = apply_affine_3d(H, np.asarray(g.affine_xyz, float)[None])[0] - np.asarray(g.enu, float)
+        if g.role == "check":
+            rows.append(_point_row(g, "check", None, r))
+            res["check"].append(r)
+        elif i in used:
+            rows.append(_point_row(g, "used", None, r))
+            res["control"].append(r)
+        else:
+            why = (f"RANSAC outlier: 3D residual {np.linalg.norm(r):.2f} m > {thresh} m "
+                   "against the consensus of the other control GCPs")
+            rows.append(_point_row(g, "rejected", why, r))
+            rejections.append({"id": g.id, "reason": why})
+    n = len(used)
+    stats = {k: accuracy_stats(np.array(v).reshape(-1, 3)) for k, v in res.items()}
+    notes, warnings = [], []
+    if n >= 5:
+        loo = _loo(Xa_used, Xe_used)
+        _attach_loo(rows, [gcps[i].id for i in used], loo)
+        stats["loo"] = accuracy_stats(loo[np.all(np.isfinite(loo), axis=1)])
+    else:
+        notes.append("N = 4 control GCPs: no redundancy (3N - 12 = 0 degrees of freedom), so the "
+                     "control residuals are zero by construction and say nothing. What still "
+                     "tells: the check points and each GCP's reprojection residual "
+                     "(reproj_rms_px), which catches a bad click even at N = 4.")
+    n_ransac = sum(1 for r in rows if r["status"] == "rejected")
+    if n_ransac and n == 4:
+        warnings.append(f"RANSAC rejected {n_ransac} control GCP(s) and only 4 remain: no "
+                        "redundancy is left to confirm the rejection; add control GCPs")
+    cond = conditioning(Xe_used, sigma, struct_h, warn_m, poor_m)
+    if cond.get("warning"):
+        warnings.append(cond["warning"])
+    warnings += _reproj_warnings(rows, reproj_warn_px)
+    if not res["check"]:
+        notes.append("no check points: hold one or more GCPs out as 'check' for an independent "
+                     "accuracy figure")
+    return UpgradeResult(H=H, points=rows, stats=stats, dof=3 * n - 12, n_control_used=n,
+                         rejections=rejections, conditioning=cond, notes=notes,
+                         warnings=warnings)
+
+
+def _attach_loo(rows: list[dict], ids: list[str], loo: np.ndarray) -> None:
+    """Add loo_dE, loo_dN, loo_dU, loo_norm3d_m to the rows of the used control points."""
+    by_id = dict(zip(ids, loo))
+    for row in rows:
+        r = by_id.get(row["id"]) if row["status"] == "used" else None
+        if r is None:
+            continue
+        ok = bool(np.all(np.isfinite(r)))
+        row.update(loo_dE=float(r[0]) if ok else None, loo_dN=float(r[1]) if ok else None,
+                   loo_dU=float(r[2]) if ok else None,
+                   loo_norm3d_m=float(np.linalg.norm(r)) if ok else None)
+
+
+def _reproj_warnings(rows: list[dict], warn_px: float) -> list[str]:
+    """Flag GCPs whose image observations disagree after triangulation (a likely bad click)."""
+    out = []
+    for row in rows:
+        px = row.get("reproj_rms_px")
+        if px is not None and np.isfinite(px) and px > warn_px:
+            row["reproj_suspect"] = True
+            out.append(f"GCP {row['id']}: reprojection residual {px:.2f} px > {warn_px} px; "
+                       "check its clicks in each image")
+    return out

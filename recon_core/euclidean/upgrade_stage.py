@@ -1,0 +1,124 @@
+"""The upgrade stage: one H_A per date group, from the run's GCP set, in one local ENU frame.
+
+`upgrade_models` is the one function that upgrades: the pipeline's stage and the viewer's
+Upgrade button both call it, and both write its records with `recon_core.io.models.save_upgrade`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from recon_core.config import Config
+from recon_core.errors import ReconstructionError
+from recon_core.euclidean.georef import GcpAffine, frame_for, upgrade_group
+from recon_core.euclidean.upgrade import UpgradeResult
+from recon_core.events import EventBus
+from recon_core.geometry.geodesy import LocalFrame
+from recon_core.io.gcps import GCP
+from recon_core.io.models import load_upgrade, save_upgrade
+
+
+def estimate_gsd(model, H: np.ndarray) -> float:
+    """Median ground sample distance (m/px) of the registered tile cameras, via H_A."""
+    Ainv = np.linalg.inv(H[:3, :3])
+    gsd = []
+    for t in np.flatnonzero(model.registered):
+        J = model.cams[t][:, :3] @ Ainv          # pixels per metre along E, N, U
+        det = abs(np.linalg.det(J[:, :2]))
+        if det > 0:
+            gsd.append(1.0 / np.sqrt(det))
+    if not gsd:
+        raise ReconstructionError("cannot estimate the GSD: no registered camera")
+    return float(np.median(gsd))
+
+
+@dataclass
+class Upgrade:
+    """The Euclidean upgrade of every group.
+
+    Attributes:
+        frame: the local ENU frame shared by all groups (at the control GCPs' centroid).
+        results: group -> UpgradeResult of the groups that could be upgraded.
+        affine: group -> {GCP id: GcpAffine}: how each GCP was placed in that group's frame.
+        gsd_m: group -> ground sample distance of its tile cameras (m/px).
+        errors: group -> why it could not be upgraded.
+    """
+
+    frame: LocalFrame
+    results: dict[int, UpgradeResult] = field(default_factory=dict)
+    affine: dict[int, dict[str, GcpAffine]] = field(default_factory=dict)
+    gsd_m: dict[int, float] = field(default_factory=dict)
+    errors: dict[int, str] = field(default_factory=dict)
+
+    @property
+    def Hs(self) -> dict[int, np.ndarray]:
+        return {g: r.H for g, r in self.results.items()}
+
+    def record(self, g: int) -> dict:
+        """What upgrade/group_<g>.json holds: the UpgradeResult, how each GCP was placed, GSD."""
+        d = self.results[g].to_dict()
+        d["gcp_affine"] = {k: {"xyz": None if a.xyz is None else a.xyz.tolist(), "n_images": a.n_images,
+                               "reproj_rms_px": a.reproj_rms_px, "source": a.source}
+                           for k, a in self.affine[g].items()}
+        d["gsd_m"] = self.gsd_m[g]
+        return d
+
+    def report(self) -> dict:
+        groups = {str(g): self.record(g) for g in self.results}
+        groups.update({str(g): {"error": e} for g, e in self.errors.items()})
+        return {"frame": self.frame.to_dict(), "groups": dict(sorted(groups.items()))}
+
+
+def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
+    """Fit H_A for every group's model from one GCP set (positions picked on a group's cloud,
+    GCP.affine_picked, take the place of triangulation in that group).
+
+    Raises:
+        ReconstructionError: no GCP at all, or no group could be upgraded (every group's reason).
+    """
+    if not gcps:
+        raise ReconstructionError("no GCP; the Euclidean upgrade needs >= 4 control GCPs observed "
+                                  "in >= 2 images of each group")
+    if not models:
+        raise ReconstructionError("no sparse model to upgrade")
+    up = Upgrade(frame_for(gcps))
+    for g, model in sorted(models.items()):
+        try:
+            res, _, aff = upgrade_group(model, gcps, up.frame, ransac_thresh_m=cfg.upgrade.ransac_thresh_m,
+                                        seed=cfg.seed)
+            gsd = estimate_gsd(model, res.H)
+        except ReconstructionError as exc:
+            up.errors[g] = f"group {g}: {exc}"
+            continue
+        up.results[g], up.affine[g], up.gsd_m[g] = res, aff, gsd
+    if not up.results:
+        raise ReconstructionError("; ".join(up.errors.values()))
+    return up
+
+
+def write(up: Upgrade, out) -> None:
+    """upgrade/group_<k>.json and upgrade/frame.json (what the DSM stage reads)."""
+    save_upgrade(out, {g: up.record(g) for g in up.results}, up.frame)
+
+
+def run(state, bus: EventBus) -> dict:
+    if not state.gcps:
+        raise ReconstructionError(f"{state.site.root / 'gcps.geojson'}: no GCP; the Euclidean upgrade "
+                                  "needs >= 4 control GCPs observed in >= 2 images of each group")
+    up = upgrade_models(state.gcps, state.models, state.cfg)
+    write(up, state.layout)
+    state.upgrade = (up.Hs, up.frame)
+    report = up.report()
+    for g, r in report["groups"].items():
+        if "error" in r:
+            bus.message(r["error"], "error", int(g))
+        cond_warning = (r.get("conditioning") or {}).get("warning")
+        for w in r.get("warnings", []) + ([cond_warning] if cond_warning else []):
+            bus.message(f"group {g}: {w}", "warning", int(g))
+    return report
+
+
+def load(state) -> None:
+    state.upgrade = load_upgrade(state.layout)

@@ -1,0 +1,22 @@
+"""The evaluation stage: the DSM against the site's gt_dsm.tif, when it has one."""
+
+from __future__ import annotations
+
+from recon_core.evaluation.evaluate import evaluate_dsm
+from recon_core.events import EventBus
+
+
+def run(state, bus: EventBus) -> dict:
+    if state.site.gt_dsm is None:
+        return {"skipped": "the site has no gt_dsm.tif"}
+    lay = state.layout
+    res = evaluate_dsm(lay.dsm, state.site.gt_dsm, lay.eval_dir)
+    a, u = res["aligned"], res["unaligned"]
+    bus.message(f"DSM vs GT: median |error| {a['median_abs_err_m']:.3f} m, completeness "
+                f"{a['completeness_pct']:.1f} % (aligned); unaligned {u['median_abs_err_m']:.3f} m, "
+                f"{u['completeness_pct']:.1f} %")
+    return res
+
+
+def load(state) -> None:
+    pass

@@ -1,0 +1,71 @@
+"""Evaluation against the truth of a synthetic site (tests and benchmarks only).
+
+The pipeline never imports this module: it reads `SITE/truth/` (the physical pushbroom cameras
+written by `synthetic.generate_site`), which a real site does not have.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from recon_core.geometry import affine
+from recon_core.geometry.geodesy import LocalFrame
+
+
+def intersect_rays(origins: np.ndarray, dirs: np.ndarray, pt: np.ndarray, n: int) -> np.ndarray:
+    """Least-squares intersection of groups of rays: (k, 3) origins/unit dirs, pt (k,) group ids."""
+    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]          # projectors orthogonal to rays
+    A = np.zeros((n, 9))
+    b = np.zeros((n, 3))
+    Pf = P.reshape(-1, 9)
+    Po = np.einsum("kij,kj->ki", P, origins)
+    for c in range(9):
+        A[:, c] = np.bincount(pt, Pf[:, c], minlength=n)
+    for c in range(3):
+        b[:, c] = np.bincount(pt, Po[:, c], minlength=n)
+    return affine.solve3x3(A.reshape(n, 3, 3), b)
+
+
+def true_points_enu(site_dir: str | Path, frame: LocalFrame, img_names: list[str], obs_img: np.ndarray,
+                    obs_pt: np.ndarray, obs_xy: np.ndarray, n: int) -> np.ndarray:
+    """Triangulate observations (image index, point index, pixel) with the TRUE cameras -> ENU."""
+    from recon_core.synthetic.generator import load_truth_cameras
+
+    cams = load_truth_cameras(site_dir)
+    O = np.zeros((len(obs_pt), 3))
+    D = np.zeros((len(obs_pt), 3))
+    for k, name in enumerate(img_names):
+        sel = obs_img == k
+        if sel.any():
+            O[sel], D[sel] = cams[name].ray(obs_xy[sel])
+    # work relative to the frame origin for conditioning
+    X = intersect_rays(O - frame.origin_ecef, D, obs_pt, n) + frame.origin_ecef
+    return frame.ecef_to_enu(X)
+
+
+def sparse_vs_truth(site_dir: str | Path, model, frame: LocalFrame) -> dict:
+    """Fit one 3D affine map from the sparse points to their true positions; residual figures."""
+    idx = model.active_obs()
+    o = model.obs
+    # one observation per (track, image) is enough for the true triangulation
+    key = np.unique(np.stack([o.track[idx], o.img[idx]], 1), axis=0, return_index=True)[1]
+    idx = idx[key]
+    ids = model.point_ids()
+    remap = np.full(len(model.X), -1)
+    remap[ids] = np.arange(len(ids))
+    Xt = true_points_enu(site_dir, frame, model.images, o.img[idx], remap[o.track[idx]], o.xy[idx], len(ids))
+    return affine_fit_report(model.X[ids], Xt)
+
+
+def affine_fit_report(X: np.ndarray, Xt: np.ndarray) -> dict:
+    """Best-fit 3D affine map X -> Xt (fitted here, in evaluation only) and its residuals."""
+    ok = np.all(np.isfinite(X), 1) & np.all(np.isfinite(Xt), 1)
+    A = affine.fit_affine_3d(X[ok], Xt[ok])
+    r = affine.apply_affine_3d(A, X[ok]) - Xt[ok]
+    return {"n": int(ok.sum()), "rms_m": float(np.sqrt(np.mean(np.sum(r ** 2, 1)))),
+            "rms_xyz_m": np.sqrt(np.mean(r ** 2, 0)).tolist(),
+            "median_abs_u_m": float(np.median(np.abs(r[:, 2]))),
+            "p95_m": float(np.percentile(np.linalg.norm(r, axis=1), 95)), "A": A, "residuals": r}

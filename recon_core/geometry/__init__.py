@@ -1,0 +1,1 @@
+"""Affine camera algebra, camera types and geodesy: pure maths, no I/O."""

@@ -1,0 +1,119 @@
+"""Every path under OUT, in one object used by the core and the viewer alike.
+
+    OUT/
+      report.json                      per-stage summaries of the run that wrote these files
+      gcps.geojson                     the working GCP set (the viewer's edits), when present
+      stages/<stage>.json              what makes a stage resumable (hash of its inputs)
+      affine/group_<k>/cameras.json    tiles, registration flags, 2 x 4 tile cameras
+      affine/group_<k>/sparse.ply      sparse points in the group's affine frame
+      affine/group_<k>/observations.npz  every tile observation, point ids
+      affine/group_<k>/dense.ply       dense points in the group's affine frame
+      upgrade/group_<k>.json           H_A of group k and its GCP report
+      upgrade/frame.json               the local ENU frame shared by all groups
+      cloud.ply                        the Euclidean cloud (output CRS, ellipsoidal h)
+      dsm.tif                          the DSM
+      eval/                            eval.json, height_error.tif/.png, dsm_vs_gt.png
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class OutLayout:
+    """The files of one output folder (nothing is created or read by building it)."""
+
+    root: Path
+
+    def __init__(self, root: str | Path):
+        object.__setattr__(self, "root", Path(root))
+
+    # -- the run ------------------------------------------------------------------------------
+    @property
+    def report(self) -> Path:
+        return self.root / "report.json"
+
+    @property
+    def gcps(self) -> Path:
+        """The working GCP set (written by the viewer; used by the run when it exists)."""
+        return self.root / "gcps.geojson"
+
+    def stage_record(self, stage: str) -> Path:
+        return self.root / "stages" / f"{stage}.json"
+
+    # -- affine models ------------------------------------------------------------------------
+    def group_dir(self, g: int) -> Path:
+        return self.root / "affine" / f"group_{g}"
+
+    def cameras(self, g: int) -> Path:
+        return self.group_dir(g) / "cameras.json"
+
+    def sparse_ply(self, g: int) -> Path:
+        return self.group_dir(g) / "sparse.ply"
+
+    def observations(self, g: int) -> Path:
+        return self.group_dir(g) / "observations.npz"
+
+    def dense_ply(self, g: int) -> Path:
+        return self.group_dir(g) / "dense.ply"
+
+    def model_groups(self) -> list[int]:
+        """Groups with a saved sparse model, ascending."""
+        return _indices(self.root / "affine", r"group_(\d+)", lambda p: (p / "cameras.json").exists())
+
+    # -- Euclidean products -------------------------------------------------------------------
+    def upgrade_record(self, g: int) -> Path:
+        return self.root / "upgrade" / f"group_{g}.json"
+
+    @property
+    def upgrade_frame(self) -> Path:
+        return self.root / "upgrade" / "frame.json"
+
+    def upgraded_groups(self) -> list[int]:
+        return _indices(self.root / "upgrade", r"group_(\d+)\.json", lambda p: p.is_file())
+
+    @property
+    def cloud(self) -> Path:
+        return self.root / "cloud.ply"
+
+    @property
+    def dsm(self) -> Path:
+        return self.root / "dsm.tif"
+
+    @property
+    def eval_dir(self) -> Path:
+        return self.root / "eval"
+
+    @property
+    def eval_json(self) -> Path:
+        return self.eval_dir / "eval.json"
+
+    @property
+    def height_error_tif(self) -> Path:
+        return self.eval_dir / "height_error.tif"
+
+    @property
+    def height_error_png(self) -> Path:
+        return self.eval_dir / "height_error.png"
+
+    @property
+    def dsm_vs_gt_png(self) -> Path:
+        return self.eval_dir / "dsm_vs_gt.png"
+
+    def is_output(self) -> bool:
+        """Does the folder look like a (possibly partial) output folder?"""
+        return self.report.exists() or (self.root / "affine").is_dir()
+
+
+def _indices(folder: Path, pattern: str, keep) -> list[int]:
+    if not folder.is_dir():
+        return []
+    out = []
+    for p in folder.iterdir():
+        m = re.fullmatch(pattern, p.name)
+        if m and keep(p):
+            out.append(int(m.group(1)))
+    return sorted(out)

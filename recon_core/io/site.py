@@ -1,0 +1,219 @@
+"""Reading and writing sites in the layout of SITE_FORMAT.md.
+
+A site is a folder with `images/*.tif[f]`, `gcps.geojson`, optional `gt_dsm.tif` and optional
+`site.json`. Pixel coordinates are (col, row) of the full image, centre of the top-left pixel at
+(0, 0). Images are only ever read by window. Every problem with the input is raised as an
+`InputError` naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
+from rasterio.windows import Window
+
+from recon_core.errors import InputError
+from recon_core.io.gcps import GCP, read_gcps_geojson
+
+IMAGE_SUFFIXES = (".tif", ".tiff", ".TIF", ".TIFF")
+
+
+@dataclass
+class ImageInfo:
+    """One acquisition: file, size, radiometry and acquisition time (UTC)."""
+
+    name: str
+    path: Path
+    width: int
+    height: int
+    bands: int
+    dtype: str
+    nodata: float | None
+    acquired: datetime | None
+    time_source: str
+    has_rpc: bool
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "width": self.width, "height": self.height,
+                "bands": self.bands, "dtype": self.dtype, "nodata": self.nodata,
+                "acquired": None if self.acquired is None else iso_utc(self.acquired),
+                "time_source": self.time_source, "has_rpc": self.has_rpc}
+
+
+@dataclass
+class Site:
+    """A loaded site: its images (sorted by name), GCPs and optional extras."""
+
+    root: Path
+    images: list[ImageInfo]
+    gcps: list[GCP]
+    gt_dsm: Path | None
+    hints: dict
+
+    def image(self, name: str) -> ImageInfo:
+        for im in self.images:
+            if im.name == name:
+                return im
+        raise KeyError(name)
+
+    @property
+    def name(self) -> str:
+        return str(self.hints.get("name") or self.root.name)
+
+
+def iso_utc(t: datetime) -> str:
+    return t.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def parse_iso_time(text: str) -> datetime:
+    """Parse an ISO 8601 time; naive times are taken as UTC."""
+    t = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    return t if t.tzinfo else t.replace(tzinfo=timezone.utc)
+
+
+def _tiff_datetime(tags: dict) -> datetime | None:
+    text = tags.get("TIFFTAG_DATETIME")
+    if not text:
+        return None
+    t = datetime.strptime(text.strip(), "%Y:%m:%d %H:%M:%S")
+    return t.replace(tzinfo=timezone.utc)
+
+
+def _acquisition_time(path: Path, tags: dict) -> tuple[datetime | None, str]:
+    sidecar = path.with_suffix(".json")
+    if sidecar.exists():
+        try:
+            meta = json.loads(sidecar.read_text())
+            return parse_iso_time(meta["acquired"]), "sidecar"
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise InputError(sidecar, f"sidecar must hold {{\"acquired\": ISO time}} ({exc})") from None
+    try:
+        t = _tiff_datetime(tags)
+    except ValueError:
+        raise InputError(path, f"TIFFTAG_DATETIME {tags.get('TIFFTAG_DATETIME')!r} is not "
+                               "'YYYY:MM:DD HH:MM:SS'") from None
+    return (t, "TIFFTAG_DATETIME") if t else (None, "none")
+
+
+def open_image(path: Path) -> ImageInfo:
+    """Read an image's header and check that its pixels can be read (catches truncated files)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(path) as ds:
+                if ds.driver != "GTiff":
+                    raise InputError(path, f"not a GeoTIFF (GDAL reads it as {ds.driver})")
+                if ds.count not in (1, 3):
+                    raise InputError(path, f"has {ds.count} bands; expected 1 (panchromatic) or 3 (RGB)")
+                dtype = ds.dtypes[0]
+                if dtype not in ("uint8", "uint16", "float32"):
+                    raise InputError(path, f"pixel type {dtype}; expected uint8, uint16 or float32")
+                # Read the last block row: a truncated file fails here, not deep in a stage.
+                h = min(ds.height, 16)
+                ds.read(1, window=Window(0, ds.height - h, ds.width, h))
+                info = ImageInfo(name=path.name, path=path, width=ds.width, height=ds.height,
+                                 bands=ds.count, dtype=dtype, nodata=ds.nodata, acquired=None,
+                                 time_source="none", has_rpc=bool(ds.rpcs))
+                tags = ds.tags()
+    except InputError:
+        raise
+    except (RasterioIOError, rasterio.errors.RasterioError) as exc:
+        msg = str(exc).split("\n")[0]
+        if "not recognized as" in msg or "not a supported file format" in msg:
+            raise InputError(path, "not a GeoTIFF (GDAL cannot read it)") from None
+        raise InputError(path, f"unreadable or truncated TIFF ({msg})") from None
+    info.acquired, info.time_source = _acquisition_time(path, tags)
+    return info
+
+
+def list_image_files(images_dir: Path) -> list[Path]:
+    if not images_dir.is_dir():
+        raise InputError(images_dir, "no images/ folder (see SITE_FORMAT.md)")
+    files = sorted(p for p in images_dir.iterdir() if p.suffix in IMAGE_SUFFIXES and p.is_file())
+    if not files:
+        raise InputError(images_dir, "no .tif or .tiff image in the folder")
+    return files
+
+
+def load_site(root: str | Path, *, require_times: bool = True, read_gcps: bool = True) -> Site:
+    """Load and validate a site folder. Raises InputError on the first problem found."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(root, "site folder does not exist")
+    images = [open_image(p) for p in list_image_files(root / "images")]
+    names = [im.name for im in images]
+    if len(set(names)) != len(names):
+        raise InputError(root / "images", "two images share a file name")
+    if require_times:
+        for im in images:
+            if im.acquired is None:
+                raise InputError(im.path, "no acquisition time: set TIFFTAG_DATETIME or write a "
+                                          f"sidecar {im.path.with_suffix('.json').name} with "
+                                          "{\"acquired\": \"YYYY-MM-DDTHH:MM:SSZ\"}")
+    hints = read_site_json(root / "site.json")
+    gcps: list[GCP] = []
+    if read_gcps and (root / "gcps.geojson").exists():
+        gcps = read_gcps_geojson(root / "gcps.geojson", {im.name: im for im in images})
+    gt = root / "gt_dsm.tif"
+    return Site(root=root, images=images, gcps=gcps, gt_dsm=gt if gt.exists() else None, hints=hints)
+
+
+def read_site_json(path: Path) -> dict:
+    if not path.exists():
+        return {}
+    try:
+        d = json.loads(path.read_text())
+    except ValueError as exc:
+        raise InputError(path, f"malformed JSON ({exc})") from None
+    if not isinstance(d, dict):
+        raise InputError(path, "must hold a JSON object")
+    if "bounds" in d:
+        b = d["bounds"]
+        if not (isinstance(b, list) and len(b) == 4 and b[0] < b[2] and b[1] < b[3]):
+            raise InputError(path, "bounds must be [xmin, ymin, xmax, ymax] with xmin < xmax, ymin < ymax")
+    if "resolution_m" in d and not (float(d["resolution_m"]) > 0):
+        raise InputError(path, "resolution_m must be positive")
+    return d
+
+
+def to_gray_float(a: np.ndarray) -> np.ndarray:
+    """(bands, h, w) array -> (h, w) float32: RGB is reduced to luminance."""
+    if a.shape[0] == 3:
+        return (0.299 * a[0] + 0.587 * a[1] + 0.114 * a[2]).astype(np.float32)
+    return a[0].astype(np.float32)
+
+
+def read_window(image: ImageInfo, col0: int, row0: int, width: int, height: int, *,
+                out_shape: tuple[int, int] | None = None, mask_nodata: bool = True) -> np.ndarray:
+    """Read a window as float32 (h, w), RGB reduced to luminance; pixels equal to nodata become
+    NaN. With out_shape (h, w) the window is decimated by averaging (GDAL's overview-style read):
+    the one window reader of the project (features, dense matching, the viewer's textures)."""
+    from rasterio.enums import Resampling
+
+    kw = {} if out_shape is None else {"out_shape": None, "resampling": Resampling.average}
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(image.path) as ds:
+                if out_shape is not None:
+                    kw["out_shape"] = (ds.count, int(out_shape[0]), int(out_shape[1]))
+                a = ds.read(window=Window(col0, row0, width, height), boundless=False, **kw)
+    except rasterio.errors.RasterioError as exc:
+        raise InputError(image.path, f"cannot read window ({exc})") from None
+    out = to_gray_float(a)
+    if mask_nodata and image.nodata is not None and not np.isnan(image.nodata):
+        out[np.any(a == image.nodata, axis=0)] = np.nan
+    return out
+
+
+def read_downsampled(image: ImageInfo, factor: int) -> np.ndarray:
+    """Whole image decimated by an integer factor (averaging); nodata is not masked."""
+    w, h = max(1, image.width // factor), max(1, image.height // factor)
+    return read_window(image, 0, 0, image.width, image.height, out_shape=(h, w), mask_nodata=False)

@@ -1,0 +1,1 @@
+"""What the stages share: tiles, date groups and the sparse affine model of a group."""

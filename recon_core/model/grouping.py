@@ -1,0 +1,50 @@
+"""Date groups: images taken less than `max_gap_days` apart are processed together."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from recon_core.errors import InputError
+from recon_core.io.site import ImageInfo, iso_utc
+
+
+@dataclass
+class Group:
+    """One date group: its index and images in time order."""
+
+    index: int
+    images: list[ImageInfo]
+
+    @property
+    def span_days(self) -> float:
+        return (self.images[-1].acquired - self.images[0].acquired).total_seconds() / 86400.0
+
+    def describe(self) -> str:
+        a, b = self.images[0].acquired, self.images[-1].acquired
+        return (f"group {self.index}: {len(self.images)} image(s), {iso_utc(a)[:10]} .. "
+                f"{iso_utc(b)[:10]} (span {self.span_days:.1f} d)")
+
+
+def group_by_date(images: list[ImageInfo], max_gap_days: float = 15.0,
+                  max_span_days: float | None = 30.0) -> list[Group]:
+    """Chain images sorted by time; split where the gap is >= max_gap_days.
+
+    Chaining alone can make one group span months when acquisitions are regular, so a group is
+    also closed once adding the next image would make it span more than `max_span_days`
+    (None disables the cap).
+    """
+    for im in images:
+        if im.acquired is None:
+            raise InputError(im.path, "no acquisition time: cannot group by date")
+    ordered = sorted(images, key=lambda im: (im.acquired, im.name))
+    groups: list[list[ImageInfo]] = []
+    for im in ordered:
+        if groups:
+            cur = groups[-1]
+            gap = (im.acquired - cur[-1].acquired).total_seconds() / 86400.0
+            span = (im.acquired - cur[0].acquired).total_seconds() / 86400.0
+            if gap < max_gap_days and (max_span_days is None or span <= max_span_days):
+                cur.append(im)
+                continue
+        groups.append([im])
+    return [Group(index=k, images=g) for k, g in enumerate(groups)]

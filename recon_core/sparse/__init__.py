@@ -1,0 +1,1 @@
+"""Step 2 of the method: features, matching, tracks, incremental affine SfM, bundle adjustment."""

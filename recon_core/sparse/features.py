@@ -1,0 +1,132 @@
+"""SIFT features detected once per image, by window, for the whole image.
+
+Tiles of one image overlap by d/3; detecting per image (not per tile) means a keypoint in an
+overlap is one feature observed by several tile cameras, which is what stitches the tiles of an
+image into one affine frame (GEOMETRY_NOTES, "Keypoints in overlaps").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from recon_core.config import FeatureConfig
+from recon_core.io.site import ImageInfo, read_downsampled, read_window
+
+
+@dataclass
+class ImageFeatures:
+    """Keypoints of one image in full-image pixels (col, row), with uint8 SIFT descriptors."""
+
+    image: str
+    xy: np.ndarray           # (n, 2) float64
+    desc: np.ndarray         # (n, 128) uint8
+    scale: np.ndarray        # (n,) float32 keypoint size
+    response: np.ndarray     # (n,) float32
+    gray: np.ndarray         # (n,) uint8 intensity at the keypoint (for point colours)
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+    def subset(self, idx: np.ndarray) -> "ImageFeatures":
+        return ImageFeatures(self.image, self.xy[idx], self.desc[idx], self.scale[idx],
+                             self.response[idx], self.gray[idx])
+
+
+@dataclass
+class ToneCurve:
+    """Maps raw radiometry to 8 bit: percentile stretch then a square root (keeps shadows)."""
+
+    lo: float
+    hi: float
+
+    def apply(self, a: np.ndarray) -> np.ndarray:
+        t = np.clip((a - self.lo) / max(self.hi - self.lo, 1e-6), 0.0, 1.0)
+        out = np.sqrt(t) * 255.0
+        out = np.nan_to_num(out, nan=0.0)
+        return (out + 0.5).astype(np.uint8)
+
+
+def tone_curve_for(images: list[ImageInfo], percentiles=(0.5, 99.5), factor: int = 8) -> ToneCurve:
+    """One tone curve shared by several images, from joint percentiles of their overviews."""
+    vals = []
+    for im in images:
+        f = max(1, min(factor, min(im.width, im.height) // 64))
+        ov = read_downsampled(im, f)
+        vals.append(ov[np.isfinite(ov)].ravel())
+    v = np.concatenate(vals) if vals else np.zeros(1)
+    lo, hi = np.percentile(v, percentiles)
+    return ToneCurve(float(lo), float(hi))
+
+
+def _blocks(length: int, block: int, margin: int):
+    """(read_start, read_end, core_start, core_end) along one axis."""
+    for c0 in range(0, length, block):
+        c1 = min(c0 + block, length)
+        yield max(0, c0 - margin), min(length, c1 + margin), c0, c1
+
+
+def detect_image(image: ImageInfo, cfg: FeatureConfig, tone: ToneCurve | None = None) -> ImageFeatures:
+    """Detect SIFT on the whole image, read by blocks with a margin, deduplicated by block cores."""
+    tone = tone or tone_curve_for([image], cfg.stretch_percentiles)
+    budget = max(500, int(cfg.max_features_per_mpx * image.width * image.height / 1e6))
+    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=cfg.contrast_threshold)
+    margin = 48
+    parts = []
+    for r0, r1, rc0, rc1 in _blocks(image.height, cfg.detect_block, margin):
+        for c0, c1, cc0, cc1 in _blocks(image.width, cfg.detect_block, margin):
+            raw = read_window(image, c0, r0, c1 - c0, r1 - r0)
+            img8 = tone.apply(raw)
+            mask = np.isfinite(raw).astype(np.uint8) * 255
+            kps, desc = sift.detectAndCompute(img8, mask)
+            if desc is None or not kps:
+                continue
+            pts = np.array([k.pt for k in kps], dtype=np.float64) + (c0, r0)
+            core = ((pts[:, 0] >= cc0) & (pts[:, 0] < cc1) & (pts[:, 1] >= rc0) & (pts[:, 1] < rc1))
+            if not core.any():
+                continue
+            idx = np.flatnonzero(core)
+            ij = np.clip(np.round(pts[idx] - (c0, r0)).astype(int), 0, [img8.shape[1] - 1, img8.shape[0] - 1])
+            parts.append((pts[idx], _to_uint8_desc(desc[idx]),
+                          np.array([kps[i].size for i in idx], np.float32),
+                          np.array([kps[i].response for i in idx], np.float32),
+                          img8[ij[:, 1], ij[:, 0]]))
+    if not parts:
+        return ImageFeatures(image.name, np.zeros((0, 2)), np.zeros((0, 128), np.uint8),
+                             np.zeros(0, np.float32), np.zeros(0, np.float32), np.zeros(0, np.uint8))
+    xy, desc, size, resp, gray = (np.concatenate(p) for p in zip(*parts))
+    feats = ImageFeatures(image.name, xy, desc, size, resp, gray)
+    feats = _dedupe(feats)
+    if len(feats) > budget:
+        feats = feats.subset(np.sort(np.argsort(-feats.response, kind="stable")[:budget]))
+    return feats
+
+
+def _to_uint8_desc(desc: np.ndarray) -> np.ndarray:
+    """OpenCV's float SIFT descriptors hold integers 0..255: store them as uint8."""
+    return np.clip(np.round(desc), 0, 255).astype(np.uint8)
+
+
+def _dedupe(f: ImageFeatures) -> ImageFeatures:
+    """Drop exact duplicates (same position and descriptor) that block borders may create."""
+    key = np.round(f.xy * 100).astype(np.int64)
+    _, first = np.unique(np.concatenate([key, f.desc[:, :4].astype(np.int64)], axis=1), axis=0,
+                         return_index=True)
+    return f.subset(np.sort(first))
+
+
+def detect_overview(image: ImageInfo, factor: int, tone: ToneCurve, max_features: int = 4000):
+    """SIFT on a downsampled copy of the whole image: (xy in full-image pixels, descriptors)."""
+    ov = read_downsampled(image, factor)
+    img8 = tone.apply(ov)
+    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.01)
+    kps, desc = sift.detectAndCompute(img8, None)
+    if desc is None:
+        return np.zeros((0, 2)), np.zeros((0, 128), np.uint8)
+    sx = image.width / ov.shape[1]
+    sy = image.height / ov.shape[0]
+    xy = np.array([k.pt for k in kps], dtype=np.float64)
+    xy = np.stack([(xy[:, 0] + 0.5) * sx - 0.5, (xy[:, 1] + 0.5) * sy - 0.5], axis=1)
+    return xy, _to_uint8_desc(desc)

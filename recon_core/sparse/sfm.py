@@ -1,0 +1,363 @@
+"""Incremental affine structure from motion over the tiles of one date group.
+
+One affine camera (2 x 4) per tile, one global affine structure per group, no RPC, no GCP.
+
+Order of work (the paper's, with the guards of GEOMETRY_NOTES):
+1. initial image pair = the pair with the sparsest verified matching among pairs that show
+   parallax (sigma3/sigma4 of the centred measurement matrix); initial tile pair inside it =
+   the tile pair with the most matches that itself shows parallax;
+2. Tomasi-Kanade factorisation initialises the two tile cameras and the points; the canonical
+   affine frame fixes exactly the 12 gauge dof;
+3. tiles of the initial images are registered nearest first, then the others by their number
+   of 2D-3D correspondences; each tile camera by RANSAC resection; new tracks triangulated;
+4. local bundle adjustment after each registration, global whenever the model grew by a set
+   fraction, and at the end.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from recon_core.config import BundleConfig, SfmConfig
+from recon_core.errors import ReconstructionError
+from recon_core.events import BundleAdjusted, EventBus, ModelUpdated, PointsAdded, TileRegistered
+from recon_core.geometry import affine
+from recon_core.model.sparse_model import Observations, SparseModel, images_per_track
+from recon_core.model.tiling import Tile
+from recon_core.sparse.bundle import bundle_adjust
+from recon_core.sparse.features import ImageFeatures
+from recon_core.sparse.matching import PairMatches
+from recon_core.sparse.tracks import Tracks
+
+
+def point_conditioning(cams: np.ndarray, obs_cam: np.ndarray, obs_pt: np.ndarray, n: int) -> np.ndarray:
+    """(n,) sqrt(lambda_min / lambda_max) of sum M^T M over each point's observations.
+
+    The affine counterpart of a triangulation angle: for two orthographic views it is
+    sin(angle / 2), about B/H / 2 (0 for identical views); repeated views do not change it. The affine frame distorts it by one global
+    factor, so it is compared with the model's own best points (90th percentile), never with an
+    absolute threshold; not with the median either, which a weak pair's many matches can own.
+    """
+    M = cams[obs_cam, :, :3]
+    MtM = np.einsum("kri,krj->kij", M, M)
+    A = np.zeros((n, 9))
+    for c in range(9):
+        A[:, c] = np.bincount(obs_pt, MtM.reshape(-1, 9)[:, c], minlength=n)
+    ev = np.linalg.eigvalsh(A.reshape(n, 3, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.sqrt(np.clip(ev[:, 0], 0, None) / ev[:, 2])
+    return np.nan_to_num(out, nan=0.0)
+
+
+def build_observations(tiles: list[Tile], image_names: list[str], feats: list[ImageFeatures],
+                       tracks: Tracks) -> Observations:
+    """Expand track nodes to one observation per tile containing the feature."""
+    tiles_of = {k: [t for t, tl in enumerate(tiles) if tl.image == name] for k, name in enumerate(image_names)}
+    parts = []
+    for k in range(len(image_names)):
+        nodes = np.flatnonzero(tracks.img == k)
+        xy = feats[k].xy[tracks.feat[nodes]]
+        for t in tiles_of[k]:
+            inside = tiles[t].contains(xy)
+            sel = nodes[inside]
+            parts.append((np.full(len(sel), t), tracks.track[sel], xy[inside], np.full(len(sel), k)))
+    tile, track, xy, img = (np.concatenate(p) for p in zip(*parts))
+    return Observations(tile.astype(np.int64), track.astype(np.int64), xy.reshape(-1, 2),
+                        img.astype(np.int64), np.ones(len(tile), bool))
+
+
+class IncrementalSfM:
+    """Runs the incremental reconstruction of one group and emits events as it grows."""
+
+    def __init__(self, group: int, image_names: list[str], tiles: list[Tile], feats: list[ImageFeatures],
+                 pairs: dict[tuple[int, int], PairMatches], tracks: Tracks, cfg: SfmConfig,
+                 ba_cfg: BundleConfig, bus: EventBus | None = None, seed: int = 0):
+        self.cfg, self.ba_cfg = cfg, ba_cfg
+        self.bus = bus or EventBus()
+        self.rng = np.random.default_rng(seed)
+        self.pairs = pairs
+        self.tile_index = {t.id: k for k, t in enumerate(tiles)}
+        obs = build_observations(tiles, image_names, feats, tracks)
+        gray = np.zeros(tracks.n_tracks)
+        cnt = np.zeros(tracks.n_tracks)
+        for k, f in enumerate(feats):
+            nodes = np.flatnonzero(tracks.img == k)
+            np.add.at(gray, tracks.track[nodes], f.gray[tracks.feat[nodes]])
+            np.add.at(cnt, tracks.track[nodes], 1)
+        T = len(tiles)
+        self.m = SparseModel(group, image_names, tiles, np.zeros((T, 2, 4)), np.zeros(T, bool),
+                             np.zeros((T, 2, 4), bool), obs, np.zeros((tracks.n_tracks, 3)),
+                             np.zeros(tracks.n_tracks, bool),
+                             (gray / np.maximum(cnt, 1)).astype(np.uint8))
+        self._ba_at = 0
+        self._sent_points = np.zeros(tracks.n_tracks, bool)
+
+    # -- initial pair -------------------------------------------------------------------------
+    def choose_initial_pair(self) -> tuple[int, int, dict]:
+        """Initial tile pair (tile indices) by the paper's rule guarded by a parallax test."""
+        by_pair = []
+        for (a, b), pm in self.pairs.items():
+            good = [s for s in pm.tile_pairs if s.n_inliers >= self.cfg.init_min_inliers and s.parallax >= self.cfg.init_min_parallax]
+            if good:
+                by_pair.append((pm.n, (a, b), good))
+        if not by_pair:
+            best = max((s.parallax for pm in self.pairs.values() for s in pm.tile_pairs), default=0.0)
+            raise ReconstructionError(
+                f"group {self.m.group}: no image pair has a tile pair with >= {self.cfg.init_min_inliers} verified "
+                f"matches and parallax (sigma3/sigma4 >= {self.cfg.init_min_parallax}; best seen {best:.2f}): the views "
+                "may not overlap, or the baseline is too small to reconstruct 3D")
+        by_pair.sort(key=lambda e: e[0])          # sparsest matching first = widest angle
+        n, (a, b), good = by_pair[0]
+        tp = max(good, key=lambda s: s.n_inliers)
+        info = {"image_pair": [self.m.images[a], self.m.images[b]], "pair_matches": n,
+                "tile_pair": [tp.tile_i, tp.tile_j], "tile_pair_inliers": tp.n_inliers,
+                "parallax_ratio": tp.parallax,
+                "candidates": [{"pair": [self.m.images[p[0]], self.m.images[p[1]]], "matches": c}
+                               for c, p, _ in by_pair]}
+        return self.tile_index[tp.tile_i], self.tile_index[tp.tile_j], info
+
+    def initialise(self) -> dict:
+        ta, tb, info = self.choose_initial_pair()
+        m, o = self.m, self.m.obs
+        in_a = o.valid & (o.tile == ta)
+        in_b = o.valid & (o.tile == tb)
+        common = np.intersect1d(o.track[in_a], o.track[in_b])
+        xa = _obs_xy(o, in_a, common)
+        xb = _obs_xy(o, in_b, common)
+        W = np.stack([xa, xb])
+        cams, X, _ = affine.tomasi_kanade(W)
+        cams, X, _ = affine.canonical_gauge(cams, X)
+        m.cams[ta], m.cams[tb] = cams[0], cams[1]
+        m.registered[[ta, tb]] = True
+        m.fixed[ta] = True
+        row = int(np.argmax(np.abs(cams[1][:, 2])))
+        m.fixed[tb, row] = True
+        m.init_tiles = (ta, tb)
+        m.register_order += [ta, tb]
+        m.X[common] = X
+        m.has_point[common] = True
+        self._triangulate_new()
+        self._filter_outliers()
+        self._bundle("global")
+        for k, t in enumerate((ta, tb)):
+            self._emit_tile(t, int(np.sum(o.tile[m.active_obs()] == t)), order=k)
+        self._emit_points()
+        info["init_points"] = int(m.has_point.sum())
+        return info
+
+    # -- registration ---------------------------------------------------------------------------
+    def run(self) -> SparseModel:
+        t0 = time.time()
+        m = self.m
+        init = self.initialise()
+        ta, tb = m.init_tiles
+        init_imgs = {m.tiles[ta].image, m.tiles[tb].image}
+        phase1 = [t for t in range(len(m.tiles)) if m.tiles[t].image in init_imgs and not m.registered[t]]
+        ref = {m.tiles[ta].image: m.tiles[ta].centre, m.tiles[tb].image: m.tiles[tb].centre}
+        phase1.sort(key=lambda t: np.linalg.norm(m.tiles[t].centre - ref[m.tiles[t].image]))
+        deferred = []
+        for t in phase1:
+            if not self._register(t):
+                deferred.append(t)
+        failed: set[int] = set()
+        while True:
+            cand = [t for t in range(len(m.tiles)) if not m.registered[t] and t not in failed]
+            if not cand:
+                break
+            counts = self._correspondence_counts()[cand]
+            best = int(np.argmax(counts))
+            if counts[best] < self.cfg.resect_min_inliers:
+                break
+            if not self._register(cand[best]):
+                failed.add(cand[best])
+        self._filter_outliers()
+        self._bundle("global")
+        self._filter_outliers()
+        self._bundle("global")
+        self._emit_model()
+        idx, err = m.reprojection()
+        m.stats = {"init": init, "tiles_registered": int(m.registered.sum()), "tiles_total": len(m.tiles),
+                   "points": int(m.has_point.sum()), "observations": int(len(idx)),
+                   "mean_reproj_px": float(err.mean()) if len(err) else float("nan"),
+                   "rms_reproj_px": float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan"),
+                   "unregistered": [m.tiles[t].id for t in np.flatnonzero(~m.registered)],
+                   "seconds": time.time() - t0}
+        return m
+
+    def _correspondence_counts(self) -> np.ndarray:
+        """(T,) number of 2D-3D correspondences of every tile (one pass over the observations)."""
+        o = self.m.obs
+        return np.bincount(o.tile[o.valid & self.m.has_point[o.track]], minlength=len(self.m.tiles))
+
+    def _register(self, t: int) -> bool:
+        m, o = self.m, self.m.obs
+        sel = np.flatnonzero((o.tile == t) & o.valid & m.has_point[o.track])
+        if len(sel) < self.cfg.resect_min_inliers:
+            return False
+        X, x = m.X[o.track[sel]], o.xy[sel]
+        P, inl = affine.resect_ransac(X, x, thresh_px=self.cfg.resect_thresh_px, iters=500, rng=self.rng,
+                                      min_inliers=self.cfg.resect_min_inliers)
+        if P is None or inl.sum() < self.cfg.resect_min_inliers:
+            return False
+        cond = affine.points_conditioning(X[inl])
+        if cond < self.cfg.min_points_conditioning:
+            prior = self._neighbour_camera(t)
+            if prior is None:
+                return False
+            P = _resect_regularised(X[inl], x[inl], prior, weight=1.0)
+        m.cams[t] = P
+        m.registered[t] = True
+        m.register_order.append(t)
+        o.valid[sel[~inl]] = False
+        self._triangulate_new()
+        self._bundle("local", around=t)
+        n_reg = int(m.registered.sum())
+        if n_reg >= max((1.0 + self.cfg.global_ba_growth) * self._ba_at, self._ba_at + 4):
+            self._filter_outliers()
+            self._bundle("global")
+        self._emit_tile(t, int(inl.sum()))
+        self._emit_points()
+        return True
+
+    def _neighbour_camera(self, t: int) -> np.ndarray | None:
+        m = self.m
+        same = [k for k in range(len(m.tiles)) if m.registered[k] and m.tiles[k].image == m.tiles[t].image]
+        if not same:
+            return None
+        k = min(same, key=lambda k: np.linalg.norm(m.tiles[k].centre - m.tiles[t].centre))
+        return m.cams[k]
+
+    # -- points ------------------------------------------------------------------------------
+    def _triangulate_new(self) -> None:
+        """Triangulate tracks seen in >= 2 distinct images among registered tiles."""
+        m, o = self.m, self.m.obs
+        use = np.flatnonzero(o.valid & m.registered[o.tile] & ~m.has_point[o.track])
+        if len(use) == 0:
+            return
+        nimg = images_per_track(o.track[use], o.img[use], len(m.X))
+        use = use[nimg[o.track[use]] >= 2]
+        if len(use) == 0:
+            return
+        X, ok = affine.triangulate_tracks(m.cams, o.tile[use], o.track[use], o.xy[use], len(m.X))
+        new = np.unique(o.track[use])
+        new = new[ok[new]]
+        m.X[new] = X[new]
+        m.has_point[new] = True
+        # reject new points whose reprojection is poor
+        sel = use[np.isin(o.track[use], new)]
+        err = affine.reprojection_errors(m.cams, o.tile[sel], o.track[sel], o.xy[sel], m.X)
+        bad = np.unique(o.track[sel][err > self.cfg.max_reproj_px])
+        m.has_point[bad] = False
+        # new points from views too close in angle never enter (rather than appearing and
+        # being dropped at the next global adjustment)
+        if self.cfg.min_triangulation_ratio > 0:
+            cond = self._conditioning()
+            old = m.has_point.copy()
+            old[new] = False
+            ref = cond[old] if old.sum() >= 50 else cond[m.has_point]   # the model's points so far
+            if len(ref):
+                thresh = self.cfg.min_triangulation_ratio * np.percentile(ref, 90)
+                m.has_point[new[cond[new] < thresh]] = False
+
+    def _conditioning(self) -> np.ndarray:
+        """(N,) point_conditioning of every track over the active observations."""
+        m, o = self.m, self.m.obs
+        idx = m.active_obs()
+        return point_conditioning(m.cams, o.tile[idx], o.track[idx], len(m.X))
+
+    def _filter_outliers(self) -> None:
+        """Invalidate observations with large error; drop points left with < 2 images, and
+        points triangulated from views too close in angle (`SfmConfig.min_triangulation_ratio`)."""
+        m, o = self.m, self.m.obs
+        idx, err = m.reprojection()
+        o.valid[idx[err > self.cfg.max_reproj_px]] = False
+        idx = m.active_obs()
+        nimg = images_per_track(o.track[idx], o.img[idx], len(m.X))
+        m.has_point &= nimg >= 2
+        if self.cfg.min_triangulation_ratio > 0:
+            cond = self._conditioning()
+            ids = m.point_ids()
+            if len(ids):
+                ref = np.percentile(cond[ids], 90)
+                m.has_point[ids] &= cond[ids] >= self.cfg.min_triangulation_ratio * ref
+
+    # -- bundle adjustment --------------------------------------------------------------------
+    def _bundle(self, scope: str, around: int | None = None) -> None:
+        m, o = self.m, self.m.obs
+        idx = m.active_obs()
+        if len(idx) == 0:
+            return
+        reg = np.flatnonzero(m.registered)
+        if scope == "global":
+            free_cams, free_pts = reg, m.point_ids()
+            self._ba_at = int(m.registered.sum())
+        else:
+            pts_t = np.unique(o.track[idx][o.tile[idx] == around])
+            shared = np.bincount(o.tile[idx][np.isin(o.track[idx], pts_t)], minlength=len(m.tiles))
+            shared[around] = 0
+            nb = np.argsort(-shared)[: self.cfg.local_ba_window]
+            free_cams = np.unique(np.concatenate([[around], nb[shared[nb] > 0]]))
+            free_pts = np.unique(o.track[idx][np.isin(o.tile[idx], free_cams)])
+        res = bundle_adjust(m.cams, m.X, o.tile[idx], o.track[idx], o.xy[idx], free_cams, free_pts,
+                            m.fixed, loss=self.ba_cfg.loss, f_scale=self.ba_cfg.loss_scale_px,
+                            max_nfev=self.ba_cfg.max_nfev if scope == "global" else self.ba_cfg.local_max_nfev)
+        m.cams, m.X = res.cams, res.X
+        self.bus.emit(BundleAdjusted(m.group, scope, res.cost_before, res.cost_after, res.rms_px,
+                                     len(free_cams), len(free_pts), res.seconds))
+        if scope == "global":
+            self._emit_model()
+
+    # -- events ------------------------------------------------------------------------------
+    def _emit_tile(self, t: int, n_inliers: int, order: int | None = None) -> None:
+        m = self.m
+        order = m.register_order.index(t) if order is None else order
+        self.bus.emit(TileRegistered(m.group, m.tiles[t].id, m.tiles[t].image, m.cams[t].copy(),
+                                     m.footprint(t), n_inliers, order, len(m.tiles)))
+
+    def _emit_points(self) -> None:
+        m = self.m
+        new = m.has_point & ~self._sent_points
+        if not new.any():
+            return
+        ids_all, nimg, rms = m.point_stats()
+        pos = np.searchsorted(ids_all, np.flatnonzero(new))
+        ids = ids_all[pos]
+        g = m.gray[ids]
+        self.bus.emit(PointsAdded(m.group, ids.copy(), m.X[ids].copy(), np.stack([g, g, g], 1),
+                                  nimg[pos].copy(), rms[pos].copy()))
+        self._sent_points |= new
+
+    def _emit_model(self) -> None:
+        m = self.m
+        ids, nimg, rms = m.point_stats()
+        g = m.gray[ids]
+        reg = np.flatnonzero(m.registered)
+        self.bus.emit(ModelUpdated(m.group, {m.tiles[t].id: m.cams[t].copy() for t in reg},
+                                   {m.tiles[t].id: m.footprint(t) for t in reg}, ids.copy(),
+                                   m.X[ids].copy(), np.stack([g, g, g], 1), nimg, rms))
+        self._sent_points = m.has_point.copy()
+
+
+def _obs_xy(o: Observations, mask: np.ndarray, tracks: np.ndarray) -> np.ndarray:
+    """Pixel of each track in `tracks` among the observations selected by mask (first one)."""
+    idx = np.flatnonzero(mask)
+    order = np.argsort(o.track[idx], kind="stable")
+    tr_sorted = o.track[idx][order]
+    pos = np.searchsorted(tr_sorted, tracks)
+    return o.xy[idx][order][pos]
+
+
+def _resect_regularised(X: np.ndarray, x: np.ndarray, prior: np.ndarray, weight: float) -> np.ndarray:
+    """Resection pulled toward a prior camera (for nearly planar point sets)."""
+    n = len(X)
+    Xh = np.hstack([X, np.ones((n, 1))])
+    scale = np.sqrt(np.mean(np.sum((X - X.mean(0)) ** 2, axis=1)))
+    reg = weight * np.sqrt(n) * np.diag([scale, scale, scale, 1.0])
+    P = np.zeros((2, 4))
+    for r in range(2):
+        A = np.vstack([Xh, reg])
+        b = np.concatenate([x[:, r], reg @ prior[r]])
+        P[r] = np.linalg.lstsq(A, b, rcond=None)[0]
+    return P
