@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon_core.evaluation.colormap import sequential
+from recon_core.geometry.camera import AffineCamera
 
 COLOR_MODES = ("image colour", "height", "number of views", "reprojection error")
 
@@ -77,7 +78,7 @@ def affine_display_transform(X: np.ndarray, camera: np.ndarray, *,
         points' best-fit plane.
     """
     X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
-    M = np.asarray(camera, dtype=np.float64)[:, :3]
+    M = AffineCamera.from_array(camera).linear
     c = np.median(X, axis=0) if centre is None else np.asarray(centre, dtype=np.float64)
     _, _, vt = np.linalg.svd(X - X.mean(axis=0), full_matrices=False)
     normal = vt[-1]
@@ -134,13 +135,13 @@ def image_footprint(T: DisplayTransform, camera: np.ndarray, width: int, height:
                     z: float = 0.0) -> np.ndarray:
     """(4, 3) display points on the plane z_display = z that `camera` sees at the corners of
     its width x height image (what the whole image covers, before the cloud is complete)."""
-    P = np.asarray(camera, dtype=np.float64)
+    cam = AffineCamera.from_array(camera)
     Ainv = np.linalg.inv(T.A)
-    # pixel = P[:, :3] @ Ainv @ (Y - b) + P[:, 3], Y = (x, y, z): linear in (x, y)
-    M = P[:, :3] @ Ainv
+    # pixel = linear @ Ainv @ (Y - b) + offset, Y = (x, y, z): linear in (x, y)
+    M = cam.linear @ Ainv
     corners = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5],
                         [-0.5, height - 0.5]])
-    rhs = corners - (P[:, 3] + M @ (np.array([0.0, 0.0, z]) - T.b))
+    rhs = corners - (cam.offset + M @ (np.array([0.0, 0.0, z]) - T.b))
     xy = np.linalg.solve(M[:, :2], rhs.T).T
     return np.column_stack([xy, np.full(4, z)])
 

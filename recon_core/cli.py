@@ -62,17 +62,6 @@ class ProgressPrinter:
         self._bars.clear()
 
 
-def cmd_synth(args) -> int:
-    from recon_core.synthetic.generator import generate_site
-
-    t0 = time.time()
-    prog = ProgressPrinter(not args.quiet)
-    generate_site(args.out, preset=args.preset, seed=args.seed, progress=prog)
-    prog.close()
-    print(f"wrote {args.preset} site (seed {args.seed}) to {args.out} in {time.time() - t0:.1f} s")
-    return 0
-
-
 def cmd_info(args) -> int:
     from recon_core.io.site import load_site
     from recon_core.model.grouping import group_by_date
@@ -154,13 +143,6 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="aerec", description="AE-Rec: affine-to-Euclidean 3D "
                                 "reconstruction from optical satellite images with 4 GCPs.")
     sub = p.add_subparsers(dest="command", required=True)
-
-    s = sub.add_parser("synth", help="write a synthetic pushbroom site with known truth")
-    s.add_argument("out", type=Path, help="site folder to write")
-    s.add_argument("--preset", default="demo", choices=["tiny", "tiny2", "demo", "large"])
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
-    s.set_defaults(func=cmd_synth)
 
     s = sub.add_parser("info", help="describe a site: images, dates, groups, GCPs, RPC/GT presence")
     s.add_argument("site", type=Path)

@@ -66,13 +66,8 @@ class BundleConfig:
 @dataclass
 class DenseConfig:
     step: int = 1                     # stride of the reference-pixel grid (1 = every pixel)
-    block_size: int = 5               # SGBM matching block (odd)
-    p1: int = 8                       # SGBM smoothness penalty P1, times block_size^2
-    p2: int = 32                      # SGBM smoothness penalty P2, times block_size^2
-    uniqueness: int = 10              # SGBM uniqueness ratio (%)
-    speckle_window: int = 100         # SGBM speckle filter: max region size (px) to remove
-    speckle_range: int = 2            # SGBM speckle filter: max disparity variation (px)
-    lr_max_diff_px: float = 1.0       # left-right consistency tolerance (px)
+    matcher: str = "sgbm"             # stereo matcher (recon_core.dense.matchers.MATCHERS); its
+                                      # parameters are the config section of the same name
     disp_margin_px: float = 8.0       # margin added around the sparse disparity percentiles
     disp_margin_frac: float = 0.25    # ... plus this fraction of the percentile range
     min_pair_matches: int = 20        # a tile pair needs this many sparse matches to be matched
@@ -84,6 +79,19 @@ class DenseConfig:
     view_drop_rounds: int = 3         # rounds of dropping a track's worst view and re-triangulating
     workers: int | None = None        # local worker processes (None = all cores, 1 = serial)
     scheduler: str | None = None      # dask.distributed scheduler address (None = local pool)
+
+
+@dataclass
+class SgbmConfig:
+    """OpenCV StereoSGBM (3-way) with a true left-right check (a second run on the mirrored pair)."""
+
+    block_size: int = 5               # matching block (odd)
+    p1: int = 8                       # smoothness penalty P1, times block_size^2
+    p2: int = 32                      # smoothness penalty P2, times block_size^2
+    uniqueness: int = 10              # uniqueness ratio (%)
+    speckle_window: int = 100         # speckle filter: max region size (px) to remove
+    speckle_range: int = 2            # speckle filter: max disparity variation (px)
+    lr_max_diff_px: float = 1.0       # left-right consistency tolerance (px)
 
 
 @dataclass
@@ -118,6 +126,7 @@ class Config:
     sfm: SfmConfig = field(default_factory=SfmConfig)
     bundle: BundleConfig = field(default_factory=BundleConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
+    sgbm: SgbmConfig = field(default_factory=SgbmConfig)
     upgrade: UpgradeConfig = field(default_factory=UpgradeConfig)
     dsm: DsmConfig = field(default_factory=DsmConfig)
     seed: int = 0                     # seeds every random choice (RANSAC, sampling)

@@ -35,7 +35,7 @@ STAGES = tuple(STAGE_MODULES)
 # only when one of these changed (or, for "upgrade" and later, the GCP file).
 STAGE_SECTIONS = {
     "sparse": ("grouping", "tiling", "features", "matching", "sfm", "bundle", "seed"),
-    "dense": ("dense",),
+    "dense": ("dense", "sgbm"),
     "upgrade": ("upgrade",),
     "dsm": ("dsm",),
     "eval": (),

@@ -27,8 +27,10 @@ import cv2
 import numpy as np
 
 from recon_core.config import DenseConfig
+from recon_core.dense.matchers import SgbmMatcher, StereoMatcher
 from recon_core.errors import ReconstructionError
 from recon_core.geometry import affine
+from recon_core.geometry.camera import AffineCamera
 from recon_core.io.models import dense_writer
 from recon_core.io.site import ImageInfo, read_window
 from recon_core.model.dense_cloud import DenseCloud
@@ -57,6 +59,7 @@ class DenseJob:
     core: tuple[int, int, int, int]    # (c0, r0, c1, r1) full-image window whose pixels this job owns
     partners: list[PartnerSpec]
     cfg: DenseConfig
+    matcher: StereoMatcher = field(default_factory=SgbmMatcher)
 
 
 @dataclass
@@ -91,10 +94,8 @@ class DenseResult:
 # -- pair geometry ----------------------------------------------------------------------------
 
 def local_camera(P: np.ndarray, tile: Tile) -> np.ndarray:
-    """Camera in tile-local pixels (tile pixel (0, 0) = full pixel (col0, row0))."""
-    Q = P.copy()
-    Q[:, 3] -= (tile.col0, tile.row0)
-    return Q
+    """Camera (2, 4) in tile-local pixels (tile pixel (0, 0) = full pixel (col0, row0))."""
+    return AffineCamera.from_array(P).in_window(tile.col0, tile.row0).to_array()
 
 
 def disparity_range(d: np.ndarray, margin_px: float, margin_frac: float) -> tuple[float, float]:
@@ -102,16 +103,6 @@ def disparity_range(d: np.ndarray, margin_px: float, margin_frac: float) -> tupl
     lo, hi = np.percentile(d, [2.0, 98.0])
     m = margin_px + margin_frac * (hi - lo)
     return float(lo - m), float(hi + m)
-
-
-def sgbm_params(d_lo: float, d_hi: float, cfg: DenseConfig) -> tuple[int, int]:
-    """OpenCV (minDisparity, numDisparities) for d = x2' - x1' in [d_lo, d_hi].
-
-    OpenCV matches left(x) with right(x - D), so D = -d; numDisparities is a multiple of 16.
-    """
-    min_d = int(np.floor(-d_hi))
-    num = int(np.ceil((d_hi - d_lo + 1) / 16.0)) * 16
-    return min_d, max(16, num)
 
 
 def to_8bit_pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -126,35 +117,15 @@ def to_8bit_pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return conv(a), conv(b)
 
 
-def run_sgbm(left: np.ndarray, right: np.ndarray, min_d: int, num_d: int, cfg: DenseConfig) -> np.ndarray:
-    """StereoSGBM disparity D (float32, px; NaN invalid) with left(x) ~ right(x - D)."""
-    bs = cfg.block_size
-    sgbm = cv2.StereoSGBM_create(minDisparity=min_d, numDisparities=num_d, blockSize=bs,
-                                 P1=cfg.p1 * bs * bs, P2=cfg.p2 * bs * bs, disp12MaxDiff=-1,
-                                 uniquenessRatio=cfg.uniqueness, speckleWindowSize=cfg.speckle_window,
-                                 speckleRange=cfg.speckle_range, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
-    raw = sgbm.compute(left, right)
-    D = raw.astype(np.float32) / 16.0
-    D[raw <= (min_d - 1) * 16] = np.nan
-    return D
-
-
-def lr_consistent(D_left: np.ndarray, D_right: np.ndarray, tol: float) -> np.ndarray:
-    """Left-right check: D_right is the right image's disparity (right(x) ~ left(x + D_right))."""
-    h, w = D_left.shape
-    xs = np.arange(w)[None, :] - np.nan_to_num(D_left)
-    xr = np.clip(np.round(xs).astype(np.int64), 0, w - 1)
-    back = np.take_along_axis(D_right, xr, axis=1)
-    ok = np.isfinite(D_left) & np.isfinite(back) & (np.abs(back - D_left) <= tol) & (xs >= 0) & (xs <= w - 1)
-    return ok
-
-
 def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: PartnerSpec,
-               cfg: DenseConfig, ref_core: tuple[int, int, int, int] | None = None) -> tuple[dict | None, PairInfo]:
+               cfg: DenseConfig, ref_core: tuple[int, int, int, int] | None = None,
+               matcher: StereoMatcher | None = None) -> tuple[dict | None, PairInfo]:
     """Rectify and match one tile pair; returns the rectified disparity field and its maps.
 
     ref_core / p.core: the full-image boxes each tile owns (None = the whole tile).
+    matcher: the stereo matcher (default: SGBM with its default parameters).
     """
+    matcher = matcher or SgbmMatcher()
     rt, pt = ref.tile, p.spec.tile
     P1, P2 = local_camera(ref.camera, rt), local_camera(p.spec.camera, pt)
     x1 = p.x_ref - (rt.col0, rt.row0)
@@ -190,7 +161,7 @@ def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: Part
     if v1 - v0 < 16:
         info.skipped = NOT_NEEDED if p.core or ref_core else "rectified tiles share fewer than 16 rows"
         return None, info
-    pad = int(np.ceil(max(abs(d_lo), abs(d_hi)))) + cfg.block_size + 2
+    pad = int(np.ceil(max(abs(d_lo), abs(d_hi)))) + matcher.margin_px + 2
     # columns of the reference whose match can fall on the partner: u = x2' - d
     ua = max(c1[:, 0].min(), c2[:, 0].min() - d_hi)
     ub = min(c1[:, 0].max(), c2[:, 0].max() - d_lo)
@@ -208,16 +179,14 @@ def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: Part
     right = cv2.warpAffine(r8, A2[:2], (W, Hh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     m1 = cv2.warpAffine(np.isfinite(ref_img).astype(np.uint8), A1[:2], (W, Hh), flags=cv2.INTER_NEAREST) > 0
     m2 = cv2.warpAffine(np.isfinite(part_img).astype(np.uint8), A2[:2], (W, Hh), flags=cv2.INTER_NEAREST) > 0
-    min_d, num_d = sgbm_params(d_lo, d_hi, cfg)
     t0 = time.perf_counter()
-    D = run_sgbm(left, right, min_d, num_d, cfg)
-    Dr = run_sgbm(right[:, ::-1].copy(), left[:, ::-1].copy(), min_d, num_d, cfg)[:, ::-1]
+    d, valid = matcher.match(left, right, d_lo, d_hi)           # d = x2' - x1'
     info.kernel_s = time.perf_counter() - t0
-    ok = lr_consistent(D, Dr, cfg.lr_max_diff_px) & m1
+    ok = valid & m1
     # the matched right pixel must lie on the partner tile
-    xs = np.clip(np.round(np.arange(W)[None, :] - np.nan_to_num(D)).astype(np.int64), 0, W - 1)
+    xs = np.clip(np.round(np.arange(W)[None, :] + np.nan_to_num(d)).astype(np.int64), 0, W - 1)
     ok &= np.take_along_axis(m2, xs, axis=1)
-    d = np.where(ok, -D, np.nan).astype(np.float32)     # d = x2' - x1'
+    d = np.where(ok, d, np.nan).astype(np.float32)
     return {"A1": A1, "A2": A2, "d": d, "J": np.linalg.inv(H2[:2, :2]) @ H1[:2, :2]}, info
 
 
@@ -311,7 +280,7 @@ def run_job(job: DenseJob) -> DenseResult:
     for p in job.partners:
         pt = p.spec.tile
         part_img = read_window(p.spec.image, pt.col0, pt.row0, pt.width, pt.height)
-        res, info = match_pair(ref_img, ref, part_img, p, cfg, job.core)
+        res, info = match_pair(ref_img, ref, part_img, p, cfg, job.core, job.matcher)
         infos.append(info)
         kernel += info.kernel_s
         if res is None:
@@ -402,7 +371,8 @@ def tile_core(tile: Tile, same_image: list[Tile]) -> tuple[int, int, int, int]:
     return c0, r0, c1, r1
 
 
-def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig) -> list[DenseJob]:
+def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig,
+              matcher: StereoMatcher | None = None) -> list[DenseJob]:
     """One job per registered reference tile; partners are overlapping registered tiles of the
     images after it in the group's order (each tile pair is matched once)."""
     o = model.obs
@@ -452,12 +422,13 @@ def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig) -> list[Den
         if not partners:
             continue
         jobs.append(DenseJob(model.group, TileSpec(images[rt.image], rt, model.cams[r].copy()),
-                             tile_core(rt, same_of[rt.image]), partners, cfg))
+                             tile_core(rt, same_of[rt.image]), partners, cfg, matcher or SgbmMatcher()))
     return jobs
 
 
 def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfig, bus=None,
-                            executor=None, path: Path | None = None) -> tuple[DenseCloud | None, dict]:
+                            executor=None, path: Path | None = None,
+                            matcher: StereoMatcher | None = None) -> tuple[DenseCloud | None, dict]:
     """Run every reference-tile job of a group through the executor and gather the cloud.
 
     With `path` the cloud is streamed to that PLY (recon_core.io.models' dense.ply format) and not held in
@@ -470,7 +441,7 @@ def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfi
 
     bus = bus or EventBus()
     t0 = time.time()
-    jobs = plan_jobs(model, images, cfg)
+    jobs = plan_jobs(model, images, cfg, matcher)
     n_pairs = sum(len(j.partners) for j in jobs)
     own = executor is None
     ex = executor or make_executor(cfg.scheduler, cfg.workers)

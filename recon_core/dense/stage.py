@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from recon_core.dense.matchers import make_matcher
 from recon_core.dense.reconstruct import reconstruct_dense_group
 from recon_core.events import EventBus
 
@@ -9,9 +10,11 @@ from recon_core.events import EventBus
 def run(state, bus: EventBus) -> dict:
     out = {"groups": {}}
     images = {im.name: im for im in state.site.images}
+    matcher = make_matcher(state.cfg)
     for g, model in sorted(state.models.items()):
         path = state.layout.dense_ply(g)
-        _, summary = reconstruct_dense_group(model, images, state.cfg.dense, bus, path=path)
+        _, summary = reconstruct_dense_group(model, images, state.cfg.dense, bus, path=path,
+                                             matcher=matcher)
         state.dense[g] = path
         out["groups"][str(g)] = summary
     return out

@@ -25,7 +25,7 @@ def estimate_gsd(model, H: np.ndarray) -> float:
     Ainv = np.linalg.inv(H[:3, :3])
     gsd = []
     for t in np.flatnonzero(model.registered):
-        J = model.cams[t][:, :3] @ Ainv          # pixels per metre along E, N, U
+        J = model.camera(t).linear @ Ainv        # pixels per metre along E, N, U
         det = abs(np.linalg.det(J[:, :2]))
         if det > 0:
             gsd.append(1.0 / np.sqrt(det))

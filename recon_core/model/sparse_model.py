@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recon_core.geometry import affine
+from recon_core.geometry.camera import AffineCamera
 from recon_core.model.tiling import Tile
 
 
@@ -70,21 +71,19 @@ class SparseModel:
         ids = self.point_ids()
         return ids, nimg[ids], np.sqrt(sq[ids] / np.maximum(cnt[ids], 1))
 
+    def camera(self, t: int) -> AffineCamera:
+        """The affine camera of tile t."""
+        return AffineCamera.from_array(self.cams[t])
+
     def footprint(self, t: int) -> np.ndarray:
         """(4, 3) tile corners back-projected onto the best plane of the tile's points."""
         o = self.obs
         sel = np.unique(o.track[(o.tile == t) & o.valid & self.has_point[o.track]])
-        P = self.cams[t]
         pts = self.X[sel] if len(sel) >= 3 else self.X[self.has_point]
         c = pts.mean(axis=0)
         _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
         n = vt[-1]
-        A = np.vstack([P[:, :3], n])
-        out = []
-        for u in self.tiles[t].corners():
-            b = np.array([u[0] - P[0, 3], u[1] - P[1, 3], n @ c])
-            out.append(np.linalg.lstsq(A, b, rcond=None)[0])
-        return np.array(out)
+        return self.camera(t).backproject_to_plane(self.tiles[t].corners(), n, n @ c)
 
 
 def images_per_track(track: np.ndarray, img: np.ndarray, n: int) -> np.ndarray:

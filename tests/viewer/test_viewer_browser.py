@@ -52,7 +52,7 @@ def browser_app(tmp_path_factory):
     from playwright.sync_api import sync_playwright
 
     from aerec_viewer.app import ViewerApp
-    from tests.test_viewer import _small_site
+    from tests.viewer.test_viewer import _small_site
 
     root = tmp_path_factory.mktemp("browser")
     site, cfg = _small_site(root)

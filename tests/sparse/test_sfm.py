@@ -13,12 +13,8 @@ from recon_core.errors import ReconstructionError
 from recon_core.euclidean.georef import frame_for
 from recon_core.evaluation.truth import sparse_vs_truth
 from recon_core.events import BundleAdjusted, ModelUpdated, PointsAdded, TileRegistered
-from recon_core.geometry import affine
 from recon_core.io.models import load_model
 from recon_core.pipeline import run
-from recon_core.sparse.bundle import bundle_adjust
-from recon_core.sparse.matching import PairMatches
-from recon_core.sparse.tracks import build_tracks
 from tests.conftest import write_tiff
 
 
@@ -68,37 +64,6 @@ def test_model_round_trip(tiny_run):
     _, e1 = back.reprojection()
     _, e0 = m.reprojection()
     np.testing.assert_allclose(np.sort(e1), np.sort(e0), atol=1e-9)
-
-
-def test_bundle_adjustment_recovers_noise_level():
-    rng = np.random.default_rng(3)
-    n, T = 400, 4
-    X = rng.uniform([-500, -500, 0], [500, 500, 40], (n, 3))
-    cams = np.stack([np.hstack([rng.normal(0, 1, (2, 3)) + [[1, 0, 0], [0, 1, 0.3 * k]], [[500], [500]]])
-                     for k in range(T)])
-    cam_idx = np.repeat(np.arange(T), n)
-    pt_idx = np.tile(np.arange(n), T)
-    xy = affine.project(cams, X).reshape(-1, 2) + rng.normal(0, 0.3, (T * n, 2))
-    fixed = np.zeros((T, 2, 4), bool)
-    fixed[0] = True
-    fixed[1, 0] = True                    # 12 gauge entries
-    start = cams + rng.normal(0, 1e-3, cams.shape) * [1, 1, 1, 100]
-    start[fixed] = cams[fixed]
-    X0 = X + rng.normal(0, 2.0, X.shape)
-    res = bundle_adjust(start, X0, cam_idx, pt_idx, xy, np.arange(T), np.arange(n), fixed, loss="linear")
-    assert res.cost_after < res.cost_before
-    assert res.rms_px < 0.45                     # ~ sqrt(5/8) * 0.3 * sqrt(2) at the optimum
-    assert np.array_equal(res.cams[fixed], cams[fixed])
-    assert np.abs(res.X - X).max() < 3.0
-
-
-def test_tracks_drop_inconsistent_components():
-    # image 0 feature 0 matches image 1 features 0 and 1 -> one track sees image 1 twice: dropped
-    pm01 = PairMatches("a", "b", np.array([0, 0, 2]), np.array([0, 1, 2]))
-    pm12 = PairMatches("b", "c", np.array([2]), np.array([5]))
-    t = build_tracks([3, 3, 6], [(0, 1, pm01), (1, 2, pm12)])
-    assert t.n_tracks == 1
-    assert sorted(zip(t.img.tolist(), t.feat.tolist())) == [(0, 2), (1, 2), (2, 5)]
 
 
 def _copy_images(src, dst, names):

@@ -7,19 +7,17 @@ import cv2
 import numpy as np
 import pytest
 
-from recon_core.config import DenseConfig, preset
+from recon_core.config import Config, DenseConfig, SgbmConfig, preset
+from recon_core.dense.matchers import SgbmMatcher, lr_consistent, make_matcher, run_sgbm, sgbm_params
 from recon_core.dense.reconstruct import (
     DenseJob,
     PartnerSpec,
     TileSpec,
     _triangulate,
     disparity_range,
-    lr_consistent,
     patch_ncc,
     run_job,
-    run_sgbm,
     sample_disparity,
-    sgbm_params,
 )
 from recon_core.geometry import affine
 from recon_core.io.site import open_image
@@ -39,13 +37,20 @@ def test_sgbm_convention_recovers_known_disparity():
     M = np.float32([[1, 0, d_true], [0, 1, 0]])       # img2(x) = img1(x - d): a match at x1 + d
     left = big.astype(np.uint8)
     right = cv2.warpAffine(big, M, (260, 140), flags=cv2.INTER_CUBIC).astype(np.uint8)
-    cfg = DenseConfig()
+    cfg = SgbmConfig()
     lo, hi = disparity_range(np.array([5.0, 6.0, 7.0, 8.0]), 4.0, 0.0)
-    min_d, num_d = sgbm_params(lo, hi, cfg)
+    min_d, num_d = sgbm_params(lo, hi)
     assert num_d % 16 == 0 and min_d <= -hi
     D = run_sgbm(left, right, min_d, num_d, cfg)
     d = -D[20:-20, 60:-20]
     assert np.nanmedian(d) == pytest.approx(d_true, abs=0.15)
+    # the matcher interface: the project's sign convention, validity from the left-right check
+    d2, valid = make_matcher(Config()).match(left, right, lo, hi)
+    assert isinstance(make_matcher(Config()), SgbmMatcher)
+    assert np.nanmedian(d2[20:-20, 60:-20]) == pytest.approx(d_true, abs=0.15)
+    assert np.array_equal(valid, np.isfinite(d2)) and valid[20:-20, 60:-20].mean() > 0.8
+    with pytest.raises(ValueError, match="unknown stereo matcher"):
+        make_matcher(Config().with_overrides({"dense.matcher": "nope"}))
 
 
 def test_disparity_range_percentiles_and_margins():

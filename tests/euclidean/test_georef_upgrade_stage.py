@@ -1,0 +1,66 @@
+"""GCPs into a group's affine frame, and the upgrade stage's one function, against a known map:
+GCPs built from the tiny model's own points through a chosen H_A must give that H_A back."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from recon_core.config import preset
+from recon_core.errors import ReconstructionError
+from recon_core.euclidean.georef import triangulate_gcp
+from recon_core.euclidean.upgrade_stage import upgrade_models
+from recon_core.geometry.geodesy import LocalFrame
+from recon_core.io.gcps import GCP
+
+H_TRUE = np.array([[0.9, 0.2, 0.1, 30.0], [-0.15, 1.1, 0.05, -12.0], [0.3, -0.2, 2.5, 7.0], [0, 0, 0, 1.0]])
+
+
+def _points(model, k: int, rng) -> np.ndarray:
+    ids = model.point_ids()
+    X = model.X[ids]
+    # well spread, non-coplanar: extremes of the cloud along random directions
+    dirs = rng.normal(size=(k, 3))
+    return np.array([X[np.argmax(X @ d)] for d in dirs])
+
+
+def test_triangulated_gcp_is_the_point_its_observations_come_from(tiny_run):
+    state, _ = tiny_run
+    m = state.models[0]
+    X = m.X[m.point_ids()[100]]
+    obs = {}
+    for t in np.flatnonzero(m.registered):
+        tile = m.tiles[t]
+        uv = m.camera(t).project(X[None])[0]
+        if tile.image not in obs and tile.contains(uv[None], margin=1.0)[0]:
+            obs[tile.image] = tuple(uv)
+    assert len(obs) >= 2
+    a = triangulate_gcp(m, obs)
+    assert a.source == "triangulated" and a.n_images == len(obs)
+    # every tile of an image containing the pixel takes part; overlapping tiles' cameras of one
+    # image agree to a few hundredths of a pixel (the frame's unit is about a pixel)
+    assert np.abs(a.xyz - X).max() < 0.05 and a.reproj_rms_px < 0.05
+    one = triangulate_gcp(m, dict(list(obs.items())[:1]))
+    assert one.xyz is None and "needs >= 2" in one.source
+
+
+def test_upgrade_models_recovers_a_known_map_from_picked_positions(tiny_run):
+    state, _ = tiny_run
+    m = state.models[0]
+    rng = np.random.default_rng(0)
+    Xa = _points(m, 6, rng)
+    frame = LocalFrame(30.0, 31.2, 40.0)
+    enu = Xa @ H_TRUE[:3, :3].T + H_TRUE[:3, 3]
+    llh = frame.enu_to_geodetic(enu)
+    gcps = [GCP(f"P{k}", *llh[k], role="control", affine_picked={0: Xa[k]}) for k in range(6)]
+    # the frame is at the control GCPs' centroid: express the truth in that frame
+    up = upgrade_models(gcps, {0: m}, preset("tiny"))
+    Xe = up.frame.geodetic_to_enu(llh)
+    np.testing.assert_allclose(up.results[0].apply(Xa), Xe, atol=1e-5)
+    rec = up.record(0)
+    assert all(v["source"] == "picked" for v in rec["gcp_affine"].values()) and rec["gsd_m"] > 0
+    # without positions for this group (picked on another group's cloud), nothing is placeable
+    for g in gcps:
+        g.affine_picked = {1: g.affine_picked[0]}
+    with pytest.raises(ReconstructionError, match="group 0"):
+        upgrade_models(gcps, {0: m}, preset("tiny"))

@@ -1,0 +1,65 @@
+"""Features and matching on images with a known geometric relation: a textured image and a
+copy warped by a known 2D affine map (what two views of flat ground are)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from recon_core.config import FeatureConfig
+from recon_core.io.site import open_image
+from recon_core.sparse.features import detect_image, detect_overview, tone_curve_for
+from recon_core.sparse.matching import coarse_link, match_descriptors
+from tests.conftest import write_tiff
+
+A_TRUE = np.array([[0.97, 0.12, 25.0], [-0.10, 1.02, -14.0]])   # image b pixel -> image a pixel
+
+
+def _pair(tmp_path):
+    rng = np.random.default_rng(0)
+    base = cv2.GaussianBlur(rng.uniform(0, 2047, (700, 700)), (0, 0), 2.0)
+    blobs = cv2.GaussianBlur((rng.uniform(size=(700, 700)) > 0.995).astype(float) * 4000, (0, 0), 3.0)
+    a = (base + blobs).astype(np.uint16)
+    # b(x) = a(A x): warp a by the inverse map so that A_TRUE sends b's pixels to a's
+    b = cv2.warpAffine(a.astype(np.float32), A_TRUE, (640, 640),
+                       flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP).astype(np.uint16)
+    write_tiff(tmp_path / "a.tif", a[:640, :640])
+    write_tiff(tmp_path / "b.tif", b)
+    return open_image(tmp_path / "a.tif"), open_image(tmp_path / "b.tif")
+
+
+def test_detection_by_blocks_equals_one_block_and_has_no_duplicates(tmp_path):
+    a, _ = _pair(tmp_path)
+    tone = tone_curve_for([a])
+    one = detect_image(a, FeatureConfig(detect_block=4096), tone)
+    blocks = detect_image(a, FeatureConfig(detect_block=200), tone)
+    # deduplicated: no two keypoints share position and descriptor (one position may carry
+    # several SIFT orientations, each with its own descriptor)
+    key = np.concatenate([np.round(blocks.xy * 100).astype(np.int64), blocks.desc.astype(np.int64)], axis=1)
+    assert len(np.unique(key, axis=0)) == len(blocks)
+    # block borders (48 px margins) move few keypoints: most positions are found by both
+    k1 = {tuple(v) for v in np.round(one.xy).astype(int)}
+    k2 = {tuple(v) for v in np.round(blocks.xy).astype(int)}
+    assert len(k1 & k2) > 0.8 * min(len(k1), len(k2)) and len(one) > 200
+    assert blocks.desc.dtype == np.uint8 and np.all((blocks.xy >= -0.5) & (blocks.xy <= 639.5))
+
+
+def test_overview_link_recovers_the_known_affine_map(tmp_path):
+    a, b = _pair(tmp_path)
+    tone = tone_curve_for([a, b])
+    link = coarse_link("a", detect_overview(a, 2, tone), "b", detect_overview(b, 2, tone))
+    assert link is not None and link.n_inliers >= 12
+    corners = np.array([[0, 0], [639, 0], [639, 639], [0, 639]], float)
+    pred = corners @ link.A_ji[:, :2].T + link.A_ji[:, 2]
+    true = corners @ A_TRUE[:, :2].T + A_TRUE[:, 2]
+    assert np.abs(pred - true).max() < 4.0                   # a few full-resolution pixels
+
+
+def test_descriptor_matching_ratio_and_mutual():
+    rng = np.random.default_rng(2)
+    d1 = rng.integers(0, 255, (50, 128)).astype(np.uint8)
+    perm = rng.permutation(50)
+    d2 = np.clip(d1[perm].astype(int) + rng.integers(-3, 4, (50, 128)), 0, 255).astype(np.uint8)
+    d2 = np.vstack([d2, d2[:5]])                             # 5 ambiguous twins fail the ratio test
+    i, j = match_descriptors(d1, d2, 0.8, True)
+    assert len(i) == 45 and np.array_equal(perm[j], i)
