@@ -4,6 +4,7 @@ becomes a pixel) and the widgets of the GCP tab. The edits themselves are gcp_se
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -13,6 +14,7 @@ from .display import FLAT_WXYZ, plane_hit, plane_point
 from .gcp_session import (
     ROLES,
     GcpError,
+    GcpSession,
     default_epsg,
     delete_gcp,
     describe,
@@ -68,13 +70,27 @@ def layout_pick_plane(window: Window, bounds: tuple[np.ndarray, np.ndarray] | No
     return PickPlane(window, pos, FLAT_WXYZ.copy(), float(w), float(h))
 
 
+class GcpPanelHost(Protocol):
+    """What the GCP tab needs of the viewer: the working set, the site, a way to run work on the
+    update thread, and the scene actions its buttons trigger."""
+
+    session: GcpSession
+    site: object
+
+    def submit(self, fn: Callable[[], object]) -> object: ...
+    def show_image_plane(self) -> None: ...
+    def look_at_plane(self, client) -> None: ...
+    def arm_cloud_pick(self) -> None: ...
+    def gcps_changed(self, select: str | None = "keep", note: str | None = None) -> None: ...
+
+
 # -- the panel --------------------------------------------------------------------------------
 class GcpPanel:
     """Widgets of the GCP tab. Callbacks queue work on the app's update thread."""
 
     NEW = "(new GCP from the fields below)"
 
-    def __init__(self, app, gui):
+    def __init__(self, app: GcpPanelHost, gui):
         self.app = app
         s = app.session
         names = sorted(s.images)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -250,6 +251,21 @@ def error_map_drape(error_tif: Path, frame, clip_m: float = 3.0,
     return rgba, enu
 
 
+class DsmPanelHost(Protocol):
+    """What the DSM panel needs of the viewer: where the outputs are, the site (its GT DSM),
+    the server (the drape), the current frame and upgrade, and the update thread."""
+
+    out: Path
+    site: object
+    server: object
+    frame: str
+    upgrade: UpgradeOutcome | None
+
+    def scene_bounds(self): ...
+    def note(self, text: str, level: str = "info") -> None: ...
+    def submit(self, fn: Callable[[], object]) -> object: ...
+
+
 class DsmPanel:
     """The "DSM and height error" folder of the Results tab, and the error-map drape.
 
@@ -258,7 +274,7 @@ class DsmPanel:
     only the site's gt_dsm.tif exists; drapes the error raster under the Euclidean cloud.
     """
 
-    def __init__(self, app, gui):
+    def __init__(self, app: DsmPanelHost, gui):
         self.app = app
         self.drape_handle = None
         self._key = None

@@ -101,6 +101,27 @@ def _ransac_needed(n_inliers: int, n: int, sample: int, confidence: float) -> fl
     return math.log(1.0 - confidence) / math.log1p(-p_good)
 
 
+class _SampleBatches:
+    """Minimal samples of k indices for a batched RANSAC, (B, k) at a time, with the adaptive
+    budget: iterate over it, and report each better model's inlier count with `found`."""
+
+    def __init__(self, gen: np.random.Generator, n: int, iters: int, confidence: float,
+                 k: int = 4, batch: int | None = None):
+        self.gen, self.n, self.iters, self.confidence, self.k = gen, n, iters, confidence, k
+        self.batch = batch or int(max(16, min(256, 4_000_000 // max(n, 1))))
+        self.needed = float(iters)
+
+    def __iter__(self):
+        done = 0
+        while done < min(self.iters, self.needed):
+            B = int(min(self.batch, self.iters - done))
+            done += B
+            yield self.gen.integers(0, self.n, size=(B, self.k))
+
+    def found(self, n_inliers: int) -> None:
+        self.needed = _ransac_needed(n_inliers, self.n, self.k, self.confidence)
+
+
 def project(P, X) -> np.ndarray:
     """Project 3D points with one or several affine cameras.
 
@@ -286,11 +307,8 @@ def _plane_in_hyperplane(Y, thresh, gen, iters=500, confidence=0.999):
     n = len(Y)
     t2 = float(thresh) ** 2
     best_cost, best = math.inf, None
-    done, needed = 0, float(iters)
-    while done < min(iters, needed):
-        B = int(min(128, iters - done))
-        done += B
-        idx = gen.integers(0, n, size=(B, 3))
+    samples = _SampleBatches(gen, n, iters, confidence, k=3, batch=128)
+    for idx in samples:
         S = Y[idx]
         nrm = np.cross(S[:, 1] - S[:, 0], S[:, 2] - S[:, 0])
         ln = np.linalg.norm(nrm, axis=1)
@@ -306,7 +324,7 @@ def _plane_in_hyperplane(Y, thresh, gen, iters=500, confidence=0.999):
         j = int(np.argmin(cost))
         if cost[j] < best_cost:
             best_cost, best = float(cost[j]), (nrm[j], off[j])
-            needed = _ransac_needed(int(np.sum(r2[:, j] < t2)), n, 3, confidence)
+            samples.found(int(np.sum(r2[:, j] < t2)))
     if best is None:  # all samples collinear: fall back to the TLS plane of everything
         c = Y.mean(axis=0)
         nv = np.linalg.svd(Y - c)[2][-1]
@@ -534,13 +552,8 @@ def resect_ransac(X, x, thresh_px=2.0, iters=500, rng=None, min_inliers=6, confi
 
     best = (-1, math.inf)
     best_q = None
-    batch = int(max(16, min(256, 4_000_000 // max(n, 1))))
-    done = 0
-    needed = float(iters)
-    while done < min(iters, needed):
-        B = int(min(batch, iters - done))
-        done += B
-        idx = gen.integers(0, n, size=(B, 4))
+    samples = _SampleBatches(gen, n, iters, confidence)
+    for idx in samples:
         S = Xn[idx]  # (B, 4, 3)
         Sc = S - S.mean(axis=1, keepdims=True)
         sv = np.linalg.svd(Sc, compute_uv=False)  # (B, 3)
@@ -559,7 +572,7 @@ def resect_ransac(X, x, thresh_px=2.0, iters=500, rng=None, min_inliers=6, confi
         if (cnt[j], -cost[j]) > (best[0], -best[1]):
             best = (int(cnt[j]), float(cost[j]))
             best_q = q[j]
-            needed = _ransac_needed(best[0], n, 4, confidence)
+            samples.found(best[0])
     if best_q is None or best[0] < need:
         raise ReconstructionError(
             f"resect_ransac: no camera with >= {need} inliers (best {max(best[0], 0)} of {n})"
@@ -793,13 +806,8 @@ def fa_ransac(x1, x2, thresh_px=1.0, iters=1000, rng=None, confidence=0.999):
     t2 = float(thresh_px) ** 2
     best_cost = math.inf
     best_F = None
-    batch = int(max(16, min(256, 4_000_000 // max(n, 1))))
-    done = 0
-    needed = float(iters)
-    while done < min(iters, needed):
-        B = int(min(batch, iters - done))
-        done += B
-        idx = gen.integers(0, n, size=(B, 4))
+    samples = _SampleBatches(gen, n, iters, confidence)
+    for idx in samples:
         S = Zc[idx]  # (B, 4, 4)
         Sm = S.mean(axis=1)
         _, sv, Vt = np.linalg.svd(S - Sm[:, None, :])
@@ -814,7 +822,7 @@ def fa_ransac(x1, x2, thresh_px=1.0, iters=1000, rng=None, confidence=0.999):
         if cost[j] < best_cost:
             best_cost = float(cost[j])
             best_F = _F_from_normal(N[j], float(e[j] - N[j] @ z0))
-            needed = _ransac_needed(int(np.sum(r2[:, j] < t2)), n, 4, confidence)
+            samples.found(int(np.sum(r2[:, j] < t2)))
     if best_F is None:
         raise ReconstructionError(f"fa_ransac: no non-degenerate sample among {n} matches")
     F = best_F
