@@ -706,6 +706,27 @@ def _road_material(across, half_w, along, dist_int, line, blk, axis, salt):
 
 # ----------------------------------------------------------------------------------------
 # Scene evaluation
+@njit(inline="always", **_JIT)
+def _tree_rows(a, b, rows, lines, axis, t, h, gx, gy, mat, tone, aux, C, full, c, s, tgx, tgy):
+    """The four street-tree rows along one street axis (axis 0: across = u, along = v; axis 1:
+    across = v, along = u): the highest tree crown at (a, b) wins; gradients rotated to x, y."""
+    sides = (1, 0, 0, 1)
+    for r in range(4):
+        if abs(a - rows[r]) >= 3.5:
+            continue
+        best, da, dl, hit, ttone = _street_tree_row(a, b, rows[r], lines[r], sides[r], axis,
+                                                    t, h, C, full)
+        if hit:
+            h = best
+            mat = M_TREE
+            tone = ttone
+            aux = 0.0
+            gu, gv = (da, dl) if axis == 0 else (dl, da)
+            gx = tgx + gu * c - gv * s
+            gy = tgy + gu * s + gv * c
+    return h, gx, gy, mat, tone, aux
+
+
 @njit(**_JIT)
 def scene_eval(x, y, C, full):
     """Height field at (x, y) (scene-local metres).
@@ -844,38 +865,12 @@ def scene_eval(x, y, C, full):
             mat = M_TREE
             tone = ttone
             aux = 0.0
-    if near_u:
-        rows_u = (ru0, ru1, ru2, ru3)
-        lines_u = (i, i + 1, i, i + 1)
-        sides = (1, 0, 0, 1)
-        for r in range(4):
-            if abs(u - rows_u[r]) >= 3.5:
-                continue
-            best, da, dl, hit, ttone = _street_tree_row(u, v, rows_u[r], lines_u[r], sides[r], 0,
-                                                        t, h, C, full)
-            if hit:
-                h = best
-                mat = M_TREE
-                tone = ttone
-                aux = 0.0
-                gx = tgx + da * c - dl * s          # across = u, along = v
-                gy = tgy + da * s + dl * c
-    if near_v:
-        rows_v = (rv0, rv1, rv2, rv3)
-        lines_v = (j, j + 1, j, j + 1)
-        sides = (1, 0, 0, 1)
-        for r in range(4):
-            if abs(v - rows_v[r]) >= 3.5:
-                continue
-            best, da, dl, hit, ttone = _street_tree_row(v, u, rows_v[r], lines_v[r], sides[r], 1,
-                                                        t, h, C, full)
-            if hit:
-                h = best
-                mat = M_TREE
-                tone = ttone
-                aux = 0.0
-                gx = tgx + dl * c - da * s          # across = v, along = u
-                gy = tgy + dl * s + da * c
+    if near_u:          # rows along v, across u
+        h, gx, gy, mat, tone, aux = _tree_rows(u, v, (ru0, ru1, ru2, ru3), (i, i + 1, i, i + 1), 0, t,
+                                               h, gx, gy, mat, tone, aux, C, full, c, s, tgx, tgy)
+    if near_v:          # rows along u, across v
+        h, gx, gy, mat, tone, aux = _tree_rows(v, u, (rv0, rv1, rv2, rv3), (j, j + 1, j, j + 1), 1, t,
+                                               h, gx, gy, mat, tone, aux, C, full, c, s, tgx, tgy)
     return h, gx, gy, mat, tone, aux
 
 
