@@ -157,32 +157,43 @@ class IncrementalSfM:
         phase1 = [t for t in range(len(m.tiles)) if m.tiles[t].image in init_imgs and not m.registered[t]]
         ref = {m.tiles[ta].image: m.tiles[ta].centre, m.tiles[tb].image: m.tiles[tb].centre}
         phase1.sort(key=lambda t: np.linalg.norm(m.tiles[t].centre - ref[m.tiles[t].image]))
-        deferred = []
+        why: dict[int, str] = {}        # tile -> why its last attempt failed
+        tried_at: dict[int, int] = {}   # tile -> tiles registered at its last attempt
         for t in phase1:
-            if not self._register(t):
-                deferred.append(t)
-        failed: set[int] = set()
+            self._attempt(t, why, tried_at)
+        # then by number of 2D-3D correspondences; a tile that failed is tried again whenever
+        # the model has grown since (more points, more tiles of its image to lean on)
         while True:
-            cand = [t for t in range(len(m.tiles)) if not m.registered[t] and t not in failed]
+            n_reg = int(m.registered.sum())
+            cand = [t for t in range(len(m.tiles))
+                    if not m.registered[t] and tried_at.get(t, -1) < n_reg]
             if not cand:
                 break
             counts = self._correspondence_counts()[cand]
             best = int(np.argmax(counts))
             if counts[best] < self.cfg.resect_min_inliers:
                 break
-            if not self._register(cand[best]):
-                failed.add(cand[best])
+            self._attempt(cand[best], why, tried_at)
         self._filter_outliers()
         self._bundle("global")
         self._filter_outliers()
         self._bundle("global")
         self._emit_model()
         idx, err = m.reprojection()
+        counts = self._correspondence_counts()
+        reasons = {}
+        for t in np.flatnonzero(~m.registered):
+            reasons[m.tiles[t].id] = why.get(int(t)) or (
+                f"{counts[t]} 2D-3D correspondences (< {self.cfg.resect_min_inliers}): too little "
+                "overlap with the registered tiles, or too little texture")
+            self.bus.message(f"group {m.group}: tile {m.tiles[t].id} not registered: "
+                             f"{reasons[m.tiles[t].id]}", "warning", m.group)
         m.stats = {"init": init, "tiles_registered": int(m.registered.sum()), "tiles_total": len(m.tiles),
                    "points": int(m.has_point.sum()), "observations": int(len(idx)),
                    "mean_reproj_px": float(err.mean()) if len(err) else float("nan"),
                    "rms_reproj_px": float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan"),
                    "unregistered": [m.tiles[t].id for t in np.flatnonzero(~m.registered)],
+                   "unregistered_reasons": reasons,
                    "seconds": time.time() - t0}
         return m
 
@@ -191,21 +202,37 @@ class IncrementalSfM:
         o = self.m.obs
         return np.bincount(o.tile[o.valid & self.m.has_point[o.track]], minlength=len(self.m.tiles))
 
-    def _register(self, t: int) -> bool:
+    def _attempt(self, t: int, why: dict[int, str], tried_at: dict[int, int]) -> None:
+        tried_at[t] = int(self.m.registered.sum())
+        reason = self._register(t)
+        if reason is None:
+            why.pop(t, None)
+        else:
+            why[t] = reason
+
+    def _register(self, t: int) -> str | None:
+        """Register tile t; None when done, else why it could not be (it may be retried)."""
         m, o = self.m, self.m.obs
         sel = np.flatnonzero((o.tile == t) & o.valid & m.has_point[o.track])
         if len(sel) < self.cfg.resect_min_inliers:
-            return False
+            return f"{len(sel)} 2D-3D correspondences (< {self.cfg.resect_min_inliers})"
         X, x = m.X[o.track[sel]], o.xy[sel]
-        P, inl = affine.resect_ransac(X, x, thresh_px=self.cfg.resect_thresh_px, iters=500, rng=self.rng,
-                                      min_inliers=self.cfg.resect_min_inliers)
-        if P is None or inl.sum() < self.cfg.resect_min_inliers:
-            return False
+        try:
+            P, inl = affine.resect_ransac(X, x, thresh_px=self.cfg.resect_thresh_px, iters=500,
+                                          rng=self.rng, min_inliers=self.cfg.resect_min_inliers)
+        except ReconstructionError as exc:
+            return f"no consistent camera among its {len(sel)} correspondences ({exc})"
         cond = affine.points_conditioning(X[inl])
         if cond < self.cfg.min_points_conditioning:
+            # nearly coplanar points fix 6 of the 8 parameters: the response to height comes
+            # from the image's other tiles, or from all of the image's correspondences
             prior = self._neighbour_camera(t)
             if prior is None:
-                return False
+                prior = self._image_camera(m.tiles[t].image)
+            if prior is None:
+                return (f"its points are nearly coplanar (conditioning {cond:.4f} < "
+                        f"{self.cfg.min_points_conditioning}) and its image has no registered tile "
+                        "and too flat a set of correspondences to lean on yet")
             P = _resect_regularised(X[inl], x[inl], prior, weight=1.0)
         m.cams[t] = P
         m.registered[t] = True
@@ -219,7 +246,7 @@ class IncrementalSfM:
             self._bundle("global")
         self._emit_tile(t, int(inl.sum()))
         self._emit_points()
-        return True
+        return None
 
     def _neighbour_camera(self, t: int) -> np.ndarray | None:
         m = self.m
@@ -228,6 +255,39 @@ class IncrementalSfM:
             return None
         k = min(same, key=lambda k: np.linalg.norm(m.tiles[k].centre - m.tiles[t].centre))
         return m.cams[k]
+
+    def _image_camera(self, image: str) -> np.ndarray | None:
+        """One affine camera fitted (robustly) to every 2D-3D correspondence of an image, over
+        all its tiles: a prior for a flat tile when no tile of its image is registered yet.
+        None when those points are themselves too flat or too few."""
+        m, o = self.m, self.m.obs
+        k = m.images.index(image)
+        sel = np.flatnonzero((o.img == k) & o.valid & m.has_point[o.track])
+        _, first = np.unique(o.track[sel], return_index=True)    # a feature once, not per tile
+        sel = sel[first]
+        if len(sel) < 3 * self.cfg.resect_min_inliers:
+            return None
+        X, x = m.X[o.track[sel]], o.xy[sel]
+        try:
+            # the whole image departs from one affine camera by a few pixels (pushbroom)
+            P, inl = affine.resect_ransac(X, x, thresh_px=4 * self.cfg.resect_thresh_px, iters=500,
+                                          rng=self.rng, min_inliers=3 * self.cfg.resect_min_inliers)
+        except ReconstructionError:
+            return None
+        # The relative conditioning of a whole image's points falls with its width; what
+        # matters is how well they fix the camera's response to height: the pixel error its
+        # uncertainty causes over the model's height range must stay under a pixel.
+        Xi = X[inl]
+        Xc = Xi - Xi.mean(axis=0)
+        _, sv, vt = np.linalg.svd(Xc, full_matrices=False)
+        normal = vt[-1]
+        ids = m.point_ids()
+        h = (m.X[ids] - Xi.mean(axis=0)) @ normal
+        span = float(np.subtract(*np.percentile(h, [98, 2])))
+        sigma = max(0.3, float(np.sqrt(np.mean(np.sum((affine.project(P, Xi) - x[inl]) ** 2, axis=1) / 2))))
+        if span * sigma / max(sv[-1], 1e-12) > 1.0:
+            return None
+        return P
 
     # -- points ------------------------------------------------------------------------------
     def _triangulate_new(self) -> None:
