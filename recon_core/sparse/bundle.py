@@ -51,12 +51,14 @@ def _robust(sq: np.ndarray, loss: str, delta: float) -> tuple[np.ndarray, np.nda
 def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: np.ndarray,
                   obs_xy: np.ndarray, free_cams: np.ndarray, free_pts: np.ndarray,
                   fixed: np.ndarray | None = None, *, loss: str = "huber", f_scale: float = 1.0,
-                  max_nfev: int = 50) -> BAResult:
+                  max_nfev: int = 50, compiled: bool = True) -> BAResult:
     """Refine the cameras `free_cams` and points `free_pts` (index arrays).
 
     cams (T, 2, 4), X (N, 3), observations (K,) camera and point indices with (K, 2) pixels;
     `fixed` (T, 2, 4) bool marks camera entries held constant (the gauge). Observations whose
     camera and point are both held constant are left out. `max_nfev` caps the LM iterations.
+    `compiled`: assemble the normal equations with the compiled per-point kernels
+    (recon_core.sparse.ba_kernels); False takes the scipy.sparse path (same steps, slower).
     """
     t0 = time.time()
     cams, X = cams.astype(np.float64).copy(), X.astype(np.float64).copy()
@@ -96,50 +98,27 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
     cost0 = cost
     lam = 1e-3
     it = 0
+    if compiled:
+        from recon_core.sparse import ba_kernels as kern
+
+        with_p = np.flatnonzero(has_p)
+        order = with_p[np.argsort(ps[with_p], kind="stable")]
+        start = np.searchsorted(ps[order], np.arange(npt + 1)).astype(np.int64)
     for it in range(1, max_nfev + 1):
         h = np.concatenate([X[op], np.ones((K, 1))], axis=1)        # (K, 4)
-        M = cams[oc, :, :3]                                           # (K, 2, 3)
-        # -- camera blocks: U (nc x nc), g_c; cross terms W (nc x 3 npt) as a sparse matrix
-        cols0, cols1 = cam_col[oc, :4], cam_col[oc, 4:]               # (K, 4) each
-        wh = w[:, None] * h
-        rows_u, cols_u, vals_u = [], [], []
-        for cols in (cols0, cols1):
-            a = np.repeat(cols, 4, axis=1)
-            b = np.tile(cols, (1, 4))
-            v = (wh[:, :, None] * h[:, None, :]).reshape(K, 16)
-            m = (a >= 0) & (b >= 0)
-            rows_u.append(a[m]); cols_u.append(b[m]); vals_u.append(v[m])
-        U = np.zeros((nc, nc))
-        if nc:   # bincount on flat indices: np.add.at is ~20x slower on millions of entries
-            flat_idx = np.concatenate(rows_u) * nc + np.concatenate(cols_u)
-            U = np.bincount(flat_idx, np.concatenate(vals_u), minlength=nc * nc).reshape(nc, nc)
-        g_c = np.zeros(nc)
-        for row, cols in enumerate((cols0, cols1)):
-            v = wh * r[:, row:row + 1]
-            m = cols >= 0
-            g_c += np.bincount(cols[m], v[m], minlength=nc)
-        # W entries: d r_row / d P[row, j] * d r_row / d X_i = h_j * M[row, i]
-        wr, wc, wv = [], [], []
-        for row, cols in enumerate((cols0, cols1)):
-            v = w[:, None, None] * h[:, :, None] * M[:, row, None, :]   # (K, 4, 3)
-            a = np.repeat(cols[:, :, None], 3, axis=2)
-            b = np.broadcast_to((3 * ps)[:, None, None] + np.arange(3)[None, None, :], (K, 4, 3))
-            m = (a >= 0) & (b >= 0) & has_p[:, None, None]
-            wr.append(a[m]); wc.append(b[m]); wv.append(v[m])
-        Wm = csr_matrix((np.concatenate(wv), (np.concatenate(wr), np.concatenate(wc))), shape=(nc, 3 * npt))
-        # -- point blocks: V_p (3 x 3), g_p
-        MtM = np.einsum("kri,krj->kij", M, M) * w[:, None, None]
-        V = np.zeros((npt, 3, 3))
-        Mtr = np.einsum("kri,kr->ki", M, r) * w[:, None]
-        g_p = np.zeros((npt, 3))
-        if npt:
-            for i in range(3):
-                for j in range(3):
-                    V[:, i, j] = np.bincount(ps[has_p], MtM[has_p, i, j], minlength=npt)
-                g_p[:, i] = np.bincount(ps[has_p], Mtr[has_p, i], minlength=npt)
+        M = np.ascontiguousarray(cams[oc, :, :3])                     # (K, 2, 3)
+        if compiled:
+            U, g_c, V, g_p = kern.assemble(h, M, r, w, oc, ps, cam_col, nc, npt)
+
+            def step(lam):
+                S, rhs, Vinv = kern.schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start)
+                dc = _cholesky_solve(S, rhs)
+                return dc, kern.back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start)
+        else:
+            step = _sparse_normal_equations(h, M, r, w, oc, cam_col, ps, has_p, nc, npt, K)
         improved = False
         for _ in range(8):                                            # LM damping attempts
-            dc, dp = _solve_step(U, g_c, Wm, V, g_p, lam)
+            dc, dp = step(lam)
             new_cams = cams.copy()
             flat = new_cams.reshape(T, 8)
             flat[free_entries] += dc[cam_col[free_entries]]
@@ -158,6 +137,58 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
             break
     rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
     return BAResult(cams, X, cost0, cost, rms, K, time.time() - t0, it)
+
+
+def _cholesky_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    if len(rhs) == 0:
+        return np.zeros(0)
+    try:
+        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), rhs)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(S, rhs, rcond=None)[0]
+
+
+def _sparse_normal_equations(h, M, r, w, oc, cam_col, ps, has_p, nc, npt, K):
+    """The normal equations with numpy and scipy.sparse; returns step(lam) -> (dc, dp)."""
+    # -- camera blocks: U (nc x nc), g_c; cross terms W (nc x 3 npt) as a sparse matrix
+    cols0, cols1 = cam_col[oc, :4], cam_col[oc, 4:]               # (K, 4) each
+    wh = w[:, None] * h
+    rows_u, cols_u, vals_u = [], [], []
+    for cols in (cols0, cols1):
+        a = np.repeat(cols, 4, axis=1)
+        b = np.tile(cols, (1, 4))
+        v = (wh[:, :, None] * h[:, None, :]).reshape(K, 16)
+        m = (a >= 0) & (b >= 0)
+        rows_u.append(a[m]); cols_u.append(b[m]); vals_u.append(v[m])
+    U = np.zeros((nc, nc))
+    if nc:   # bincount on flat indices: np.add.at is ~20x slower on millions of entries
+        flat_idx = np.concatenate(rows_u) * nc + np.concatenate(cols_u)
+        U = np.bincount(flat_idx, np.concatenate(vals_u), minlength=nc * nc).reshape(nc, nc)
+    g_c = np.zeros(nc)
+    for row, cols in enumerate((cols0, cols1)):
+        v = wh * r[:, row:row + 1]
+        m = cols >= 0
+        g_c += np.bincount(cols[m], v[m], minlength=nc)
+    # W entries: d r_row / d P[row, j] * d r_row / d X_i = h_j * M[row, i]
+    wr, wc, wv = [], [], []
+    for row, cols in enumerate((cols0, cols1)):
+        v = w[:, None, None] * h[:, :, None] * M[:, row, None, :]   # (K, 4, 3)
+        a = np.repeat(cols[:, :, None], 3, axis=2)
+        b = np.broadcast_to((3 * ps)[:, None, None] + np.arange(3)[None, None, :], (K, 4, 3))
+        m = (a >= 0) & (b >= 0) & has_p[:, None, None]
+        wr.append(a[m]); wc.append(b[m]); wv.append(v[m])
+    Wm = csr_matrix((np.concatenate(wv), (np.concatenate(wr), np.concatenate(wc))), shape=(nc, 3 * npt))
+    # -- point blocks: V_p (3 x 3), g_p
+    MtM = np.einsum("kri,krj->kij", M, M) * w[:, None, None]
+    V = np.zeros((npt, 3, 3))
+    Mtr = np.einsum("kri,kr->ki", M, r) * w[:, None]
+    g_p = np.zeros((npt, 3))
+    if npt:
+        for i in range(3):
+            for j in range(3):
+                V[:, i, j] = np.bincount(ps[has_p], MtM[has_p, i, j], minlength=npt)
+            g_p[:, i] = np.bincount(ps[has_p], Mtr[has_p, i], minlength=npt)
+    return lambda lam: _solve_step(U, g_c, Wm, V, g_p, lam)
 
 
 def _solve_step(U, g_c, Wm, V, g_p, lam):

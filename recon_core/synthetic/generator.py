@@ -86,6 +86,7 @@ class SynthPreset:
         grid (finer sampling = tighter bounds = faster rendering, slower set-up).
     n_gcps: number of GCPs. block_rows: rows rendered per block.
     drift: scale of the attitude drift (1 = a few microradians over a 0.8 s acquisition).
+    scene: overrides of the procedural scene (scene_model.scene_params: park, open, tall, terrain).
     """
 
     name: str
@@ -106,6 +107,7 @@ class SynthPreset:
     block_rows: int = 128
     drift: float = 1.0
     year: int = 2021
+    scene: tuple[tuple[str, float], ...] = ()   # scene_model.scene_params overrides
 
     @property
     def n_images(self) -> int:
@@ -120,6 +122,12 @@ PRESETS: dict[str, SynthPreset] = {
                          n_gcps=12, block_rows=64),
     "demo": SynthPreset(name="demo", groups=(3, 3), group_months=(3, 8),
                         image_size=(2000, 2000), n_gcps=16),
+    # a flat suburb of ~2.5 km seen by 3 views (one pair with a small angle): low buildings,
+    # many parks and open flat blocks, gentle terrain; most tiles see nearly coplanar ground
+    "flat": SynthPreset(name="flat", groups=(3,), group_months=(5,), image_size=(5000, 5000),
+                        size_jitter=0.04, supersample=1, accel_cell=2.0, accel_sample=0.5,
+                        bh=(0.08, 0.45), n_gcps=20, block_rows=256,
+                        scene=(("park", 0.3), ("open", 0.35), ("tall", 0.15), ("terrain", 0.5))),
     "large": SynthPreset(name="large", groups=(3, 3, 3), group_months=(2, 6, 10),
                          image_size=(6000, 6000), size_jitter=0.1,
                          first_image_size=(8192, 8192), supersample=1, accel_cell=2.0,
@@ -582,7 +590,7 @@ def design_cameras(preset: str | SynthPreset = "tiny", seed: int = 0
     """The scene and the physical cameras generate_site would use, without rendering."""
     P = PRESETS[preset] if isinstance(preset, str) else preset
     loc = LOCATIONS[int(seed) % len(LOCATIONS)]
-    scene = SceneModel.create(seed, loc[1], loc[2], loc[3])
+    scene = SceneModel.create(seed, loc[1], loc[2], loc[3], dict(P.scene))
     acqs = design_acquisitions(P, seed, scene.lat0, scene.lon0)
     rng_cam = np.random.default_rng([int(seed), 7004])
     return scene, {a.name: make_camera(a, scene, P, rng_cam) for a in acqs}

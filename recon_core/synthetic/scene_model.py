@@ -1413,8 +1413,15 @@ def render_rows(top, bot, node_c0, node_step, col0, ncols, ss, C, grid, gx0, gy0
 
 # ----------------------------------------------------------------------------------------
 # Python-side model
-def scene_params(seed: int, h0: float) -> tuple[np.ndarray, int]:
-    """Draw the scene parameter vector P and the hash salt for a seed."""
+SCENE_OVERRIDES = ("park", "open", "tall", "terrain")
+
+
+def scene_params(seed: int, h0: float, overrides: dict | None = None) -> tuple[np.ndarray, int]:
+    """Draw the scene parameter vector P and the hash salt for a seed.
+
+    overrides: "park" and "open" (fractions of the blocks that are parks and open flat ground;
+    the rest is built), "tall" (building height factor, 0.6-1.0 by default; lower = lower
+    buildings), "terrain" (factor on the terrain relief)."""
     rng = np.random.default_rng([int(seed), 7001])
     P = np.zeros(N_PARAMS)
     theta = rng.uniform(0.0, np.pi / 2)
@@ -1435,6 +1442,18 @@ def scene_params(seed: int, h0: float) -> tuple[np.ndarray, int]:
         P[I_TER + 4 * k: I_TER + 4 * k + 4] = [amps[k], wls[k], rng.uniform(0, 100),
                                                rng.uniform(0, 100)]
     salt = int(rng.integers(1, 2**62))
+    o = dict(overrides or {})
+    unknown = set(o) - set(SCENE_OVERRIDES)
+    if unknown:
+        raise ValueError(f"unknown scene overrides {sorted(unknown)}; known: {SCENE_OVERRIDES}")
+    if "park" in o:
+        P[I_PARK] = o["park"]
+    if "open" in o:
+        P[I_OPEN] = o["open"]
+    if "tall" in o:
+        P[I_TALL] = o["tall"]
+    if "terrain" in o:
+        P[I_TER::4][:N_TER] *= o["terrain"]
     return P, salt
 
 
@@ -1459,14 +1478,15 @@ class SceneModel:
     tables: dict | None = field(default=None, repr=False)    # {"ctx": C, "box": covered xy box}
 
     @classmethod
-    def create(cls, seed: int, lon: float, lat: float, h0: float) -> "SceneModel":
+    def create(cls, seed: int, lon: float, lat: float, h0: float,
+               overrides: dict | None = None) -> "SceneModel":
         from recon_core.geometry.geodesy import geodetic_to_projected, projected_to_geodetic, utm_epsg_for
 
         epsg = utm_epsg_for(lon, lat)
         e, n, _ = geodetic_to_projected(np.array([lon, lat, 0.0]), epsg)
         E0, N0 = float(np.round(e)), float(np.round(n))
         lon0, lat0, _ = projected_to_geodetic(np.array([E0, N0, 0.0]), epsg)
-        P, salt = scene_params(seed, h0)
+        P, salt = scene_params(seed, h0, overrides)
         return cls(seed=int(seed), epsg=int(epsg), E0=E0, N0=N0, lon0=float(lon0),
                    lat0=float(lat0), h0=float(h0), P=P, salt=salt)
 

@@ -1,0 +1,155 @@
+"""Compiled assembly of the bundle adjustment's normal equations (numba: a per-point loop with
+no library kernel; general sparse-matrix products spent most of the time of an iteration).
+
+Parameters: the free entries of the free tile cameras (columns `cam_col[c, 0..7]`, -1 where an
+entry is held) and the free points (slots `ps`, -1 for a held point). Observation k (camera c,
+point p, weight w) has residual r = M_c X_p + t_c - x and h = [X_p, 1]:
+  d r_row / d P_c[row, j] = h_j  (camera entry row * 4 + j),   d r / d X_p = M_c.
+`assemble` builds U (camera x camera, dense), g_c, V (3 x 3 per point) and g_p; `schur` forms
+the damped reduced system S dc = rhs; `back_substitute` gives the point steps. Observations are
+visited point by point through `order` / `start` (a CSR of the observations of each point slot,
+observations of held points last).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_JIT = dict(cache=True, nogil=True, fastmath=False)
+
+
+@njit(**_JIT)
+def assemble(h, M, r, w, oc, ps, cam_col, nc, npt):
+    """(U (nc, nc), g_c (nc,), V (npt, 3, 3), g_p (npt, 3)) of J^T W J and J^T W r."""
+    K = h.shape[0]
+    U = np.zeros((nc, nc))
+    g_c = np.zeros(nc)
+    V = np.zeros((npt, 3, 3))
+    g_p = np.zeros((npt, 3))
+    for k in range(K):
+        c = oc[k]
+        wk = w[k]
+        for row in range(2):
+            for a in range(4):
+                ca = cam_col[c, row * 4 + a]
+                if ca < 0:
+                    continue
+                wha = wk * h[k, a]
+                g_c[ca] += wha * r[k, row]
+                for b in range(4):
+                    cb = cam_col[c, row * 4 + b]
+                    if cb >= 0:
+                        U[ca, cb] += wha * h[k, b]
+        p = ps[k]
+        if p >= 0:
+            for i in range(3):
+                g_p[p, i] += wk * (M[k, 0, i] * r[k, 0] + M[k, 1, i] * r[k, 1])
+                for j in range(3):
+                    V[p, i, j] += wk * (M[k, 0, i] * M[k, 0, j] + M[k, 1, i] * M[k, 1, j])
+    return U, g_c, V, g_p
+
+
+@njit(**_JIT)
+def _inv3(A):
+    """Inverse of a symmetric positive 3 x 3 matrix (cofactors)."""
+    a, b, c = A[0, 0], A[0, 1], A[0, 2]
+    d, e, f = A[1, 1], A[1, 2], A[2, 2]
+    c00 = d * f - e * e
+    c01 = c * e - b * f
+    c02 = b * e - c * d
+    det = a * c00 + b * c01 + c * c02
+    out = np.empty((3, 3))
+    out[0, 0] = c00 / det
+    out[0, 1] = c01 / det
+    out[0, 2] = c02 / det
+    out[1, 0] = out[0, 1]
+    out[1, 1] = (a * f - c * c) / det
+    out[1, 2] = (b * c - a * e) / det
+    out[2, 0] = out[0, 2]
+    out[2, 1] = out[1, 2]
+    out[2, 2] = (a * d - b * b) / det
+    return out
+
+
+@njit(**_JIT)
+def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start):
+    """Damped reduced camera system: S = U' - sum_p W_p V_p'^-1 W_p^T, rhs = -(g_c - sum_p
+    W_p V_p'^-1 g_p), with U', V' the diagonals scaled by (1 + lam) (+1e-12). Returns
+    (S, rhs, Vinv (npt, 3, 3))."""
+    nc = U.shape[0]
+    npt = V.shape[0]
+    S = U.copy()
+    for i in range(nc):
+        S[i, i] = S[i, i] * (1.0 + lam) + 1e-12
+    rhs = -g_c.copy()
+    Vinv = np.empty((npt, 3, 3))
+    Vd = np.empty((3, 3))
+    for p in range(npt):
+        for i in range(3):
+            for j in range(3):
+                Vd[i, j] = V[p, i, j]
+            Vd[i, i] = V[p, i, i] * (1.0 + lam) + 1e-12
+        Vi = _inv3(Vd)
+        Vinv[p] = Vi
+        k0, k1 = start[p], start[p + 1]
+        m = k1 - k0
+        # W_k[row*4 + j, i] = w h_j M[row, i], so the (c1, row1, j1) x (c2, row2, j2) entry of
+        # W V^-1 W^T is w1 h1_j1 w2 h2_j2 (M1[row1] V^-1 M2[row2]^T): with G = M V^-1 per
+        # observation, one 2 x 2 matrix of scalars per observation pair, then outer products.
+        G = np.empty((m, 2, 3))
+        for q in range(m):
+            k = order[k0 + q]
+            for row in range(2):
+                for i in range(3):
+                    G[q, row, i] = M[k, row, 0] * Vi[0, i] + M[k, row, 1] * Vi[1, i] + M[k, row, 2] * Vi[2, i]
+        for q1 in range(m):
+            ka = order[k0 + q1]
+            c1 = oc[ka]
+            for row1 in range(2):
+                gg = G[q1, row1, 0] * g_p[p, 0] + G[q1, row1, 1] * g_p[p, 1] + G[q1, row1, 2] * g_p[p, 2]
+                for j1 in range(4):
+                    col1 = cam_col[c1, row1 * 4 + j1]
+                    if col1 >= 0:
+                        rhs[col1] += w[ka] * h[ka, j1] * gg
+                for q2 in range(m):
+                    kb = order[k0 + q2]
+                    c2 = oc[kb]
+                    for row2 in range(2):
+                        a = (G[q1, row1, 0] * M[kb, row2, 0] + G[q1, row1, 1] * M[kb, row2, 1]
+                             + G[q1, row1, 2] * M[kb, row2, 2]) * w[ka] * w[kb]
+                        for j1 in range(4):
+                            col1 = cam_col[c1, row1 * 4 + j1]
+                            if col1 < 0:
+                                continue
+                            ah = a * h[ka, j1]
+                            for j2 in range(4):
+                                col2 = cam_col[c2, row2 * 4 + j2]
+                                if col2 >= 0:
+                                    S[col1, col2] -= ah * h[kb, j2]
+    return S, rhs, Vinv
+
+
+@njit(**_JIT)
+def back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start):
+    """Point steps dp_p = -V_p'^-1 (g_p + W_p^T dc)."""
+    npt = g_p.shape[0]
+    dp = np.empty((npt, 3))
+    b = np.empty(3)
+    for p in range(npt):
+        for i in range(3):
+            b[i] = g_p[p, i]
+        for q in range(start[p], start[p + 1]):
+            k = order[q]
+            c = oc[k]
+            for row in range(2):
+                for j in range(4):
+                    col = cam_col[c, row * 4 + j]
+                    if col < 0:
+                        continue
+                    whd = w[k] * h[k, j] * dc[col]
+                    for i in range(3):
+                        b[i] += whd * M[k, row, i]
+        for i in range(3):
+            dp[p, i] = -(Vinv[p, i, 0] * b[0] + Vinv[p, i, 1] * b[1] + Vinv[p, i, 2] * b[2])
+    return dp
