@@ -51,7 +51,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     if not groups:
         raise ReconstructionError("no upgraded group has a cloud")
     samples = {g: apply_affine_3d(Hs[g], sources[g].sample(c.icp_sample_points)) for g in groups}
-    Ts, fusion = align_groups(samples, c)
+    Ts, fusion = align_groups(samples, c, reference=max(groups, key=lambda g: len(sources[g])))
     epsg = output_epsg(site.hints, frame)
     res = float(c.resolution_m or site.hints.get("resolution_m") or max(0.5, round(gsd * 2) / 2))
     extent = np.concatenate([apply_affine_3d(Ts[g], samples[g]) for g in groups])

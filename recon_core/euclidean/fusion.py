@@ -145,9 +145,10 @@ def rigid_summary(T: np.ndarray) -> dict[str, float]:
             "translation_m": float(np.linalg.norm(T[:3, 3]))}
 
 
-def align_groups(clouds: dict[int, np.ndarray], cfg: DsmConfig
+def align_groups(clouds: dict[int, np.ndarray], cfg: DsmConfig, reference: int | None = None
                  ) -> tuple[dict[int, np.ndarray], dict[str, Any]]:
-    """Rigid ICP of every upgraded group onto the largest one (the reference).
+    """Rigid ICP of every upgraded group onto a reference group (default: the largest cloud
+    given; callers that pass samples name the group with the largest full cloud).
 
     A group whose ICP fitness is below cfg.icp_min_fitness (too little overlap), or whose ICP
     fails, keeps its GCP-based position (the identity) and the report says why.
@@ -162,7 +163,9 @@ def align_groups(clouds: dict[int, np.ndarray], cfg: DsmConfig
     groups = [g for g in sorted(clouds) if len(clouds[g])]
     if not groups:
         raise ReconstructionError("no upgraded group has a cloud")
-    ref = max(groups, key=lambda g: len(clouds[g]))
+    ref = max(groups, key=lambda g: len(clouds[g])) if reference is None else reference
+    if ref not in groups:
+        raise ValueError(f"reference group {ref} has no cloud")
     Ts = {g: np.eye(4) for g in groups}
     report: dict[str, Any] = {"reference_group": ref, "icp": {}}
     for g in groups:

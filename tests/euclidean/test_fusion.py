@@ -83,3 +83,10 @@ def test_align_groups_refines_onto_the_largest_and_keeps_what_it_cannot_align():
     # the threshold is the configuration's
     Ts, report = align_groups({0: moved, 1: ref}, DsmConfig(icp_min_fitness=1.01))
     assert not report["icp"]["0"]["applied"] and np.array_equal(Ts[0], np.eye(4))
+
+
+def test_the_named_reference_wins_over_sample_sizes():
+    rng = np.random.default_rng(4)
+    a, b = city(rng, spacing=1.0), city(rng, spacing=1.0)
+    Ts, report = align_groups({0: a[::2], 1: b}, DsmConfig(), reference=0)
+    assert report["reference_group"] == 0 and np.array_equal(Ts[0], np.eye(4))
