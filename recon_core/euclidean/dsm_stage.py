@@ -38,13 +38,20 @@ def output_grid(site: Site, xyh: np.ndarray, epsg: int, res: float) -> Grid:
 
 
 def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: LocalFrame, gsd: float,
-             cfg: Config, out: OutLayout, bus: EventBus | None = None) -> dict:
-    """Write cloud.ply (Euclidean, output CRS) and dsm.tif; return the summary.
+             cfg: Config, out: OutLayout, bus: EventBus | None = None,
+             quality: dict[int, float] | None = None) -> dict:
+    """Write cloud.ply (Euclidean, output CRS), dsm.tif and, with several groups, each group's
+    own DSM; return the summary.
 
     Streams: ICP and the grid extent use evenly spread samples; then each group's cloud is read
     by chunks (upgrade, ICP refinement, conversion to the output CRS), appended to cloud.ply and
-    filed into the DSM accumulator, which reduces one block of grid rows at a time; memory does
-    not grow with the number of points.
+    filed into that group's DSM accumulator, which reduces one block of grid rows at a time;
+    memory does not grow with the number of points.
+
+    Fusion of several groups (`fuse_groups`): each cell takes the value of the best group that
+    has one, groups ranked by `quality` (their check points' vertical RMSE, lower is better;
+    groups without a figure come after, larger clouds first), so the fused DSM is the best
+    group's wherever that group sees the ground and the others only fill its holes.
     """
     c = cfg.dsm
     groups = [g for g in sorted(Hs) if g in sources and len(sources[g])]
@@ -57,7 +64,8 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     extent = np.concatenate([apply_affine_3d(Ts[g], samples[g]) for g in groups])
     grid = output_grid(site, enu_to_output(extent, frame, epsg), epsg, res)
     total = sum(len(sources[g]) for g in groups)
-    acc = DsmAccumulator(grid, stat=c.stat, spill_dir=out.root if total > c.spill_above_points else None)
+    spill = out.root if total > c.spill_above_points else None
+    accs = {g: DsmAccumulator(grid, stat=c.stat, spill_dir=spill) for g in groups}
     done = 0
     try:
         with PlyWriter(out.cloud) as w:
@@ -66,22 +74,63 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
                 for a in range(0, len(src), c.chunk_points):
                     xyz, gray = src.read(a, min(a + c.chunk_points, len(src)))
                     xyh = enu_to_output(apply_affine_3d(Ts[g], apply_affine_3d(Hs[g], xyz)), frame, epsg)
-                    acc.add(xyh)
+                    accs[g].add(xyh)
                     w.append(xyh, gray[:, None])
                     done += len(xyz)
                     if bus is not None:
                         bus.progress("dsm", done, total, f"group {g}")
-        H, count = acc.finish()
+        in_grid = sum(a.n_points for a in accs.values())
+        per_group = {}
+        for g in groups:
+            per_group[g] = accs[g].finish()[0]
+            accs[g].close()
     finally:
-        acc.close()
+        for acc in accs.values():
+            acc.close()
+    order = rank_groups(groups, quality or {}, {g: len(sources[g]) for g in groups})
+    H, source = fuse_groups([per_group[g] for g in order])
     raw_valid = float(np.isfinite(H).mean())
     if c.fill_holes_px > 0:
         H = fill_small_holes(H, max_hole_px=c.fill_holes_px)
     write_dsm(out.dsm, H, grid)
+    groups_report = {}
+    if len(groups) > 1:
+        for k, g in enumerate(order):
+            Hg = fill_small_holes(per_group[g], max_hole_px=c.fill_holes_px) if c.fill_holes_px > 0 else per_group[g]
+            write_dsm(out.group_dsm(g), Hg, grid)
+            groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),
+                                     "points": int(len(sources[g])),
+                                     "valid_fraction_raw": float(np.isfinite(per_group[g]).mean()),
+                                     "fused_cells_from_it": float((source == k).mean())}
+    else:
+        out.group_dsm(groups[0]).unlink(missing_ok=True)
     return {"crs_epsg": epsg, "resolution_m": res, "width": grid.width, "height": grid.height,
-            "points": int(total), "points_in_grid": int(count.sum()), "valid_fraction_raw": raw_valid,
+            "points": int(total), "points_in_grid": int(in_grid), "valid_fraction_raw": raw_valid,
             "valid_fraction": float(np.isfinite(H).mean()), "stat": c.stat, "fusion": fusion,
-            "gsd_m": gsd}
+            "fusion_rule": "per cell, the best-ranked group with a value (ranked by check-point "
+                           "vertical RMSE)" if len(groups) > 1 else "one group",
+            "group_order": order, "groups": groups_report, "gsd_m": gsd}
+
+
+def rank_groups(groups: list[int], quality: dict[int, float], size: dict[int, int]) -> list[int]:
+    """Best first: lower quality figure (check-point vertical RMSE) first; groups without one
+    after them; ties and the rest by cloud size, largest first."""
+    def key(g):
+        q = quality.get(g)
+        return (0, float(q), -size[g]) if q is not None and np.isfinite(q) else (1, 0.0, -size[g])
+    return sorted(groups, key=key)
+
+
+def fuse_groups(dsms: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Per cell, the first DSM (in the given order) with a value. Returns (H, index of the DSM
+    each cell came from, -1 where none has one)."""
+    H = np.full(dsms[0].shape, np.nan, np.float32)
+    source = np.full(dsms[0].shape, -1, np.int16)
+    for k, D in enumerate(dsms):
+        take = np.isnan(H) & np.isfinite(D)
+        H[take] = D[take]
+        source[take] = k
+    return H, source
 
 
 def point_sources(state, bus: EventBus) -> dict[int, PointSource]:
@@ -100,13 +149,29 @@ def point_sources(state, bus: EventBus) -> dict[int, PointSource]:
     return sources
 
 
+def group_quality(upgrade_report: dict) -> dict[int, float]:
+    """Each upgraded group's check-point vertical RMSE (leave-one-out when it has no check
+    point), from the upgrade stage's report; groups with neither are left out."""
+    out = {}
+    for g, r in (upgrade_report.get("groups") or {}).items():
+        st = r.get("stats") or {}
+        for name in ("check", "loo"):
+            v = (st.get(name) or {}).get("rmse_U_m")
+            if (st.get(name) or {}).get("n") and v is not None and np.isfinite(v):
+                out[int(g)] = float(v)
+                break
+    return out
+
+
 def run(state, bus: EventBus) -> dict:
     if state.upgrade is None:
         raise ReconstructionError("the DSM needs the upgrade stage")
     Hs, frame = state.upgrade
-    ups = state.report.get("stages", {}).get("upgrade", {}).get("groups", {})
+    up = state.report.get("stages", {}).get("upgrade", {})
+    ups = up.get("groups", {})
     gsd = min((v["gsd_m"] for v in ups.values() if "gsd_m" in v), default=0.5)
-    return make_dsm(state.site, point_sources(state, bus), Hs, frame, gsd, state.cfg, state.layout, bus)
+    return make_dsm(state.site, point_sources(state, bus), Hs, frame, gsd, state.cfg, state.layout, bus,
+                    quality=group_quality(up))
 
 
 def load(state) -> None:

@@ -12,6 +12,15 @@ def run(state, bus: EventBus) -> dict:
     lay = state.layout
     res = evaluate_dsm(lay.dsm, state.site.gt_dsm, lay.eval_dir)
     a, u = res["aligned"], res["unaligned"]
+    groups = {}
+    for g in lay.group_dsms():             # each date group's own DSM, scored the same way
+        r = evaluate_dsm(lay.group_dsm(g), state.site.gt_dsm, None)
+        groups[str(g)] = {k: {m: r[k][m] for m in ("median_abs_err_m", "completeness_pct", "nmad_m")
+                              if m in r[k]} for k in ("aligned", "unaligned")}
+        bus.message(f"group {g} alone vs GT: median |error| {r['aligned']['median_abs_err_m']:.3f} m, "
+                    f"completeness {r['aligned']['completeness_pct']:.1f} % (aligned)")
+    if groups:
+        res["groups"] = groups
     bus.message(f"DSM vs GT: median |error| {a['median_abs_err_m']:.3f} m, completeness "
                 f"{a['completeness_pct']:.1f} % (aligned); unaligned {u['median_abs_err_m']:.3f} m, "
                 f"{u['completeness_pct']:.1f} %")

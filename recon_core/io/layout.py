@@ -11,7 +11,8 @@
       upgrade/group_<k>.json           H_A of group k and its GCP report
       upgrade/frame.json               the local ENU frame shared by all groups
       cloud.ply                        the Euclidean cloud (output CRS, ellipsoidal h)
-      dsm.tif                          the DSM
+      dsm.tif                          the DSM (date groups fused)
+      dsm_groups/group_<k>.tif         each date group's own DSM, when there are several
       eval/                            eval.json, height_error.tif/.png, dsm_vs_gt.png
 """
 
@@ -82,6 +83,13 @@ class OutLayout:
     @property
     def dsm(self) -> Path:
         return self.root / "dsm.tif"
+
+    def group_dsm(self, g: int) -> Path:
+        """The DSM of one date group alone (written when there are several)."""
+        return self.root / "dsm_groups" / f"group_{g}.tif"
+
+    def group_dsms(self) -> list[int]:
+        return _indices(self.root / "dsm_groups", r"group_(\d+)\.tif", lambda p: p.is_file())
 
     @property
     def eval_dir(self) -> Path:

@@ -1,0 +1,60 @@
+"""Fusing date groups into one DSM: the best-checked group wins each cell it sees, the others
+fill its holes; each group's own DSM and scores are kept."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from recon_core.euclidean.dsm_stage import fuse_groups, group_quality, rank_groups
+from recon_core.io.layout import OutLayout
+from recon_core.io.raster import read_dsm
+
+
+def test_rank_and_fuse():
+    assert rank_groups([0, 1, 2], {0: 0.8, 2: 0.3}, {0: 10, 1: 99, 2: 5}) == [2, 0, 1]
+    assert rank_groups([0, 1], {}, {0: 10, 1: 99}) == [1, 0]
+    a = np.array([[1.0, np.nan], [np.nan, np.nan]])
+    b = np.array([[5.0, 2.0], [np.nan, 3.0]])
+    H, src = fuse_groups([a, b])
+    np.testing.assert_array_equal(H, [[1.0, 2.0], [np.nan, 3.0]])
+    np.testing.assert_array_equal(src, [[0, 1], [-1, 1]])
+    up = {"groups": {"0": {"stats": {"check": {"n": 3, "rmse_U_m": 0.9}}},
+                     "1": {"stats": {"check": {"n": 0}, "loo": {"n": 5, "rmse_U_m": 0.4}}},
+                     "2": {"error": "group 2: too few control GCPs"}}}
+    assert group_quality(up) == {0: 0.9, 1: 0.4}
+
+
+@pytest.fixture(scope="module")
+def tiny2_run(tmp_path_factory):
+    from recon_core.pipeline import run
+    from recon_core.synthetic.generator import generate_site
+
+    root = tmp_path_factory.mktemp("tiny2")
+    generate_site(root / "site", preset="tiny2", seed=0)
+    return run(root / "site", root / "out", resume=False)
+
+
+def test_two_groups_fused_by_quality_with_their_own_dsms_and_scores(tiny2_run):
+    state = tiny2_run
+    lay = state.layout
+    rep = json.loads(lay.report.read_text())["stages"]
+    d = rep["dsm"]
+    assert set(d["groups"]) == {"0", "1"} and lay.group_dsms() == [0, 1]
+    q = {int(g): v["quality_check_rmse_U_m"] for g, v in d["groups"].items()}
+    assert d["group_order"] == sorted(q, key=q.get)                        # best checked first
+    best = d["group_order"][0]
+    H, grid = read_dsm(lay.dsm)
+    Hb, grid_b = read_dsm(lay.group_dsm(best))
+    assert grid == grid_b
+    # every cell the best group saw is its own value in the fused DSM (hole filling, done on
+    # each DSM separately, only touches cells without a value)
+    from_best = d["groups"][str(best)]["fused_cells_from_it"]
+    assert from_best > 0.3 and np.sum(H == Hb) >= np.floor(from_best * H.size)
+    assert np.isfinite(H).mean() > np.isfinite(Hb).mean()  # and the others fill its holes
+    ev = rep["eval"]
+    assert set(ev["groups"]) == {"0", "1"}
+    best_alone = ev["groups"][str(best)]["aligned"]
+    assert ev["aligned"]["completeness_pct"] > best_alone["completeness_pct"]
