@@ -93,6 +93,7 @@ class IncrementalSfM:
                              (gray / np.maximum(cnt, 1)).astype(np.uint8))
         self._ba_at = 0
         self._sent_points = np.zeros(tracks.n_tracks, bool)
+        self._regularised = {"toward_a_tile_of_its_image": 0, "toward_its_image_camera": 0}
 
     # -- initial pair -------------------------------------------------------------------------
     def choose_initial_pair(self) -> tuple[int, int, dict]:
@@ -194,6 +195,7 @@ class IncrementalSfM:
                    "rms_reproj_px": float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan"),
                    "unregistered": [m.tiles[t].id for t in np.flatnonzero(~m.registered)],
                    "unregistered_reasons": reasons,
+                   "flat_tiles_regularised": dict(self._regularised),
                    "seconds": time.time() - t0}
         return m
 
@@ -226,14 +228,15 @@ class IncrementalSfM:
         if cond < self.cfg.min_points_conditioning:
             # nearly coplanar points fix 6 of the 8 parameters: the response to height comes
             # from the image's other tiles, or from all of the image's correspondences
-            prior = self._neighbour_camera(t)
+            prior, how = self._neighbour_camera(t), "toward_a_tile_of_its_image"
             if prior is None:
-                prior = self._image_camera(m.tiles[t].image)
+                prior, how = self._image_camera(m.tiles[t].image), "toward_its_image_camera"
             if prior is None:
                 return (f"its points are nearly coplanar (conditioning {cond:.4f} < "
                         f"{self.cfg.min_points_conditioning}) and its image has no registered tile "
                         "and too flat a set of correspondences to lean on yet")
             P = _resect_regularised(X[inl], x[inl], prior, weight=1.0)
+            self._regularised[how] += 1
         m.cams[t] = P
         m.registered[t] = True
         m.register_order.append(t)

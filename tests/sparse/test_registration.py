@@ -69,6 +69,7 @@ def test_flat_tiles_of_a_new_image_are_all_registered():
     sfm, m, _ = _run()
     assert m.stats["tiles_registered"] == m.stats["tiles_total"] == 12, m.stats["unregistered_reasons"]  # 3 x (2 x 2)
     assert m.stats["unregistered_reasons"] == {}
+    assert m.stats["flat_tiles_regularised"]["toward_its_image_camera"] >= 1
     assert m.stats["rms_reproj_px"] < 0.3
     # the third image's first registered tile was a flat one (the situation this is about)
     third = [t for t in m.register_order if m.tiles[t].image == "v2.tif"]
