@@ -50,12 +50,17 @@ def truth_figures(site: Path, state) -> dict:
 
     if not (site / "truth" / "cameras.json").exists():
         return {}
+    from recon_core.evaluation.colormap import save_png
+    from recon_core.evaluation.truth import residual_map
+
     frame = frame_for(state.gcps)
     out = {}
     for g, m in state.models.items():
         r = sparse_vs_truth(site, m, frame)
+        png = state.layout.root / "bench" / f"sparse_residual_u_g{g}.png"
+        save_png(png, residual_map(r["truth"], r["residuals"][:, 2]))
         out[g] = {"sparse_affine_rms_m": r["rms_m"], "sparse_rms_xyz_m": r["rms_xyz_m"],
-                  "sparse_p95_m": r["p95_m"], "n": r["n"]}
+                  "sparse_p95_m": r["p95_m"], "n": r["n"], "bend": r["bend"], "map": png}
     return out
 
 
@@ -131,6 +136,10 @@ def main(argv=None) -> int:
         print(f"group {g} sparse vs truth (one best-fit affine map): RMS {f['sparse_affine_rms_m']:.3f} m "
               f"(E/N/U {', '.join(f'{v:.3f}' for v in f['sparse_rms_xyz_m'])}), p95 {f['sparse_p95_m']:.3f} m, "
               f"{f['n']} points")
+        b = f["bend"]
+        print(f"group {g} vertical residual over the site: RMS {b['rms_u_m']:.3f} m, of which a quadratic "
+              f"surface (dome/saddle) {b['quadratic_rms_m']:.3f} m RMS ({b['quadratic_range_m']:.2f} m "
+              f"peak to peak), the rest {b['rest_rms_m']:.3f} m; map: {f['map']}")
     if "dense" in st:
         for g, d in st["dense"]["groups"].items():
             print(f"group {g} dense: {d['pairs_matched']}/{d['tile_pairs']} tile pairs matched "

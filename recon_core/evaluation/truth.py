@@ -68,4 +68,38 @@ def affine_fit_report(X: np.ndarray, Xt: np.ndarray) -> dict:
     return {"n": int(ok.sum()), "rms_m": float(np.sqrt(np.mean(np.sum(r ** 2, 1)))),
             "rms_xyz_m": np.sqrt(np.mean(r ** 2, 0)).tolist(),
             "median_abs_u_m": float(np.median(np.abs(r[:, 2]))),
-            "p95_m": float(np.percentile(np.linalg.norm(r, axis=1), 95)), "A": A, "residuals": r}
+            "p95_m": float(np.percentile(np.linalg.norm(r, axis=1), 95)), "A": A, "residuals": r,
+            "truth": Xt[ok], "bend": bend_report(Xt[ok], r[:, 2])}
+
+
+def bend_report(Xt: np.ndarray, du: np.ndarray) -> dict:
+    """How much of the vertical residual a smooth surface over the site explains: RMS of the
+    residual, of a fitted quadratic in (E, N) (a dome or a saddle), and what remains."""
+    e, n = Xt[:, 0] - Xt[:, 0].mean(), Xt[:, 1] - Xt[:, 1].mean()
+    s = max(np.ptp(e), np.ptp(n), 1e-9)
+    e, n = e / s, n / s
+    A = np.column_stack([np.ones_like(e), e, n, e * e, e * n, n * n])
+    coef = np.linalg.lstsq(A, du, rcond=None)[0]
+    fit = A @ coef
+    return {"rms_u_m": float(np.sqrt(np.mean(du ** 2))), "quadratic_rms_m": float(np.sqrt(np.mean(fit ** 2))),
+            "rest_rms_m": float(np.sqrt(np.mean((du - fit) ** 2))),
+            "quadratic_range_m": float(np.ptp(fit))}
+
+
+def residual_map(Xt: np.ndarray, du: np.ndarray, cell_m: float = 50.0, clip_m: float = 1.0) -> np.ndarray:
+    """RGB map of the mean vertical residual per cell of cell_m over the site (north up),
+    diverging colours clipped at +-clip_m, with a colour bar; grey where no point."""
+    from recon_core.evaluation import colormap as cm
+
+    e0, n1 = Xt[:, 0].min(), Xt[:, 1].max()
+    col = ((Xt[:, 0] - e0) // cell_m).astype(int)
+    row = ((n1 - Xt[:, 1]) // cell_m).astype(int)
+    h, w = row.max() + 1, col.max() + 1
+    s = np.bincount(row * w + col, du, minlength=h * w)
+    c = np.bincount(row * w + col, minlength=h * w)
+    m = np.where(c > 0, s / np.maximum(c, 1), np.nan).reshape(h, w)
+    rgb = cm.diverging(m, clip_m)
+    rgb[~np.isfinite(m)] = 160
+    rgb = cm.resize_for_display(rgb, 300, 900)
+    bar = cm.colorbar(rgb.shape[0], -clip_m, clip_m, lambda v: cm.diverging(v, clip_m))
+    return cm.hstack([rgb, bar])
