@@ -33,6 +33,7 @@ class MatchingConfig:
     ratio: float = 0.8                # Lowe's ratio test
     mutual: bool = True               # keep only mutual nearest neighbours
     fa_thresh_px: float = 1.5         # RANSAC threshold of the affine fundamental matrix (px)
+    fa_ransac_iters: int = 500        # cap on its RANSAC samples (adaptive below it)
     min_inliers: int = 30             # a tile pair with fewer verified matches is dropped
     coarse_factor: int = 8            # downsampling of the whole-image overview match
     k_partners: int = 6               # match each image with its k best partners only
@@ -42,6 +43,10 @@ class MatchingConfig:
 @dataclass
 class SfmConfig:
     resect_thresh_px: float = 2.0     # RANSAC threshold for tile resection
+    resect_ransac_iters: int = 500    # cap on its RANSAC samples (adaptive below it)
+    image_camera_thresh_factor: float = 4.0  # one camera fitted to a whole image (the prior of a
+                                      # flat tile) departs from the pushbroom by a few pixels:
+                                      # its RANSAC threshold is this many times resect_thresh_px
     resect_min_inliers: int = 12      # a tile needs this many 2D-3D inliers to register
     max_reproj_px: float = 2.0        # triangulated points with a larger error are dropped
     min_points_conditioning: float = 0.01  # resection points flatter than this are regularised

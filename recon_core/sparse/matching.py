@@ -168,7 +168,7 @@ def verify_by_tile_pairs(fi: ImageFeatures, fj: ImageFeatures, idx_i: np.ndarray
         if len(sel) < max(8, cfg.min_inliers // 2):
             continue
         ci, cj = xi[sel] - ti.centre, xj[sel] - tj.centre
-        F, inl = affine.fa_ransac(ci, cj, thresh_px=cfg.fa_thresh_px, iters=500, rng=rng)
+        F, inl = affine.fa_ransac(ci, cj, thresh_px=cfg.fa_thresh_px, iters=cfg.fa_ransac_iters, rng=rng)
         if F is None or inl.sum() < cfg.min_inliers:
             continue
         res = affine.fa_residuals(F, ci[inl], cj[inl])

@@ -99,16 +99,17 @@ class IncrementalSfM:
     def choose_initial_pair(self) -> tuple[int, int, dict]:
         """Initial tile pair (tile indices) by the paper's rule guarded by a parallax test."""
         by_pair = []
+        n_min, par_min = self.cfg.init_min_inliers, self.cfg.init_min_parallax
         for (a, b), pm in self.pairs.items():
-            good = [s for s in pm.tile_pairs if s.n_inliers >= self.cfg.init_min_inliers and s.parallax >= self.cfg.init_min_parallax]
+            good = [s for s in pm.tile_pairs if s.n_inliers >= n_min and s.parallax >= par_min]
             if good:
                 by_pair.append((pm.n, (a, b), good))
         if not by_pair:
             best = max((s.parallax for pm in self.pairs.values() for s in pm.tile_pairs), default=0.0)
             raise ReconstructionError(
-                f"group {self.m.group}: no image pair has a tile pair with >= {self.cfg.init_min_inliers} verified "
-                f"matches and parallax (sigma3/sigma4 >= {self.cfg.init_min_parallax}; best seen {best:.2f}): the views "
-                "may not overlap, or the baseline is too small to reconstruct 3D")
+                f"group {self.m.group}: no image pair has a tile pair with >= {n_min} verified matches "
+                f"and parallax (sigma3/sigma4 >= {par_min}; best seen {best:.2f}): the views may not "
+                "overlap, or the baseline is too small to reconstruct 3D")
         by_pair.sort(key=lambda e: e[0])          # sparsest matching first = widest angle
         n, (a, b), good = by_pair[0]
         tp = max(good, key=lambda s: s.n_inliers)
@@ -220,7 +221,8 @@ class IncrementalSfM:
             return f"{len(sel)} 2D-3D correspondences (< {self.cfg.resect_min_inliers})"
         X, x = m.X[o.track[sel]], o.xy[sel]
         try:
-            P, inl = affine.resect_ransac(X, x, thresh_px=self.cfg.resect_thresh_px, iters=500,
+            P, inl = affine.resect_ransac(X, x, thresh_px=self.cfg.resect_thresh_px,
+                                          iters=self.cfg.resect_ransac_iters,
                                           rng=self.rng, min_inliers=self.cfg.resect_min_inliers)
         except ReconstructionError as exc:
             return f"no consistent camera among its {len(sel)} correspondences ({exc})"
@@ -273,7 +275,8 @@ class IncrementalSfM:
         X, x = m.X[o.track[sel]], o.xy[sel]
         try:
             # the whole image departs from one affine camera by a few pixels (pushbroom)
-            P, inl = affine.resect_ransac(X, x, thresh_px=4 * self.cfg.resect_thresh_px, iters=500,
+            thresh = self.cfg.image_camera_thresh_factor * self.cfg.resect_thresh_px
+            P, inl = affine.resect_ransac(X, x, thresh_px=thresh, iters=self.cfg.resect_ransac_iters,
                                           rng=self.rng, min_inliers=3 * self.cfg.resect_min_inliers)
         except ReconstructionError:
             return None
