@@ -73,7 +73,10 @@ class ViewerApp:
         if site is None:
             site = _site_from_report(self.out, report)
         if cfg is None:
-            cfg = config_from_dict(report["config"]) if report.get("config") else Config()
+            cfg, skipped = config_from_dict(report["config"], strict=False) if report.get("config") else (Config(), [])
+            if skipped:
+                log.warning("%s names parameters this version does not know (ignored): %s",
+                            self.out / "report.json", ", ".join(skipped))
         self.cfg = cfg
         self.site = load_site(Path(site).resolve())
         self.out.mkdir(parents=True, exist_ok=True)
@@ -136,8 +139,9 @@ class ViewerApp:
         return self
 
     def stop(self) -> None:
-        self.worker.stop(timeout=2.0)
+        self._dsm_rerun_pending = False
         self._stop.set()
+        self.worker.stop(timeout=2.0)
         self._wake.set()
         if self._thread is not None:
             self._thread.join(5.0)
@@ -726,11 +730,19 @@ class ViewerApp:
         return outcome
 
     def _start_dsm_rerun(self) -> None:
-        """Start the pending re-run from the upgrade stage once the worker is free."""
-        if self._dsm_rerun_pending and self.worker.rerun_from("upgrade"):
-            self._dsm_rerun_pending = False
+        """Start the pending re-run from the upgrade stage once the worker is free; say why
+        when it cannot be done at all."""
+        if not self._dsm_rerun_pending or self._stop.is_set():
+            return
+        why = self.worker.rerun_from("upgrade")
+        if why == "busy":
+            return                                  # tried again when the current run is done
+        self._dsm_rerun_pending = False
+        if why is None:
             self.note("recomputing the upgrade records, the DSM and the error map from the "
                       "working GCP set (as `aerec run --redo-from upgrade`)")
+        else:
+            self.note(f"the DSM is not recomputed from this upgrade: {why}", "warning")
 
     def set_frame(self, frame: str) -> None:
         if frame == "euclidean" and not self._euclid:

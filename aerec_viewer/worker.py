@@ -244,6 +244,7 @@ class ReconWorker:
         self._resume_gate = threading.Event()
         self._resume_gate.set()
         self._cancel = False
+        self._stopping = False
         self._thread: threading.Thread | None = None
         self.done = threading.Event()
 
@@ -253,17 +254,29 @@ class ReconWorker:
         self._thread.start()
         return self
 
-    def rerun_from(self, stage: str) -> bool:
+    def rerun_from(self, stage: str) -> str | None:
         """Run the pipeline again from `stage` (e.g. "upgrade" after the operator's upgrade:
-        the same code and files as `aerec run --redo-from upgrade`). Returns False, doing
-        nothing, while a run is still going, when there is no site to run on, or when the
-        worker was told to stop before that stage (`until`)."""
-        from recon_core.pipeline import STAGES
+        the same code and files as `aerec run --redo-from upgrade`). Returns None when started,
+        else why not: "busy" while a run is still going (try again when it is done), or a
+        sentence (no site, told to stop before that stage, the saved sparse model does not
+        match this configuration and would be recomputed, the viewer is stopping)."""
+        from recon_core import pipeline
+        from recon_core.config import Config
+        from recon_core.io.site import load_site
 
-        if not self.done.is_set() or self.site is None:
-            return False
-        if self.until is not None and STAGES.index(self.until) < STAGES.index(stage):
-            return False
+        if self._stopping:
+            return "the viewer is stopping"
+        if not self.done.is_set():
+            return "busy"
+        if self.site is None:
+            return "no site to run on"
+        if self.until is not None and pipeline.STAGES.index(self.until) < pipeline.STAGES.index(stage):
+            return f"this session stops after the {self.until} stage"
+        before = pipeline.STAGES[: pipeline.STAGES.index(stage)]
+        done = pipeline.finished_stages(self.out, self.cfg or Config(), load_site(self.site))
+        if "sparse" in before and "sparse" not in done:
+            return ("the saved sparse model does not match this configuration: re-running would "
+                    "recompute it (and move the affine frame); run `aerec run` on this folder first")
         if self._thread is not None:
             self._thread.join()
         self.mode, self.redo_from = "run", stage
@@ -271,7 +284,8 @@ class ReconWorker:
         self._resume_gate.set()
         self.done.clear()
         self._set_status("starting")
-        return self.start() is not None
+        self.start()
+        return None
 
     def pause(self) -> None:
         with self._lock:
@@ -292,7 +306,9 @@ class ReconWorker:
         return not self._resume_gate.is_set()
 
     def stop(self, timeout: float = 5.0) -> None:
-        """Ask the pipeline to stop at its next event and wait for the thread a little."""
+        """Ask the pipeline to stop at its next event and wait for the thread a little; no
+        re-run starts after this."""
+        self._stopping = True
         self._cancel = True
         self._resume_gate.set()
         if self._thread is not None:

@@ -5,7 +5,7 @@ Named presets (`PRESETS`) tune them for test-size and production-size inputs.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 
 
 @dataclass
@@ -154,15 +154,35 @@ class Config:
         return cfg
 
 
-def config_from_dict(d: dict) -> Config:
-    cfg = Config()
+# parameters that moved: old "section.field" -> new "section.field"
+LEGACY_KEYS = {f"dense.{k}": f"sgbm.{k}" for k in ("block_size", "p1", "p2", "uniqueness",
+                                                   "speckle_window", "speckle_range", "lr_max_diff_px")}
+# parameters that change how a stage runs, not what it computes: not part of a stage's hash
+NOT_IN_STAGE_HASH = {"dense.workers", "dense.scheduler", "dsm.chunk_points", "dsm.spill_above_points"}
+
+
+def config_from_dict(d: dict, *, strict: bool = True) -> tuple[Config, list[str]] | Config:
+    """A Config from its to_dict() form (e.g. report.json's), renamed parameters mapped to their
+    new place. strict: unknown parameters raise KeyError; otherwise they are skipped and the
+    function returns (config, the skipped keys) so the caller can say so."""
+    flat = {}
     for k, v in d.items():
-        sub = getattr(cfg, k, None)
-        if is_dataclass(sub):
-            cfg = cfg.with_overrides({f"{k}.{kk}": vv for kk, vv in v.items()})
+        if isinstance(v, dict):
+            flat.update({f"{k}.{kk}": vv for kk, vv in v.items()})
         else:
-            cfg = cfg.with_overrides({k: v})
-    return cfg
+            flat[k] = v
+    cfg, skipped = Config(), []
+    for key, v in flat.items():
+        key = LEGACY_KEYS.get(key, key)
+        if isinstance(v, list):
+            v = tuple(v)
+        try:
+            cfg = cfg.with_overrides({key: v})
+        except (KeyError, TypeError, AttributeError):
+            if strict:
+                raise KeyError(f"unknown parameter {key}") from None
+            skipped.append(key)
+    return cfg if strict else (cfg, skipped)
 
 
 PRESETS: dict[str, dict] = {

@@ -29,6 +29,8 @@ class RunState:
     cfg: Config
     groups: list[Group]
     gcps: list[GCP] = field(default_factory=list)
+    gcp_file: Path | None = None      # the GCP file the run read (the working set or the site's)
+    gcp_text: str = ""                # its content at the start of the run (the stages' hashes)
     models: dict = field(default_factory=dict)
     dense: dict = field(default_factory=dict)
     upgrade: tuple[dict, LocalFrame] | None = None

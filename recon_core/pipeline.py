@@ -13,7 +13,7 @@ import json
 import time
 from pathlib import Path
 
-from recon_core.config import Config
+from recon_core.config import NOT_IN_STAGE_HASH, Config
 from recon_core.context import RunState
 from recon_core.dense import stage as dense_stage
 from recon_core.errors import InputError
@@ -46,25 +46,30 @@ def config_hash(cfg: Config) -> str:
     return hashlib.sha1(json.dumps(cfg.to_dict(), sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
-def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None) -> str:
-    """Hash of what a stage's result depends on: its and its upstream stages' parameters, and
-    for the upgrade and later stages the GCP file's content."""
+def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None,
+               gcp_text: str | None = None) -> str:
+    """Hash of what a stage's result depends on: its and its upstream stages' parameters (less
+    those that only change how it runs: workers, chunk sizes), and for the upgrade and later
+    stages the GCP file's content (`gcp_text`, else the file the run would read now)."""
     d = cfg.to_dict()
     keys = [k for s in STAGES[: STAGES.index(stage) + 1] for k in STAGE_SECTIONS[s]]
-    blob = {k: d[k] for k in keys}
+    blob = {k: ({f: v for f, v in d[k].items() if f"{k}.{f}" not in NOT_IN_STAGE_HASH}
+                if isinstance(d[k], dict) else d[k]) for k in keys}
     if STAGES.index(stage) >= STAGES.index("upgrade"):
-        gcp_file = working_gcp_file(site.root, out) if out is not None else site.root / "gcps.geojson"
-        blob["gcps"] = gcp_file.read_text() if gcp_file.exists() else ""
+        if gcp_text is None:
+            gcp_file = working_gcp_file(site.root, out) if out is not None else site.root / "gcps.geojson"
+            gcp_text = gcp_file.read_text() if gcp_file.exists() else ""
+        blob["gcps"] = gcp_text
     return hashlib.sha1(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
-def stage_done(out: Path, stage: str, cfg: Config, site: Site) -> bool:
+def stage_done(out: Path, stage: str, cfg: Config, site: Site, gcp_text: str | None = None) -> bool:
     """Does OUT hold this stage's result for this configuration, site and GCP set?"""
     f = OutLayout(out).stage_record(stage)
     if not f.exists():
         return False
     try:
-        return json.loads(f.read_text()).get("stage_hash") == stage_hash(cfg, stage, site, out)
+        return json.loads(f.read_text()).get("stage_hash") == stage_hash(cfg, stage, site, out, gcp_text)
     except ValueError:
         return False
 
@@ -75,8 +80,9 @@ def finished_stages(out: Path, cfg: Config, site: Site) -> set[str]:
 
 
 def _mark_done(state: RunState, stage: str, summary: dict) -> None:
-    write_json(state.layout.stage_record(stage),
-               {"stage_hash": stage_hash(state.cfg, stage, state.site, state.out), "summary": summary})
+    # the GCP set as the run read it at its start, not the file as it may be now
+    h = stage_hash(state.cfg, stage, state.site, state.out, gcp_text=state.gcp_text)
+    write_json(state.layout.stage_record(stage), {"stage_hash": h, "summary": summary})
     state.report.setdefault("stages", {})[stage] = summary
     write_json(state.layout.report, state.report)
 
@@ -101,6 +107,7 @@ def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
     out.mkdir(parents=True, exist_ok=True)
     lay = OutLayout(out)
     gcp_path = working_gcp_file(site.root, out)
+    gcp_text = gcp_path.read_text() if gcp_path.exists() else ""
     gcps = site.gcps
     if gcp_path != site.root / "gcps.geojson":
         gcps = read_gcps_geojson(gcp_path, {im.name: im for im in site.images})
@@ -111,15 +118,17 @@ def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
                    "config": cfg.to_dict(), "config_hash": config_hash(cfg),
                    "groups": [{"index": g.index, "images": [im.name for im in g.images],
                                "span_days": g.span_days} for g in groups]})
-    state = RunState(site, out, cfg, groups, gcps=gcps, report=report)
+    state = RunState(site, out, cfg, groups, gcps=gcps, gcp_file=gcp_path, gcp_text=gcp_text,
+                     report=report)
     first_redo = STAGES.index(redo_from) if redo_from else len(STAGES)
     last = STAGES.index(until) if until else len(STAGES) - 1
     for k, stage in enumerate(STAGES[: last + 1]):
         module = STAGE_MODULES[stage]
-        if resume and k < first_redo and stage_done(out, stage, cfg, site):
+        if resume and k < first_redo and stage_done(out, stage, cfg, site, gcp_text):
             module.load(state)
             bus.emit(Message("info", f"{stage}: already done, reloaded from {out}"))
         else:
+            first_redo = min(first_redo, k)      # what follows a recomputed stage is recomputed
             t0 = time.time()
             summary = module.run(state, bus)
             summary["seconds"] = time.time() - t0

@@ -94,6 +94,9 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
         H = fill_small_holes(H, max_hole_px=c.fill_holes_px)
     write_dsm(out.dsm, H, grid)
     groups_report = {}
+    for g in out.group_dsms():                   # a previous run's, of groups not fused now
+        if len(groups) == 1 or g not in groups:
+            out.group_dsm(g).unlink()
     if len(groups) > 1:
         for k, g in enumerate(order):
             Hg = fill_small_holes(per_group[g], max_hole_px=c.fill_holes_px) if c.fill_holes_px > 0 else per_group[g]
@@ -102,8 +105,6 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
                                      "points": int(len(sources[g])),
                                      "valid_fraction_raw": float(np.isfinite(per_group[g]).mean()),
                                      "fused_cells_from_it": float((source == k).mean())}
-    else:
-        out.group_dsm(groups[0]).unlink(missing_ok=True)
     return {"crs_epsg": epsg, "resolution_m": res, "width": grid.width, "height": grid.height,
             "points": int(total), "points_in_grid": int(in_grid), "valid_fraction_raw": raw_valid,
             "valid_fraction": float(np.isfinite(H).mean()), "stat": c.stat, "fusion": fusion,

@@ -30,8 +30,12 @@ def voxel_downsample(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
         return xyz
     ijk = np.floor((xyz - xyz.min(axis=0)) / voxel_m).astype(np.int64)
     dims = ijk.max(axis=0) + 1
-    key = np.ravel_multi_index(ijk.T, dims)
-    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    if float(np.prod(dims.astype(np.float64))) < 2.0 ** 62:
+        _, inv, counts = np.unique(np.ravel_multi_index(ijk.T, dims), return_inverse=True,
+                                   return_counts=True)
+    else:                                    # a far outlier: index the voxels by rows instead
+        _, inv, counts = np.unique(ijk, axis=0, return_inverse=True, return_counts=True)
+        inv = inv.ravel()
     out = np.empty((len(counts), 3))
     for k in range(3):
         out[:, k] = np.bincount(inv, weights=xyz[:, k], minlength=len(counts)) / counts
@@ -185,8 +189,9 @@ def align_groups(clouds: dict[int, np.ndarray], cfg: DsmConfig, reference: int |
             continue
         ok = fit >= cfg.icp_min_fitness
         report["icp"][str(g)] = {
-            "fitness": fit, "inlier_rmse_m": rmse, "applied": ok, "translation_vector_m": T[:3, 3].tolist(),
-            "T": T.tolist(), **rigid_summary(T),
+            "fitness": fit, "inlier_rmse_m": rmse, "applied": ok, "translation_m": T[:3, 3].tolist(),
+            "T": T.tolist(), "rotation_deg": rigid_summary(T)["rotation_deg"],
+            "shift_norm_m": rigid_summary(T)["translation_m"],
             "reason": None if ok else (f"ICP fitness {fit:.2f} < {cfg.icp_min_fitness}: kept the "
                                        "GCP-based position (too little overlap?)")}
         if ok:

@@ -1,7 +1,8 @@
 """The upgrade stage: one H_A per date group, from the run's GCP set, in one local ENU frame.
 
 `upgrade_models` is the one function that upgrades: the pipeline's stage and the viewer's
-Upgrade button both call it, and both write its records with `recon_core.io.models.save_upgrade`.
+Upgrade button both call it. The records (upgrade/) are written by this stage only: the viewer
+shows its result at once, then re-runs the pipeline from this stage.
 """
 
 from __future__ import annotations
@@ -105,8 +106,9 @@ def write(up: Upgrade, out) -> None:
 
 def run(state, bus: EventBus) -> dict:
     if not state.gcps:
-        raise ReconstructionError(f"{state.site.root / 'gcps.geojson'}: no GCP; the Euclidean upgrade "
-                                  "needs >= 4 control GCPs observed in >= 2 images of each group")
+        where = state.gcp_file or state.site.root / "gcps.geojson"
+        raise ReconstructionError(f"{where}: no GCP; the Euclidean upgrade needs >= 4 control GCPs "
+                                  "observed in >= 2 images of each group")
     up = upgrade_models(state.gcps, state.models, state.cfg)
     write(up, state.layout)
     state.upgrade = (up.Hs, up.frame)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from recon_core.errors import AerecError
 from recon_core.evaluation.evaluate import evaluate_dsm
 from recon_core.events import EventBus
 
@@ -14,7 +15,12 @@ def run(state, bus: EventBus) -> dict:
     a, u = res["aligned"], res["unaligned"]
     groups = {}
     for g in lay.group_dsms():             # each date group's own DSM, scored the same way
-        r = evaluate_dsm(lay.group_dsm(g), state.site.gt_dsm, None)
+        try:
+            r = evaluate_dsm(lay.group_dsm(g), state.site.gt_dsm, None)
+        except AerecError as exc:            # e.g. a small group with too few cells on the GT
+            groups[str(g)] = {"error": str(exc)}
+            bus.message(f"group {g} alone not scored: {exc}", "warning", g)
+            continue
         groups[str(g)] = {k: {m: r[k][m] for m in ("median_abs_err_m", "completeness_pct", "nmad_m")
                               if m in r[k]} for k in ("aligned", "unaligned")}
         bus.message(f"group {g} alone vs GT: median |error| {r['aligned']['median_abs_err_m']:.3f} m, "

@@ -160,22 +160,25 @@ class IncrementalSfM:
         ref = {m.tiles[ta].image: m.tiles[ta].centre, m.tiles[tb].image: m.tiles[tb].centre}
         phase1.sort(key=lambda t: np.linalg.norm(m.tiles[t].centre - ref[m.tiles[t].image]))
         why: dict[int, str] = {}        # tile -> why its last attempt failed
-        tried_at: dict[int, int] = {}   # tile -> tiles registered at its last attempt
+        tried: dict[int, tuple[int, int]] = {}   # tile -> (its correspondences, registered tiles
+        #                                          of its image) at its last attempt
         for t in phase1:
-            self._attempt(t, why, tried_at)
-        # then by number of 2D-3D correspondences; a tile that failed is tried again whenever
-        # the model has grown since (more points, more tiles of its image to lean on)
+            self._attempt(t, why, tried)
+        # then by number of 2D-3D correspondences; a tile that failed is tried again once it
+        # has more correspondences, or once more tiles of its image are registered
         while True:
-            n_reg = int(m.registered.sum())
-            cand = [t for t in range(len(m.tiles))
-                    if not m.registered[t] and tried_at.get(t, -1) < n_reg]
+            counts = self._correspondence_counts()
+            img_reg = self._registered_per_image()
+            cand = [t for t in range(len(m.tiles)) if not m.registered[t]
+                    and (t not in tried or counts[t] > tried[t][0]
+                         or img_reg[m.tiles[t].image] > tried[t][1])]
             if not cand:
                 break
-            counts = self._correspondence_counts()[cand]
-            best = int(np.argmax(counts))
-            if counts[best] < self.cfg.resect_min_inliers:
+            c = counts[cand]
+            best = int(np.argmax(c))
+            if c[best] < self.cfg.resect_min_inliers:
                 break
-            self._attempt(cand[best], why, tried_at)
+            self._attempt(cand[best], why, tried)
         self._filter_outliers()
         self._bundle("global")
         self._filter_outliers()
@@ -205,13 +208,21 @@ class IncrementalSfM:
         o = self.m.obs
         return np.bincount(o.tile[o.valid & self.m.has_point[o.track]], minlength=len(self.m.tiles))
 
-    def _attempt(self, t: int, why: dict[int, str], tried_at: dict[int, int]) -> None:
-        tried_at[t] = int(self.m.registered.sum())
+    def _attempt(self, t: int, why: dict[int, str], tried: dict[int, tuple[int, int]]) -> None:
+        tried[t] = (int(self._correspondence_counts()[t]),
+                    self._registered_per_image()[self.m.tiles[t].image])
         reason = self._register(t)
         if reason is None:
             why.pop(t, None)
         else:
             why[t] = reason
+
+    def _registered_per_image(self) -> dict[str, int]:
+        m = self.m
+        out = {name: 0 for name in m.images}
+        for t in np.flatnonzero(m.registered):
+            out[m.tiles[t].image] += 1
+        return out
 
     def _register(self, t: int) -> str | None:
         """Register tile t; None when done, else why it could not be (it may be retried)."""

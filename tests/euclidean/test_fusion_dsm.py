@@ -58,3 +58,29 @@ def test_two_groups_fused_by_quality_with_their_own_dsms_and_scores(tiny2_run):
     assert set(ev["groups"]) == {"0", "1"}
     best_alone = ev["groups"][str(best)]["aligned"]
     assert ev["aligned"]["completeness_pct"] > best_alone["completeness_pct"]
+
+
+def test_the_icp_reference_is_the_largest_full_cloud_not_the_largest_sample(tmp_path):
+    """make_dsm samples clouds for ICP; the reference must still be the group with the most
+    points (a regression: 210 points give 70 samples, 200 points give 100)."""
+    from types import SimpleNamespace
+
+    from recon_core.config import Config
+    from recon_core.euclidean.dsm_stage import make_dsm
+    from recon_core.geometry.geodesy import LocalFrame
+    from recon_core.io.models import PointSource
+
+    rng = np.random.default_rng(0)
+
+    def cloud(n):
+        xy = rng.uniform(-50, 50, (n, 2))
+        return np.column_stack([xy, 0.1 * xy[:, 0] + rng.normal(0, 0.05, n)])
+
+    sources = {0: PointSource(cloud(210), np.full(210, 100, np.uint8)),
+               1: PointSource(cloud(200), np.full(200, 100, np.uint8))}
+    cfg = Config().with_overrides({"dsm.icp_sample_points": 100})
+    site = SimpleNamespace(hints={}, root=tmp_path)
+    rep = make_dsm(site, sources, {0: np.eye(4), 1: np.eye(4)}, LocalFrame(30.0, 31.2, 0.0), 0.5, cfg,
+                   OutLayout(tmp_path))
+    assert rep["fusion"]["reference_group"] == 0
+    assert (tmp_path / "dsm.tif").exists() and OutLayout(tmp_path).group_dsms() == [0, 1]

@@ -502,7 +502,7 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     assert "| GCP | role | status | dE m | dN m | dU m | reproj px |" in md and "check" in md
     assert "N = 4" in md or "LOO" in md.upper() or "loo" in md
     assert not (out / "viewer_upgrade.json").exists()      # one upgrade record: the pipeline's
-    assert not app.worker.rerun_from("upgrade")            # this run stops after sparse
+    assert "stops after the sparse stage" in app.worker.rerun_from("upgrade")   # --until sparse
     app.wait_idle()
     st = app.scene._clouds[(0, "sparse")]
     assert st.transform.kind == "euclidean" and "Euclidean frame" in app.g_frame.content
@@ -669,3 +669,10 @@ def test_viewer_upgrade_equals_aerec_run_redo_from_upgrade(tiny_run, tmp_path):
     assert not np.allclose(before, rec_a["H"])                                  # the edits mattered
     assert OutLayout(a).dsm.read_bytes() == OutLayout(b).dsm.read_bytes()
     assert not (a / "viewer_upgrade.json").exists()
+    # a viewer whose configuration no longer matches the saved sparse model refuses to re-run
+    # (it would recompute the model and move the affine frame under the picked positions)
+    from recon_core.config import preset
+    w = ReconWorker(state.site.root, a, preset("tiny").with_overrides({"tiling.tile_size": 250}),
+                    mode="reopen")
+    w.done.set()
+    assert "does not match this configuration" in w.rerun_from("upgrade")
