@@ -547,19 +547,25 @@ def _crown(r2, R, depth, ellipsoid):
     return -depth * q2, -depth / (R * R)
 
 
-@njit(**_JIT)
-def _lattice_tree_allowed(cx, cy, fexist, C):
+@njit(inline="always", **_JIT)
+def _block_of(x, y, C):
+    """Street-grid coordinates of (x, y): u, v; the block indices i, j; its two bounding street
+    lines along each axis (centre, width); the block's inner edges a0 < a1 (u), b0 < b1 (v)."""
     P = C[0]
     c = P[I_COS]
     s = P[I_SIN]
-    u = c * cx + s * cy
-    v = -s * cx + c * cy
+    u = c * x + s * y
+    v = -s * x + c * y
     i, U0, w0, U1, w1 = _axis(u, C, 0)
     j, V0, z0, V1, z1 = _axis(v, C, 1)
-    a0 = U0 + 0.5 * w0
-    a1 = U1 - 0.5 * w1
-    b0 = V0 + 0.5 * z0
-    b1 = V1 - 0.5 * z1
+    return (u, v, i, j, U0, w0, U1, w1, V0, z0, V1, z1,
+            U0 + 0.5 * w0, U1 - 0.5 * w1, V0 + 0.5 * z0, V1 - 0.5 * z1)
+
+
+@njit(**_JIT)
+def _lattice_tree_allowed(cx, cy, fexist, C):
+    P = C[0]
+    u, v, i, j, U0, w0, U1, w1, V0, z0, V1, z1, a0, a1, b0, b1 = _block_of(cx, cy, C)
     de = min(min(u - a0, a1 - u), min(v - b0, b1 - v))
     if de < P[I_SW] + 1.0:
         return False                      # roads, sidewalks (street trees are separate)
@@ -745,14 +751,7 @@ def scene_eval(x, y, C, full):
     salt = C[7]
     c = P[I_COS]
     s = P[I_SIN]
-    u = c * x + s * y
-    v = -s * x + c * y
-    i, U0, w0, U1, w1 = _axis(u, C, 0)
-    j, V0, z0, V1, z1 = _axis(v, C, 1)
-    a0 = U0 + 0.5 * w0
-    a1 = U1 - 0.5 * w1
-    b0 = V0 + 0.5 * z0
-    b1 = V1 - 0.5 * z1
+    u, v, i, j, U0, w0, U1, w1, V0, z0, V1, z1, a0, a1, b0, b1 = _block_of(x, y, C)
     sw = P[I_SW]
     in_su = u < a0 or u > a1
     in_sv = v < b0 or v > b1
