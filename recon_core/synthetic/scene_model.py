@@ -1080,6 +1080,24 @@ def _march(tx, ty, tz, bx, by, bz, C, grid, gx0, gy0, cs, step):
     return 0, bx, by, bz
 
 
+@njit(inline="always", **_JIT)
+def _bisect(s_lo, f_lo, s_hi, f_hi, tx, ty, tz, dx, dy, dz, scale, tol, C):
+    """Halve the bracket [s_lo, s_hi] of the ray's crossing of the surface (f = ray height - H,
+    f_lo > 0 >= f_hi) until it is shorter than tol (in metres along the ray)."""
+    for _ in range(60):
+        if (s_hi - s_lo) * scale <= tol:
+            break
+        s_m = 0.5 * (s_lo + s_hi)
+        f_m = (tz + dz * s_m) - _H(tx + dx * s_m, ty + dy * s_m, C)
+        if f_m <= 0.0:
+            s_hi = s_m
+            f_hi = f_m
+        else:
+            s_lo = s_m
+            f_lo = f_m
+    return s_lo, f_lo, s_hi, f_hi
+
+
 @njit(**_JIT)
 def _refine(s_lo, f_lo, s_hi, f_hi, tx, ty, tz, dx, dy, dz, L, C):
     """Refine the bracket [s_lo (above), s_hi (below)].
@@ -1100,31 +1118,13 @@ def _refine(s_lo, f_lo, s_hi, f_hi, tx, ty, tz, dx, dy, dz, L, C):
         else:
             s_lo = s_m
             f_lo = f_m
-    for _ in range(60):
-        if (s_hi - s_lo) * scale <= COARSE_TOL:
-            break
-        s_m = 0.5 * (s_lo + s_hi)
-        f_m = (tz + dz * s_m) - _H(tx + dx * s_m, ty + dy * s_m, C)
-        if f_m <= 0.0:
-            s_hi = s_m
-            f_hi = f_m
-        else:
-            s_lo = s_m
-            f_lo = f_m
+    s_lo, f_lo, s_hi, f_hi = _bisect(s_lo, f_lo, s_hi, f_hi, tx, ty, tz, dx, dy, dz, scale,
+                                      COARSE_TOL, C)
     # jump of H across the bracket (the ray height changes by dz (s_hi - s_lo) only)
     jump = (f_lo - f_hi) + dz * (s_hi - s_lo)
     if jump > WALL_JUMP:
-        for _ in range(60):
-            if (s_hi - s_lo) * scale <= TOL:
-                break
-            s_m = 0.5 * (s_lo + s_hi)
-            f_m = (tz + dz * s_m) - _H(tx + dx * s_m, ty + dy * s_m, C)
-            if f_m <= 0.0:
-                s_hi = s_m
-                f_hi = f_m
-            else:
-                s_lo = s_m
-                f_lo = f_m
+        s_lo, f_lo, s_hi, f_hi = _bisect(s_lo, f_lo, s_hi, f_hi, tx, ty, tz, dx, dy, dz, scale,
+                                          TOL, C)
         if (f_lo - f_hi) + dz * (s_hi - s_lo) > WALL_JUMP:
             return 2, tx + dx * s_hi, ty + dy * s_hi, tz + dz * s_hi
     den = f_lo - f_hi
