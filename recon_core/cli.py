@@ -25,8 +25,8 @@ class ProgressPrinter:
             stage, done, total, message = ev.stage, ev.done, ev.total, ev.message
             if ev.group is not None:
                 stage = f"{stage} [g{ev.group}]"
-        elif isinstance(stage, Message):
-            if self.enabled and stage.level != "debug":
+        elif isinstance(stage, Message):       # warnings and errors even with --quiet
+            if stage.level in ("warning", "error") or (self.enabled and stage.level != "debug"):
                 self._write(f"{stage.level}: {stage.text}")
             return
         elif isinstance(stage, StageDone):
@@ -93,10 +93,22 @@ def cmd_info(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from recon_core.config import preset
-    from recon_core.events import EventBus
-    from recon_core.pipeline import run
+    from recon_core.config import PRESETS, preset
+    from recon_core.errors import InputError
+    from recon_core.events import EventBus, Message
+    from recon_core.pipeline import preflight, run
 
+    if args.preset not in PRESETS:
+        raise InputError(None, f"unknown --preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}")
+    if args.tile_size is not None and args.tile_size < 64:
+        raise InputError(None, f"--tile-size must be at least 64 px, not {args.tile_size}")
+    if args.workers is not None and args.workers < 1:
+        raise InputError(None, f"--workers must be at least 1, not {args.workers}")
+    if args.scheduler:
+        try:
+            import distributed  # noqa: F401
+        except ImportError:
+            raise InputError(None, "--scheduler needs dask.distributed: pip install 'aerec[dask]'") from None
     cfg = preset(args.preset)
     overrides = {}
     if args.tile_size:
@@ -109,6 +121,8 @@ def cmd_run(args) -> int:
         overrides["dense.workers"] = args.workers
     cfg = cfg.with_overrides(overrides)
     prog = ProgressPrinter(not args.quiet)
+    for w in preflight(args.site, args.out, cfg, until=args.stage, redo_from=args.redo_from):
+        prog(Message("warning", w))
     t0 = time.time()
     try:
         state = run(args.site, args.out, cfg, until=args.stage, bus=EventBus(prog), resume=not args.restart,
@@ -121,10 +135,10 @@ def cmd_run(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    """`aerec eval DSM GT [--out DIR] [--max-shift M]`: its own parser lives in evaluate.main."""
-    from recon_core.evaluation.evaluate import main as eval_main
+    """`aerec eval DSM GT [--out DIR] [--max-shift M] [--step M]`."""
+    from recon_core.evaluation.evaluate import run_cli
 
-    return eval_main(args.rest)
+    return run_cli(args)
 
 
 def print_summary(report: dict) -> None:
@@ -139,9 +153,19 @@ def print_summary(report: dict) -> None:
               + ", ".join(f"{k} {v:.1f} s" for k, v in t.items()))
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("aerec")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="aerec", description="AE-Rec: affine-to-Euclidean 3D "
                                 "reconstruction from optical satellite images with 4 GCPs.")
+    p.add_argument("--version", action="version", version=f"aerec {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("info", help="describe a site: images, dates, groups, GCPs, RPC/GT presence")
@@ -166,8 +190,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=cmd_run)
     s = sub.add_parser("eval", help="score a DSM against a ground-truth (or reference) DSM",
-                       add_help=False)
-    s.add_argument("rest", nargs=argparse.REMAINDER)
+                       description="Evaluate a DSM against a ground-truth DSM (align3d-style "
+                                   "alignment and metrics).")
+    from recon_core.evaluation.evaluate import add_arguments
+
+    add_arguments(s)
     s.set_defaults(func=cmd_eval)
 
     _add_plugin_commands(sub)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from pathlib import Path
 
@@ -77,6 +78,52 @@ def stage_done(out: Path, stage: str, cfg: Config, site: Site, gcp_text: str | N
 def finished_stages(out: Path, cfg: Config, site: Site) -> set[str]:
     """The stages a run with this configuration would reload rather than recompute."""
     return {s for s in STAGES if stage_done(out, s, cfg, site)}
+
+
+def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | None = None,
+              redo_from: str | None = None) -> list[str]:
+    """What can be checked before any compute, for a run that should reach `until`: the site
+    (load_site validates images, times, GCP file, site.json), the stage names, the output
+    folder (creatable and writable), and, when the run goes as far as the upgrade, GCPs: at
+    least one date group must have >= 4 control GCPs observed in >= 2 of its images (or picked
+    on its cloud). Raises InputError; returns warnings (a group that will not be upgraded)."""
+    for name in (until, redo_from):
+        if name is not None and name not in STAGES:
+            raise InputError(None, f"unknown stage {name!r}; stages are {', '.join(STAGES)}")
+    site = load_site(site_path)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "output path exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".aerec_write_test_{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise InputError(out, f"cannot write the output folder ({exc.strerror or exc})") from None
+    if STAGES.index(until or STAGES[-1]) < STAGES.index("upgrade"):
+        return []
+    gcp_path = working_gcp_file(site.root, out)
+    gcps = site.gcps if gcp_path == site.root / "gcps.geojson" else read_gcps_geojson(
+        gcp_path, {im.name: im for im in site.images})
+    if not gcps:
+        raise InputError(gcp_path, "no GCP: the Euclidean upgrade needs >= 4 control GCPs observed "
+                                   "in >= 2 images of each date group (stop before it with --stage dense)")
+    groups = group_by_date(site.images, cfg.grouping.max_gap_days, cfg.grouping.max_span_days)
+    warnings, ok = [], []
+    for g in groups:
+        names = {im.name for im in g.images}
+        n = sum(1 for p in gcps if p.role == "control"
+                and (sum(1 for im in p.observations if im in names) >= 2 or g.index in p.affine_picked))
+        if n >= 4:
+            ok.append(g.index)
+        else:
+            warnings.append(f"group {g.index} ({', '.join(sorted(names))}): {n} control GCP(s) observed "
+                            "in >= 2 of its images, 4 needed: it will not be upgraded")
+    if not ok:
+        raise InputError(gcp_path, "no date group has 4 control GCPs observed in >= 2 of its images: "
+                                   + "; ".join(warnings) + " (stop before the upgrade with --stage dense)")
+    return warnings
 
 
 def _mark_done(state: RunState, stage: str, summary: dict) -> None:

@@ -435,25 +435,38 @@ def format_table(r: dict) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """`aerec eval DSM GT [--out DIR] [--max-shift M] [--step M]`."""
-    p = argparse.ArgumentParser(prog="aerec eval", description="Evaluate a DSM against a "
-                                "ground-truth DSM (align3d-style alignment and metrics).")
-    p.add_argument("dsm")
-    p.add_argument("gt")
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The arguments of `aerec eval` (also `python -m recon_core.evaluation.evaluate`)."""
+    p.add_argument("dsm", help="the DSM to score (GeoTIFF, projected CRS)")
+    p.add_argument("gt", help="the ground-truth (or reference) DSM (GeoTIFF, projected CRS)")
     p.add_argument("--out", default=None, help="folder for eval.json, error maps and PNGs")
     p.add_argument("--max-shift", type=float, default=10.0, help="horizontal search, +- metres")
     p.add_argument("--step", type=float, default=None, help="search step (default: one GT cell)")
-    a = p.parse_args(argv)
-    try:
-        r = evaluate_dsm(a.dsm, a.gt, a.out, max_shift_m=a.max_shift, step_m=a.step)
-    except AerecError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+
+
+def run_cli(a) -> int:
+    """Evaluate and print the table; bad input raises InputError (one line, exit 2 upstream)."""
+    if a.out is not None and Path(a.out).exists() and not Path(a.out).is_dir():
+        raise InputError(a.out, "--out must be a folder (it exists and is a file)")
+    if a.max_shift < 0 or (a.step is not None and a.step <= 0):
+        raise InputError(None, "--max-shift must be >= 0 and --step > 0")
+    r = evaluate_dsm(a.dsm, a.gt, a.out, max_shift_m=a.max_shift, step_m=a.step)
     print(format_table(r))
     if a.out:
         print(f"wrote {a.out}/eval.json, height_error.tif, height_error.png, dsm_vs_gt.png")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m recon_core.evaluation.evaluate DSM GT [--out DIR] [--max-shift M] [--step M]`."""
+    p = argparse.ArgumentParser(prog="aerec eval", description="Evaluate a DSM against a "
+                                "ground-truth DSM (align3d-style alignment and metrics).")
+    add_arguments(p)
+    try:
+        return run_cli(p.parse_args(argv))
+    except AerecError as e:
+        print(f"aerec eval: error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

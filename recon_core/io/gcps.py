@@ -50,14 +50,21 @@ def _finite_number(v) -> bool:
 
 def read_gcps_geojson(path: Path, images: dict[str, ImageInfo] | None = None) -> list[GCP]:
     """Read GCPs; coordinates converted to geodetic (lon, lat, h). Validates observations."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "is not a file" if path.exists() else "does not exist")
     try:
-        doc = json.loads(Path(path).read_text())
-    except ValueError as exc:
+        doc = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
         raise InputError(path, f"malformed GeoJSON ({exc})") from None
     if not isinstance(doc, dict) or doc.get("type") != "FeatureCollection" \
             or not isinstance(doc.get("features"), list):
         raise InputError(path, "malformed GeoJSON: expected a FeatureCollection with a features list")
     epsg = doc.get("crs_epsg")
+    if epsg is not None:
+        from recon_core.io.site import projected_epsg
+
+        epsg = projected_epsg(epsg, path, "crs_epsg")
     gcps: list[GCP] = []
     for k, feat in enumerate(doc["features"]):
         gcps.append(_parse_feature(path, k, feat, epsg, images))
@@ -72,6 +79,8 @@ def _parse_feature(path: Path, k: int, feat, epsg, images) -> GCP:
     where = f"feature {k}"
     try:
         geom, props = feat["geometry"], feat.get("properties") or {}
+        if not isinstance(props, dict):
+            raise InputError(path, f"{where}: properties must be a JSON object, not {type(props).__name__}")
         if geom.get("type") != "Point":
             raise InputError(path, f"{where}: geometry must be a Point")
         coords = geom["coordinates"]
@@ -106,6 +115,8 @@ def _parse_feature(path: Path, k: int, feat, epsg, images) -> GCP:
                                        f"({im.width} x {im.height} px)")
         obs[name] = (float(xy[0]), float(xy[1]))
     sigma = props.get("sigma_m")
+    if sigma is not None and not (_finite_number(sigma) and sigma > 0):
+        raise InputError(path, f"{where}: sigma_m must be a positive number of metres, not {sigma!r}")
     return GCP(id=gid, lon=lon, lat=lat, h=h, role=role,
                sigma_m=None if sigma is None else float(sigma), observations=obs,
                affine_picked=_parse_picked(path, where, props.get("affine_picked")))

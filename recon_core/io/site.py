@@ -20,7 +20,7 @@ from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 from rasterio.windows import Window
 
 from recon_core.errors import InputError
-from recon_core.io.gcps import GCP, read_gcps_geojson
+from recon_core.io.gcps import GCP, _finite_number, read_gcps_geojson
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".TIF", ".TIFF")
 
@@ -162,25 +162,81 @@ def load_site(root: str | Path, *, require_times: bool = True, read_gcps: bool =
     if read_gcps and (root / "gcps.geojson").exists():
         gcps = read_gcps_geojson(root / "gcps.geojson", {im.name: im for im in images})
     gt = root / "gt_dsm.tif"
-    return Site(root=root, images=images, gcps=gcps, gt_dsm=gt if gt.exists() else None, hints=hints)
+    site = Site(root=root, images=images, gcps=gcps, gt_dsm=gt if gt.exists() else None, hints=hints)
+    check_bounds_hold_gcps(site)
+    return site
 
 
 def read_site_json(path: Path) -> dict:
+    """site.json's hints, validated: name (text), crs_epsg (a projected CRS pyproj knows),
+    resolution_m (a positive number), bounds ([xmin, ymin, xmax, ymax] numbers, in that CRS)."""
     if not path.exists():
         return {}
+    if not path.is_file():
+        raise InputError(path, "is not a file")
     try:
         d = json.loads(path.read_text())
     except ValueError as exc:
         raise InputError(path, f"malformed JSON ({exc})") from None
     if not isinstance(d, dict):
         raise InputError(path, "must hold a JSON object")
+    if "crs_epsg" in d:
+        d["crs_epsg"] = projected_epsg(d["crs_epsg"], path, "crs_epsg")
+    if "resolution_m" in d:
+        if not (_finite_number(d["resolution_m"]) and d["resolution_m"] > 0):
+            raise InputError(path, f"resolution_m must be a positive number of metres, not {d['resolution_m']!r}")
     if "bounds" in d:
         b = d["bounds"]
-        if not (isinstance(b, list) and len(b) == 4 and b[0] < b[2] and b[1] < b[3]):
-            raise InputError(path, "bounds must be [xmin, ymin, xmax, ymax] with xmin < xmax, ymin < ymax")
-    if "resolution_m" in d and not (float(d["resolution_m"]) > 0):
-        raise InputError(path, "resolution_m must be positive")
+        if not (isinstance(b, list) and len(b) == 4 and all(_finite_number(v) for v in b)
+                and b[0] < b[2] and b[1] < b[3]):
+            raise InputError(path, "bounds must be [xmin, ymin, xmax, ymax], four numbers with "
+                                   "xmin < xmax and ymin < ymax")
+        if "crs_epsg" not in d:
+            raise InputError(path, "bounds need crs_epsg (the projected CRS they are in)")
+        res = float(d.get("resolution_m", 0.5))
+        if min(b[2] - b[0], b[3] - b[1]) < 4 * res:
+            raise InputError(path, f"bounds span {b[2] - b[0]:g} x {b[3] - b[1]:g} units of EPSG:"
+                                   f"{d['crs_epsg']} (metres): under 4 cells; degrees given for a "
+                                   "projected CRS?")
     return d
+
+
+def projected_epsg(value, path: Path, what: str) -> int:
+    """An EPSG code of a projected CRS in metres that pyproj knows, else an InputError."""
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value:
+        raise InputError(path, f"{what} must be an EPSG code (an integer), not {value!r}")
+    try:
+        crs = CRS.from_epsg(int(value))
+    except CRSError:
+        raise InputError(path, f"{what} {int(value)} is not an EPSG code pyproj knows") from None
+    if not crs.is_projected:
+        raise InputError(path, f"{what} {int(value)} ({crs.name}) is not a projected CRS: outputs "
+                               "need x, y in metres (e.g. a UTM zone)")
+    unit = crs.axis_info[0].unit_name if crs.axis_info else "metre"
+    if unit not in ("metre", "meter"):
+        raise InputError(path, f"{what} {int(value)} ({crs.name}) has units of {unit}, not metres")
+    return int(value)
+
+
+def check_bounds_hold_gcps(site: "Site") -> None:
+    """site.json's bounds must be where the site is: at least one GCP inside them (a test that
+    catches bounds in the wrong CRS or units, which would give an empty DSM)."""
+    b = site.hints.get("bounds")
+    if not b or not site.gcps:
+        return
+    from recon_core.geometry.geodesy import geodetic_to_projected
+
+    xy = geodetic_to_projected(np.array([g.llh for g in site.gcps]), int(site.hints["crs_epsg"]))
+    margin = 0.5 * max(b[2] - b[0], b[3] - b[1])
+    inside = ((xy[:, 0] >= b[0] - margin) & (xy[:, 0] <= b[2] + margin)
+              & (xy[:, 1] >= b[1] - margin) & (xy[:, 1] <= b[3] + margin))
+    if not inside.any():
+        raise InputError(site.root / "site.json", f"bounds {b} are far from every GCP (the first at "
+                                                  f"x {xy[0, 0]:.1f}, y {xy[0, 1]:.1f} in EPSG:"
+                                                  f"{site.hints['crs_epsg']}): wrong CRS or units?")
 
 
 def to_gray_float(a: np.ndarray) -> np.ndarray:

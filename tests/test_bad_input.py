@@ -1,0 +1,112 @@
+"""Bad input, case by case: one line naming the file (or option) and the problem, exit code 2,
+before any compute, never a traceback. Each case edits a small valid site, then runs the
+command line in-process."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from recon_core.cli import main
+from tests.conftest import gcp_feature
+
+
+def _site_json(site: Path, doc) -> None:
+    (site / "site.json").write_text(json.dumps(doc))
+
+
+def _gcps(site: Path, edit) -> None:
+    doc = json.loads((site / "gcps.geojson").read_text())
+    edit(doc)
+    (site / "gcps.geojson").write_text(json.dumps(doc))
+
+
+def _four_control_gcps(site: Path) -> None:
+    feats = [gcp_feature(f"G{k}", 10.0 + 1e-4 * k, 45.0 + 2e-4 * (k % 2), 100.0 + k,
+                         {"a.tif": [3.0 + k, 4.0], "b.tif": [5.5 + k, 6.5]}) for k in range(4)]
+    (site / "gcps.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+
+
+def _gcps_dir(site: Path) -> None:
+    (site / "gcps.geojson").unlink()
+    (site / "gcps.geojson").mkdir()
+
+
+# (case id, how to break the site, extra command-line arguments, the file or word the message names,
+#  words of the problem)
+CASES = [
+    ("site.json unknown EPSG", lambda s: _site_json(s, {"crs_epsg": 999999}), [], "site.json", "EPSG"),
+    ("site.json geographic EPSG", lambda s: _site_json(s, {"crs_epsg": 4326}), [], "site.json", "projected"),
+    ("site.json resolution text", lambda s: _site_json(s, {"resolution_m": "fine"}), [], "site.json",
+     "resolution_m"),
+    ("site.json bounds as strings", lambda s: _site_json(s, {"crs_epsg": 32632, "bounds": ["1", "2", "3", "4"]}),
+     [], "site.json", "bounds"),
+    ("site.json bounds in degrees", lambda s: _site_json(s, {"crs_epsg": 32632,
+                                                             "bounds": [9.9, 44.9, 10.1, 45.1]}),
+     [], "site.json", "degrees"),
+    ("site.json bounds far from the GCPs", lambda s: _site_json(s, {"crs_epsg": 32632,
+                                                                    "bounds": [0, 0, 1000, 1000]}),
+     [], "site.json", "far from every GCP"),
+    ("gcps sigma not a number", lambda s: _gcps(s, lambda d: d["features"][0]["properties"].update(sigma_m="x")),
+     [], "gcps.geojson", "sigma_m"),
+    ("gcps unknown crs_epsg", lambda s: _gcps(s, lambda d: d.update(crs_epsg=999999)), [], "gcps.geojson",
+     "EPSG"),
+    ("gcps properties a list", lambda s: _gcps(s, lambda d: d["features"][0].update(properties=[1, 2])),
+     [], "gcps.geojson", "properties"),
+    ("gcps file is a folder", _gcps_dir, [], "gcps.geojson", "not a file"),
+    ("too few control GCPs", lambda s: None, [], "gcps.geojson", "4 control GCPs"),
+    ("no GCP file", lambda s: (s / "gcps.geojson").unlink(), [], "gcps.geojson", "no GCP"),
+    ("unknown preset", _four_control_gcps, ["--preset", "huge"], "--preset", "huge"),
+    ("negative tile size", _four_control_gcps, ["--tile-size", "-5"], "--tile-size", "64"),
+    ("negative workers", _four_control_gcps, ["--workers", "-1"], "--workers", "at least 1"),
+    ("unknown stage", _four_control_gcps, ["--stage", "dsn"], "stage", "dsn"),
+]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
+def test_run_refuses_bad_input_in_one_line(case, small_site, tmp_path, capsys):
+    _, breaks, extra, names, words = case
+    breaks(small_site)
+    out = tmp_path / "out"
+    code = main(["run", str(small_site), "--out", str(out), "--quiet", *extra])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    lines = [ln for ln in err.strip().splitlines() if ln.startswith("aerec: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert names in lines[0] and words in lines[0], lines[0]
+    assert not (out / "affine").exists() and not (out / "stages").exists()    # nothing computed
+
+
+def test_info_shows_site_json_problems_too(small_site, capsys):
+    _site_json(small_site, {"crs_epsg": 999999})
+    assert main(["info", str(small_site)]) == 2
+    assert "site.json" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("target", ["file", "missing_parent_is_a_file"])
+def test_unwritable_output(small_site, tmp_path, capsys, target):
+    _four_control_gcps(small_site)
+    f = tmp_path / "f"
+    f.write_text("x")
+    out = f if target == "file" else f / "sub"
+    assert main(["run", str(small_site), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("aerec: error:") == 1 and "Traceback" not in err and str(f) in err
+
+
+def test_eval_out_must_be_a_folder_and_help_works(tmp_path, capsys):
+    f = tmp_path / "f.txt"
+    f.write_text("x")
+    assert main(["eval", "a.tif", "b.tif", "--out", str(f)]) == 2
+    assert "--out must be a folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["eval", "--help"])
+    assert e.value.code == 0 and "ground-truth" in capsys.readouterr().out
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.startswith("aerec ")
