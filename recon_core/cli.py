@@ -217,8 +217,17 @@ def _add_plugin_commands(sub) -> None:
         register(sub)
 
 
+def _terminate(signum, frame) -> None:
+    raise KeyboardInterrupt          # SIGTERM ends a run as Ctrl-C does: cleanup runs
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+    import threading
+
     args = build_parser().parse_args(argv)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminate)
     try:
         return int(args.func(args) or 0)
     except AerecError as exc:

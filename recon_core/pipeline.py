@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -56,12 +57,24 @@ def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None,
     keys = [k for s in STAGES[: STAGES.index(stage) + 1] for k in STAGE_SECTIONS[s]]
     blob = {k: ({f: v for f, v in d[k].items() if f"{k}.{f}" not in NOT_IN_STAGE_HASH}
                 if isinstance(d[k], dict) else d[k]) for k in keys}
+    blob["inputs"] = site_fingerprint(site)
     if STAGES.index(stage) >= STAGES.index("upgrade"):
         if gcp_text is None:
             gcp_file = working_gcp_file(site.root, out) if out is not None else site.root / "gcps.geojson"
             gcp_text = gcp_file.read_text() if gcp_file.exists() else ""
         blob["gcps"] = gcp_text
     return hashlib.sha1(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def site_fingerprint(site: Site) -> dict:
+    """What identifies a site's inputs for resume: each image's name, size and modification
+    time, and site.json's hints (another image, another folder's images, or a changed
+    resolution_m make every stage stale)."""
+    imgs = []
+    for im in site.images:
+        st = Path(im.path).stat()
+        imgs.append([im.name, st.st_size, st.st_mtime_ns])
+    return {"images": imgs, "site_json": site.hints}
 
 
 def stage_done(out: Path, stage: str, cfg: Config, site: Site, gcp_text: str | None = None) -> bool:
@@ -153,8 +166,20 @@ def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
         raise InputError(out, "output path exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     lay = OutLayout(out)
+    swept = lay.scratch()
+    for p in swept:                            # an interrupted run's leftovers
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+    if swept:
+        bus.emit(Message("info", f"removed {len(swept)} scratch file(s) of an interrupted run from {out}"))
     gcp_path = working_gcp_file(site.root, out)
     gcp_text = gcp_path.read_text() if gcp_path.exists() else ""
+    site_gcps = site.root / "gcps.geojson"
+    if gcp_path != site_gcps and site_gcps.exists() and site_gcps.stat().st_mtime > gcp_path.stat().st_mtime:
+        bus.emit(Message("warning", f"{site_gcps} changed after {gcp_path} was made: this run uses "
+                                    f"{gcp_path} (the viewer's working set); delete it to use the site's"))
     gcps = site.gcps
     if gcp_path != site.root / "gcps.geojson":
         gcps = read_gcps_geojson(gcp_path, {im.name: im for im in site.images})

@@ -8,17 +8,35 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import threading
+import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Callable, Iterable, Iterator
 
 
-def _init_worker() -> None:
-    """Two cores shared by several processes: one thread per library inside each worker."""
+def _init_worker(parent_pid: int | None = None) -> None:
+    """Two cores shared by several processes: one thread per library inside each worker; and
+    the worker ends itself when the process that started the pool is gone (killed with -9, say):
+    forkserver workers are not its children, so nothing else would end them."""
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
     import cv2
 
     cv2.setNumThreads(1)
+    if parent_pid is not None:
+        threading.Thread(target=_exit_with, args=(parent_pid,), daemon=True,
+                         name="aerec-parent-watch").start()
+
+
+def _exit_with(pid: int, period_s: float = 1.0) -> None:
+    while True:
+        time.sleep(period_s)
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            os._exit(1)
+        except PermissionError:          # alive, owned by someone else (cannot be ours)
+            pass
 
 
 class Executor:
@@ -50,7 +68,8 @@ class LocalExecutor(Executor):
         self.workers = workers or max(1, os.cpu_count() or 1)
         # Never fork: a forked child inherits OpenCV's and GDAL's thread state and can deadlock.
         ctx = multiprocessing.get_context("forkserver")
-        self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_init_worker)
+        self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_init_worker,
+                                        initargs=(os.getpid(),))
 
     def map_unordered(self, fn, jobs):
         jobs = iter(jobs)

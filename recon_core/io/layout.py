@@ -111,9 +111,24 @@ class OutLayout:
     def dsm_vs_gt_png(self) -> Path:
         return self.eval_dir / "dsm_vs_gt.png"
 
+    def scratch(self) -> list[Path]:
+        """Scratch left by an interrupted run: atomic-write temporaries (.NAME.XXXXXXXX.SUFFIX),
+        dense job parts (.dense_parts_*) and spilled DSM blocks (dsm_blocks_*), down to the
+        group folders. (One run per output folder at a time.)"""
+        found = []
+        for d in [self.root, self.root / "stages", self.root / "upgrade", self.root / "eval",
+                  self.root / "dsm_groups", self.root / "affine",
+                  *[self.group_dir(g) for g in _indices(self.root / "affine", r"group_(\d+)", Path.is_dir)]]:
+            if d.is_dir():
+                found += [p for p in d.iterdir() if _SCRATCH.fullmatch(p.name)]
+        return sorted(found)
+
     def is_output(self) -> bool:
         """Does the folder look like a (possibly partial) output folder?"""
         return self.report.exists() or (self.root / "affine").is_dir()
+
+
+_SCRATCH = re.compile(r"\.[^/]+\.[A-Za-z0-9_]{8}\.[A-Za-z0-9]+|\.dense_parts_[A-Za-z0-9_]+|dsm_blocks_[A-Za-z0-9_]+")
 
 
 def _indices(folder: Path, pattern: str, keep) -> list[int]:
