@@ -18,9 +18,12 @@ class ProgressPrinter:
         self._bars: dict[str, object] = {}
 
     def __call__(self, stage, done=None, total=None, message: str = "") -> None:
-        from recon_core.events import Message, StageDone, StageProgress
+        from recon_core.events import Message, StageDone, StageProgress, TileRegistered
 
-        if isinstance(stage, StageProgress):
+        if isinstance(stage, TileRegistered):    # the registration loop: tiles registered / total
+            ev = stage
+            stage, done, total, message = f"sfm [g{ev.group}]", ev.order + 1, ev.total_tiles, ev.tile_id
+        elif isinstance(stage, StageProgress):
             ev = stage
             stage, done, total, message = ev.stage, ev.done, ev.total, ev.message
             if ev.group is not None:
@@ -41,7 +44,11 @@ class ProgressPrinter:
         if bar is None or bar.total != total:
             if bar is not None:
                 bar.close()
-            bar = tqdm(total=total, desc=stage, leave=True, dynamic_ncols=True, file=sys.stderr)
+            # no rate: counts arrive in jumps (points by the million, tiles one by one), and
+            # tqdm's items/s of such jumps is meaningless
+            bar = tqdm(total=total, desc=stage, leave=True, dynamic_ncols=True, file=sys.stderr,
+                       bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
+                                  "[{elapsed}<{remaining}{postfix}]")
             self._bars[stage] = bar
         bar.n = done
         if message:
@@ -110,6 +117,10 @@ def cmd_run(args) -> int:
         except ImportError:
             raise InputError(None, "--scheduler needs dask.distributed: pip install 'aerec[dask]'") from None
     cfg = preset(args.preset)
+    if args.config is not None:
+        from recon_core.config import config_from_toml
+
+        cfg = config_from_toml(args.config)
     overrides = {}
     if args.tile_size:
         overrides["tiling.tile_size"] = args.tile_size
@@ -131,6 +142,16 @@ def cmd_run(args) -> int:
         prog.close()
     print_summary(state.report)
     print(f"done in {time.time() - t0:.1f} s; outputs in {args.out} (report.json)")
+    return 0
+
+
+def cmd_config(args) -> int:
+    from recon_core.config import PRESETS, config_to_toml, preset
+    from recon_core.errors import InputError
+
+    if args.preset not in PRESETS:
+        raise InputError(None, f"unknown --preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}")
+    print(config_to_toml(preset(args.preset)), end="")
     return 0
 
 
@@ -179,6 +200,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, required=True, help="output folder")
     s.add_argument("--stage", default=None, help="stop after this stage (default: run all)")
     s.add_argument("--preset", default="default", help="parameter preset (default, tiny)")
+    s.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="parameters from a TOML file (see `aerec config --dump`); replaces --preset; "
+                        "the options below override it")
     s.add_argument("--tile-size", type=int, default=None, help="tile side d in pixels (default 1000)")
     s.add_argument("--seed", type=int, default=None)
     s.add_argument("--workers", type=int, default=None, help="local dense worker processes (default: all cores)")
@@ -189,6 +213,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="recompute this stage and the later ones (sparse, dense, upgrade, dsm, eval)")
     s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=cmd_run)
+    s = sub.add_parser("config", help="print the parameters of a run (TOML, each with its comment)")
+    s.add_argument("--dump", action="store_true", help="print the defaults (or --preset's)")
+    s.add_argument("--preset", default="default")
+    s.set_defaults(func=cmd_config)
+
     s = sub.add_parser("eval", help="score a DSM against a ground-truth (or reference) DSM",
                        description="Evaluate a DSM against a ground-truth DSM (align3d-style "
                                    "alignment and metrics).")

@@ -196,3 +196,95 @@ def preset(name: str) -> Config:
     if name not in PRESETS:
         raise KeyError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
     return Config().with_overrides(PRESETS[name])
+
+
+def config_to_toml(cfg: Config) -> str:
+    """The configuration as TOML, one [section] per stage, each field with its comment (what
+    `aerec config --dump` prints and `--config FILE` reads back). None is written commented."""
+    import dataclasses
+    import inspect
+
+    def value(v) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, float)):
+            return repr(v)
+        if isinstance(v, str):
+            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        if isinstance(v, (tuple, list)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        raise TypeError(f"cannot write {v!r} as TOML")
+
+    def comments(cls) -> dict[str, str]:
+        out = {}
+        for line in inspect.getsource(cls).splitlines():
+            name, _, rest = line.strip().partition(":")
+            if "#" in rest and name.isidentifier():
+                out[name] = rest.split("#", 1)[1].strip()
+        return out
+
+    top, parts = [], []
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(v):
+            com = comments(type(v))
+            lines = [f"[{f.name}]"]
+            for sf in dataclasses.fields(v):
+                sv = getattr(v, sf.name)
+                c = f"  # {com[sf.name]}" if sf.name in com else ""
+                lines.append(f"# {sf.name} = (none){c}" if sv is None else f"{sf.name} = {value(sv)}{c}")
+            parts.append("\n".join(lines))
+        else:
+            top.append(f"{f.name} = {value(v)}")
+    return "\n".join(top) + "\n\n" + "\n\n".join(parts) + "\n"
+
+
+def config_from_toml(path) -> Config:
+    """A Config from a TOML file of the config_to_toml form (any subset of its fields)."""
+    import tomllib
+    from pathlib import Path
+
+    from recon_core.errors import InputError
+
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise InputError(path, f"cannot read the configuration ({exc.strerror or exc})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(path, f"malformed TOML ({exc})") from None
+    try:
+        cfg = config_from_dict(doc)
+        check_types(cfg)
+        return cfg
+    except KeyError as exc:
+        raise InputError(path, str(exc).strip("'\"")) from None
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, f"bad value ({exc})") from None
+
+
+def check_types(cfg: Config) -> None:
+    """Every field holds a value of its declared type (from a file, "x" for an int would only
+    fail deep inside a stage). Raises ValueError naming the field."""
+    import dataclasses
+
+    kinds = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}
+
+    def ok(v, ann: str) -> bool:
+        alts = [a.strip() for a in ann.split("|")]
+        if v is None:
+            return "None" in alts
+        for a in alts:
+            if a.startswith("tuple") and isinstance(v, (tuple, list)):
+                return all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+            if a in kinds and isinstance(v, kinds[a]) and (a == "bool" or not isinstance(v, bool)):
+                return True
+        return False
+
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        sub = [(f"{f.name}.{g.name}", getattr(v, g.name), g.type) for g in dataclasses.fields(v)] \
+            if dataclasses.is_dataclass(v) else [(f.name, v, f.type)]
+        for name, val, ann in sub:
+            if not ok(val, str(ann)):
+                raise ValueError(f"{name} must be {ann}, not {val!r}")

@@ -110,3 +110,22 @@ def test_version(capsys):
     with pytest.raises(SystemExit) as e:
         main(["--version"])
     assert e.value.code == 0 and capsys.readouterr().out.startswith("aerec ")
+
+
+def test_config_dump_round_trips_and_a_config_file_is_checked(tmp_path, capsys, small_site):
+    import tomllib
+
+    from recon_core.config import config_from_dict, preset
+
+    assert main(["config", "--dump", "--preset", "tiny"]) == 0
+    text = capsys.readouterr().out
+    assert "[sgbm]" in text and "# d: tile side" in text
+    assert config_from_dict(tomllib.loads(text)) == preset("tiny")
+    for body, words in [("[tiling]\ntile_size = 'x'\n", "tiling.tile_size must be int"),
+                        ("[tiling]\nbogus = 3\n", "unknown parameter tiling.bogus"),
+                        ("[tiling\n", "malformed TOML")]:
+        f = tmp_path / "c.toml"
+        f.write_text(body)
+        assert main(["run", str(small_site), "--out", str(tmp_path / "o"), "--config", str(f)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("aerec: error:") == 1 and str(f) in err and words in err, err
