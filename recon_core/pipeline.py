@@ -93,13 +93,8 @@ def finished_stages(out: Path, cfg: Config, site: Site) -> set[str]:
     return {s for s in STAGES if stage_done(out, s, cfg, site)}
 
 
-def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | None = None,
-              redo_from: str | None = None) -> list[str]:
-    """What can be checked before any compute, for a run that should reach `until`: the site
-    (load_site validates images, times, GCP file, site.json), the stage names, the output
-    folder (creatable and writable), and, when the run goes as far as the upgrade, GCPs: at
-    least one date group must have >= 4 control GCPs observed in >= 2 of its images (or picked
-    on its cloud). Raises InputError; returns warnings (a group that will not be upgraded)."""
+def _open(site_path, out, until, redo_from) -> tuple[Site, Path]:
+    """The checked stage names, the loaded site and the output folder (created)."""
     for name in (until, redo_from):
         if name is not None and name not in STAGES:
             raise InputError(None, f"unknown stage {name!r}; stages are {', '.join(STAGES)}")
@@ -109,6 +104,20 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
         raise InputError(out, "output path exists and is not a folder")
     try:
         out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(out, f"cannot create the output folder ({exc.strerror or exc})") from None
+    return site, out
+
+
+def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | None = None,
+              redo_from: str | None = None) -> list[str]:
+    """What can be checked before any compute, for a run that should reach `until`: the site
+    (load_site validates images, times, GCP file, site.json), the stage names, the output
+    folder (creatable and writable), and, when the run goes as far as the upgrade, GCPs: at
+    least one date group must have >= 4 control GCPs observed in >= 2 of its images (or picked
+    on its cloud). Raises InputError; returns warnings (a group that will not be upgraded)."""
+    site, out = _open(site_path, out, until, redo_from)
+    try:
         probe = out / f".aerec_write_test_{os.getpid()}"
         probe.write_bytes(b"")
         probe.unlink()
@@ -157,14 +166,7 @@ def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
     """
     cfg = cfg or Config()
     bus = bus or EventBus()
-    for name in (until, redo_from):
-        if name is not None and name not in STAGES:
-            raise InputError(None, f"unknown stage {name!r}; stages are {', '.join(STAGES)}")
-    site = load_site(site_path)
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "output path exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
+    site, out = _open(site_path, out, until, redo_from)
     lay = OutLayout(out)
     swept = lay.scratch()
     for p in swept:                            # an interrupted run's leftovers
