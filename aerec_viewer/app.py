@@ -73,7 +73,8 @@ class ViewerApp:
         if site is None:
             site = _site_from_report(self.out, report)
         if cfg is None:
-            cfg, skipped = config_from_dict(report["config"], strict=False) if report.get("config") else (Config(), [])
+            skipped: list[str] = []
+            cfg = config_from_dict(report["config"], unknown=skipped) if report.get("config") else Config()
             if skipped:
                 log.warning("%s names parameters this version does not know (ignored): %s",
                             self.out / "report.json", ", ".join(skipped))

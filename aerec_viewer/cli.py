@@ -70,7 +70,9 @@ def _demo_progress():
 
 
 def is_out_folder(p: Path) -> bool:
-    return (p / "report.json").exists() or (p / "affine").is_dir()
+    from recon_core.io.layout import OutLayout
+
+    return OutLayout(p).is_output()
 
 
 def default_out(site: Path) -> Path:

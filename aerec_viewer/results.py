@@ -10,7 +10,7 @@ upgrade records, cloud.ply, dsm.tif and evaluation as `aerec run --redo-from upg
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Callable, Protocol
 
@@ -27,31 +27,14 @@ from .gcp_session import GcpSession
 
 
 @dataclass
-class UpgradeOutcome:
-    """The viewer's upgrade: the core's Upgrade and the GCP session version it used."""
+class UpgradeOutcome(Upgrade):
+    """The core's Upgrade, with the GCP session version it used (stale once the GCPs change)."""
 
-    upgrade: Upgrade
-    gcps_version: int
-
-    @property
-    def results(self) -> dict:
-        return self.upgrade.results
-
-    @property
-    def errors(self) -> dict[int, str]:
-        return self.upgrade.errors
-
-    @property
-    def frame(self):
-        return self.upgrade.frame
-
-    @property
-    def affine(self) -> dict:
-        return self.upgrade.affine
+    gcps_version: int = -1
 
     @property
     def ok(self) -> bool:
-        return bool(self.upgrade.results)
+        return bool(self.results)
 
     def transform(self, g: int) -> DisplayTransform | None:
         r = self.results.get(g)
@@ -89,7 +72,8 @@ def run_upgrade(session: GcpSession, models: dict, cfg: Config) -> UpgradeOutcom
     if not models:
         raise ReconstructionError("no sparse model yet: wait for the sparse stage to finish")
     gcps = read_gcps_geojson(session.path)        # what a run on OUT reads: the same numbers
-    return UpgradeOutcome(upgrade_models(gcps, models, cfg), session.version)
+    up = upgrade_models(gcps, models, cfg)
+    return UpgradeOutcome(**{f.name: getattr(up, f.name) for f in fields(up)}, gcps_version=session.version)
 
 
 def _f(v, fmt: str = "+.2f") -> str:

@@ -161,17 +161,17 @@ LEGACY_KEYS = {f"dense.{k}": f"sgbm.{k}" for k in ("block_size", "p1", "p2", "un
 NOT_IN_STAGE_HASH = {"dense.workers", "dense.scheduler", "dsm.chunk_points", "dsm.spill_above_points"}
 
 
-def config_from_dict(d: dict, *, strict: bool = True) -> tuple[Config, list[str]] | Config:
+def config_from_dict(d: dict, *, unknown: list[str] | None = None) -> Config:
     """A Config from its to_dict() form (e.g. report.json's), renamed parameters mapped to their
-    new place. strict: unknown parameters raise KeyError; otherwise they are skipped and the
-    function returns (config, the skipped keys) so the caller can say so."""
+    new place. Unknown parameters raise KeyError, or, given an `unknown` list, are skipped and
+    appended to it so the caller can say so."""
     flat = {}
     for k, v in d.items():
         if isinstance(v, dict):
             flat.update({f"{k}.{kk}": vv for kk, vv in v.items()})
         else:
             flat[k] = v
-    cfg, skipped = Config(), []
+    cfg = Config()
     for key, v in flat.items():
         key = LEGACY_KEYS.get(key, key)
         if isinstance(v, list):
@@ -179,10 +179,10 @@ def config_from_dict(d: dict, *, strict: bool = True) -> tuple[Config, list[str]
         try:
             cfg = cfg.with_overrides({key: v})
         except (KeyError, TypeError, AttributeError):
-            if strict:
+            if unknown is None:
                 raise KeyError(f"unknown parameter {key}") from None
-            skipped.append(key)
-    return cfg if strict else (cfg, skipped)
+            unknown.append(key)
+    return cfg
 
 
 PRESETS: dict[str, dict] = {

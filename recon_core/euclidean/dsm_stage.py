@@ -80,18 +80,18 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
                     if bus is not None:
                         bus.progress("dsm", done, total, f"group {g}")
         in_grid = sum(a.n_points for a in accs.values())
-        per_group = {}
-        for g in groups:
-            per_group[g] = accs[g].finish()[0]
-            accs[g].close()
+        per_group = {g: accs[g].finish()[0] for g in groups}
     finally:
         for acc in accs.values():
             acc.close()
     order = rank_groups(groups, quality or {}, {g: len(sources[g]) for g in groups})
     H, source = fuse_groups([per_group[g] for g in order])
     raw_valid = float(np.isfinite(H).mean())
-    if c.fill_holes_px > 0:
-        H = fill_small_holes(H, max_hole_px=c.fill_holes_px)
+
+    def filled(D: np.ndarray) -> np.ndarray:
+        return fill_small_holes(D, max_hole_px=c.fill_holes_px) if c.fill_holes_px > 0 else D
+
+    H = filled(H)
     write_dsm(out.dsm, H, grid)
     groups_report = {}
     for g in out.group_dsms():                   # a previous run's, of groups not fused now
@@ -99,8 +99,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
             out.group_dsm(g).unlink()
     if len(groups) > 1:
         for k, g in enumerate(order):
-            Hg = fill_small_holes(per_group[g], max_hole_px=c.fill_holes_px) if c.fill_holes_px > 0 else per_group[g]
-            write_dsm(out.group_dsm(g), Hg, grid)
+            write_dsm(out.group_dsm(g), filled(per_group[g]), grid)
             groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),
                                      "points": int(len(sources[g])),
                                      "valid_fraction_raw": float(np.isfinite(per_group[g]).mean()),
@@ -157,8 +156,9 @@ def group_quality(upgrade_report: dict) -> dict[int, float]:
     for g, r in (upgrade_report.get("groups") or {}).items():
         st = r.get("stats") or {}
         for name in ("check", "loo"):
-            v = (st.get(name) or {}).get("rmse_U_m")
-            if (st.get(name) or {}).get("n") and v is not None and np.isfinite(v):
+            figs = st.get(name) or {}
+            v = figs.get("rmse_U_m")
+            if figs.get("n") and v is not None and np.isfinite(v):
                 out[int(g)] = float(v)
                 break
     return out

@@ -188,10 +188,10 @@ def align_groups(clouds: dict[int, np.ndarray], cfg: DsmConfig, reference: int |
                                      "reason": str(exc)}
             continue
         ok = fit >= cfg.icp_min_fitness
+        summ = rigid_summary(T)
         report["icp"][str(g)] = {
             "fitness": fit, "inlier_rmse_m": rmse, "applied": ok, "translation_m": T[:3, 3].tolist(),
-            "T": T.tolist(), "rotation_deg": rigid_summary(T)["rotation_deg"],
-            "shift_norm_m": rigid_summary(T)["translation_m"],
+            "T": T.tolist(), "rotation_deg": summ["rotation_deg"], "shift_norm_m": summ["translation_m"],
             "reason": None if ok else (f"ICP fitness {fit:.2f} < {cfg.icp_min_fitness}: kept the "
                                        "GCP-based position (too little overlap?)")}
         if ok:

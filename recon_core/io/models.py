@@ -93,15 +93,6 @@ def dense_writer(path: Path) -> PlyWriter:
     return PlyWriter(path, list(DENSE_EXTRA), with_colors=True)
 
 
-def save_dense(out: OutLayout | str | Path, g: int, cloud: DenseCloud) -> Path:
-    """affine/group_<g>/dense.ply from a cloud held in memory."""
-    path = as_layout(out).dense_ply(g)
-    with dense_writer(path) as w:
-        w.append(cloud.xyz, cloud.gray[:, None], {"n_views": cloud.n_views.astype(np.float32),
-                                                  "reproj_px": cloud.reproj_px})
-    return path
-
-
 def load_dense(out: OutLayout | str | Path, g: int) -> DenseCloud | None:
     """The whole dense cloud of a group in memory (small sites; large ones: PointSource)."""
     path = as_layout(out).dense_ply(g)

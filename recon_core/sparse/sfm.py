@@ -163,7 +163,7 @@ class IncrementalSfM:
         tried: dict[int, tuple[int, int]] = {}   # tile -> (its correspondences, registered tiles
         #                                          of its image) at its last attempt
         for t in phase1:
-            self._attempt(t, why, tried)
+            self._attempt(t, why, tried, self._correspondence_counts(), self._registered_per_image())
         # then by number of 2D-3D correspondences; a tile that failed is tried again once it
         # has more correspondences, or once more tiles of its image are registered
         while True:
@@ -178,7 +178,7 @@ class IncrementalSfM:
             best = int(np.argmax(c))
             if c[best] < self.cfg.resect_min_inliers:
                 break
-            self._attempt(cand[best], why, tried)
+            self._attempt(cand[best], why, tried, counts, img_reg)
         self._filter_outliers()
         self._bundle("global")
         self._filter_outliers()
@@ -208,9 +208,11 @@ class IncrementalSfM:
         o = self.m.obs
         return np.bincount(o.tile[o.valid & self.m.has_point[o.track]], minlength=len(self.m.tiles))
 
-    def _attempt(self, t: int, why: dict[int, str], tried: dict[int, tuple[int, int]]) -> None:
-        tried[t] = (int(self._correspondence_counts()[t]),
-                    self._registered_per_image()[self.m.tiles[t].image])
+    def _attempt(self, t: int, why: dict[int, str], tried: dict[int, tuple[int, int]],
+                 counts: np.ndarray, img_reg: dict[str, int]) -> None:
+        """Try to register t; remember the state it was tried in (its correspondences, the
+        registered tiles of its image) and, if it failed, why."""
+        tried[t] = (int(counts[t]), img_reg[self.m.tiles[t].image])
         reason = self._register(t)
         if reason is None:
             why.pop(t, None)
