@@ -51,7 +51,7 @@ def _robust(sq: np.ndarray, loss: str, delta: float) -> tuple[np.ndarray, np.nda
 def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: np.ndarray,
                   obs_xy: np.ndarray, free_cams: np.ndarray, free_pts: np.ndarray,
                   fixed: np.ndarray | None = None, *, loss: str = "huber", f_scale: float = 1.0,
-                  max_nfev: int = 50, compiled: bool = True) -> BAResult:
+                  max_nfev: int = 50, compiled: bool = True, ties: list | None = None) -> BAResult:
     """Refine the cameras `free_cams` and points `free_pts` (index arrays).
 
     cams (T, 2, 4), X (N, 3), observations (K,) camera and point indices with (K, 2) pixels;
@@ -59,6 +59,8 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
     camera and point are both held constant are left out. `max_nfev` caps the LM iterations.
     `compiled`: assemble the normal equations with the compiled per-point kernels
     (recon_core.sparse.ba_kernels); False takes the scipy.sparse path (same steps, slower).
+    `ties`: quadratic penalties on camera entries (recon_core.sparse.image_model.Tie), added to
+    the cost and to the camera normal equations.
     """
     t0 = time.time()
     cams, X = cams.astype(np.float64).copy(), X.astype(np.float64).copy()
@@ -89,12 +91,25 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
     def residuals(c, Xp):
         return np.einsum("kij,kj->ki", c[oc, :, :3], Xp[op]) + c[oc, :, 3] - ox
 
-    def cost_of(r):
+    ties = list(ties or [])
+    flat_col = cam_col.reshape(-1)
+    tie_cols = [flat_col[t.idx] for t in ties]
+
+    def cost_of(r, c):
         rho, w = _robust(np.sum(r * r, axis=1), loss, f_scale)
-        return 0.5 * float(rho.sum()), w
+        flat = c.reshape(-1)
+        return 0.5 * float(rho.sum()) + sum(t.cost(flat) for t in ties), w
+
+    def add_ties(U, g_c, c):
+        flat = c.reshape(-1)
+        for t, cc in zip(ties, tie_cols):
+            m = cc >= 0
+            if m.any():
+                U[np.ix_(cc[m], cc[m])] += t.Q[np.ix_(m, m)]
+                g_c[cc[m]] += (t.Q @ flat[t.idx])[m]
 
     r = residuals(cams, X)
-    cost, w = cost_of(r)
+    cost, w = cost_of(r, cams)
     cost0 = cost
     lam = 1e-3
     it = 0
@@ -109,13 +124,15 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
         M = np.ascontiguousarray(cams[oc, :, :3])                     # (K, 2, 3)
         if compiled:
             U, g_c, V, g_p = kern.assemble(h, M, r, w, oc, ps, cam_col, nc, npt)
+            add_ties(U, g_c, cams)
 
             def step(lam):
                 S, rhs, Vinv = kern.schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start)
                 dc = _cholesky_solve(S, rhs)
                 return dc, kern.back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start)
         else:
-            step = _sparse_normal_equations(h, M, r, w, oc, cam_col, ps, has_p, nc, npt, K)
+            step = _sparse_normal_equations(h, M, r, w, oc, cam_col, ps, has_p, nc, npt, K,
+                                            lambda U, g: add_ties(U, g, cams))
         improved = False
         for _ in range(8):                                            # LM damping attempts
             dc, dp = step(lam)
@@ -125,7 +142,7 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
             new_X = X.copy()
             new_X[fp] += dp
             r_new = residuals(new_cams, new_X)
-            cost_new, w_new = cost_of(r_new)
+            cost_new, w_new = cost_of(r_new, new_cams)
             if np.isfinite(cost_new) and cost_new < cost:
                 rel = (cost - cost_new) / max(cost, 1e-300)
                 cams, X, r, cost, w = new_cams, new_X, r_new, cost_new, w_new
@@ -148,7 +165,7 @@ def _cholesky_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return np.linalg.lstsq(S, rhs, rcond=None)[0]
 
 
-def _sparse_normal_equations(h, M, r, w, oc, cam_col, ps, has_p, nc, npt, K):
+def _sparse_normal_equations(h, M, r, w, oc, cam_col, ps, has_p, nc, npt, K, extra=None):
     """The normal equations with numpy and scipy.sparse; returns step(lam) -> (dc, dp)."""
     # -- camera blocks: U (nc x nc), g_c; cross terms W (nc x 3 npt) as a sparse matrix
     cols0, cols1 = cam_col[oc, :4], cam_col[oc, 4:]               # (K, 4) each
@@ -188,6 +205,8 @@ def _sparse_normal_equations(h, M, r, w, oc, cam_col, ps, has_p, nc, npt, K):
             for j in range(3):
                 V[:, i, j] = np.bincount(ps[has_p], MtM[has_p, i, j], minlength=npt)
             g_p[:, i] = np.bincount(ps[has_p], Mtr[has_p, i], minlength=npt)
+    if extra is not None:
+        extra(U, g_c)
     return lambda lam: _solve_step(U, g_c, Wm, V, g_p, lam)
 
 

@@ -1,0 +1,136 @@
+"""One physical camera model per image, tying the affine cameras of its tiles (the scale issue).
+
+Why. Each tile has its own 8-parameter affine camera. A smooth bend W of the structure (a dome,
+a saddle) is then almost free: every tile camera can follow it with a change that is linear in
+the tile's position, P_t o W^-1 ~ P_t (I - J_W(X_t)), and the pushbroom's departure from affine
+inside each tile (~0.2 px at d = 1000) is what pushes the adjustment into it (GEOMETRY_NOTES,
+"Tying tile cameras"). 4 GCPs remove only the affine part of the bend.
+
+The model. A pushbroom image is a line array swept in time: the points imaged at one row (one
+instant) lie on a plane, and along that line the column is a 1D perspective. With smooth
+attitude and orbit, to second order in the affine frame X of the reconstruction, with r, c the
+image's own row and column (its mean affine camera, normalised):
+
+    row(X) = a . [X, 1] + r * (s_r . X) + k_r r^3
+    col(X) = b . [X, 1] + c * (s_c . X) + k_2 r^2 + k_3 r^3
+
+r * (s_r . X): the instantaneous view plane turns while it sweeps (agile steering, pitch and yaw
+rates), so the row is a ratio of affine functions of X; c * (s_c . X): the 1D perspective
+across track (the depth of a point changes the column in proportion to its distance from the
+centre); k r^2, k r^3: slow attitude drift in roll and pitch. The family is closed under 3D
+affine maps of the frame (r, c follow the cameras), so the gauge stays the 12-dof affine one.
+On this project's synthetic cameras (orbit, Earth rotation, agile steering, attitude drift),
+the model fits the true projection of whole images of 5000-8192 px to 0.003-0.096 px RMS
+(`bench/bench_image_model.py`), where a single affine camera is off by 0.4-3.6 px RMS and a
+general quadratic in X by 0.06-0.9 px.
+
+What it cannot absorb: a bend. A dome z += k (x^2 + y^2) moves image i by A_i[:, z] k (x^2 +
+y^2); in the row equation only products with r are allowed, so its across-track part (x^2, ~c^2)
+is visible in every image with along-track parallax, in proportion to that parallax. Its
+along-track part (y^2 ~ r^2) can still be absorbed by the drift terms: that direction stays
+weakly determined, but nothing drives it once the model fits the pushbroom.
+
+How it enters the adjustment. Per tile t, the model's best affine approximation over the tile's
+points is linear in the model parameters theta: L_t theta. The tie residual is the difference
+between the tile camera and that approximation, evaluated at the tile's points:
+e_t = [S_t, 1] (P_t - L_t theta). theta is eliminated in closed form (least squares), leaving a
+quadratic penalty 1/2 w p^T Q p on the stacked tile parameters p of the image, with
+Q = D^T (I - Pi) D: a dense block per image that the bundle adjustment adds to its camera normal
+equations. Its weight w = (sigma_obs / sigma_tie)^2: sigma_obs the observations' noise (measured
+from the reprojection error), sigma_tie the model's error against a true pushbroom
+(`SfmConfig.image_model_sigma_px`). Each tile counts as 8 points (the corners of its volume),
+whatever its number of observations.
+
+Status: measured, not used by the pipeline. It discriminates (the truth costs 0.01 px against
+the model, a bent solution 0.03-0.12 px) and holds a joint adjustment of 9 views (`large`: bend
+4.6 -> 1.1 m peak to peak), but on a group of 3 views the bend moves inside the model's family
+(README, "What was tried against the bend"; `bench/bench_bend.py`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Tie:
+    """A quadratic penalty 1/2 * p[idx]^T Q p[idx] on flat camera entries (cams.reshape(-1))."""
+
+    idx: np.ndarray            # (m,) indices into the flat (T * 8) camera array
+    Q: np.ndarray              # (m, m) symmetric positive semi-definite
+
+    def cost(self, flat: np.ndarray) -> float:
+        p = flat[self.idx]
+        return 0.5 * float(p @ self.Q @ p)
+
+
+def row_basis(X: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Basis of the row equation at points X (n, 3, standardised) with normalised rows r (n,)."""
+    one = np.ones((len(X), 1))
+    return np.hstack([X, one, r[:, None] * X, (r ** 3)[:, None]])
+
+
+def col_basis(X: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Basis of the column equation (see the module docstring)."""
+    one = np.ones((len(X), 1))
+    return np.hstack([X, one, c[:, None] * X, (r ** 2)[:, None], (r ** 3)[:, None]])
+
+
+def image_frame(cams: np.ndarray, samples: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, float]:
+    """The image's mean affine camera (2, 4) fitted to its tile cameras over their sample points,
+    with the normalisation of X (mean, scale) and of pixels (centre, scale)."""
+    S = np.concatenate(samples)
+    uv = np.concatenate([s @ P[:, :3].T + P[:, 3] for s, P in zip(samples, cams)])
+    Sh = np.hstack([S, np.ones((len(S), 1))])
+    mean_cam = np.linalg.lstsq(Sh, uv, rcond=None)[0].T
+    x0 = S.mean(0)
+    xs = float(np.sqrt(((S - x0) ** 2).sum(1).mean())) or 1.0
+    p0 = uv.mean(0)
+    ps = float(np.sqrt(((uv - p0) ** 2).sum(1).mean())) or 1.0
+    return mean_cam, x0, xs, p0, ps
+
+
+def image_tie(cams: np.ndarray, samples: list[np.ndarray], tile_index: np.ndarray,
+              weight: float) -> Tie:
+    """The tie of one image's tiles: cams (n, 2, 4) their cameras, samples[t] (m_t, 3) points of
+    tile t in the affine frame, tile_index (n,) their indices in the group's camera array."""
+    mean_cam, x0, xs, p0, ps = image_frame(cams, samples)
+    n = len(cams)
+    D_blocks, G_row, G_col = [], [], []
+    for t, S in enumerate(samples):
+        Sh = np.hstack([S, np.ones((len(S), 1))])
+        uv = Sh @ mean_cam.T
+        r = (uv[:, 1] - p0[1]) / ps
+        c = (uv[:, 0] - p0[0]) / ps
+        Xn = (S - x0) / xs
+        F = np.linalg.pinv(Sh)                       # (4, m): values at S -> affine parameters
+        scale = np.sqrt(8.0 / max(len(S), 1))        # each tile weighs as 8 points
+        E = Sh * scale                               # (m, 4): affine parameters -> values at S
+        D_blocks.append(E)
+        G_row.append(E @ F @ row_basis(Xn, r))
+        G_col.append(E @ F @ col_basis(Xn, r, c))
+    rows = np.cumsum([0] + [len(E) for E in D_blocks])
+    D = np.zeros((rows[-1], 4 * n))
+    for t, E in enumerate(D_blocks):
+        D[rows[t]:rows[t + 1], 4 * t:4 * t + 4] = E
+    Q = np.zeros((8 * n, 8 * n))
+    for coord, G in ((0, np.vstack(G_col)), (1, np.vstack(G_row))):
+        # (I - Pi) D with Pi the orthogonal projector on the columns of G
+        U_, s_, _ = np.linalg.svd(G, full_matrices=False)
+        U_ = U_[:, s_ > s_[0] * 1e-10]
+        R = D - U_ @ (U_.T @ D)
+        Qc = weight * (R.T @ R)
+        sel = (8 * np.arange(n)[:, None] + 4 * coord + np.arange(4)[None, :]).ravel()
+        Q[np.ix_(sel, sel)] = Qc
+    idx = (8 * np.asarray(tile_index, dtype=np.int64)[:, None] + np.arange(8)[None, :]).ravel()
+    return Tie(idx, 0.5 * (Q + Q.T))
+
+
+def tie_residual_px(tie_cams: np.ndarray, samples: list[np.ndarray]) -> float:
+    """RMS (px) of the tile cameras' departure from the best-fitting image model over their
+    samples, each tile weighing as 8 points (a diagnostic: what the tie costs)."""
+    t = image_tie(tie_cams, samples, np.arange(len(tie_cams)), 1.0)
+    p = tie_cams.reshape(-1)
+    return float(np.sqrt(max(2 * t.cost(p), 0.0) / (16 * len(tie_cams))))

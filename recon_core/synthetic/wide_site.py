@@ -1,0 +1,139 @@
+"""A render-free wide site: the bend of tile-camera bundle adjustment, measured in seconds.
+
+The full pipeline needs an hour on `large` to show how the affine structure bends. The bend does
+not come from the images' content: it comes from the pushbroom's departure from affine inside
+each tile and from what the tile cameras leave free. So it can be measured without rendering:
+points on the true scene surface, projected by the true pushbroom cameras (plus Gaussian pixel
+noise), observed in every tile of every image that contains them (d x d tiles overlapping by
+d/3, as the pipeline cuts them), adjusted from the truth itself (the bundle adjustment then finds
+the bend on its own), and compared with the truth after one best-fit 3D affine map.
+
+Truth for tests and benchmarks only; nothing here is read by the pipeline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from recon_core.evaluation.truth import bend_report
+from recon_core.geometry.geodesy import LocalFrame
+from recon_core.model.tiling import Tile, tile_image
+from recon_core.sparse.bundle import BAResult, bundle_adjust
+
+
+@dataclass
+class WideSite:
+    names: list[str]
+    tiles: list[Tile]
+    tile_image: np.ndarray        # (T,) image index of each tile
+    X_true: np.ndarray            # (N, 3) local ENU metres (the scene's local frame)
+    obs_cam: np.ndarray           # (K,) tile index
+    obs_pt: np.ndarray            # (K,) point index
+    obs_xy: np.ndarray            # (K, 2) full-image pixels (col, row), noisy
+    height_px_per_m: np.ndarray   # (I, 2) pixel shift per metre of height (col, row), per image
+
+    def best_tile_cameras(self, X: np.ndarray) -> np.ndarray:
+        """(T, 2, 4) least-squares affine camera of each tile for points X."""
+        P = np.zeros((len(self.tiles), 2, 4))
+        for t in range(len(self.tiles)):
+            k = self.obs_cam == t
+            A = np.hstack([X[self.obs_pt[k]], np.ones((int(k.sum()), 1))])
+            P[t] = np.linalg.lstsq(A, self.obs_xy[k], rcond=None)[0].T
+        return P
+
+    def gauge(self) -> np.ndarray:
+        """Held camera entries: tile 0 whole and one row of tile 1 (12 numbers, as the SfM)."""
+        fixed = np.zeros((len(self.tiles), 2, 4), bool)
+        fixed[0] = True
+        fixed[1, 0] = True
+        return fixed
+
+    def adjust(self, cams: np.ndarray, X: np.ndarray, *, ties=None, max_nfev: int = 300) -> BAResult:
+        """Global bundle adjustment of every tile camera and point."""
+        return bundle_adjust(cams, X, self.obs_cam, self.obs_pt, self.obs_xy, np.arange(len(cams)),
+                             np.arange(len(X)), self.gauge(), max_nfev=max_nfev, ties=ties)
+
+
+def make_wide_site(preset: str = "flat", seed: int = 0, *, images: list[str] | None = None,
+                   n_points: int = 30000, noise_px: float = 0.1, d: int = 1000,
+                   rng_seed: int = 1, min_obs_per_tile: int = 20) -> WideSite:
+    """Points over the common footprint of the preset's images (or of `images`), seen by >= 2
+    images. Uses the preset's cameras without rendering (design_cameras)."""
+    from recon_core.synthetic.generator import design_cameras
+
+    scene, cams = design_cameras(preset, seed)
+    if images:
+        cams = {k: v for k, v in cams.items() if k in images}
+    names = sorted(cams)
+    frame = LocalFrame(scene.lon0, scene.lat0, scene.h0)
+    rng = np.random.default_rng(rng_seed)
+    boxes = []
+    for n in names:
+        xy = scene.llh_to_local(cams[n].footprint(scene.h0))[:, :2]
+        boxes.append((xy[:, 0].min(), xy[:, 0].max(), xy[:, 1].min(), xy[:, 1].max()))
+    b = np.array(boxes)
+    x = rng.uniform(b[:, 0].max(), b[:, 1].min(), n_points)
+    y = rng.uniform(b[:, 2].max(), b[:, 3].min(), n_points)
+    llh = scene.local_to_llh(np.stack([x, y, scene.height(x, y)], -1))
+    X = frame.geodetic_to_enu(llh)
+    up = frame.enu_to_geodetic(X + [0.0, 0.0, 1.0])
+
+    tiles, tile_img, oc, op, ox, dz = [], [], [], [], [], []
+    for i, n in enumerate(names):
+        cam = cams[n]
+        uv_exact = cam.project(llh)
+        dz.append(np.median(cam.project(up[:200]) - uv_exact[:200], axis=0))
+        uv = uv_exact + rng.normal(0.0, noise_px, uv_exact.shape)
+        for t in tile_image(n, cam.width, cam.height, d):
+            inside = (uv[:, 0] >= t.col0) & (uv[:, 0] <= t.col0 + t.width - 1) & \
+                     (uv[:, 1] >= t.row0) & (uv[:, 1] <= t.row0 + t.height - 1)
+            k = np.flatnonzero(inside)
+            if len(k) < min_obs_per_tile:
+                continue
+            tiles.append(t)
+            tile_img.append(i)
+            oc.append(np.full(len(k), len(tiles) - 1))
+            op.append(k)
+            ox.append(uv[k])
+    tile_img = np.array(tile_img)
+    oc, op, ox = np.concatenate(oc), np.concatenate(op), np.concatenate(ox)
+    n_img = np.zeros(n_points, int)
+    for i in range(len(names)):
+        n_img[np.unique(op[tile_img[oc] == i])] += 1
+    keep = n_img >= 2
+    remap = np.cumsum(keep) - 1
+    m = keep[op]
+    return WideSite(names, tiles, tile_img, X[keep], oc[m], remap[op[m]], ox[m], np.array(dz))
+
+
+def structure_vs_truth(X: np.ndarray, X_true: np.ndarray) -> dict:
+    """One best-fit 3D affine map from X to the truth; residual RMS (3D, per axis) and how much
+    of the vertical residual a quadratic surface explains (bend_report)."""
+    A = np.hstack([X, np.ones((len(X), 1))])
+    r = A @ np.linalg.lstsq(A, X_true, rcond=None)[0] - X_true
+    out = {"rms_m": float(np.sqrt((r ** 2).sum(1).mean())),
+           "rms_enu_m": np.sqrt((r ** 2).mean(0)).tolist()}
+    out.update(bend_report(X_true, r[:, 2]))
+    return out
+
+
+def image_ties(site: WideSite, cams: np.ndarray, X: np.ndarray, weight: float,
+               max_samples: int = 48, seed: int = 0) -> list:
+    """One image-model tie per image (recon_core.sparse.image_model), sampled on each tile's
+    points."""
+    from recon_core.sparse.image_model import image_tie
+
+    rng = np.random.default_rng(seed)
+    ties = []
+    for i in range(len(site.names)):
+        tids = np.flatnonzero(site.tile_image == i)
+        samples = []
+        for t in tids:
+            k = site.obs_pt[site.obs_cam == t]
+            if len(k) > max_samples:
+                k = rng.choice(k, max_samples, replace=False)
+            samples.append(X[k])
+        ties.append(image_tie(cams[tids], samples, tids, weight))
+    return ties
