@@ -362,9 +362,14 @@ class ViewerApp:
             stage = f" · stage **{snap.stage}**{grp} {snap.stage_done}/{snap.stage_total}"
             if snap.stage_message:
                 stage += f" · {snap.stage_message}"
+        if snap.status == "failed" and snap.failed_stage:
+            status = f"**failed in the {snap.failed_stage} stage**"
+            stage = ""
         text = f"{status}{stage}"
         if snap.error:
             text += f"\n\n**Error:** {snap.error}"
+        if snap.hint:
+            text += f"\n\n*What to do:* {snap.hint}"
         self._set_md(self.g_status, text)
         if snap.stage_total:
             self.g_progress.value = float(100.0 * snap.stage_done / snap.stage_total)

@@ -250,6 +250,21 @@ class DsmPanelHost(Protocol):
     def submit(self, fn: Callable[[], object]) -> object: ...
 
 
+def no_dsm_markdown(snap) -> str:
+    """What the Results tab says while there is no OUT/dsm.tif: waiting, or why there is none."""
+    if snap is not None and snap.status == "failed":
+        stage = snap.failed_stage or "a"
+        text = f"**No DSM: the {stage} stage failed.**"
+        if snap.error:
+            text += f" {snap.error}"
+        if snap.hint:
+            text += f"\n\n*What to do:* {snap.hint}"
+        return text
+    if snap is not None and snap.status in ("stopped", "done", "reopened"):
+        return f"No DSM in this output folder (the run is {snap.status})."
+    return "No DSM yet (OUT/dsm.tif): it appears here when the DSM stage has run."
+
+
 class DsmPanel:
     """The "DSM and height error" folder of the Results tab, and the error-map drape.
 
@@ -285,7 +300,7 @@ class DsmPanel:
         app = self.app
         p = find_dsm_products(app.out)
         if p.dsm is None:
-            self.md.content = "No DSM yet (OUT/dsm.tif): it appears here when the DSM stage has run."
+            self.md.content = no_dsm_markdown(snap)
             return
         ev = load_eval(p)
         md = [f"DSM: `{p.dsm}`"]

@@ -35,6 +35,7 @@ from recon_core.events import (
     PointsAdded,
     StageDone,
     StageProgress,
+    StageStarted,
     TileRegistered,
 )
 from recon_core.io.layout import OutLayout
@@ -183,6 +184,23 @@ class GroupSnapshot:
     transform: DisplayTransform | None
 
 
+def failure_hint(exc: BaseException, stage: str | None) -> str:
+    """One line on what to do after a failed run (shown under the error)."""
+    where = f"the {stage} stage" if stage else "the run"
+    if isinstance(exc, InputError):
+        return "fix the input named above, then restart: finished stages are reused."
+    if isinstance(exc, MemoryError):
+        return (f"{where} ran out of memory: lower `dense.workers` or the tile size "
+                "(aerec config --dump), then restart; finished stages are reused.")
+    if isinstance(exc, (ImportError, OSError)) and ("lib" in str(exc) or isinstance(exc, ImportError)):
+        return ("a library could not be loaded: reinstall with `python3 -m pip install -e .`; "
+                "the terminal shows the traceback.")
+    if isinstance(exc, AerecError):
+        return f"{where} refused to go on (above); after a fix, restart to resume from it."
+    return (f"{where} crashed: the terminal shows the traceback; `aerec run SITE OUT` resumes "
+            f"from {where}, the stages before it are kept.")
+
+
 @dataclass(frozen=True)
 class DisplaySnapshot:
     """The newest display state, as the viewer reads it."""
@@ -200,6 +218,8 @@ class DisplaySnapshot:
     messages: tuple[tuple[str, str], ...]
     t_start: float
     t_first_points: float | None
+    failed_stage: str | None = None    # the pipeline stage that was running when the run failed
+    hint: str | None = None            # one line: what to do about the failure
 
     @property
     def n_points(self) -> int:
@@ -235,6 +255,9 @@ class ReconWorker:
         self._version = 0
         self._status = "starting"
         self._error: str | None = None
+        self._running_stage: str | None = None
+        self._failed_stage: str | None = None
+        self._hint: str | None = None
         self._stage: tuple[str | None, int, int, str, int | None] = (None, 0, 0, "", None)
         self._finished: dict[str, float] = {}
         self._groups: dict[int, GroupState] = {}
@@ -342,7 +365,10 @@ class ReconWorker:
         return self._groups[g]
 
     def _fold(self, ev: object, now: float) -> None:
-        if isinstance(ev, StageProgress):
+        if isinstance(ev, StageStarted):
+            self._running_stage = ev.stage
+            self._stage = (ev.stage, 0, 0, "started", None)
+        elif isinstance(ev, StageProgress):
             self._stage = (ev.stage, int(ev.done), int(ev.total), ev.message, ev.group)
         elif isinstance(ev, StageDone):
             key = ev.stage if ev.group is None else f"{ev.stage} [g{ev.group}]"
@@ -416,12 +442,17 @@ class ReconWorker:
             st = self._stage
             return DisplaySnapshot(self._version, self._status, self._error, st[0], st[1], st[2],
                                    st[3], st[4], dict(self._finished), groups,
-                                   tuple(self._messages), self._t_start, self._t_first_points)
+                                   tuple(self._messages), self._t_start, self._t_first_points,
+                                   self._failed_stage, self._hint)
 
-    def _set_status(self, status: str, error: str | None = None) -> None:
+    def _set_status(self, status: str, error: str | None = None, hint: str | None = None) -> None:
         with self._lock:
             self._status = status
             self._error = error
+            if status == "failed":
+                self._failed_stage, self._hint = self._running_stage, hint
+            elif status in ("starting", "running"):
+                self._failed_stage = self._hint = None
             self._version += 1
 
     def message(self, text: str, level: str = "info") -> None:
@@ -442,10 +473,11 @@ class ReconWorker:
         except Cancelled:
             self._set_status("stopped")
         except AerecError as exc:
-            self._set_status("failed", str(exc))
+            self._set_status("failed", str(exc), failure_hint(exc, self._running_stage))
         except Exception as exc:  # shown in the panel; the viewer stays up
             log.error("worker failed:\n%s", traceback.format_exc())
-            self._set_status("failed", f"{type(exc).__name__}: {exc}")
+            self._set_status("failed", f"{type(exc).__name__}: {exc}",
+                             failure_hint(exc, self._running_stage))
         finally:
             self.done.set()
 

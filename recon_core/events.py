@@ -22,6 +22,14 @@ class StageProgress:
 
 
 @dataclass(frozen=True)
+class StageStarted:
+    """A pipeline stage begins computing (not emitted for a stage reloaded from OUT): whoever
+    reports a failure can name the stage that was running."""
+
+    stage: str                   # one of recon_core.pipeline.STAGES
+
+
+@dataclass(frozen=True)
 class StageDone:
     stage: str
     seconds: float

@@ -21,7 +21,7 @@ from recon_core.dense import stage as dense_stage
 from recon_core.errors import InputError
 from recon_core.euclidean import dsm_stage, upgrade_stage
 from recon_core.evaluation import stage as eval_stage
-from recon_core.events import EventBus, Message, ModelsReady, StageDone
+from recon_core.events import EventBus, Message, ModelsReady, StageDone, StageStarted
 from recon_core.io.files import write_json
 from recon_core.io.gcps import read_gcps_geojson, working_gcp_file
 from recon_core.io.layout import OutLayout
@@ -204,6 +204,7 @@ def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
         else:
             first_redo = min(first_redo, k)      # what follows a recomputed stage is recomputed
             t0 = time.time()
+            bus.emit(StageStarted(stage))
             summary = module.run(state, bus)
             summary["seconds"] = time.time() - t0
             _mark_done(state, stage, summary)

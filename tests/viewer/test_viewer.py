@@ -676,3 +676,37 @@ def test_viewer_upgrade_equals_aerec_run_redo_from_upgrade(tiny_run, tmp_path):
                     mode="reopen")
     w.done.set()
     assert "does not match this configuration" in w.rerun_from("upgrade")
+
+
+def test_a_failed_stage_is_named_with_a_hint_and_the_results_tab_says_so(tiny_run, tmp_path,
+                                                                          monkeypatch):
+    """A crash at the very start of the DSM stage (before it reports any progress, as an ICP
+    library failing to load would): the status names the DSM stage, not the last stage that
+    reported progress, gives a one-line hint, and the Results tab says there is no DSM because
+    that stage failed instead of asking to wait."""
+    import shutil
+
+    from aerec_viewer.results import no_dsm_markdown
+    from recon_core import pipeline
+    from recon_core.config import preset
+    from recon_core.io.layout import OutLayout
+
+    state, _ = tiny_run
+    out = tmp_path / "out"
+    shutil.copytree(state.out, out)
+    lay = OutLayout(out)
+    lay.stage_record("dsm").unlink()
+    lay.dsm.unlink()
+
+    def broken(state, bus):
+        raise ImportError("libusb-1.0.so.0: cannot open shared object file")
+
+    monkeypatch.setattr(pipeline.STAGE_MODULES["dsm"], "run", broken)
+    w = ReconWorker(state.site.root, out, preset("tiny"), mode="run", until="dsm").start()
+    assert w.join(120)
+    snap = w.snapshot()
+    assert snap.status == "failed" and snap.failed_stage == "dsm", (snap.status, snap.failed_stage)
+    assert "libusb" in snap.error and "pip install" in snap.hint
+    md = no_dsm_markdown(snap)
+    assert "dsm stage failed" in md and "libusb" in md and "appears here" not in md
+    assert "appears here" in no_dsm_markdown(None)
