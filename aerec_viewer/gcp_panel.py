@@ -3,6 +3,7 @@ becomes a pixel) and the widgets of the GCP tab. The edits themselves are gcp_se
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
@@ -15,6 +16,8 @@ from .gcp_session import (
     ROLES,
     GcpError,
     GcpSession,
+    can_redo,
+    can_undo,
     default_epsg,
     delete_gcp,
     describe,
@@ -22,7 +25,10 @@ from .gcp_session import (
     ground_to_llh,
     import_site_gcps,
     new_gcp,
+    redo,
     remove_observation,
+    set_affine_position,
+    undo,
 )
 
 
@@ -89,6 +95,7 @@ class GcpPanel:
     """Widgets of the GCP tab. Callbacks queue work on the app's update thread."""
 
     NEW = "(new GCP from the fields below)"
+    CONFIRM_S = 10.0          # a second press of Delete within this time confirms
 
     def __init__(self, app: GcpPanelHost, gui):
         self.app = app
@@ -121,9 +128,14 @@ class GcpPanel:
             self.take = gui.add_button("Add it (ground coordinates only)")
             self.take_all = gui.add_button("Add all site GCPs with their observations")
         self.pick_cloud = gui.add_button("Pick its position on the cloud (next click)")
+        self.forget_pick = gui.add_button("Forget its cloud pick",
+                                          hint="the image observations are used again")
         self.unobserve = gui.add_button("Remove its observation in this image")
         self.delete = gui.add_button("Delete the selected GCP", color="red")
+        self.undo = gui.add_button("Undo", disabled=True)
+        self.redo = gui.add_button("Redo", disabled=True)
         self.status = gui.add_markdown("")
+        self._delete_armed: tuple[str, float] | None = None
         self._wire()
 
     def _wire(self) -> None:
@@ -141,6 +153,9 @@ class GcpPanel:
         self.pick_cloud.on_click(lambda _: app.submit(self.app.arm_cloud_pick))
         self.unobserve.on_click(lambda _: app.submit(self._unobserve))
         self.delete.on_click(lambda _: app.submit(self._delete))
+        self.forget_pick.on_click(lambda _: app.submit(self._forget_pick))
+        self.undo.on_click(lambda _: app.submit(self._undo))
+        self.redo.on_click(lambda _: app.submit(self._redo))
 
     # -- actions (update thread) ----------------------------------------------------------------
     def selected(self) -> str | None:
@@ -200,32 +215,79 @@ class GcpPanel:
         self.app.gcps_changed(select=gid, note=f"removed {gid}'s observation in {self.image.value}")
 
     def _delete(self) -> None:
+        """First press: ask for confirmation (the button says what will go); a second press on
+        the same GCP within CONFIRM_S seconds deletes it (Undo brings it back)."""
         gid = self.selected()
         if gid is None:
             raise GcpError("select a GCP first")
+        armed = self._delete_armed
+        if armed is None or armed[0] != gid or time.monotonic() - armed[1] > self.CONFIRM_S:
+            n = len(self.app.session.get(gid).observations)
+            self._delete_armed = (gid, time.monotonic())
+            self.delete.label = f"Confirm: delete {gid} and its {n} observation(s)"
+            self.app.note(f"press the button again to delete {gid} ({n} observation(s))", "warning")
+            return
+        self._disarm_delete()
         delete_gcp(self.app.session, gid)
-        self.app.gcps_changed(select=None, note=f"deleted {gid}")
+        self.app.gcps_changed(select=None, note=f"deleted {gid} (Undo restores it)")
+
+    def _disarm_delete(self) -> None:
+        self._delete_armed = None
+        self.delete.label = "Delete the selected GCP"
+
+    def _forget_pick(self) -> None:
+        gid = self.selected()
+        if gid is None:
+            raise GcpError("select a GCP first")
+        groups = sorted(self.app.session.get(gid).affine_picked)
+        if not groups:
+            raise GcpError(f"{gid} has no position picked on the cloud")
+        for g in groups:
+            set_affine_position(self.app.session, gid, g, None)
+        self.app.gcps_changed(select=gid, note=f"{gid}: cloud pick forgotten, its image "
+                                               "observations are used again")
+
+    def _undo(self) -> None:
+        what = undo(self.app.session)
+        self.app.gcps_changed(note=f"undone: {what}")
+
+    def _redo(self) -> None:
+        what = redo(self.app.session)
+        self.app.gcps_changed(note=f"redone: {what}")
 
     # -- display --------------------------------------------------------------------------------
     def refresh(self, select: str | None = "keep") -> None:
         s = self.app.session
         options = [self.NEW] + s.ids
-        current = self.select.value if select == "keep" else (select or self.NEW)
+        before = self.select.value
+        current = before if select == "keep" else (select or self.NEW)
         if current not in options:
             current = self.NEW
         if tuple(self.select.options) != tuple(options):
             self.select.options = options
         if self.select.value != current:
             self.select.value = current
-        self.fill_fields()
+        if self._delete_armed is not None and self._delete_armed[0] != current:
+            self._disarm_delete()
+        u, r = can_undo(s), can_redo(s)
+        self.undo.disabled, self.redo.disabled = u is None, r is None
+        self.undo.label = f"Undo: {u}" if u else "Undo"
+        self.redo.label = f"Redo: {r}" if r else "Redo"
+        self.fill_fields(clear_new=before != self.NEW)
 
-    def fill_fields(self) -> None:
+    def fill_fields(self, clear_new: bool = True) -> None:
+        """Show the selected GCP; for a new GCP, empty the fields (unless the operator was
+        already typing into them: clear_new False)."""
         gid = self.selected()
         s = self.app.session
         if gid is None or gid not in s.ids:
             self.info.content = (f"{len(s.gcps)} GCP(s) in the working set "
-                                 f"(`{s.path.name}` in the output folder)")
-            self.gid.value = ""
+                                 f"(`{s.path.name}` in the output folder). Type the new GCP's "
+                                 "ground coordinates below before clicking its pixel.")
+            if clear_new:    # a new GCP never starts from the previous GCP's coordinates
+                self.gid.value = ""
+                self.role.value = "control"
+                self.x.value, self.y.value, self.h.value = 0.0, 0.0, 0.0
             return
         g = s.get(gid)
         self.info.content = describe(g)

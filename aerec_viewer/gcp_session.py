@@ -48,6 +48,10 @@ class GcpSession:
     gcps: list[GCP] = field(default_factory=list)
     catalogue: list[GCP] = field(default_factory=list)
     version: int = 0
+    history_limit: int = 200
+    _undo: list = field(default_factory=list, repr=False)    # (gcps before, what) per edit
+    _redo: list = field(default_factory=list, repr=False)
+    _last: list | None = field(default=None, repr=False)     # gcps after the latest edit
 
     def get(self, gcp_id: str) -> GCP:
         for g in self.gcps:
@@ -72,6 +76,7 @@ def open_session(out: str | Path, site) -> GcpSession:
     else:
         s.gcps = copy.deepcopy(site.gcps)
         save(s)
+    s._last = copy.deepcopy(s.gcps)
     return s
 
 
@@ -81,9 +86,47 @@ def save(s: GcpSession) -> None:
                                                   "gcps.geojson is left untouched)")
 
 
-def _changed(s: GcpSession) -> None:
+def _changed(s: GcpSession, what: str = "edit") -> None:
+    """Record an edit: the state before it goes on the undo stack (the redo stack empties)."""
+    if s._last is not None:
+        s._undo.append((s._last, what))
+        del s._undo[:-s.history_limit]
+    s._redo.clear()
+    s._last = copy.deepcopy(s.gcps)
     s.version += 1
     save(s)
+
+
+def can_undo(s: GcpSession) -> str | None:
+    """What Undo would revert (None: nothing)."""
+    return s._undo[-1][1] if s._undo else None
+
+
+def can_redo(s: GcpSession) -> str | None:
+    return s._redo[-1][1] if s._redo else None
+
+
+def _restore(s: GcpSession, src: list, dst: list, verb: str) -> str:
+    if not src:
+        raise GcpError(f"nothing to {verb}")
+    state, what = src.pop()
+    dst.append((s._last if s._last is not None else copy.deepcopy(s.gcps), what))
+    s.gcps = copy.deepcopy(state)
+    s._last = copy.deepcopy(state)
+    s.version += 1
+    save(s)
+    return what
+
+
+def undo(s: GcpSession) -> str:
+    """Revert the latest edit (any kind: observation, ground coordinates, role, delete, ...);
+    returns what was undone."""
+    return _restore(s, s._undo, s._redo, "undo")
+
+
+def redo(s: GcpSession) -> str:
+    """Re-apply the latest undone edit; returns what was redone."""
+    return _restore(s, s._redo, s._undo, "redo")
 
 
 # -- edits (what the click handlers call) -----------------------------------------------------
@@ -119,9 +162,13 @@ def new_gcp(s: GcpSession, gcp_id: str | None = None, *, x: float, y: float, h: 
     if role not in ROLES:
         raise GcpError(f"role must be one of {ROLES}")
     lon, lat, hh = ground_to_llh(x, y, h, epsg)
+    for other in s.gcps:
+        if abs(other.lon - lon) < 1e-9 and abs(other.lat - lat) < 1e-9 and abs(other.h - hh) < 1e-4:
+            raise GcpError(f"{other.id} already has these ground coordinates: type the new GCP's "
+                           f"own coordinates (or select {other.id} to add an observation to it)")
     g = GCP(gid, lon, lat, hh, role, sigma_m, {})
     s.gcps.append(g)
-    _changed(s)
+    _changed(s, f"new {gid}")
     return g
 
 
@@ -137,7 +184,7 @@ def import_site_gcps(s: GcpSession, ids: list[str] | None = None, *,
             s.gcps.append(c)
             added.append(g.id)
     if added:
-        _changed(s)
+        _changed(s, f"add {', '.join(added)} from the site list")
     return added
 
 
@@ -146,27 +193,31 @@ def edit_gcp(s: GcpSession, gcp_id: str, *, new_id: str | None = None, x: float 
              role: str | None = None) -> GCP:
     """Change a GCP's id, role or ground coordinates (x, y, h all given, or none)."""
     g = s.get(gcp_id)
-    if new_id is not None and new_id.strip() and new_id.strip() != gcp_id:
-        nid = new_id.strip()
-        if nid in s.ids:
-            raise GcpError(f"GCP {nid} already exists")
-        g.id = nid
-    if role is not None:
-        if role not in ROLES:
-            raise GcpError(f"role must be one of {ROLES}")
-        g.role = role
+    nid = new_id.strip() if new_id is not None and new_id.strip() and new_id.strip() != gcp_id else None
+    if nid is not None and nid in s.ids:
+        raise GcpError(f"GCP {nid} already exists")
+    if role is not None and role not in ROLES:
+        raise GcpError(f"role must be one of {ROLES}")
+    llh = None
     if x is not None or y is not None or h is not None:
         if x is None or y is None or h is None:
             raise GcpError("give all three ground coordinates")
-        g.lon, g.lat, g.h = ground_to_llh(x, y, h, epsg)
-    _changed(s)
+        llh = ground_to_llh(x, y, h, epsg)
+    # validated: now change (an edit either happens whole or not at all)
+    if nid is not None:
+        g.id = nid
+    if role is not None:
+        g.role = role
+    if llh is not None:
+        g.lon, g.lat, g.h = llh
+    _changed(s, f"edit {g.id}")
     return g
 
 
 def delete_gcp(s: GcpSession, gcp_id: str) -> None:
     g = s.get(gcp_id)
     s.gcps.remove(g)
-    _changed(s)
+    _changed(s, f"delete {gcp_id}")
 
 
 def add_observation(s: GcpSession, gcp_id: str, image: str, col: float, row: float) -> GCP:
@@ -177,8 +228,9 @@ def add_observation(s: GcpSession, gcp_id: str, image: str, col: float, row: flo
     w, h = s.images[image]
     if not (-0.5 <= col <= w - 0.5 and -0.5 <= row <= h - 0.5):
         raise GcpError(f"pixel ({col:.1f}, {row:.1f}) lies outside {image} ({w} x {h})")
+    had = image in g.observations
     g.observations[image] = (float(col), float(row))
-    _changed(s)
+    _changed(s, f"{'move' if had else 'add'} {gcp_id}'s observation in {image}")
     return g
 
 
@@ -186,17 +238,19 @@ def remove_observation(s: GcpSession, gcp_id: str, image: str) -> None:
     g = s.get(gcp_id)
     if g.observations.pop(image, None) is None:
         raise GcpError(f"{gcp_id} has no observation in {image}")
-    _changed(s)
+    _changed(s, f"remove {gcp_id}'s observation in {image}")
 
 
 def set_affine_position(s: GcpSession, gcp_id: str, group: int, xyz: np.ndarray | None) -> None:
     """Set (or clear, with None) a GCP's affine position picked on a group's cloud."""
     g = s.get(gcp_id)
     if xyz is None:
-        g.affine_picked.pop(group, None)
+        if g.affine_picked.pop(group, None) is None:
+            raise GcpError(f"{gcp_id} has no position picked on the cloud of group {group}")
+        _changed(s, f"forget {gcp_id}'s cloud pick in group {group}")
     else:
         g.affine_picked[group] = np.asarray(xyz, dtype=np.float64).reshape(3)
-    _changed(s)
+        _changed(s, f"pick {gcp_id} on the cloud of group {group}")
 
 
 def describe(g: GCP) -> str:
@@ -207,7 +261,8 @@ def describe(g: GCP) -> str:
     else:
         lines.append("- no observation yet: click its pixel on the image plane")
     for grp in sorted(g.affine_picked):
-        lines.append(f"- picked on the cloud of group {grp}")
+        lines.append(f"- picked on the cloud of group {grp}: this position replaces the image "
+                     f"observations in that group (\"Forget its cloud pick\" removes it)")
     return "\n".join(lines)
 
 

@@ -22,8 +22,10 @@ from aerec_viewer.gcp_session import (
     import_site_gcps,
     new_gcp,
     open_session,
+    redo,
     remove_observation,
     set_affine_position,
+    undo,
 )
 from aerec_viewer.worker import ReconWorker
 from recon_core.events import (
@@ -324,6 +326,50 @@ def test_gcp_session_edits_are_saved_atomically_and_restored(small_site, tmp_pat
     assert import_site_gcps(s2) == ["G1"]                 # back from the site's list
 
 
+def test_every_gcp_edit_can_be_undone_and_redone(small_site, tmp_path):
+    """Undo walks back through observations, moves, role changes, cloud picks and deletes, each
+    written to OUT/gcps.geojson; a new edit after an undo drops the redo history."""
+    from recon_core.io.site import load_site
+
+    site = load_site(small_site)
+    out = tmp_path / "out"
+    s = open_session(out, site)
+    with pytest.raises(GcpError):
+        undo(s)                                             # nothing yet
+    add_observation(s, "G1", "a.tif", 10.0, 20.0)
+    add_observation(s, "G1", "a.tif", 12.0, 22.0)           # a move
+    edit_gcp(s, "G1", role="check")
+    set_affine_position(s, "G1", 0, np.array([1.0, 2.0, 3.0]))
+    delete_gcp(s, "G1")
+    assert s.ids == []
+    assert undo(s) == "delete G1" and s.ids == ["G1"]
+    assert 0 in s.get("G1").affine_picked
+    assert undo(s).startswith("pick G1") and not s.get("G1").affine_picked
+    assert undo(s) == "edit G1" and s.get("G1").role == "control"
+    assert undo(s).startswith("move") and s.get("G1").observations["a.tif"] == (10.0, 20.0)
+    assert open_session(out, site).get("G1").observations["a.tif"] == (10.0, 20.0)   # on disk
+    assert redo(s).startswith("move") and s.get("G1").observations["a.tif"] == (12.0, 22.0)
+    remove_observation(s, "G1", "a.tif")                    # a new edit: no more redo
+    with pytest.raises(GcpError):
+        redo(s)
+    assert undo(s).startswith("remove") and "a.tif" in s.get("G1").observations
+    # an edit that fails changes nothing and records nothing
+    v = s.version
+    with pytest.raises(GcpError):
+        edit_gcp(s, "G1", new_id="P9", role="bogus")
+    assert s.ids == ["G1"] and s.version == v
+
+
+def test_a_new_gcp_cannot_reuse_another_gcps_ground_coordinates(small_site, tmp_path):
+    from recon_core.io.site import load_site
+
+    s = open_session(tmp_path / "out", load_site(small_site))
+    g = s.get("G1")
+    with pytest.raises(GcpError, match="already has these ground coordinates"):
+        new_gcp(s, x=g.lon, y=g.lat, h=g.h)
+    assert s.ids == ["G1"]
+
+
 def test_gcp_from_projected_coordinates(small_site, tmp_path):
     from recon_core.geometry.geodesy import geodetic_to_projected
     from recon_core.io.site import load_site
@@ -511,6 +557,42 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     assert 20.0 < np.ptp(P[:, 0]) < 20_000.0 and np.ptp(P[:, 2]) < np.ptp(P[:, 0])
     app.call(lambda: app.set_frame("affine"))
     assert app.scene._clouds[(0, "sparse")].transform.kind == "affine"
+
+
+def test_gcp_panel_is_safe_to_edit(live):
+    """The operator's safety nets in the GCP tab: choosing "(new GCP ...)" empties the ground
+    fields, so a click cannot create a control GCP at the previous GCP's coordinates; Delete asks
+    for confirmation; a cloud pick can be forgotten; Undo reverts the last edit."""
+    app, events, trace, out, site, cfg = live
+    gp = app.gcp_panel
+    first = app.session.ids[0]
+    app.call(lambda: gp.refresh(select=first))
+    assert gp.x.value != 0.0
+    app.call(lambda: gp.refresh(select=None))              # "(new GCP from the fields below)"
+    assert (gp.x.value, gp.y.value, gp.h.value, gp.gid.value) == (0.0, 0.0, 0.0, "")
+    n = len(app.session.ids)
+    o, d = _ray_to(app, 100.0, 100.0)
+    with pytest.raises(GcpError):
+        app.call(lambda: app.on_plane_click(o, d))
+    assert len(app.session.ids) == n                         # nothing created
+    # delete: the first press only asks, the second deletes, Undo restores
+    app.call(lambda: gp.refresh(select=first))
+    obs = dict(app.session.get(first).observations)
+    app.call(gp._delete)
+    assert first in app.session.ids and gp.delete.label.startswith("Confirm: delete " + first)
+    app.call(gp._delete)
+    assert first not in app.session.ids and gp.delete.label == "Delete the selected GCP"
+    assert gp.undo.label == f"Undo: delete {first}" and not gp.undo.disabled
+    app.call(gp._undo)
+    assert first in app.session.ids and app.session.get(first).observations == obs
+    assert gp.redo.label == f"Redo: delete {first}"
+    # a cloud pick overrides the image observations until it is forgotten
+    app.call(lambda: gp.refresh(select=first))
+    app.call(lambda: set_affine_position(app.session, first, 0, np.array([1.0, 2.0, 3.0])))
+    app.call(gp._forget_pick)
+    assert not app.session.get(first).affine_picked
+    with pytest.raises(GcpError):
+        app.call(gp._forget_pick)
 
 
 def test_upgrade_with_too_few_gcps_explains_itself(live, tmp_path):

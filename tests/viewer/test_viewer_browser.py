@@ -142,6 +142,17 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     time.sleep(1.5)
     shot(page, shots, "3_gcp_pick")
 
+    # safe editing from the browser: Undo reverts the click, Redo re-applies it; Delete only
+    # asks for confirmation (the GCP stays)
+    after_click = app.session.get(gid).observations.get(image)
+    page.get_by_role("button", name="Undo:").click()
+    wait_for(lambda: app.session.get(gid).observations.get(image) != after_click, 20, "the Undo click")
+    page.get_by_role("button", name="Redo:").click()
+    wait_for(lambda: app.session.get(gid).observations.get(image) == after_click, 20, "the Redo click")
+    page.get_by_role("button", name="Delete the selected GCP").click()
+    page.get_by_role("button", name=f"Confirm: delete {gid}").wait_for(timeout=20_000)
+    assert gid in app.session.ids
+
     # a second tab sees the same state (server-wide GUI and scene)
     page2 = ctx.new_page()
     page2.goto(app.url)
