@@ -250,6 +250,54 @@ class DsmPanelHost(Protocol):
     def submit(self, fn: Callable[[], object]) -> object: ...
 
 
+def provenance_markdown(out: str | Path) -> str:
+    """Which GCP set and which upgrade the DSM (and its error map) come from, and when: the GCP
+    file the run read (report.json), the control GCPs the upgrade used per group, the DSM's
+    time, and a warning when the GCP file changed after the upgrade."""
+    import datetime as _dt
+    import json as _json
+
+    from recon_core.io.layout import OutLayout
+
+    lay = OutLayout(out)
+
+    def utc(p: Path) -> str:
+        t = _dt.datetime.fromtimestamp(p.stat().st_mtime, _dt.timezone.utc)
+        return t.strftime("%Y-%m-%d %H:%M:%S UTC")
+
+    lines = []
+    if lay.dsm.exists():
+        lines.append(f"Written {utc(lay.dsm)}.")
+    gcp_file = None
+    if lay.report.exists():
+        try:
+            gcp_file = _json.loads(lay.report.read_text()).get("gcp_file")
+        except ValueError:
+            gcp_file = None
+    if gcp_file:
+        gp = Path(gcp_file)
+        whose = ("the viewer's working GCP set" if gp.resolve() == lay.gcps.resolve()
+                 else "the site's GCPs")
+        lines.append(f"GCPs: {whose} (`{gp}`).")
+    newest = None
+    for g in lay.upgraded_groups():
+        rec_path = lay.upgrade_record(g)
+        try:
+            pts = _json.loads(rec_path.read_text()).get("points", [])
+        except ValueError:
+            continue
+        used = [p["id"] for p in pts if p.get("role") == "control" and p.get("status") == "used"]
+        rej = [p["id"] for p in pts if p.get("status") == "rejected"]
+        txt = f"Group {g}: upgrade from {len(used)} control GCP(s) ({', '.join(used)})"
+        lines.append(txt + (f", {len(rej)} rejected by RANSAC ({', '.join(rej)})." if rej else "."))
+        newest = max(newest or 0.0, rec_path.stat().st_mtime)
+    if gcp_file and newest is not None and Path(gcp_file).exists() \
+            and Path(gcp_file).stat().st_mtime > newest + 1e-3:
+        lines.append("*The GCP file changed after this upgrade: press Upgrade to recompute the "
+                     "DSM and the error map from it.*")
+    return " ".join(lines)
+
+
 def no_dsm_markdown(snap) -> str:
     """What the Results tab says while there is no OUT/dsm.tif: waiting, or why there is none."""
     if snap is not None and snap.status == "failed":
@@ -270,7 +318,8 @@ class DsmPanel:
 
     Shows OUT/dsm.tif (shaded relief with a colour bar) once the DSM stage wrote it; the
     evaluation (OUT/eval: figures and height-error map) when present, or an Evaluate button when
-    only the site's gt_dsm.tif exists; drapes the error raster under the Euclidean cloud.
+    only the site's gt_dsm.tif exists; drapes the error raster above the Euclidean cloud; says
+    which GCP set, upgrade and time the maps come from (provenance_markdown).
     """
 
     def __init__(self, app: DsmPanelHost, gui):
@@ -285,7 +334,7 @@ class DsmPanel:
             self.err_img = gui.add_image(np.full((8, 8, 3), 255, np.uint8),
                                          label="Height error (DSM - GT)", visible=False)
             self.drape = gui.add_checkbox("Drape the error map in the scene", False, visible=False,
-                                          hint="in the Euclidean frame, under the cloud")
+                                          hint="in the Euclidean frame, just above the cloud")
             self.refresh_button = gui.add_button("Refresh")
         self.evaluate.on_click(lambda _: app.submit(self.evaluate_async))
         self.refresh_button.on_click(lambda _: app.submit(lambda: self.refresh(None, force=True)))
@@ -303,7 +352,7 @@ class DsmPanel:
             self.md.content = no_dsm_markdown(snap)
             return
         ev = load_eval(p)
-        md = [f"DSM: `{p.dsm}`"]
+        md = [f"DSM: `{p.dsm}`", provenance_markdown(app.out)]
         if ev is not None:
             md.append(eval_markdown(ev))
         elif app.site.gt_dsm is not None:
@@ -341,7 +390,8 @@ class DsmPanel:
         threading.Thread(target=work, name="aerec-evaluate", daemon=True).start()
 
     def show_drape(self) -> bool:
-        """Show (or hide) the height-error raster as a coloured sheet under the Euclidean cloud."""
+        """Show (or hide) the height-error raster as a coloured sheet just above the Euclidean
+        cloud (under it, tiles and points hid it)."""
         from .display import quad_image
 
         app = self.app
@@ -357,7 +407,7 @@ class DsmPanel:
         rgba, corners = error_map_drape(p.error_tif, app.upgrade.frame)
         b = app.scene_bounds()
         if b is not None:
-            corners[:, 2] = float(b[0][2]) - 0.02 * float(np.ptp(corners[:, 0]))
+            corners[:, 2] = float(b[1][2]) + 0.02 * float(np.ptp(corners[:, 0]))
         q = quad_image(corners, rgba, max_side=max(rgba.shape[:2]))
         self.drape_handle = app.server.scene.add_image(
             "/results/height_error", q.rgba, q.render_width, q.render_height, format="png",

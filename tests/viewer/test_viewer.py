@@ -632,6 +632,9 @@ def test_dsm_and_height_error_panel(live):
     app.call(lambda: app.set_frame("euclidean"))
     app.call(lambda: setattr(dp_.drape, "value", True))
     assert app.call(dp_.show_drape) and dp_.drape_handle is not None
+    top = app.scene_bounds()[1][2]
+    assert float(dp_.drape_handle.position[2]) > top            # above the cloud, not hidden by it
+    assert "Written 20" in dp_.md.content and "GCPs: " in dp_.md.content   # provenance
     app.call(lambda: setattr(dp_.drape, "value", False))
     app.call(dp_.show_drape)
     assert dp_.drape_handle is None
@@ -792,3 +795,31 @@ def test_a_failed_stage_is_named_with_a_hint_and_the_results_tab_says_so(tiny_ru
     md = no_dsm_markdown(snap)
     assert "dsm stage failed" in md and "libusb" in md and "appears here" not in md
     assert "appears here" in no_dsm_markdown(None)
+
+
+def test_the_dsm_says_which_gcp_set_and_upgrade_it_comes_from(tiny_run, tmp_path):
+    import os
+    import shutil
+
+    from aerec_viewer.results import provenance_markdown
+    from recon_core.io.layout import OutLayout
+
+    state, _ = tiny_run
+    out = tmp_path / "out"
+    shutil.copytree(state.out, out)
+    lay = OutLayout(out)
+    md = provenance_markdown(out)
+    assert "Written 20" in md and "UTC" in md
+    rec = json.loads(lay.upgrade_record(0).read_text())
+    used = [p["id"] for p in rec["points"] if p["role"] == "control" and p["status"] == "used"]
+    assert len(used) >= 4 and f"Group 0: upgrade from {len(used)} control GCP(s) ({', '.join(used)})" in md
+    assert "changed after this upgrade" not in md
+    # the run read the operator's working set, edited after the upgrade: the panel says so
+    shutil.copy(state.site.root / "gcps.geojson", lay.gcps)
+    report = json.loads(lay.report.read_text())
+    report["gcp_file"] = str(lay.gcps)
+    lay.report.write_text(json.dumps(report))
+    t = lay.upgrade_record(0).stat().st_mtime
+    os.utime(lay.gcps, (t + 60, t + 60))
+    md = provenance_markdown(out)
+    assert "the viewer's working GCP set" in md and "changed after this upgrade" in md
