@@ -458,7 +458,13 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, sigma,
                      "control residuals are zero by construction and say nothing. What still "
                      "tells: the check points and each GCP's reprojection residual "
                      "(reproj_rms_px), which catches a bad click even at N = 4.")
-    n_ransac = sum(1 for r in rows if r["status"] == "rejected")
+    rejected = [r for r in rows if r["status"] == "rejected"]
+    n_ransac = len(rejected)
+    if rejected:
+        warnings.append("RANSAC rejected control GCP(s) " + ", ".join(
+            f"{r['id']}" + (f" ({r['norm3d_m']:.2f} m off)" if r.get("norm3d_m") is not None else "")
+            for r in rejected) + f" (threshold {thresh:g} m): not used for the upgrade; "
+            "check their ground coordinates and image observations")
     if n_ransac and n == 4:
         warnings.append(f"RANSAC rejected {n_ransac} control GCP(s) and only 4 remain: no "
                         "redundancy is left to confirm the rejection; add control GCPs")

@@ -117,8 +117,11 @@ def run(state, bus: EventBus) -> dict:
         if "error" in r:
             bus.message(r["error"], "error", int(g))
         cond_warning = (r.get("conditioning") or {}).get("warning")
+        said = []
         for w in r.get("warnings", []) + ([cond_warning] if cond_warning else []):
-            bus.message(f"group {g}: {w}", "warning", int(g))
+            if w not in said:
+                said.append(w)
+                bus.message(f"group {g}: {w}", "warning", int(g))
     return report
 
 

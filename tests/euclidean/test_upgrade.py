@@ -69,6 +69,9 @@ def test_ransac_rejects_exactly_the_outliers():
     rejected = {r["id"] for r in res.rejections}
     assert rejected == {f"G{i:02d}" for i in bad}
     assert all("RANSAC outlier" in r["reason"] for r in res.rejections)
+    # the rejection is a warning (the console shows warnings even with --quiet), naming them
+    w = [x for x in res.warnings if x.startswith("RANSAC rejected control GCP(s)")]
+    assert len(w) == 1 and all(f"G{i:02d}" in w[0] for i in bad) and "m off" in w[0]
     assert res.n_control_used == 9 and res.dof == 3 * 9 - 12
     assert res.stats["control"]["rmse_3d_m"] < 0.6
 
