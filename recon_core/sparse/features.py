@@ -61,6 +61,29 @@ def tone_curve_for(images: list[ImageInfo], percentiles=(0.5, 99.5), factor: int
     return ToneCurve(float(lo), float(hi))
 
 
+def group_tone_curves(images: list[ImageInfo], percentiles=(0.5, 99.5)) -> tuple[list[ToneCurve], list[str]]:
+    """One shared tone curve for a group's images (same radiometry, same 8-bit mapping), except
+    for an image whose own value range does not fit the shared one (a float32 reflectance image
+    among uint16 counts would map to black: no keypoint): that image gets its own curve, and a
+    warning says so. Returns (curve per image, warnings)."""
+    shared = tone_curve_for(images, percentiles)
+    width = max(shared.hi - shared.lo, 1e-12)
+    curves, warnings = [], []
+    for im in images:
+        own = tone_curve_for([im], percentiles)
+        own_w = max(own.hi - own.lo, 1e-12)
+        inside = max(0.0, min(own.hi, shared.hi) - max(own.lo, shared.lo)) / own_w
+        if own_w / width < 0.2 or inside < 0.5:
+            curves.append(own)
+            warnings.append(f"{im.name}: its values ({im.dtype}, {own.lo:.4g} to {own.hi:.4g}) do not "
+                            f"match the other images of its group ({shared.lo:.4g} to {shared.hi:.4g}); "
+                            "stretched on its own for feature detection. Is it the same kind of "
+                            "product (band, processing level, units)?")
+        else:
+            curves.append(shared)
+    return curves, warnings
+
+
 def _blocks(length: int, block: int, margin: int):
     """(read_start, read_end, core_start, core_end) along one axis."""
     for c0 in range(0, length, block):

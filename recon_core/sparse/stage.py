@@ -15,7 +15,7 @@ from recon_core.io.models import load_model, save_model
 from recon_core.model.grouping import Group
 from recon_core.model.sparse_model import SparseModel
 from recon_core.model.tiling import Tile, tile_image
-from recon_core.sparse.features import ImageFeatures, detect_image, detect_overview, tone_curve_for
+from recon_core.sparse.features import ImageFeatures, detect_image, detect_overview, group_tone_curves
 from recon_core.sparse.matching import CoarseLink, PairMatches, coarse_link, match_pair
 from recon_core.sparse.sfm import IncrementalSfM
 from recon_core.sparse.tracks import build_tracks
@@ -49,18 +49,23 @@ def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None) ->
     tiles = group_tiles(group, cfg)
 
     t0 = time.time()
-    tone = tone_curve_for(group.images, cfg.features.stretch_percentiles)
+    tones, tone_warnings = group_tone_curves(group.images, cfg.features.stretch_percentiles)
+    for w in tone_warnings:
+        bus.message(f"group {g}: {w}", "warning", g)
     feats: list[ImageFeatures] = []
     for k, im in enumerate(group.images):
         bus.progress("features", k, len(names), im.name, group=g)
-        feats.append(detect_image(im, cfg.features, tone))
+        feats.append(detect_image(im, cfg.features, tones[k]))
+        if len(feats[-1]) < 100:
+            bus.message(f"group {g}: {im.name}: only {len(feats[-1])} keypoints (blank, saturated or "
+                        "very small image?): its tiles will hardly register", "warning", g)
     bus.progress("features", len(names), len(names), f"{sum(len(f) for f in feats)} keypoints", group=g)
     timings["features"] = time.time() - t0
 
     t0 = time.time()
     factor = cfg.matching.coarse_factor
-    overviews = [detect_overview(im, max(1, min(factor, min(im.width, im.height) // 128)), tone)
-                 for im in group.images]
+    overviews = [detect_overview(im, max(1, min(factor, min(im.width, im.height) // 128)), tones[k])
+                 for k, im in enumerate(group.images)]
     links: dict[tuple[int, int], CoarseLink] = {}
     for a, b in itertools.combinations(range(len(names)), 2):
         link = coarse_link(names[a], overviews[a], names[b], overviews[b])

@@ -8,7 +8,7 @@ import numpy as np
 
 from recon_core.config import FeatureConfig
 from recon_core.io.site import open_image
-from recon_core.sparse.features import detect_image, detect_overview, tone_curve_for
+from recon_core.sparse.features import detect_image, detect_overview, group_tone_curves, tone_curve_for
 from recon_core.sparse.matching import coarse_link, match_descriptors
 from tests.conftest import write_tiff
 
@@ -63,3 +63,26 @@ def test_descriptor_matching_ratio_and_mutual():
     d2 = np.vstack([d2, d2[:5]])                             # 5 ambiguous twins fail the ratio test
     i, j = match_descriptors(d1, d2, 0.8, True)
     assert len(i) == 45 and np.array_equal(perm[j], i)
+
+
+def test_a_float32_image_among_uint16_ones_gets_its_own_stretch_and_its_keypoints(tmp_path):
+    """A reflectance image (float32, 0-1) in a group of uint16 counts: with one shared tone curve
+    it maps to black (no keypoint) and the run later blames a GCP. It gets its own curve, a
+    warning naming it, and about as many keypoints as the same scene in counts."""
+    a, b = _pair(tmp_path)
+    import rasterio
+
+    with rasterio.open(b.path) as ds:
+        counts = ds.read(1)
+    write_tiff(tmp_path / "c.tif", (counts / 2047.0).astype(np.float32))
+    c = open_image(tmp_path / "c.tif")
+    curves, warnings = group_tone_curves([a, b, c])
+    assert curves[0] is curves[1] and curves[2] is not curves[0]
+    assert len(warnings) == 1 and warnings[0].startswith("c.tif") and "float32" in warnings[0]
+    shared = tone_curve_for([a, b, c])
+    assert len(detect_image(c, FeatureConfig(), shared)) < 10          # what used to happen
+    n_b, n_c = len(detect_image(b, FeatureConfig(), curves[1])), len(detect_image(c, FeatureConfig(), curves[2]))
+    assert n_c > 0.7 * n_b and n_b > 200
+    # same products: no warning, one curve
+    curves, warnings = group_tone_curves([a, b])
+    assert not warnings and curves[0] is curves[1]
