@@ -102,6 +102,8 @@ class SgbmConfig:
 @dataclass
 class UpgradeConfig:
     ransac_thresh_m: float = 2.0      # GCP inlier threshold of the H_A RANSAC (metres)
+    allow_flat_gcps: bool = False     # go on when the control GCPs of a group are (nearly) on one
+                                      # plane: expected height error > 10 m on a 40 m structure
 
 
 @dataclass

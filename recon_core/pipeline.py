@@ -15,6 +15,8 @@ import shutil
 import time
 from pathlib import Path
 
+import numpy as np
+
 from recon_core.config import NOT_IN_STAGE_HASH, Config
 from recon_core.context import RunState
 from recon_core.dense import stage as dense_stage
@@ -135,9 +137,13 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     warnings, ok = [], []
     for g in groups:
         names = {im.name for im in g.images}
-        n = sum(1 for p in gcps if p.role == "control"
-                and (sum(1 for im in p.observations if im in names) >= 2 or g.index in p.affine_picked))
+        usable = [p for p in gcps if p.role == "control"
+                  and (sum(1 for im in p.observations if im in names) >= 2 or g.index in p.affine_picked)]
+        n = len(usable)
         if n >= 4:
+            refusal = None if cfg.upgrade.allow_flat_gcps else _flat_control_refusal(usable)
+            if refusal:
+                raise InputError(gcp_path, f"group {g.index}: {refusal}")
             ok.append(g.index)
         else:
             warnings.append(f"group {g.index} ({', '.join(sorted(names))}): {n} control GCP(s) observed "
@@ -146,6 +152,17 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
         raise InputError(gcp_path, "no date group has 4 control GCPs observed in >= 2 of its images: "
                                    + "; ".join(warnings) + " (stop before the upgrade with --stage dense)")
     return warnings
+
+
+def _flat_control_refusal(control: list) -> str | None:
+    """The upgrade's refusal of a (nearly) coplanar control set, from the GCPs' ground
+    coordinates alone (so before any compute)."""
+    from recon_core.euclidean.georef import frame_for
+    from recon_core.euclidean.upgrade import conditioning, flat_gcp_refusal
+
+    frame = frame_for(control)
+    enu = frame.geodetic_to_enu(np.array([p.llh for p in control]))
+    return flat_gcp_refusal(conditioning(enu))
 
 
 def _mark_done(state: RunState, stage: str, summary: dict) -> None:

@@ -23,10 +23,15 @@ def _gcps(site: Path, edit) -> None:
     (site / "gcps.geojson").write_text(json.dumps(doc))
 
 
-def _four_control_gcps(site: Path) -> None:
-    feats = [gcp_feature(f"G{k}", 10.0 + 1e-4 * k, 45.0 + 2e-4 * (k % 2), 100.0 + k,
+def _four_control_gcps(site: Path, heights=(100.0, 101.0, 140.0, 103.0)) -> None:
+    feats = [gcp_feature(f"G{k}", 10.0 + 1e-4 * k, 45.0 + 2e-4 * (k % 2), heights[k],
                          {"a.tif": [3.0 + k, 4.0], "b.tif": [5.5 + k, 6.5]}) for k in range(4)]
     (site / "gcps.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+
+
+def _coplanar_control_gcps(site: Path) -> None:
+    # h = 100 + k while the easting grows with k and the northing alternates: one plane
+    _four_control_gcps(site, heights=(100.0, 101.0, 102.0, 103.0))
 
 
 def _gcps_dir(site: Path) -> None:
@@ -62,6 +67,7 @@ CASES = [
     ("negative tile size", _four_control_gcps, ["--tile-size", "-5"], "--tile-size", "64"),
     ("negative workers", _four_control_gcps, ["--workers", "-1"], "--workers", "at least 1"),
     ("unknown stage", _four_control_gcps, ["--stage", "dsn"], "stage", "dsn"),
+    ("coplanar control GCPs", _coplanar_control_gcps, [], "gcps.geojson", "height scale is undetermined"),
 ]
 
 
@@ -129,3 +135,15 @@ def test_config_dump_round_trips_and_a_config_file_is_checked(tmp_path, capsys, 
         assert main(["run", str(small_site), "--out", str(tmp_path / "o"), "--config", str(f)]) == 2
         err = capsys.readouterr().err
         assert err.count("aerec: error:") == 1 and str(f) in err and words in err, err
+
+
+def test_coplanar_control_gcps_pass_with_the_explicit_override(small_site, tmp_path):
+    from recon_core.config import Config
+    from recon_core.pipeline import preflight
+
+    _coplanar_control_gcps(small_site)
+    cfg = Config()
+    cfg.upgrade.allow_flat_gcps = True
+    assert preflight(small_site, tmp_path / "out", cfg) == []
+    _four_control_gcps(small_site)                     # 40 m off the others' plane: accepted
+    assert preflight(small_site, tmp_path / "out2", Config()) == []

@@ -257,12 +257,30 @@ def conditioning(X_enu: np.ndarray, affine_height_sigma_m: float = 0.4,
     return out
 
 
+REFUSE_HEIGHT_ERROR_M = 10.0   # expected error on the quoted structure (25 % of 40 m)
+
+
+def flat_gcp_refusal(cond: dict[str, Any]) -> str | None:
+    """The refusal for a control set too flat to fix the height scale (expected height error
+    above REFUSE_HEIGHT_ERROR_M on the quoted structure, or fewer than 3 points), or None. Between
+    the "poor" level (5 m) and this it is a warning. `upgrade.allow_flat_gcps` overrides it."""
+    if cond.get("level") != "degenerate" and not cond.get("expected_height_error_m", 0.0) > REFUSE_HEIGHT_ERROR_M:
+        return None
+    return (f"refused: {cond.get('warning') or 'the control GCPs cannot fix the height scale'} "
+            "To go on anyway, set upgrade.allow_flat_gcps = true (aerec run --config FILE).")
+
+
 def _conditioning_warning(level: str, d_rms: float, frac: float, err_m: float,
                           h: float, sigma: float, target_m: float) -> str | None:
     """Plain-words warning for a poorly conditioned (flat) GCP set, or None."""
     if level == "ok":
         return None
     need = sigma * h / target_m
+    if err_m > 1000.0:          # (nearly) exactly coplanar: the figure itself means nothing
+        return (f"the control GCPs lie within {d_rms:.3f} m (RMS) of one plane: the height scale "
+                f"is undetermined (expected height error over 1 km on a {h:.0f} m structure). "
+                f"Add a GCP well off that plane (a roof, a hill top or a valley bottom); about "
+                f"{need:.0f} m RMS off-plane spread brings it to {target_m:g} m.")
     return (f"the control GCPs lie within {d_rms:.2f} m (RMS) of one plane, so the height scale "
             f"is poorly fixed: expected height error about {100 * frac:.0f} %, i.e. "
             f"{err_m:.1f} m on a {h:.0f} m structure. Add a GCP well off that plane (a roof, a "

@@ -14,7 +14,7 @@ import numpy as np
 from recon_core.config import Config
 from recon_core.errors import ReconstructionError
 from recon_core.euclidean.georef import GcpAffine, frame_for, upgrade_group
-from recon_core.euclidean.upgrade import UpgradeResult
+from recon_core.euclidean.upgrade import UpgradeResult, flat_gcp_refusal
 from recon_core.events import EventBus
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.gcps import GCP
@@ -89,6 +89,9 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
         try:
             res, _, aff = upgrade_group(model, gcps, up.frame, ransac_thresh_m=cfg.upgrade.ransac_thresh_m,
                                         seed=cfg.seed)
+            refusal = None if cfg.upgrade.allow_flat_gcps else flat_gcp_refusal(res.conditioning)
+            if refusal:
+                raise ReconstructionError(refusal)
             gsd = estimate_gsd(model, res.H)
         except ReconstructionError as exc:
             up.errors[g] = f"group {g}: {exc}"
