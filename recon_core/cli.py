@@ -112,10 +112,7 @@ def cmd_run(args) -> int:
     if args.workers is not None and args.workers < 1:
         raise InputError(None, f"--workers must be at least 1, not {args.workers}")
     if args.scheduler:
-        try:
-            import distributed  # noqa: F401
-        except ImportError:
-            raise InputError(None, "--scheduler needs dask.distributed: pip install 'aerec[dask]'") from None
+        probe_scheduler(args.scheduler)
     cfg = preset(args.preset)
     if args.config is not None:
         from recon_core.config import config_from_toml
@@ -143,6 +140,53 @@ def cmd_run(args) -> int:
     print_summary(state.report)
     print(f"done in {time.time() - t0:.1f} s; outputs in {args.out} (report.json)")
     return 0
+
+
+_PROBE = '''
+import sys
+from distributed import Client
+c = Client(sys.argv[1], timeout="{t}s")
+n = len(c.scheduler_info().get("workers", {{}}))
+c.close()
+print(n)
+'''
+
+
+def probe_scheduler(address: str, timeout_s: float = 20.0) -> int:
+    """Check --scheduler before any compute: dask.distributed installed, the address well formed,
+    a Dask scheduler answering there (in a child process with a deadline: a client talking to
+    something that is not a scheduler waits forever), with at least one worker. Returns the
+    number of workers; raises InputError naming --scheduler."""
+    import re
+    import subprocess
+    import sys
+
+    from recon_core.errors import InputError
+
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        raise InputError(None, "--scheduler needs dask.distributed: pip install 'aerec[dask]'") from None
+    if not re.fullmatch(r"(tcp|tls|inproc|ucx)://[^\s:/]+(:\d+)?|[^\s:/]+:\d+", address):
+        raise InputError(None, f"--scheduler {address!r} is not an address like tcp://host:8786")
+    code = _PROBE.format(t=max(1, int(timeout_s) - 5))
+    try:
+        done = subprocess.run([sys.executable, "-c", code, address], capture_output=True, text=True,
+                              timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        raise InputError(None, f"--scheduler {address}: no Dask scheduler answered within "
+                               f"{timeout_s:g} s (is it a Dask scheduler's address and port?)") from None
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["no answer"])[-1]
+        raise InputError(None, f"--scheduler {address}: cannot reach a Dask scheduler ({last[:200]})")
+    try:
+        n = int(done.stdout.strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        raise InputError(None, f"--scheduler {address}: unexpected answer from the scheduler") from None
+    if n < 1:
+        raise InputError(None, f"--scheduler {address}: the scheduler has no worker; start "
+                               "`dask worker {address}` on the machines that should compute")
+    return n
 
 
 def cmd_config(args) -> int:
