@@ -130,6 +130,7 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     gcp_path = working_gcp_file(site.root, out)
     gcps = site.gcps if gcp_path == site.root / "gcps.geojson" else read_gcps_geojson(
         gcp_path, {im.name: im for im in site.images})
+    notes = [] if (w := gcp_file_note(site.root, out)) is None else [w]
     if not gcps:
         raise InputError(gcp_path, "no GCP: the Euclidean upgrade needs >= 4 control GCPs observed "
                                    "in >= 2 images of each date group (stop before it with --stage dense)")
@@ -151,7 +152,30 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     if not ok:
         raise InputError(gcp_path, "no date group has 4 control GCPs observed in >= 2 of its images: "
                                    + "; ".join(warnings) + " (stop before the upgrade with --stage dense)")
-    return warnings
+    return notes + warnings
+
+
+def gcp_file_note(site_root: Path, out: Path) -> str | None:
+    """A warning when OUT/gcps.geojson (the viewer's working set, which a run on OUT uses) and
+    the site's gcps.geojson differ and the site's was edited after it: which one is used and how
+    to use the other."""
+    own, site_file = Path(out) / "gcps.geojson", Path(site_root) / "gcps.geojson"
+    if not (own.exists() and site_file.exists()):
+        return None
+    if site_file.stat().st_mtime <= own.stat().st_mtime:
+        return None
+    def key(path):
+        return sorted((g.id, round(g.lon, 9), round(g.lat, 9), round(g.h, 4), g.role,
+                       tuple(sorted((k, tuple(np.round(v, 4))) for k, v in g.observations.items())))
+                      for g in read_gcps_geojson(path))
+
+    try:
+        if key(own) == key(site_file):
+            return None
+    except InputError:
+        pass
+    return (f"{site_file} was edited after {own} (the working GCP set, e.g. the viewer's): the run "
+            f"uses {own}, not the site's file; delete {own} to use the site's GCPs")
 
 
 def _flat_control_refusal(control: list) -> str | None:

@@ -147,3 +147,23 @@ def test_coplanar_control_gcps_pass_with_the_explicit_override(small_site, tmp_p
     assert preflight(small_site, tmp_path / "out", cfg) == []
     _four_control_gcps(small_site)                     # 40 m off the others' plane: accepted
     assert preflight(small_site, tmp_path / "out2", Config()) == []
+
+
+def test_run_says_which_gcp_file_it_uses_when_the_sites_was_edited_later(small_site, tmp_path):
+    import os
+    import shutil
+
+    from recon_core.config import Config
+    from recon_core.pipeline import preflight
+
+    _four_control_gcps(small_site)
+    out = tmp_path / "out"
+    out.mkdir()
+    shutil.copy(small_site / "gcps.geojson", out / "gcps.geojson")    # the viewer's working set
+    t = (out / "gcps.geojson").stat().st_mtime
+    os.utime(small_site / "gcps.geojson", (t + 10, t + 10))
+    assert preflight(small_site, out, Config()) == []                 # edited later, same content
+    _four_control_gcps(small_site, heights=(100.0, 101.0, 150.0, 103.0))
+    os.utime(small_site / "gcps.geojson", (t + 20, t + 20))
+    notes = preflight(small_site, out, Config())
+    assert len(notes) == 1 and f"uses {out / 'gcps.geojson'}" in notes[0] and "delete" in notes[0]
