@@ -96,6 +96,20 @@ def cmd_info(args) -> int:
               f"seen in {len(g.observations)} image(s)")
     print(f"ground-truth DSM: {'yes' if site.gt_dsm else 'no'}")
     print(f"site.json: {site.hints if site.hints else 'none'}")
+    if not missing:
+        # what `aerec run` would refuse or warn about, as warnings here
+        from recon_core.config import Config
+        from recon_core.pipeline import gcp_findings
+        from recon_core.sparse.features import group_tone_curves
+
+        for level, _, text in gcp_findings(groups, site.gcps, Config()):
+            if level == "error":
+                print(f"warning: `aerec run` would refuse: {text}")
+            elif level == "warning":
+                print(f"warning: {text}")
+        for g in groups:
+            for w in group_tone_curves(g.images)[1]:
+                print(f"warning: group {g.index}: {w}")
     return 0
 
 

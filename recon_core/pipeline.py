@@ -136,23 +136,39 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
                                    "in >= 2 images of each date group (stop before it with --stage dense)")
     groups = group_by_date(site.images, cfg.grouping.max_gap_days, cfg.grouping.max_span_days)
     warnings, ok = [], []
+    for level, g, text in gcp_findings(groups, gcps, cfg):
+        if level == "error":
+            raise InputError(gcp_path, f"group {g}: {text}")
+        if level == "ok":
+            ok.append(g)
+        else:
+            warnings.append(text)
+    if not ok:
+        raise InputError(gcp_path, "no date group has 4 control GCPs observed in >= 2 of its images: "
+                                   + "; ".join(warnings) + " (stop before the upgrade with --stage dense)")
+    return notes + warnings
+
+
+def gcp_findings(groups, gcps, cfg: Config) -> list[tuple[str, int, str]]:
+    """Per date group, what the upgrade will make of the GCPs, from the GCP file alone:
+    ("ok" | "warning" | "error", group, text). A warning: fewer than 4 usable control GCPs (the
+    group is not upgraded); an error: a control set too flat to fix the height scale."""
+    out = []
     for g in groups:
         names = {im.name for im in g.images}
         usable = [p for p in gcps if p.role == "control"
                   and (sum(1 for im in p.observations if im in names) >= 2 or g.index in p.affine_picked)]
         n = len(usable)
-        if n >= 4:
-            refusal = None if cfg.upgrade.allow_flat_gcps else _flat_control_refusal(usable)
-            if refusal:
-                raise InputError(gcp_path, f"group {g.index}: {refusal}")
-            ok.append(g.index)
+        if n < 4:
+            out.append(("warning", g.index, f"group {g.index} ({', '.join(sorted(names))}): {n} control "
+                        "GCP(s) observed in >= 2 of its images, 4 needed: it will not be upgraded"))
+            continue
+        refusal = None if cfg.upgrade.allow_flat_gcps else _flat_control_refusal(usable)
+        if refusal:
+            out.append(("error", g.index, refusal))
         else:
-            warnings.append(f"group {g.index} ({', '.join(sorted(names))}): {n} control GCP(s) observed "
-                            "in >= 2 of its images, 4 needed: it will not be upgraded")
-    if not ok:
-        raise InputError(gcp_path, "no date group has 4 control GCPs observed in >= 2 of its images: "
-                                   + "; ".join(warnings) + " (stop before the upgrade with --stage dense)")
-    return notes + warnings
+            out.append(("ok", g.index, f"group {g.index}: {n} control GCPs usable"))
+    return out
 
 
 def gcp_file_note(site_root: Path, out: Path) -> str | None:

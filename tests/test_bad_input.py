@@ -167,3 +167,13 @@ def test_run_says_which_gcp_file_it_uses_when_the_sites_was_edited_later(small_s
     os.utime(small_site / "gcps.geojson", (t + 20, t + 20))
     notes = preflight(small_site, out, Config())
     assert len(notes) == 1 and f"uses {out / 'gcps.geojson'}" in notes[0] and "delete" in notes[0]
+
+
+def test_info_shows_what_run_would_refuse_as_warnings(small_site, capsys):
+    _coplanar_control_gcps(small_site)
+    assert main(["info", str(small_site)]) == 0
+    out = capsys.readouterr().out
+    assert "warning: `aerec run` would refuse: refused: the control GCPs lie within" in out
+    _gcps(small_site, lambda d: [f["properties"].update(role="check") for f in d["features"][1:]])
+    assert main(["info", str(small_site)]) == 0
+    assert "1 control GCP(s) observed in >= 2 of its images, 4 needed" in capsys.readouterr().out
