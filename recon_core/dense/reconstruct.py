@@ -480,7 +480,7 @@ def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfi
                 ex.close()
         order = sorted(parts)            # deterministic order whatever the executor
         if path is not None:
-            with dense_writer(path) as w:
+            with dense_writer(path, model.group) as w:
                 for ref in order:
                     rec = np.load(parts[ref])
                     w.append(rec["xyz"], rec["gray"][:, None], {"n_views": rec["n_views"].astype(np.float32),

@@ -68,7 +68,8 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     accs = {g: DsmAccumulator(grid, stat=c.stat, spill_dir=spill) for g in groups}
     done = 0
     try:
-        with PlyWriter(out.cloud) as w:
+        with PlyWriter(out.cloud, comments=(f"frame EPSG:{epsg} x y in metres, z height above the "
+                                            "WGS84 ellipsoid in metres; date groups fused",)) as w:
             for g in groups:
                 src = sources[g]
                 for a in range(0, len(src), c.chunk_points):

@@ -51,7 +51,7 @@ def save_model(model: SparseModel, out: OutLayout | str | Path) -> Path:
     g = model.gray[ids]
     write_ply(lay.sparse_ply(model.group), model.X[ids], np.stack([g, g, g], 1),
               {"n_views": nimg.astype(np.float32),
-               "reproj_px": rms.astype(np.float32)})
+               "reproj_px": rms.astype(np.float32)}, comments=affine_frame_comments(model.group))
     o = model.obs
     with atomic_path(lay.observations(model.group)) as tmp:
         with open(tmp, "wb") as f:
@@ -88,9 +88,17 @@ def load_model(out: OutLayout | str | Path, g: int) -> SparseModel:
 DENSE_EXTRA = ("n_views", "reproj_px")
 
 
-def dense_writer(path: Path) -> PlyWriter:
+def affine_frame_comments(group: int) -> list[str]:
+    """PLY header comments of a cloud in a group's affine frame."""
+    return [f"frame affine reconstruction of date group {group}: defined up to a 3D affine map, not metres",
+            f"frame upgrade/group_{group}.json (H, 4 x 4) maps x y z to the local ENU frame of "
+            "upgrade/frame.json (metres, WGS84 ellipsoidal heights)"]
+
+
+def dense_writer(path: Path, group: int | None = None) -> PlyWriter:
     """The streaming writer of a dense.ply (x y z float64, grey as RGB, n_views, reproj_px)."""
-    return PlyWriter(path, list(DENSE_EXTRA), with_colors=True)
+    return PlyWriter(path, list(DENSE_EXTRA), with_colors=True,
+                     comments=() if group is None else affine_frame_comments(group))
 
 
 def load_dense(out: OutLayout | str | Path, g: int) -> DenseCloud | None:

@@ -27,7 +27,8 @@ def _ply_dtype(n_extra: list[str], with_colors: bool) -> np.dtype:
 
 
 def write_ply(path: str | Path, xyz: np.ndarray, colors: np.ndarray | None = None,
-              extra: dict[str, np.ndarray] | None = None, chunk: int = 1 << 20) -> Path:
+              extra: dict[str, np.ndarray] | None = None, chunk: int = 1 << 20,
+              comments: list[str] | tuple[str, ...] = ()) -> Path:
     """Write a binary little-endian PLY point cloud atomically.
 
     Args:
@@ -35,6 +36,7 @@ def write_ply(path: str | Path, xyz: np.ndarray, colors: np.ndarray | None = Non
         colors: (n, 3) uint8 RGB, optional.
         extra: name -> (n,) values stored as float32 properties, optional.
         chunk: points per write (bounds the temporary memory).
+        comments: header comment lines (e.g. the coordinate frame).
     """
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     n = len(xyz)
@@ -46,7 +48,7 @@ def write_ply(path: str | Path, xyz: np.ndarray, colors: np.ndarray | None = Non
         colors = np.asarray(colors).reshape(-1, 3)
         if len(colors) != n:
             raise ValueError(f"{len(colors)} colours for {n} points")
-    with PlyWriter(path, list(extra), colors is not None) as w:
+    with PlyWriter(path, list(extra), colors is not None, comments=comments) as w:
         for a in range(0, n, chunk):
             b = min(n, a + chunk)
             w.append(xyz[a:b], None if colors is None else colors[a:b],
@@ -65,10 +67,15 @@ class PlyWriter:
 
     _COUNT_DIGITS = 20
 
-    def __init__(self, path: str | Path, extra: list[str] | tuple[str, ...] = (), with_colors: bool = True):
+    def __init__(self, path: str | Path, extra: list[str] | tuple[str, ...] = (), with_colors: bool = True,
+                 comments: list[str] | tuple[str, ...] = ()):
         for k in extra:
             if not k.isidentifier():
                 raise ValueError(f"extra field {k!r}: bad name")
+        for c in comments:
+            if "\n" in c or "\r" in c or not c.isascii():
+                raise ValueError(f"PLY comment {c!r}: one line of ASCII")
+        self.comments = [f"comment {c}" for c in comments]
         self.path = Path(path)
         self.dtype = _ply_dtype(list(extra), with_colors)
         self.extra, self.with_colors = list(extra), with_colors
@@ -82,7 +89,7 @@ class PlyWriter:
     def _header(self, n: int, size: int) -> bytes:
         ply_name = {np.dtype("<f8"): "double", np.dtype("u1"): "uchar", np.dtype("<f4"): "float"}
         head = ["ply", "format binary_little_endian 1.0", "comment written by AE-Rec",
-                f"element vertex {n}"]
+                *self.comments, f"element vertex {n}"]
         head += [f"property {ply_name[self.dtype[k]]} {k}" for k in self.dtype.names]
         text = "\n".join(head) + "\n"
         tail = "end_header\n"

@@ -127,11 +127,13 @@ def _has_cog_driver() -> bool:
 
 
 def write_geotiff(path: str | Path, arr: np.ndarray, transform: Affine, crs: Any,
-                  *, resampling: str = "average") -> Path:
+                  *, resampling: str = "average", tags: dict[str, str] | None = None,
+                  description: str | None = None, units: str | None = None) -> Path:
     """Write a single-band float32 raster (NaN nodata) as a Cloud-Optimized GeoTIFF, atomically.
 
     256 x 256 tiles, DEFLATE with the floating-point predictor, internal overviews. Uses GDAL's
     COG driver when present; otherwise a tiled GTiff with overviews built after writing.
+    `tags` (dataset metadata), `description` and `units` (of the band) are written when given.
     """
     path = Path(path)
     arr = np.asarray(arr, dtype=np.float32)
@@ -145,16 +147,28 @@ def write_geotiff(path: str | Path, arr: np.ndarray, transform: Affine, crs: Any
                                PREDICTOR="FLOATING_POINT", OVERVIEWS="AUTO",
                                OVERVIEW_RESAMPLING=resampling.upper(), **profile) as dst:
                 dst.write(arr, 1)
+                _describe(dst, tags, description, units)
         else:
-            _write_gtiff_tiled(tmp, arr, profile, resampling)
+            _write_gtiff_tiled(tmp, arr, profile, resampling, tags, description, units)
     return path
 
 
-def _write_gtiff_tiled(tmp: Path, arr: np.ndarray, profile: dict, resampling: str) -> None:
+def _describe(dst, tags, description, units) -> None:
+    if tags:
+        dst.update_tags(**tags)
+    if description:
+        dst.set_band_description(1, description)
+    if units:
+        dst.units = (units,)
+
+
+def _write_gtiff_tiled(tmp: Path, arr: np.ndarray, profile: dict, resampling: str,
+                       tags=None, description=None, units=None) -> None:
     """Fallback: tiled DEFLATE GTiff plus internal overviews."""
     with rasterio.open(tmp, "w", driver="GTiff", tiled=True, blockxsize=256, blockysize=256,
                        compress="deflate", predictor=3, BIGTIFF="IF_SAFER", **profile) as dst:
         dst.write(arr, 1)
+        _describe(dst, tags, description, units)
         factors, f = [], 2
         while max(arr.shape) / f >= 256:
             factors.append(f)
@@ -167,7 +181,14 @@ def write_dsm(path: str | Path, H: np.ndarray, grid: Grid) -> Path:
     """Write a DSM (height, width) float32, NaN nodata, in the grid's CRS (see write_geotiff)."""
     if H.shape != grid.shape:
         raise ValueError(f"DSM shape {H.shape} does not match the grid {grid.shape}")
-    return write_geotiff(path, H, grid.transform, grid.crs)
+    return write_geotiff(path, H, grid.transform, grid.crs, tags=DSM_TAGS,
+                         description="height above the WGS84 ellipsoid", units="metre")
+
+
+# GDAL metadata of every DSM this project writes: the vertical reference (SITE_FORMAT: heights
+# are ellipsoidal), so that tools do not take them for orthometric (geoid) heights.
+DSM_TAGS = {"AREA_OR_POINT": "Area", "VERTICAL_DATUM": "WGS84 ellipsoid (EPSG:4979 heights)",
+            "VERTICAL_UNITS": "metre", "PRODUCER": "AE-Rec"}
 
 
 def read_dsm(path: str | Path) -> tuple[np.ndarray, Grid]:
