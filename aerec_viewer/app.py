@@ -357,9 +357,11 @@ class ViewerApp:
                   "reopened": "reopened (nothing recomputed)", "failed": "**failed**",
                   "stopped": "stopped", "starting": "starting"}.get(snap.status, snap.status)
         stage = ""
-        if snap.stage:
+        if snap.stage and snap.status not in ("done", "reopened", "stopped"):
             grp = "" if snap.stage_group is None else f" [group {snap.stage_group}]"
-            stage = f" · stage **{snap.stage}**{grp} {snap.stage_done}/{snap.stage_total}"
+            stage = f" · stage **{snap.stage}**{grp}"
+            if snap.stage_total:
+                stage += f" {snap.stage_done}/{snap.stage_total}"
             if snap.stage_message:
                 stage += f" · {snap.stage_message}"
         if snap.status == "failed" and snap.failed_stage:

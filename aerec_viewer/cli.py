@@ -39,9 +39,16 @@ def _remove_stale_tmp(site: Path) -> None:
             pass
 
 
+def demo_preset() -> str:
+    """The synthetic preset of the demo: `demo`, or $AEREC_DEMO_PRESET (e.g. `tiny2` for a
+    first look in seconds on a slow machine)."""
+    return os.environ.get("AEREC_DEMO_PRESET") or "demo"
+
+
 def demo_site(progress=None) -> Path:
     """The demo site, generated (offline, seed 0) on first use; atomic (tmp folder + rename)."""
-    site = cache_dir() / "demo_site"
+    name = "demo_site" if demo_preset() == "demo" else f"demo_site_{demo_preset()}"
+    site = cache_dir() / name
     if (site / "images").is_dir():
         return site
     from recon_core.synthetic.generator import generate_site
@@ -50,7 +57,7 @@ def demo_site(progress=None) -> Path:
     tmp = site.with_name(f".demo_site.tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.parent.mkdir(parents=True, exist_ok=True)
-    generate_site(tmp, preset="demo", seed=0, progress=progress)
+    generate_site(tmp, preset=demo_preset(), seed=0, progress=progress)
     try:
         os.replace(tmp, site)
     except OSError:                       # another process won the race
@@ -58,15 +65,70 @@ def demo_site(progress=None) -> Path:
     return site
 
 
+def demo_cached() -> bool:
+    name = "demo_site" if demo_preset() == "demo" else f"demo_site_{demo_preset()}"
+    return (cache_dir() / name / "images").is_dir()
+
+
 def _demo_progress():
     """A progress printer for the first-run generation of the demo site (None when cached)."""
-    if (cache_dir() / "demo_site" / "images").is_dir():
+    if demo_cached():
         return None
     from recon_core.cli import ProgressPrinter
 
-    print(f"aerec view: generating the demo site into {cache_dir() / 'demo_site'} "
-          "(first run only, offline)", file=sys.stderr)
+    print(f"aerec view: generating the demo site into {cache_dir()} (first run only, offline)",
+          file=sys.stderr)
     return ProgressPrinter(True)
+
+
+class DemoPreparation:
+    """The page served while the demo site is generated on first use: the browser shows the
+    generation's progress at once, and the viewer takes over the same address when the site is
+    ready (the page reconnects by itself)."""
+
+    # share of the whole generation per stage (rendering dominates)
+    WEIGHTS = {"cameras": 0.02, "accel": 0.08, "render": 0.73, "rpc": 0.02, "gt_dsm": 0.1, "gcps": 0.05}
+
+    def __init__(self, host: str, port: int):
+        import viser
+
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.port = self.server.get_port()
+        from recon_core.synthetic.generator import PRESETS
+
+        groups = PRESETS[demo_preset()].groups
+        views = " and ".join(sorted({str(n) for n in groups}))
+        gui = self.server.gui
+        gui.add_markdown(f"## AE-Rec: preparing the demo\n\nFirst run only, offline: rendering "
+                         f"{sum(groups)} synthetic Pleiades-like images of a procedural city "
+                         f"({len(groups)} date(s), {views} views each). The reconstruction starts "
+                         "on this page as soon as they are ready; keep it open.")
+        self.bar = gui.add_progress_bar(0.0, animated=True)
+        self.md = gui.add_markdown("starting")
+        self._done: dict[str, float] = {}
+        self._t0 = time.time()
+
+    def progress(self, stage, done=None, total=None, message: str = "") -> None:
+        """generate_site's progress(stage, done, total): one bar over the whole generation."""
+        if not isinstance(stage, str) or not total:
+            return
+        from recon_core.synthetic.generator import PRESETS
+
+        self._done[stage] = min(1.0, float(done) / float(total))
+        n_img = max(1, PRESETS[demo_preset()].n_images)
+        whole = 0.0
+        for k, v in self._done.items():
+            key = k.split()[0]
+            share = self.WEIGHTS.get(key, 0.0) / (n_img if key == "render" else 1)
+            whole += share * v
+        self.bar.value = float(100.0 * min(whole, 0.99))
+        self.md.content = f"{stage}: {100 * self._done[stage]:.0f} % · {time.time() - self._t0:.0f} s"
+
+    def close(self) -> None:
+        self.md.content = "the demo site is ready: starting the reconstruction"
+        self.bar.value = 100.0
+        time.sleep(0.3)
+        self.server.stop()
 
 
 def is_out_folder(p: Path) -> bool:
@@ -109,6 +171,26 @@ def cmd_view(args) -> int:
 
     from .app import ViewerApp
 
+    prep = None
+    if args.target is None and args.site is None and not demo_cached():
+        # serve a page at once: generating the demo takes minutes on a small machine
+        prep = DemoPreparation(args.host, args.port)
+        print(f"aerec view: preparing the demo site (first run only); open http://"
+              f"{'localhost' if args.host in ('127.0.0.1', '0.0.0.0') else args.host}:{prep.port}",
+              flush=True)
+        printer = _demo_progress()
+
+        def both(*a, **k):
+            prep.progress(*a, **k)
+            if printer is not None:
+                printer(*a, **k)
+        try:
+            demo_site(progress=both)
+        finally:
+            prep.close()
+            if printer is not None:
+                printer.close()
+        args.port = prep.port                 # the viewer takes over the page's address
     mode, site, out = resolve_target(args.target, args.out, args.site)
     cfg = None
     if mode == "run" or args.preset or args.tile_size:
