@@ -86,9 +86,10 @@ def residual_table_markdown(result: dict) -> str:
             "|---|---|---|---:|---:|---:|---:|"]
     order = {"used": 0, "rejected": 1, "check": 2, "unusable": 3}
     for p in sorted(result["points"], key=lambda p: (order.get(p["status"], 9), p["id"])):
-        flag = " ⚠" if p.get("reproj_suspect") else ""
-        rows.append(f"| {p['id']} | {p['role']} | {p['status']} | {_f(p['dE'])} | {_f(p['dN'])} | "
-                    f"{_f(p['dU'])} | {_f(p.get('reproj_rms_px'), '.2f')}{flag} |")
+        sus = bool(p.get("reproj_suspect"))
+        px = _f(p.get("reproj_rms_px"), ".2f")
+        rows.append(f"| {'**' + p['id'] + '** ⚠' if sus else p['id']} | {p['role']} | {p['status']} | "
+                    f"{_f(p['dE'])} | {_f(p['dN'])} | {_f(p['dU'])} | {'**' + px + '** ⚠' if sus else px} |")
     lines = ["\n".join(rows), ""]
     for name in ("control", "check", "loo"):
         st = result["stats"].get(name) or {}

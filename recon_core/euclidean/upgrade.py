@@ -511,13 +511,27 @@ def _attach_loo(rows: list[dict], ids: list[str], loo: np.ndarray) -> None:
                    loo_norm3d_m=float(np.linalg.norm(r)) if ok else None)
 
 
-def _reproj_warnings(rows: list[dict], warn_px: float) -> list[str]:
-    """Flag GCPs whose image observations disagree after triangulation (a likely bad click)."""
+def _reproj_warnings(rows: list[dict], warn_px: float, ratio: float = 3.0,
+                     floor_px: float = 0.75) -> list[str]:
+    """Flag GCPs whose image observations disagree after triangulation (a likely bad click):
+    above warn_px, or above `ratio` times the median of the others (and above floor_px), so a
+    1.5 px misclick stands out among 0.1-0.4 px clicks."""
+    px_all = {row["id"]: row.get("reproj_rms_px") for row in rows}
+    ok = {k: v for k, v in px_all.items() if v is not None and np.isfinite(v)}
     out = []
     for row in rows:
-        px = row.get("reproj_rms_px")
-        if px is not None and np.isfinite(px) and px > warn_px:
-            row["reproj_suspect"] = True
-            out.append(f"GCP {row['id']}: reprojection residual {px:.2f} px > {warn_px} px; "
-                       "check its clicks in each image")
+        px = ok.get(row["id"])
+        if px is None:
+            continue
+        others = [v for k, v in ok.items() if k != row["id"]]
+        typical = float(np.median(others)) if len(others) >= 2 else None
+        if px > warn_px:
+            why = f"> {warn_px} px"
+        elif typical is not None and px > floor_px and px > ratio * typical:
+            why = f"{px / max(typical, 1e-9):.0f} x the others' median {typical:.2f} px"
+        else:
+            continue
+        row["reproj_suspect"] = True
+        out.append(f"GCP {row['id']}: reprojection residual {px:.2f} px ({why}); check its clicks "
+                   "in each image")
     return out

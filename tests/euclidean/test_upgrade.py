@@ -191,3 +191,23 @@ def test_apply_maps_affine_to_enu():
     enu, aff, _ = scene(rng, 10)
     res = upgrade(gcps_from(enu[:6], aff[:6]))
     assert np.abs(res.apply(aff) - enu).max() < 1e-6
+
+
+def test_a_misclick_stands_out_among_good_clicks():
+    """1.55 px of reprojection residual among clicks of 0.06-0.44 px is below the absolute 2 px
+    threshold but flagged relative to the others; a uniformly mediocre set is not."""
+    from aerec_viewer.results import residual_table_markdown
+
+    rng = np.random.default_rng(7)
+    enu, aff, _ = scene(rng, 6)
+    gcps = gcps_from(enu, aff)
+    for g, px in zip(gcps, [0.06, 0.2, 1.55, 0.44, 0.3, 0.15]):
+        g.reproj_rms_px = px
+    res = upgrade(gcps)
+    flagged = [p["id"] for p in res.to_dict()["points"] if p.get("reproj_suspect")]
+    assert flagged == ["G02"]
+    assert any(w.startswith("GCP G02: reprojection residual 1.55 px") for w in res.warnings)
+    assert "**G02** ⚠" in residual_table_markdown(res.to_dict())
+    for g in gcps:
+        g.reproj_rms_px = 0.6 + 0.05 * int(g.id[1:])
+    assert not any(p.get("reproj_suspect") for p in upgrade(gcps).to_dict()["points"])
