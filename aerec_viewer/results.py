@@ -41,17 +41,42 @@ class UpgradeOutcome(Upgrade):
         return None if r is None else euclidean_display_transform(r.H, self.frame.origin_llh)
 
 
+def usable_observations(model, observations: dict) -> tuple[list[str], list[str]]:
+    """(images whose observation the upgrade can use in this group: a registered tile of the
+    image contains the pixel; the others, each with why not)."""
+    ok, bad = [], []
+    for im, (c, r) in sorted(observations.items()):
+        if im not in model.images:
+            continue
+        tiles = [t for t, tile in enumerate(model.tiles) if tile.image == im
+                 and tile.contains(np.array([[c, r]]))[0]]
+        if any(model.registered[t] for t in tiles):
+            ok.append(im)
+        else:
+            bad.append(f"{im} (its tile there is not registered)" if tiles else f"{im} (outside every tile)")
+    return ok, bad
+
+
 def gcp_readiness(session: GcpSession, models: dict) -> dict[str, tuple[bool, str]]:
-    """GCP id -> (can get an affine position, how): >= 2 observed images of a group, or picked."""
+    """GCP id -> (can get an affine position, how): observed in >= 2 images of a group where a
+    registered tile contains the pixel, or picked on a cloud. Observations the upgrade cannot use
+    are named with the reason."""
     out = {}
     for g in session.gcps:
         if g.affine_picked:
             out[g.id] = (True, "picked on the cloud")
             continue
-        n = max((sum(1 for im in g.observations if im in m.images) for m in models.values()),
-                default=len(g.observations))
-        out[g.id] = (n >= 2, f"observed in {n} image(s)" + ("" if n >= 2 else
-                                                           ": needs 2, or a pick on the cloud"))
+        if not models:
+            n = len(g.observations)
+            out[g.id] = (n >= 2, f"observed in {n} image(s)")
+            continue
+        best = max((usable_observations(m, g.observations) for m in models.values()),
+                   key=lambda ub: len(ub[0]))
+        n = len(best[0])
+        txt = f"observed in {n} usable image(s)" + ("" if n >= 2 else ": needs 2, or a pick on the cloud")
+        if best[1]:
+            txt += "; not usable: " + ", ".join(best[1])
+        out[g.id] = (n >= 2, txt)
     return out
 
 

@@ -823,3 +823,25 @@ def test_the_dsm_says_which_gcp_set_and_upgrade_it_comes_from(tiny_run, tmp_path
     os.utime(lay.gcps, (t + 60, t + 60))
     md = provenance_markdown(out)
     assert "the viewer's working GCP set" in md and "changed after this upgrade" in md
+
+
+def test_observations_in_unregistered_tiles_are_not_counted_as_usable(tiny_run, small_site, tmp_path):
+    import copy
+
+    from aerec_viewer.results import gcp_readiness
+    from recon_core.io.site import load_site
+
+    state, _ = tiny_run
+    m = copy.deepcopy(state.models[0])
+    site = load_site(state.site.root)
+    s = open_session(tmp_path / "out", site)
+    g = next(p for p in s.gcps if len(p.observations) >= 2 and all(im in m.images for im in p.observations))
+    ok, txt = gcp_readiness(s, {0: m})[g.id]
+    assert ok and f"observed in {len(g.observations)} usable image(s)" in txt
+    lost = sorted(g.observations)[0]
+    for t, tile in enumerate(m.tiles):                  # as if that image's tiles had failed
+        if tile.image == lost:
+            m.registered[t] = False
+    ok, txt = gcp_readiness(s, {0: m})[g.id]
+    assert f"observed in {len(g.observations) - 1} usable image(s)" in txt
+    assert f"not usable: {lost} (its tile there is not registered)" in txt
