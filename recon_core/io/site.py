@@ -136,7 +136,10 @@ def open_image(path: Path) -> ImageInfo:
 def list_image_files(images_dir: Path) -> list[Path]:
     if not images_dir.is_dir():
         raise InputError(images_dir, "no images/ folder (see SITE_FORMAT.md)")
-    files = sorted(p for p in images_dir.iterdir() if p.suffix in IMAGE_SUFFIXES and p.is_file())
+    # hidden files are not images of the site: e.g. the temporary file of an interrupted
+    # atomic write (.img_00.tif.XXXX.tif) or macOS's ._img_00.tif
+    files = sorted(p for p in images_dir.iterdir()
+                   if p.suffix in IMAGE_SUFFIXES and p.is_file() and not p.name.startswith("."))
     if not files:
         raise InputError(images_dir, "no .tif or .tiff image in the folder")
     return files

@@ -153,3 +153,15 @@ def test_cli_info_real_data(shared_data, capsys):
     assert main(["info", str(shared_data / "reunion_pair")]) == 0
     out = capsys.readouterr().out
     assert "2 image(s)" in out and "1 date group(s)" in out and "4 control, 8 check" in out
+
+
+def test_hidden_files_in_images_are_not_images(small_site):
+    """An interrupted atomic write leaves `.img.tif.XXXX.tif`; macOS leaves `._a.tif`: neither is
+    an image of the site (one such file once entered a benchmark as a blank fourth view)."""
+    import shutil
+
+    from recon_core.io.site import load_site
+
+    shutil.copy(small_site / "images" / "a.tif", small_site / "images" / ".a.tif.x1y2.tif")
+    shutil.copy(small_site / "images" / "a.tif", small_site / "images" / "._a.tif")
+    assert [im.name for im in load_site(small_site).images] == ["a.tif", "b.tif"]
