@@ -203,6 +203,43 @@ def probe_scheduler(address: str, timeout_s: float = 20.0) -> int:
     return n
 
 
+def cmd_gcps(args) -> int:
+    """`aerec gcps convert SRC DST`: gcps.geojson <-> CSV (recon_core.io.gcps_csv)."""
+    from recon_core.errors import InputError
+    from recon_core.io.gcps import read_gcps_geojson, write_gcps_geojson
+    from recon_core.io.gcps_csv import read_gcps_csv, write_gcps_csv
+
+    kinds = {".csv": "csv", ".geojson": "geojson", ".json": "geojson"}
+    for p in (args.src, args.dst):
+        if p.suffix.lower() not in kinds:
+            raise InputError(p, "must end in .csv, .geojson or .json")
+    if args.src.resolve() == args.dst.resolve():
+        raise InputError(args.dst, "is the input file; write to another file")
+    images = None
+    if args.site is not None:
+        from recon_core.io.site import load_site
+
+        images = {im.name: im for im in load_site(args.site, require_times=False, read_gcps=False).images}
+    if kinds[args.src.suffix.lower()] == "csv":
+        gcps = read_gcps_csv(args.src, args.epsg)
+        if images is not None:                 # the same checks as the GeoJSON reader's
+            for g in gcps:
+                for im, (c, r) in g.observations.items():
+                    if im not in images:
+                        raise InputError(args.src, f"{g.id}: image {im!r} is not in {args.site}/images")
+                    if not (-0.5 <= c <= images[im].width - 0.5 and -0.5 <= r <= images[im].height - 0.5):
+                        raise InputError(args.src, f"{g.id}: pixel ({c}, {r}) lies outside {im}")
+    else:
+        gcps = read_gcps_geojson(args.src, images)
+    if kinds[args.dst.suffix.lower()] == "csv":
+        write_gcps_csv(args.dst, gcps, args.epsg)
+    else:
+        write_gcps_geojson(args.dst, gcps)
+    n_obs = sum(len(g.observations) for g in gcps)
+    print(f"{len(gcps)} GCP(s), {n_obs} observation(s): {args.src} -> {args.dst}")
+    return 0
+
+
 def cmd_config(args) -> int:
     from recon_core.config import PRESETS, config_to_toml, preset
     from recon_core.errors import InputError
@@ -275,6 +312,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dump", action="store_true", help="print the defaults (or --preset's)")
     s.add_argument("--preset", default="default")
     s.set_defaults(func=cmd_config)
+
+    s = sub.add_parser("gcps", help="convert a GCP list between gcps.geojson and CSV")
+    s.add_argument("action", choices=["convert"])
+    s.add_argument("src", type=Path, help="gcps.geojson or .csv")
+    s.add_argument("dst", type=Path, help=".geojson or .csv (written atomically)")
+    s.add_argument("--epsg", type=int, default=None,
+                   help="CSV: the projected EPSG of x, y (E, N) when the file has no epsg column; "
+                        "for a CSV output, write E, N in it instead of lon, lat")
+    s.add_argument("--site", type=Path, default=None,
+                   help="check the observations against this site's images (names, pixel bounds)")
+    s.set_defaults(func=cmd_gcps)
 
     s = sub.add_parser("eval", help="score a DSM against a ground-truth (or reference) DSM",
                        description="Evaluate a DSM against a ground-truth DSM (align3d-style "

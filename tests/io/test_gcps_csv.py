@@ -1,0 +1,72 @@
+"""GCPs as CSV: round trip with gcps.geojson, projected coordinates, and one-line refusals."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from recon_core.cli import main
+from recon_core.errors import InputError
+from recon_core.io.gcps import read_gcps_geojson
+from recon_core.io.gcps_csv import read_gcps_csv, write_gcps_csv
+from tests.conftest import gcp_feature
+
+
+def test_geojson_csv_geojson_round_trip_keeps_every_gcp(small_site, tmp_path):
+    fc = json.loads((small_site / "gcps.geojson").read_text())
+    fc["features"].append(gcp_feature("C2", 10.001, 45.002, 130.5, {"a.tif": [10.25, 20.75]}, role="check"))
+    fc["features"].append(gcp_feature("N3", 10.002, 45.001, 99.0, {}))
+    (small_site / "gcps.geojson").write_text(json.dumps(fc))
+    csv_path, back = tmp_path / "g.csv", tmp_path / "g.geojson"
+    assert main(["gcps", "convert", str(small_site / "gcps.geojson"), str(csv_path),
+                 "--site", str(small_site)]) == 0
+    assert main(["gcps", "convert", str(csv_path), str(back), "--site", str(small_site)]) == 0
+    a, b = read_gcps_geojson(small_site / "gcps.geojson"), read_gcps_geojson(back)
+    assert [g.id for g in a] == [g.id for g in b]
+    for x, y in zip(a, b):
+        assert np.allclose(x.llh, y.llh, atol=1e-8) and x.role == y.role
+        assert x.observations == pytest.approx(y.observations) if x.observations else not y.observations
+
+
+def test_projected_coordinates_in_and_out(tmp_path):
+    from recon_core.io.gcps import GCP
+
+    g = GCP("U1", 10.5, 45.25, 300.0, "control", 0.2, {"a.tif": (1.0, 2.0)})
+    p = write_gcps_csv(tmp_path / "utm.csv", [g], epsg=32632)
+    text = p.read_text()
+    assert ",32632," in text and "10.5" not in text.splitlines()[1].split(",")[2]
+    (r,) = read_gcps_csv(p)
+    assert abs(r.lon - 10.5) < 1e-8 and abs(r.lat - 45.25) < 1e-8 and r.sigma_m == 0.2
+    # a spreadsheet export: semicolons, other column order, E/N given by --epsg
+    (tmp_path / "sheet.csv").write_text("ID;h;x;y;Image;Col;Row\n"
+                                        "P1;300;{:.3f};{:.3f};a.tif;5;6\n".format(
+                                            *map(float, text.splitlines()[1].split(",")[2:4])))
+    (s,) = read_gcps_csv(tmp_path / "sheet.csv", default_epsg=32632)
+    assert abs(s.lon - 10.5) < 1e-7 and s.observations == {"a.tif": (5.0, 6.0)} and s.role == "control"
+
+
+@pytest.mark.parametrize("text, words", [
+    ("id,x,y\nA,1,2\n", "missing column(s) h"),
+    ("id,x,y,h\nA,1,north,3\n", "line 2: y 'north' is not a number"),
+    ("id,x,y,h\nA,500000,4000000,3\n", "line 2: lon/lat"),
+    ("id,x,y,h,role\nA,1,2,3,ground\n", "line 2: role 'ground'"),
+    ("id,x,y,h,image,col,row\nA,1,2,3,a.tif,1,2\nA,1,2,4,b.tif,1,2\n", "line 3: A has other ground"),
+    ("id,x,y,h,image,col,row\nA,1,2,3,a.tif,1,2\nA,1,2,3,a.tif,5,5\n", "line 3: A observed twice"),
+    ("id,x,y,h,epsg\nA,1,2,3,999999\n", "line 2: cannot use EPSG:999999"),
+])
+def test_bad_csv_is_refused_naming_the_line(tmp_path, text, words):
+    p = tmp_path / "bad.csv"
+    p.write_text(text)
+    with pytest.raises(InputError) as e:
+        read_gcps_csv(p)
+    assert words in str(e.value) and "bad.csv" in str(e.value)
+
+
+def test_convert_checks_observations_against_the_site(small_site, tmp_path, capsys):
+    p = tmp_path / "g.csv"
+    p.write_text("id,x,y,h,image,col,row\nA,10,45,3,a.tif,64.5,2\n")          # a.tif is 64 x 48
+    assert main(["gcps", "convert", str(p), str(tmp_path / "g.geojson"), "--site", str(small_site)]) == 2
+    err = capsys.readouterr().err
+    assert "outside a.tif" in err and not (tmp_path / "g.geojson").exists()
