@@ -24,6 +24,7 @@ from .gcp_session import (
     edit_gcp,
     ground_to_llh,
     import_site_gcps,
+    add_observation,
     new_gcp,
     redo,
     remove_observation,
@@ -82,12 +83,14 @@ class GcpPanelHost(Protocol):
 
     session: GcpSession
     site: object
+    models: dict                      # group -> SparseModel once the sparse stage is done
 
     def submit(self, fn: Callable[[], object]) -> object: ...
     def show_image_plane(self) -> None: ...
     def look_at_plane(self, client) -> None: ...
     def arm_cloud_pick(self) -> None: ...
     def gcps_changed(self, select: str | None = "keep", note: str | None = None) -> None: ...
+    def note(self, text: str, level: str = "info") -> None: ...
 
 
 # -- the panel --------------------------------------------------------------------------------
@@ -127,6 +130,10 @@ class GcpPanel:
             self.catalogue = gui.add_dropdown("Site GCP", cat, initial_value=cat[0])
             self.take = gui.add_button("Add it (ground coordinates only)")
             self.take_all = gui.add_button("Add all site GCPs with their observations")
+        self.predict = gui.add_button("Predict its position in this image",
+                                      hint="from its observations in the other images (and the "
+                                           "sparse surface), refined by image matching")
+        self.accept = gui.add_button("Accept the prediction", disabled=True)
         self.pick_cloud = gui.add_button("Pick its position on the cloud (next click)")
         self.forget_pick = gui.add_button("Forget its cloud pick",
                                           hint="the image observations are used again")
@@ -136,6 +143,7 @@ class GcpPanel:
         self.redo = gui.add_button("Redo", disabled=True)
         self.status = gui.add_markdown("")
         self._delete_armed: tuple[str, float] | None = None
+        self.prediction = None              # (gid, Prediction) shown, waiting for Accept
         self._wire()
 
     def _wire(self) -> None:
@@ -154,6 +162,8 @@ class GcpPanel:
         self.unobserve.on_click(lambda _: app.submit(self._unobserve))
         self.delete.on_click(lambda _: app.submit(self._delete))
         self.forget_pick.on_click(lambda _: app.submit(self._forget_pick))
+        self.predict.on_click(lambda _: app.submit(self._predict))
+        self.accept.on_click(lambda _: app.submit(self._accept))
         self.undo.on_click(lambda _: app.submit(self._undo))
         self.redo.on_click(lambda _: app.submit(self._redo))
 
@@ -246,6 +256,41 @@ class GcpPanel:
             set_affine_position(self.app.session, gid, g, None)
         self.app.gcps_changed(select=gid, note=f"{gid}: cloud pick forgotten, its image "
                                                "observations are used again")
+
+    def _predict(self):
+        """Predict the selected GCP's pixel in the plane's image; Accept records it."""
+        from .prediction import predict_observation
+
+        gid = self.selected()
+        if gid is None:
+            raise GcpError("select a GCP first")
+        image = self.image.value
+        g = self.app.session.get(gid)
+        model = next((m for m in self.app.models.values() if image in m.images), None)
+        if model is None:
+            raise GcpError(f"no registered model holds {image} yet (wait for the sparse stage)")
+        images = {im.name: im for im in self.app.site.images}
+        pred = predict_observation(model, images, g.observations, image)
+        if pred is None:
+            raise GcpError(f"cannot predict {gid} in {image}: observe it in another image of its "
+                           "group first (where a registered tile contains it)")
+        self.prediction = (gid, pred)
+        self.accept.disabled = False
+        self.accept.label = f"Accept: {gid} at col {pred.col:.2f}, row {pred.row:.2f}"
+        self.app.note(f"{gid} predicted in {image} at col {pred.col:.2f}, row {pred.row:.2f} "
+                      f"({pred.how}); Accept records it, or click the right pixel")
+        return pred
+
+    def _accept(self) -> None:
+        if self.prediction is None:
+            raise GcpError("no prediction to accept: press Predict first")
+        gid, pred = self.prediction
+        self.prediction = None
+        self.accept.disabled = True
+        self.accept.label = "Accept the prediction"
+        add_observation(self.app.session, gid, pred.image, pred.col, pred.row)
+        self.app.gcps_changed(select=gid, note=f"{gid}: observed in {pred.image} at col {pred.col:.2f}, "
+                                               f"row {pred.row:.2f} (accepted prediction)")
 
     def _undo(self) -> None:
         what = undo(self.app.session)

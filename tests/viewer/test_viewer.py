@@ -845,3 +845,55 @@ def test_observations_in_unregistered_tiles_are_not_counted_as_usable(tiny_run, 
     ok, txt = gcp_readiness(s, {0: m})[g.id]
     assert f"observed in {len(g.observations) - 1} usable image(s)" in txt
     assert f"not usable: {lost} (its tile there is not registered)" in txt
+
+
+def _truth_gcps(site_root):
+    return json.loads((site_root / "truth" / "gcps_truth.json").read_text())["gcps"]
+
+
+def test_prediction_of_a_gcp_in_another_image_against_the_truth(tiny_run):
+    """On the synthetic `tiny` site, with noise-free clicks: placed in two images, a GCP is
+    predicted in the third by triangulation; placed in one, by the sparse surface and refined by
+    matching along the ray's plausible depths. Errors against the true projections."""
+    from aerec_viewer.prediction import predict_observation
+
+    state, _ = tiny_run
+    m = state.models[0]
+    images = {im.name: im for im in state.site.images}
+    two, one_geo, one_ref = [], [], []
+    for g in _truth_gcps(state.site.root):
+        tob = {k: tuple(v) for k, v in g["true_observations"].items()}
+        for dst in sorted(tob):
+            others = {k: v for k, v in tob.items() if k != dst}
+            p = predict_observation(m, images, others, dst) if len(others) >= 2 else None
+            if p is not None:
+                two.append(np.hypot(p.col - tob[dst][0], p.row - tob[dst][1]))
+            for src in sorted(tob):
+                if src == dst:
+                    continue
+                q = predict_observation(m, images, {src: tob[src]}, dst)
+                if q is not None and q.score is not None:
+                    one_geo.append(np.hypot(q.geometric[0] - tob[dst][0], q.geometric[1] - tob[dst][1]))
+                    one_ref.append(np.hypot(q.col - tob[dst][0], q.row - tob[dst][1]))
+    two = np.array(two)
+    assert len(two) >= 20 and np.median(two) < 0.5 and np.mean(two < 1.0) > 0.9, np.round(two, 2)
+    assert len(one_ref) >= 15
+    assert np.median(one_ref) < 0.5 and np.median(one_ref) < 0.2 * np.median(one_geo), \
+        (np.median(one_ref), np.median(one_geo))
+
+
+def test_predict_then_accept_from_the_gcp_panel(live):
+    app, events, trace, out, site, cfg = live
+    gp = app.gcp_panel
+    img = app.pick_plane.window.image
+    gid = next(g.id for g in app.session.gcps
+               if len([im for im in g.observations if im != img]) >= 2)
+    app.call(lambda: gp.refresh(select=gid))
+    before = app.session.get(gid).observations.get(img)
+    app.call(lambda: app.session.get(gid).observations.pop(img, None))
+    pred = app.call(gp._predict)
+    assert pred.image == img and not gp.accept.disabled and gp.accept.label.startswith(f"Accept: {gid}")
+    if before is not None:                      # the site's own click, for comparison
+        assert np.hypot(pred.col - before[0], pred.row - before[1]) < 3.0
+    app.call(gp._accept)
+    assert app.session.get(gid).observations[img] == (pred.col, pred.row) and gp.accept.disabled

@@ -1,0 +1,208 @@
+"""Where a GCP should be in an image it has not been placed in yet, from where it was placed.
+
+1. Its 3D point in the group's affine frame: triangulated from >= 2 usable observations, or,
+   from a single one, where the pixel's viewing ray meets the sparse surface (the median depth
+   along the ray of the sparse points that project within a few pixels of the click).
+2. Projected by the registered tile of the target image that contains it: the prediction.
+3. Refined by matching: the patch around the observation in the source image against the target
+   image warped into the source's geometry by the local affine map between the two images (fitted
+   to the same nearby sparse points), normalised cross-correlation over a small search window,
+   sub-pixel by a parabola through the peak. The refinement is kept only when the correlation is
+   clear (score and margin); otherwise the geometric prediction stands.
+
+No viser here: the GCP panel calls `predict_observation` and shows the result for the operator to
+accept or adjust.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from recon_core.euclidean.georef import triangulate_gcp
+from recon_core.io.site import ImageInfo, read_window
+
+
+@dataclass(frozen=True)
+class Prediction:
+    image: str
+    col: float                      # the prediction to show (refined when the match is clear)
+    row: float
+    geometric: tuple[float, float]  # from the 3D point alone
+    score: float | None             # NCC of the refinement (None: not refined)
+    how: str                        # plain words: from what, refined or why not
+
+
+def _tile_camera(model, image: str, cr) -> int | None:
+    """Index of the registered tile of `image` containing pixel cr, nearest its centre."""
+    best, dist = None, np.inf
+    for t, tile in enumerate(model.tiles):
+        if tile.image != image or not model.registered[t] or not tile.contains(np.array([cr]))[0]:
+            continue
+        d = float(np.hypot(*(np.asarray(cr) - tile.centre)))
+        if d < dist:
+            best, dist = t, d
+    return best
+
+
+def _project(model, t: int, X: np.ndarray) -> np.ndarray:
+    P = model.cams[t]
+    return X @ P[:, :3].T + P[:, 3]
+
+
+def _near_ray(model, t: int, cr, radius_px: float) -> np.ndarray:
+    """Ids of sparse points projecting within radius_px of cr in tile t's camera."""
+    ids = np.flatnonzero(model.has_point)
+    uv = _project(model, t, model.X[ids])
+    d = np.hypot(uv[:, 0] - cr[0], uv[:, 1] - cr[1])
+    return ids[d < radius_px]
+
+
+def point_from_one_observation(model, image: str, cr, radius_px=(6.0, 12.0, 25.0, 50.0)
+                               ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]] | None:
+    """(3D point on the pixel's ray at the sparse surface, ids of the sparse points used, the
+    stretch of the ray those points span: (its two ends))."""
+    t = _tile_camera(model, image, cr)
+    if t is None:
+        return None
+    P = model.cams[t]
+    M, off = P[:, :3], P[:, 3]
+    d = np.cross(M[0], M[1])                       # the viewing direction (M d = 0)
+    X0 = np.linalg.lstsq(M, np.asarray(cr, float) - off, rcond=None)[0]   # a point on the ray
+    for r in radius_px:
+        ids = _near_ray(model, t, cr, r)
+        if len(ids) >= 5:
+            s = (model.X[ids] - X0) @ d / (d @ d)
+            lo, mid, hi = np.percentile(s, [5, 50, 95])
+            return X0 + float(mid) * d, ids, (X0 + float(lo) * d, X0 + float(hi) * d)
+    return None
+
+
+def _local_affine(model, ids, ta: int, tb: int) -> np.ndarray | None:
+    """2 x 3 affine map from source to target pixels near the GCP (least squares on the sparse
+    points `ids` projected by both tile cameras)."""
+    if len(ids) < 6:
+        return None
+    a = _project(model, ta, model.X[ids])
+    b = _project(model, tb, model.X[ids])
+    A = np.hstack([a, np.ones((len(a), 1))])
+    return np.linalg.lstsq(A, b, rcond=None)[0].T
+
+
+def _parabola(v_minus: float, v0: float, v_plus: float) -> float:
+    den = v_minus - 2 * v0 + v_plus
+    return 0.0 if abs(den) < 1e-12 else float(np.clip(0.5 * (v_minus - v_plus) / den, -0.5, 0.5))
+
+
+def refine_by_matching(src: ImageInfo, src_cr, dst: ImageInfo, dst_cr, J: np.ndarray,
+                       half: int = 12, search: int = 6, min_score: float = 0.7,
+                       segment: tuple[np.ndarray, np.ndarray] | None = None
+                       ) -> tuple[tuple[float, float], float] | None:
+    """Refine dst_cr by NCC of the source patch against the target warped into the source's
+    geometry with the local linear map J (2 x 2, source px -> target px), over +-search px; with
+    `segment` (two target pixels: where the ray's plausible depths project) only peaks within
+    3 px of that epipolar stretch count. Returns ((col, row), score) or None when the match is
+    not clear."""
+    n = half + search
+    sc, sr = float(src_cr[0]), float(src_cr[1])
+    c0, r0 = int(round(sc)) - half, int(round(sr)) - half
+    if c0 < 0 or r0 < 0 or c0 + 2 * half + 1 > src.width or r0 + 2 * half + 1 > src.height:
+        return None
+    tmpl = read_window(src, c0, r0, 2 * half + 1, 2 * half + 1)
+    # target region that the warped search area covers
+    grid = np.arange(-n, n + 1, dtype=np.float64)
+    gx, gy = np.meshgrid(grid + (round(sc) - sc), grid + (round(sr) - sr))
+    tx = dst_cr[0] + J[0, 0] * gx + J[0, 1] * gy
+    ty = dst_cr[1] + J[1, 0] * gx + J[1, 1] * gy
+    x0, y0 = int(np.floor(tx.min())) - 1, int(np.floor(ty.min())) - 1
+    x1, y1 = int(np.ceil(tx.max())) + 2, int(np.ceil(ty.max())) + 2
+    if x0 < 0 or y0 < 0 or x1 > dst.width or y1 > dst.height:
+        return None
+    region = read_window(dst, x0, y0, x1 - x0, y1 - y0)
+    if not (np.isfinite(tmpl).all() and np.isfinite(region).all()) or tmpl.std() < 1e-6:
+        return None
+    warped = cv2.remap(region.astype(np.float32), (tx - x0).astype(np.float32),
+                       (ty - y0).astype(np.float32), cv2.INTER_LINEAR)
+    ncc = cv2.matchTemplate(warped, tmpl.astype(np.float32), cv2.TM_CCOEFF_NORMED)
+    if segment is not None:             # keep the peaks near the epipolar stretch
+        Ji = np.linalg.inv(J)
+        a, b = (Ji @ (np.asarray(q, float) - np.asarray(dst_cr, float)) for q in segment)
+        sy, sx = np.mgrid[-search:search + 1, -search:search + 1].astype(np.float64)
+        ab = b - a
+        tt = np.clip(((sx - a[0]) * ab[0] + (sy - a[1]) * ab[1]) / max(ab @ ab, 1e-12), 0.0, 1.0)
+        dist = np.hypot(sx - a[0] - tt * ab[0], sy - a[1] - tt * ab[1])
+        ncc = np.where(dist <= 3.0, ncc, -1.0).astype(np.float32)
+    iy, ix = np.unravel_index(int(np.argmax(ncc)), ncc.shape)
+    best = float(ncc[iy, ix])
+    if best < min_score or not (0 < ix < ncc.shape[1] - 1 and 0 < iy < ncc.shape[0] - 1):
+        return None
+    # ambiguity: another local maximum, away from this one, nearly as good
+    peaks = (ncc >= cv2.dilate(ncc, np.ones((3, 3), np.uint8))) & (ncc > -1)
+    yy, xx = np.nonzero(peaks)
+    far = np.hypot(yy - iy, xx - ix) > 4
+    if far.any() and best - float(ncc[yy[far], xx[far]].max()) < 0.05:
+        return None
+    dx = ix - search + _parabola(ncc[iy, ix - 1], best, ncc[iy, ix + 1])
+    dy = iy - search + _parabola(ncc[iy - 1, ix], best, ncc[iy + 1, ix])
+    # a shift (dx, dy) in the source's geometry is J (dx, dy) in the target
+    return (float(dst_cr[0] + J[0, 0] * dx + J[0, 1] * dy),
+            float(dst_cr[1] + J[1, 0] * dx + J[1, 1] * dy)), best
+
+
+def predict_observation(model, images: dict[str, ImageInfo], observations: dict,
+                        target: str, refine: bool = True) -> Prediction | None:
+    """Predict a GCP's pixel in `target` (an image of the model's group) from its observations
+    in the group's other images; None when no usable observation or no registered tile of the
+    target sees the point."""
+    obs = {im: cr for im, cr in observations.items() if im != target and im in model.images}
+    if not obs:
+        return None
+    ids, span = None, None
+    if len(obs) >= 2:
+        tri = triangulate_gcp(model, obs)
+        X = tri.xyz
+        how = f"triangulated from {tri.n_images} images"
+    else:
+        X = None
+    if X is None:
+        for im, cr in sorted(obs.items()):
+            got = point_from_one_observation(model, im, cr)
+            if got is not None:
+                X, ids, span = got
+                how = f"from {im} and the sparse surface ({len(ids)} points)"
+                break
+    if X is None:
+        return None
+    # the target tile: project with any registered tile of the target first, then take the one
+    # that contains the projection
+    cand = [t for t, tile in enumerate(model.tiles) if tile.image == target and model.registered[t]]
+    if not cand:
+        return None
+    guess = _project(model, cand[0], X[None])[0]
+    tb = _tile_camera(model, target, guess) or cand[0]
+    p = _project(model, tb, X[None])[0]
+    geometric = (float(p[0]), float(p[1]))
+    if not refine or span is None:
+        # triangulated from >= 2 images, the projection is already as good as the clicks
+        # (~0.3 px on the synthetic sites): matching would add its own errors
+        return Prediction(target, *geometric, geometric, None, how)
+    src, src_cr = min(obs.items(), key=lambda kv: kv[0])
+    ta = _tile_camera(model, src, src_cr)
+    if ids is None and ta is not None:
+        ids = _near_ray(model, ta, src_cr, 40.0)
+    A = None if ta is None or ids is None else _local_affine(model, ids, ta, tb)
+    if A is None:
+        return Prediction(target, *geometric, geometric, None, how + "; not refined (too few points nearby)")
+    search, segment = 6, None
+    if span is not None:                 # one observation: search along the ray's plausible depths
+        segment = tuple(_project(model, tb, np.asarray(q)[None])[0] for q in span)
+        reach = max(float(np.hypot(*(q - p))) for q in segment)
+        search = int(np.clip(np.ceil(reach / max(np.linalg.norm(A[:, :2], 2), 1e-6)) + 4, 6, 48))
+    got = refine_by_matching(images[src], src_cr, images[target], p, A[:, :2], search=search,
+                             segment=segment)
+    if got is None:
+        return Prediction(target, *geometric, geometric, None, how + "; no clear match to refine it")
+    (c, r), score = got
+    return Prediction(target, c, r, geometric, score, how + f"; refined by matching {src} (NCC {score:.2f})")
