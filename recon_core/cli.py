@@ -125,8 +125,6 @@ def cmd_run(args) -> int:
         raise InputError(None, f"--tile-size must be at least 64 px, not {args.tile_size}")
     if args.workers is not None and args.workers < 1:
         raise InputError(None, f"--workers must be at least 1, not {args.workers}")
-    if args.scheduler:
-        probe_scheduler(args.scheduler)
     cfg = preset(args.preset)
     if args.config is not None:
         from recon_core.config import config_from_toml
@@ -142,6 +140,8 @@ def cmd_run(args) -> int:
     if args.workers:
         overrides["dense.workers"] = args.workers
     cfg = cfg.with_overrides(overrides)
+    if cfg.dense.scheduler:            # from --scheduler or from --config
+        probe_scheduler(cfg.dense.scheduler)
     prog = ProgressPrinter(not args.quiet)
     for w in preflight(args.site, args.out, cfg, until=args.stage, redo_from=args.redo_from):
         prog(Message("warning", w))
@@ -181,7 +181,8 @@ def probe_scheduler(address: str, timeout_s: float = 20.0) -> int:
         import distributed  # noqa: F401
     except ImportError:
         raise InputError(None, "--scheduler needs dask.distributed: pip install 'aerec[dask]'") from None
-    if not re.fullmatch(r"(tcp|tls|inproc|ucx)://[^\s:/]+(:\d+)?|[^\s:/]+:\d+", address):
+    if not re.fullmatch(r"(tcp|tls|inproc|ucx)://(\[[0-9a-fA-F:]+\]|[^\s:/\[\]]+)(:\d+)?"
+                        r"|[^\s:/]+:\d+", address):
         raise InputError(None, f"--scheduler {address!r} is not an address like tcp://host:8786")
     code = _PROBE.format(t=max(1, int(timeout_s) - 5))
     try:
@@ -199,7 +200,7 @@ def probe_scheduler(address: str, timeout_s: float = 20.0) -> int:
         raise InputError(None, f"--scheduler {address}: unexpected answer from the scheduler") from None
     if n < 1:
         raise InputError(None, f"--scheduler {address}: the scheduler has no worker; start "
-                               "`dask worker {address}` on the machines that should compute")
+                               f"`dask worker {address}` on the machines that should compute")
     return n
 
 
@@ -232,6 +233,11 @@ def cmd_gcps(args) -> int:
     else:
         gcps = read_gcps_geojson(args.src, images)
     if kinds[args.dst.suffix.lower()] == "csv":
+        picked = [g.id for g in gcps if g.affine_picked]
+        if picked:
+            raise InputError(args.src, f"{', '.join(picked)} carry positions picked on a cloud "
+                                       "(the viewer's working set), which CSV cannot hold; convert "
+                                       "the site's gcps.geojson, or forget the picks in the viewer")
         write_gcps_csv(args.dst, gcps, args.epsg)
     else:
         write_gcps_geojson(args.dst, gcps)

@@ -42,7 +42,12 @@ def write_gcps_csv(path: str | Path, gcps: list[GCP], epsg: int | None = None) -
         if epsg is None or int(epsg) in GEOGRAPHIC:
             x, y, code = f"{g.lon:.9f}", f"{g.lat:.9f}", 4979
         else:
-            e, n, _ = geodetic_to_projected(np.array([g.lon, g.lat, g.h]), int(epsg))
+            try:
+                e, n, _ = geodetic_to_projected(np.array([g.lon, g.lat, g.h]), int(epsg))
+            except Exception as exc:      # pyproj: unknown or unsuitable code
+                raise InputError(None, f"--epsg {epsg}: cannot write E, N in it ({exc})") from None
+            if not (np.isfinite(e) and np.isfinite(n)):
+                raise InputError(None, f"--epsg {epsg}: {g.id} has no E, N in it")
             x, y, code = f"{float(e):.4f}", f"{float(n):.4f}", int(epsg)
         base = [g.id, g.role, x, y, f"{g.h:.4f}", code, "" if g.sigma_m is None else f"{g.sigma_m:g}"]
         obs = sorted(g.observations.items()) or [(None, None)]
@@ -95,7 +100,8 @@ def read_gcps_csv(path: str | Path, default_epsg: int | None = None) -> list[GCP
         return (row.get(key) or "").strip() if key else ""
 
     gcps: dict[str, GCP] = {}
-    for k, row in enumerate(reader, start=2):
+    for row in reader:
+        k = reader.line_num                                # the file's line (blank lines count)
         gid = get(row, "id")
         if not gid:
             if not any((v or "").strip() for v in row.values() if isinstance(v, str)):
@@ -103,7 +109,8 @@ def read_gcps_csv(path: str | Path, default_epsg: int | None = None) -> list[GCP
             raise InputError(path, f"line {k}: empty id")
         x, y, h = (_number(path, k, c, get(row, c)) for c in ("x", "y", "h"))
         code_txt = get(row, "epsg").upper().removeprefix("EPSG:")
-        code = int(_number(path, k, "epsg", code_txt, required=False) or default_epsg or 4979)
+        code_v = _number(path, k, "epsg", code_txt, required=False)
+        code = int(code_v) if code_v is not None else int(default_epsg if default_epsg is not None else 4979)
         if code in GEOGRAPHIC:
             if not (-180 <= x <= 180 and -90 <= y <= 90):
                 raise InputError(path, f"line {k}: lon/lat {x}, {y} out of range (for E/N give the "
@@ -114,6 +121,8 @@ def read_gcps_csv(path: str | Path, default_epsg: int | None = None) -> list[GCP
                 lon, lat, _ = projected_to_geodetic(np.array([x, y, h]), code)
             except Exception as exc:      # pyproj: unknown code, not projected, ...
                 raise InputError(path, f"line {k}: cannot use EPSG:{code} ({exc})") from None
+            if not (np.isfinite(lon) and np.isfinite(lat) and -180 <= lon <= 180 and -90 <= lat <= 90):
+                raise InputError(path, f"line {k}: E, N {x}, {y} are not a place in EPSG:{code}")
         role = get(row, "role").lower() or "control"
         if role not in ("control", "check"):
             raise InputError(path, f"line {k}: role {role!r}; expected control or check")

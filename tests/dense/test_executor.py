@@ -28,7 +28,7 @@ def test_process_pool_matches_serial(tiny_run):
     np.testing.assert_array_equal(a.xyz, b.xyz)
 
 
-def test_scheduler_that_is_not_dask_is_refused_in_time(tmp_path):
+def test_scheduler_that_is_not_dask_is_refused_in_time(tmp_path, capsys):
     """--scheduler pointing at a TCP server that is not a Dask scheduler used to hang forever;
     unreachable used to end in a traceback: now one line, exit 2, before any compute."""
     import socket
@@ -52,6 +52,8 @@ def test_scheduler_that_is_not_dask_is_refused_in_time(tmp_path):
         probe_scheduler("http://a b")
     assert main(["run", str(tmp_path), "--out", str(tmp_path / "o"), "--quiet",
                  "--scheduler", "tcp://127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err
+    assert "--scheduler tcp://127.0.0.1:1: cannot reach a Dask scheduler" in err and "Traceback" not in err
 
 
 def test_dask_local_cluster_matches_local(tiny_run):

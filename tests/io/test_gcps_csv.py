@@ -55,6 +55,8 @@ def test_projected_coordinates_in_and_out(tmp_path):
     ("id,x,y,h,image,col,row\nA,1,2,3,a.tif,1,2\nA,1,2,4,b.tif,1,2\n", "line 3: A has other ground"),
     ("id,x,y,h,image,col,row\nA,1,2,3,a.tif,1,2\nA,1,2,3,a.tif,5,5\n", "line 3: A observed twice"),
     ("id,x,y,h,epsg\nA,1,2,3,999999\n", "line 2: cannot use EPSG:999999"),
+    ("id,x,y,h,epsg\nA,1e9,1e9,3,32632\n", "line 2: E, N"),
+    ("id,x,y,h\n\nA,1,2,3\n\nB,1,north,3\n", "line 5: y 'north'"),
 ])
 def test_bad_csv_is_refused_naming_the_line(tmp_path, text, words):
     p = tmp_path / "bad.csv"
@@ -70,3 +72,17 @@ def test_convert_checks_observations_against_the_site(small_site, tmp_path, caps
     assert main(["gcps", "convert", str(p), str(tmp_path / "g.geojson"), "--site", str(small_site)]) == 2
     err = capsys.readouterr().err
     assert "outside a.tif" in err and not (tmp_path / "g.geojson").exists()
+
+
+def test_csv_export_refuses_what_it_cannot_hold(small_site, tmp_path, capsys):
+    from recon_core.io.gcps import GCP, write_gcps_geojson
+
+    g = GCP("P1", 10.0, 45.0, 100.0, "control", None, {"a.tif": (1.0, 2.0)},
+            affine_picked={0: np.array([1.0, 2.0, 3.0])})
+    write_gcps_geojson(tmp_path / "work.geojson", [g])
+    assert main(["gcps", "convert", str(tmp_path / "work.geojson"), str(tmp_path / "w.csv")]) == 2
+    assert "picked on a cloud" in capsys.readouterr().err and not (tmp_path / "w.csv").exists()
+    assert main(["gcps", "convert", str(small_site / "gcps.geojson"), str(tmp_path / "x.csv"),
+                 "--epsg", "999999"]) == 2
+    err = capsys.readouterr().err
+    assert "--epsg 999999" in err and "Traceback" not in err
