@@ -31,7 +31,15 @@ from recon_core.model.tiling import Window
 
 from .display import COLOR_MODES, DisplayTransform, image_footprint
 from .gcp_panel import GcpPanel, PickPlane, layout_pick_plane, pixel_from_ray
-from .gcp_session import GcpError, add_observation, new_gcp, open_session, set_affine_position
+from .gcp_session import (
+    GcpError,
+    add_observation,
+    merge_last,
+    new_gcp,
+    open_session,
+    set_affine_position,
+    undo,
+)
 from .imagery import ImageSource
 from .results import DsmPanel, UpgradeOutcome, gcp_readiness, n_ready, outcome_markdown, run_upgrade
 from .scene import SceneView, safe_name, tile_windows_for
@@ -568,8 +576,18 @@ class ViewerApp:
                                "(or take one from the site list) before clicking")
             gid = new_gcp(self.session, self.gcp_panel.gid.value or None, x=x, y=y, h=h,
                           epsg=epsg, role=self.gcp_panel.role.value).id
+            created = True
+        else:
+            created = False
         image = self.pick_plane.window.image
-        add_observation(self.session, gid, image, *pix)
+        try:
+            add_observation(self.session, gid, image, *pix)
+        except GcpError:
+            if created:                       # the click created nothing after all
+                undo(self.session)
+            raise
+        if created:
+            merge_last(self.session, 2, f"new {gid} observed in {image}")
         self.last_click = (gid, image, pix[0], pix[1])
         self.gcps_changed(select=gid, note=f"{gid}: observed in {image} at col {pix[0]:.2f}, "
                                            f"row {pix[1]:.2f}")

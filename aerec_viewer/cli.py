@@ -42,7 +42,14 @@ def _remove_stale_tmp(site: Path) -> None:
 def demo_preset() -> str:
     """The synthetic preset of the demo: `demo`, or $AEREC_DEMO_PRESET (e.g. `tiny2` for a
     first look in seconds on a slow machine)."""
-    return os.environ.get("AEREC_DEMO_PRESET") or "demo"
+    from recon_core.errors import InputError
+    from recon_core.synthetic.generator import PRESETS
+
+    name = os.environ.get("AEREC_DEMO_PRESET") or "demo"
+    if name not in PRESETS:
+        raise InputError(None, f"AEREC_DEMO_PRESET={name!r} is not a synthetic preset; choose "
+                               f"from {', '.join(sorted(PRESETS))}")
+    return name
 
 
 def demo_site(progress=None) -> Path:
@@ -124,9 +131,12 @@ class DemoPreparation:
         self.bar.value = float(100.0 * min(whole, 0.99))
         self.md.content = f"{stage}: {100 * self._done[stage]:.0f} % · {time.time() - self._t0:.0f} s"
 
-    def close(self) -> None:
-        self.md.content = "the demo site is ready: starting the reconstruction"
-        self.bar.value = 100.0
+    def close(self, ok: bool = True) -> None:
+        if ok:
+            self.md.content = "the demo site is ready: starting the reconstruction"
+            self.bar.value = 100.0
+        else:
+            self.md.content = "**the demo could not be generated**: see the terminal"
         time.sleep(0.3)
         self.server.stop()
 
@@ -172,6 +182,7 @@ def cmd_view(args) -> int:
     from .app import ViewerApp
 
     prep = None
+    demo_preset()                             # an unknown AEREC_DEMO_PRESET: one line, now
     if args.target is None and args.site is None and not demo_cached():
         # serve a page at once: generating the demo takes minutes on a small machine
         prep = DemoPreparation(args.host, args.port)
@@ -184,10 +195,12 @@ def cmd_view(args) -> int:
             prep.progress(*a, **k)
             if printer is not None:
                 printer(*a, **k)
+        ok = False
         try:
             demo_site(progress=both)
+            ok = True
         finally:
-            prep.close()
+            prep.close(ok)
             if printer is not None:
                 printer.close()
         args.port = prep.port                 # the viewer takes over the page's address

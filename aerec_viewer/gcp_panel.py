@@ -18,6 +18,7 @@ from .gcp_session import (
     GcpSession,
     can_redo,
     can_undo,
+    merge_last,
     default_epsg,
     delete_gcp,
     describe,
@@ -148,11 +149,12 @@ class GcpPanel:
 
     def _wire(self) -> None:
         app = self.app
-        self.image.on_update(lambda _: app.submit(self.app.show_image_plane))
+        self.image.on_update(lambda _: app.submit(lambda: (self.drop_prediction(),
+                                                           self.app.show_image_plane())))
         self.region.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.show_plane.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.goto.on_click(lambda ev: app.submit(lambda: self.app.look_at_plane(ev.client)))
-        self.select.on_update(lambda _: app.submit(self.fill_fields))
+        self.select.on_update(lambda _: app.submit(lambda: (self.drop_prediction(), self.fill_fields())))
         self.crs.on_update(lambda _: app.submit(self._convert_fields))
         self.apply.on_click(lambda _: app.submit(self._apply))
         self.create.on_click(lambda _: app.submit(self._create))
@@ -254,6 +256,7 @@ class GcpPanel:
             raise GcpError(f"{gid} has no position picked on the cloud")
         for g in groups:
             set_affine_position(self.app.session, gid, g, None)
+        merge_last(self.app.session, len(groups), f"forget {gid}'s cloud pick")
         self.app.gcps_changed(select=gid, note=f"{gid}: cloud pick forgotten, its image "
                                                "observations are used again")
 
@@ -281,13 +284,17 @@ class GcpPanel:
                       f"({pred.how}); Accept records it, or click the right pixel")
         return pred
 
+    def drop_prediction(self) -> None:
+        if self.prediction is not None:
+            self.prediction = None
+            self.accept.disabled = True
+            self.accept.label = "Accept the prediction"
+
     def _accept(self) -> None:
         if self.prediction is None:
             raise GcpError("no prediction to accept: press Predict first")
         gid, pred = self.prediction
-        self.prediction = None
-        self.accept.disabled = True
-        self.accept.label = "Accept the prediction"
+        self.drop_prediction()
         add_observation(self.app.session, gid, pred.image, pred.col, pred.row)
         self.app.gcps_changed(select=gid, note=f"{gid}: observed in {pred.image} at col {pred.col:.2f}, "
                                                f"row {pred.row:.2f} (accepted prediction)")
@@ -314,6 +321,7 @@ class GcpPanel:
             self.select.value = current
         if self._delete_armed is not None and self._delete_armed[0] != current:
             self._disarm_delete()
+        self.drop_prediction()             # any edit or selection change makes it stale
         u, r = can_undo(s), can_redo(s)
         self.undo.disabled, self.redo.disabled = u is None, r is None
         self.undo.label = f"Undo: {u}" if u else "Undo"

@@ -118,6 +118,15 @@ def _restore(s: GcpSession, src: list, dst: list, verb: str) -> str:
     return what
 
 
+def merge_last(s: GcpSession, n: int, what: str) -> None:
+    """Make the last n edits one step of the history (one Undo reverts them all)."""
+    if n < 2 or len(s._undo) < n:
+        return
+    first_state = s._undo[-n][0]
+    del s._undo[-n:]
+    s._undo.append((first_state, what))
+
+
 def undo(s: GcpSession) -> str:
     """Revert the latest edit (any kind: observation, ground coordinates, role, delete, ...);
     returns what was undone."""

@@ -125,7 +125,8 @@ def refine_by_matching(src: ImageInfo, src_cr, dst: ImageInfo, dst_cr, J: np.nda
         return None
     warped = cv2.remap(region.astype(np.float32), (tx - x0).astype(np.float32),
                        (ty - y0).astype(np.float32), cv2.INTER_LINEAR)
-    ncc = cv2.matchTemplate(warped, tmpl.astype(np.float32), cv2.TM_CCOEFF_NORMED)
+    raw = cv2.matchTemplate(warped, tmpl.astype(np.float32), cv2.TM_CCOEFF_NORMED)
+    ncc = raw
     if segment is not None:             # keep the peaks near the epipolar stretch
         Ji = np.linalg.inv(J)
         a, b = (Ji @ (np.asarray(q, float) - np.asarray(dst_cr, float)) for q in segment)
@@ -144,8 +145,9 @@ def refine_by_matching(src: ImageInfo, src_cr, dst: ImageInfo, dst_cr, J: np.nda
     far = np.hypot(yy - iy, xx - ix) > 4
     if far.any() and best - float(ncc[yy[far], xx[far]].max()) < 0.05:
         return None
-    dx = ix - search + _parabola(ncc[iy, ix - 1], best, ncc[iy, ix + 1])
-    dy = iy - search + _parabola(ncc[iy - 1, ix], best, ncc[iy + 1, ix])
+    # sub-pixel on the unmasked correlation (the band mask would pull the peak into the band)
+    dx = ix - search + _parabola(raw[iy, ix - 1], best, raw[iy, ix + 1])
+    dy = iy - search + _parabola(raw[iy - 1, ix], best, raw[iy + 1, ix])
     # a shift (dx, dy) in the source's geometry is J (dx, dy) in the target
     return (float(dst_cr[0] + J[0, 0] * dx + J[0, 1] * dy),
             float(dst_cr[1] + J[1, 0] * dx + J[1, 1] * dy)), best
@@ -181,8 +183,15 @@ def predict_observation(model, images: dict[str, ImageInfo], observations: dict,
     if not cand:
         return None
     guess = _project(model, cand[0], X[None])[0]
-    tb = _tile_camera(model, target, guess) or cand[0]
+    tb = _tile_camera(model, target, guess)
+    if tb is None:                          # no registered tile of the target sees the point
+        return None
     p = _project(model, tb, X[None])[0]
+    if not model.tiles[tb].contains(p[None])[0]:
+        tb = _tile_camera(model, target, p)
+        if tb is None:
+            return None
+        p = _project(model, tb, X[None])[0]
     geometric = (float(p[0]), float(p[1]))
     if not refine or span is None:
         # triangulated from >= 2 images, the projection is already as good as the clicks
@@ -198,8 +207,10 @@ def predict_observation(model, images: dict[str, ImageInfo], observations: dict,
     search, segment = 6, None
     if span is not None:                 # one observation: search along the ray's plausible depths
         segment = tuple(_project(model, tb, np.asarray(q)[None])[0] for q in span)
-        reach = max(float(np.hypot(*(q - p))) for q in segment)
-        search = int(np.clip(np.ceil(reach / max(np.linalg.norm(A[:, :2], 2), 1e-6)) + 4, 6, 48))
+        # the search runs in the source's geometry: a target offset d is J^-1 d there
+        Ji = np.linalg.inv(A[:, :2])
+        reach = max(float(np.abs(Ji @ (q - p)).max()) for q in segment)
+        search = int(np.clip(np.ceil(reach) + 4, 6, 48))
     got = refine_by_matching(images[src], src_cr, images[target], p, A[:, :2], search=search,
                              segment=segment)
     if got is None:

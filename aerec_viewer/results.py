@@ -327,8 +327,8 @@ def provenance_markdown(out: str | Path) -> str:
 def no_dsm_markdown(snap) -> str:
     """What the Results tab says while there is no OUT/dsm.tif: waiting, or why there is none."""
     if snap is not None and snap.status == "failed":
-        stage = snap.failed_stage or "a"
-        text = f"**No DSM: the {stage} stage failed.**"
+        text = (f"**No DSM: the {snap.failed_stage} stage failed.**" if snap.failed_stage
+                else "**No DSM: the run failed.**")
         if snap.error:
             text += f" {snap.error}"
         if snap.hint:

@@ -462,6 +462,7 @@ class ReconWorker:
 
     # -- the thread -----------------------------------------------------------------------------
     def _main(self) -> None:
+        self._running_stage = None             # a failure before any stage starts names none
         try:
             self._set_status("running" if self._resume_gate.is_set() else "paused")
             if self.mode == "reopen":

@@ -135,14 +135,17 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
         raise InputError(gcp_path, "no GCP: the Euclidean upgrade needs >= 4 control GCPs observed "
                                    "in >= 2 images of each date group (stop before it with --stage dense)")
     groups = group_by_date(site.images, cfg.grouping.max_gap_days, cfg.grouping.max_span_days)
-    warnings, ok = [], []
+    warnings, ok, flat = [], [], []
     for level, g, text in gcp_findings(groups, gcps, cfg):
         if level == "error":
-            raise InputError(gcp_path, f"group {g}: {text}")
-        if level == "ok":
+            flat.append((g, text))
+        elif level == "ok":
             ok.append(g)
         else:
             warnings.append(text)
+    if flat and not ok:            # nothing could be upgraded: refuse, naming the first flat group
+        raise InputError(gcp_path, f"group {flat[0][0]}: {flat[0][1]}")
+    warnings += [f"group {g} will not be upgraded: {text}" for g, text in flat]
     if not ok:
         raise InputError(gcp_path, "no date group has 4 control GCPs observed in >= 2 of its images: "
                                    + "; ".join(warnings) + " (stop before the upgrade with --stage dense)")
@@ -152,7 +155,8 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
 def gcp_findings(groups, gcps, cfg: Config) -> list[tuple[str, int, str]]:
     """Per date group, what the upgrade will make of the GCPs, from the GCP file alone:
     ("ok" | "warning" | "error", group, text). A warning: fewer than 4 usable control GCPs (the
-    group is not upgraded); an error: a control set too flat to fix the height scale."""
+    group is not upgraded); an error: a control set too flat to fix the height scale (the upgrade
+    refuses that group; the run refuses when no group is left)."""
     out = []
     for g in groups:
         names = {im.name for im in g.images}

@@ -177,3 +177,28 @@ def test_info_shows_what_run_would_refuse_as_warnings(small_site, capsys):
     _gcps(small_site, lambda d: [f["properties"].update(role="check") for f in d["features"][1:]])
     assert main(["info", str(small_site)]) == 0
     assert "1 control GCP(s) observed in >= 2 of its images, 4 needed" in capsys.readouterr().out
+
+
+def test_a_flat_group_is_a_warning_when_another_group_can_be_upgraded(tmp_path):
+    """Two date groups: one with a coplanar control set, one with a good one. The upgrade would
+    refuse only the flat group, so the run warns about it instead of refusing everything."""
+    import numpy as np
+
+    from recon_core.config import Config
+    from recon_core.pipeline import preflight
+    from tests.conftest import write_tiff
+
+    site = tmp_path / "site"
+    rng = np.random.default_rng(0)
+    for name, day in (("a", "01"), ("b", "02"), ("c", "20"), ("d", "21")):
+        write_tiff(site / "images" / f"{name}.tif", rng.integers(0, 2047, (48, 64), dtype=np.uint16),
+                   when=f"2020:01:{day} 10:00:00")
+    feats = []
+    for k in range(4):
+        lon, lat = 10.0 + 1e-4 * k, 45.0 + 2e-4 * (k % 2)
+        feats.append(gcp_feature(f"F{k}", lon, lat, 100.0 + k, {"a.tif": [3.0 + k, 4.0], "b.tif": [5.0 + k, 6.0]}))
+        feats.append(gcp_feature(f"G{k}", lon, lat, (100.0, 101.0, 140.0, 103.0)[k],
+                                 {"c.tif": [3.0 + k, 4.0], "d.tif": [5.0 + k, 6.0]}))
+    (site / "gcps.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    notes = preflight(site, tmp_path / "out", Config())
+    assert len(notes) == 1 and notes[0].startswith("group 0 will not be upgraded: refused:")

@@ -66,17 +66,26 @@ def group_tone_curves(images: list[ImageInfo], percentiles=(0.5, 99.5)) -> tuple
     for an image whose own value range does not fit the shared one (a float32 reflectance image
     among uint16 counts would map to black: no keypoint): that image gets its own curve, and a
     warning says so. Returns (curve per image, warnings)."""
-    shared = tone_curve_for(images, percentiles)
-    width = max(shared.hi - shared.lo, 1e-12)
+    owns = [tone_curve_for([im], percentiles) for im in images]
+    # the group's typical range: the median image's (an outlier, wider or narrower, cannot
+    # drag it), then the shared curve from the images that fit it
+    ref_lo = float(np.median([o.lo for o in owns]))
+    ref_hi = float(np.median([o.hi for o in owns]))
+    ref_w = max(ref_hi - ref_lo, 1e-12)
+
+    def fits(o: ToneCurve) -> bool:
+        w = max(o.hi - o.lo, 1e-12)
+        overlap = max(0.0, min(o.hi, ref_hi) - max(o.lo, ref_lo))
+        return 0.2 < w / ref_w < 5.0 and overlap / min(w, ref_w) >= 0.5
+
+    fit = [im for im, o in zip(images, owns) if fits(o)]
+    shared = tone_curve_for(fit or images, percentiles)
     curves, warnings = [], []
-    for im in images:
-        own = tone_curve_for([im], percentiles)
-        own_w = max(own.hi - own.lo, 1e-12)
-        inside = max(0.0, min(own.hi, shared.hi) - max(own.lo, shared.lo)) / own_w
-        if own_w / width < 0.2 or inside < 0.5:
+    for im, own in zip(images, owns):
+        if not fits(own):
             curves.append(own)
             warnings.append(f"{im.name}: its values ({im.dtype}, {own.lo:.4g} to {own.hi:.4g}) do not "
-                            f"match the other images of its group ({shared.lo:.4g} to {shared.hi:.4g}); "
+                            f"match the other images of its group ({ref_lo:.4g} to {ref_hi:.4g}); "
                             "stretched on its own for feature detection. Is it the same kind of "
                             "product (band, processing level, units)?")
         else:

@@ -38,7 +38,7 @@ quadratic penalty 1/2 w p^T Q p on the stacked tile parameters p of the image, w
 Q = D^T (I - Pi) D: a dense block per image that the bundle adjustment adds to its camera normal
 equations. Its weight w = (sigma_obs / sigma_tie)^2: sigma_obs the observations' noise (measured
 from the reprojection error), sigma_tie the model's error against a true pushbroom
-(`SfmConfig.image_model_sigma_px`). Each tile counts as 8 points (the corners of its volume),
+(a caller's choice; bench/bench_bend.py tries 0.05 and 0.01 px). Each tile counts as 8 points (the corners of its volume),
 whatever its number of observations.
 
 Status: measured, not used by the pipeline. It discriminates (the truth costs 0.01 px against

@@ -86,3 +86,7 @@ def test_a_float32_image_among_uint16_ones_gets_its_own_stretch_and_its_keypoint
     # same products: no warning, one curve
     curves, warnings = group_tone_curves([a, b])
     assert not warnings and curves[0] is curves[1]
+    # an image with a much wider range (16-bit counts among 11-bit ones) is the one named
+    write_tiff(tmp_path / "d.tif", np.clip(counts.astype(np.float64) * 30, 0, 65535).astype(np.uint16))
+    curves, warnings = group_tone_curves([a, b, open_image(tmp_path / "d.tif")])
+    assert len(warnings) == 1 and warnings[0].startswith("d.tif") and curves[0] is curves[1]
