@@ -111,6 +111,9 @@ class DsmConfig:
     resolution_m: float | None = None  # output cell size; None = site.json's, else the GSD
     stat: str = "median"              # per-cell statistic: median | upper_median | max
     fill_holes_px: int = 2            # fill only holes this small (radius, cells) with support
+    fusion_correction_m: float = 32.0  # a lower-ranked group is brought onto the fused surface by
+                                      # a smooth correction (medians of the difference in blocks
+                                      # of this size) before it fills holes; 0 = off
     icp_max_corr_m: float = 3.0       # ICP correspondence distance when fusing date groups
     icp_voxel_m: float = 1.0          # both clouds are reduced to voxel centroids of this size
     icp_max_iter: int = 60            # ICP iteration cap (it stops earlier when converged)

@@ -86,7 +86,8 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
         for acc in accs.values():
             acc.close()
     order = rank_groups(groups, quality or {}, {g: len(sources[g]) for g in groups})
-    H, source = fuse_groups([per_group[g] for g in order])
+    block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
+    H, source = fuse_groups([per_group[g] for g in order], correct_block=block)
     raw_valid = float(np.isfinite(H).mean())
 
     def filled(D: np.ndarray) -> np.ndarray:
@@ -108,8 +109,11 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     return {"crs_epsg": epsg, "resolution_m": res, "width": grid.width, "height": grid.height,
             "points": int(total), "points_in_grid": int(in_grid), "valid_fraction_raw": raw_valid,
             "valid_fraction": float(np.isfinite(H).mean()), "stat": c.stat, "fusion": fusion,
-            "fusion_rule": "per cell, the best-ranked group with a value (ranked by check-point "
-                           "vertical RMSE)" if len(groups) > 1 else "one group",
+            "fusion_rule": ("per cell, the best-ranked group with a value (ranked by check-point "
+                            "vertical RMSE)" + (f"; lower-ranked groups brought onto the fused surface "
+                                                f"by a smooth correction ({c.fusion_correction_m:g} m "
+                                                "blocks)" if block else ""))
+                           if len(groups) > 1 else "one group",
             "group_order": order, "groups": groups_report, "gsd_m": gsd}
 
 
@@ -122,16 +126,59 @@ def rank_groups(groups: list[int], quality: dict[int, float], size: dict[int, in
     return sorted(groups, key=key)
 
 
-def fuse_groups(dsms: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def fuse_groups(dsms: list[np.ndarray], correct_block: int = 0,
+                min_overlap: int = 2000) -> tuple[np.ndarray, np.ndarray]:
     """Per cell, the first DSM (in the given order) with a value. Returns (H, index of the DSM
-    each cell came from, -1 where none has one)."""
+    each cell came from, -1 where none has one).
+
+    With `correct_block` > 0 (cells), a lower-ranked DSM is first brought onto the fused surface
+    where they overlap: the difference's median per block of correct_block x correct_block cells,
+    spread to blocks without overlap from the nearest ones and smoothed, is subtracted before it
+    fills holes. A smooth bend of a worse group (ICP is rigid) then no longer shows where it fills
+    in; its own detail stays. Needs `min_overlap` common cells, else no correction."""
     H = np.full(dsms[0].shape, np.nan, np.float32)
     source = np.full(dsms[0].shape, -1, np.int16)
     for k, D in enumerate(dsms):
+        if k > 0 and correct_block > 0:
+            D = D - relative_correction(D, H, correct_block, min_overlap)
         take = np.isnan(H) & np.isfinite(D)
         H[take] = D[take]
         source[take] = k
     return H, source
+
+
+def relative_correction(D: np.ndarray, ref: np.ndarray, block: int, min_overlap: int = 2000) -> np.ndarray:
+    """A smooth surface of the difference D - ref (full grid, float32; zeros when they share
+    fewer than min_overlap cells): per-block medians, nearest-block extrapolation, a Gaussian of
+    one block, bilinear up-sampling."""
+    import cv2
+    from scipy import ndimage
+
+    both = np.isfinite(D) & np.isfinite(ref)
+    if int(both.sum()) < min_overlap:
+        return np.zeros(D.shape, np.float32)
+    h, w = D.shape
+    nb_r, nb_c = -(-h // block), -(-w // block)
+    r, c = np.nonzero(both)
+    key = (r // block) * nb_c + (c // block)
+    diff = (D[r, c] - ref[r, c]).astype(np.float64)
+    order = np.argsort(key, kind="stable")
+    key, diff = key[order], diff[order]
+    cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
+    coarse = np.full(nb_r * nb_c, np.nan)
+    need = max(8, block * block // 20)             # >= 5 % of the block's cells overlap
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        if b - a >= need:
+            coarse[key[a]] = np.median(diff[a:b])
+    coarse = coarse.reshape(nb_r, nb_c)
+    have = np.isfinite(coarse)
+    if not have.any():
+        return np.zeros(D.shape, np.float32)
+    idx = ndimage.distance_transform_edt(~have, return_distances=False, return_indices=True)
+    coarse = coarse[idx[0], idx[1]]
+    coarse = ndimage.gaussian_filter(coarse, 1.0, mode="nearest")
+    up = cv2.resize(coarse.astype(np.float32), (nb_c * block, nb_r * block), interpolation=cv2.INTER_LINEAR)
+    return up[:h, :w]
 
 
 def point_sources(state, bus: EventBus) -> dict[int, PointSource]:

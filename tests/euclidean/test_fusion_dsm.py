@@ -84,3 +84,35 @@ def test_the_icp_reference_is_the_largest_full_cloud_not_the_largest_sample(tmp_
                    OutLayout(tmp_path))
     assert rep["fusion"]["reference_group"] == 0
     assert (tmp_path / "dsm.tif").exists() and OutLayout(tmp_path).group_dsms() == [0, 1]
+
+
+def test_a_bent_lower_group_is_brought_onto_the_best_before_it_fills_holes():
+    """The best group: the true surface with holes (30 % of the cells, in patches). A worse
+    group: complete, but bent by a smooth 2 m dome and offset. Filling the holes with it as is
+    leaves the bend in them; with the relative correction the filled cells follow the truth
+    (and a group that agrees with the best is left as it is)."""
+    rng = np.random.default_rng(4)
+    h, w = 400, 500
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    truth = 100 + 0.01 * xx + 3 * ((xx // 40 + yy // 40) % 2)         # blocks of "buildings"
+    best = truth + rng.normal(0, 0.1, truth.shape).astype(np.float32)
+    holes = np.zeros((h, w), bool)
+    for _ in range(40):
+        r, c = rng.integers(0, h - 30), rng.integers(0, w - 30)
+        holes[r:r + int(rng.integers(10, 30)), c:c + int(rng.integers(10, 30))] = True
+    best[holes] = np.nan
+    bend = 2.0 * (((xx - w / 2) / (w / 2)) ** 2 + ((yy - h / 2) / (h / 2)) ** 2) - 1.0 + 0.7
+    worse = truth + bend + rng.normal(0, 0.1, truth.shape).astype(np.float32)
+    plain, src = fuse_groups([best.astype(np.float32), worse.astype(np.float32)])
+    fixed, _ = fuse_groups([best.astype(np.float32), worse.astype(np.float32)], correct_block=32)
+    filled = (src == 1)
+    assert filled.sum() > 0.05 * h * w
+    err_plain = np.median(np.abs(plain[filled] - truth[filled]))
+    err_fixed = np.median(np.abs(fixed[filled] - truth[filled]))
+    assert err_plain > 0.6 and err_fixed < 0.2, (err_plain, err_fixed)
+    # cells of the best group are never changed
+    assert np.array_equal(fixed[~holes], best[~holes])
+    # a lower group that agrees with the best is left (nearly) as it is
+    agree = truth + rng.normal(0, 0.1, truth.shape).astype(np.float32)
+    same, _ = fuse_groups([best.astype(np.float32), agree.astype(np.float32)], correct_block=32)
+    assert np.median(np.abs(same[filled] - agree[filled])) < 0.05
