@@ -121,6 +121,7 @@ class ViewerApp:
         self._plane_token = None
         self._reframe_on_plane = False
         self._marks: dict[str, tuple] = {}   # path -> (sphere, label, colour, radius, pos)
+        self._residual_nodes: list = []      # the residual vectors on the image plane and their legend
         self._marks_key = None
         self._armed = None
         self._gui_cache: dict[str, object] = {}
@@ -719,6 +720,54 @@ class ViewerApp:
             label = sc.add_label(f"{name}_label", text, position=tuple(pos), anchor="bottom-left",
                                  font_screen_scale=0.7)
             self._marks[name] = (sphere, label, col, r, pos)
+        self._draw_residual_vectors()
+
+    RESIDUAL_SCALE = 20.0          # residual vectors on the image plane: 1 px drawn as 20 px
+
+    def residual_vectors(self) -> dict[str, tuple[tuple[float, float], tuple[float, float]]]:
+        """GCP id -> (observed pixel, residual observed - reprojected) in the plane's image, for
+        the GCPs observed there and in another registered image of its group."""
+        from .prediction import observation_residuals
+
+        if self.pick_plane is None:
+            return {}
+        img = self.pick_plane.window.image
+        model = next((m for m in self.models.values() if img in m.images), None)
+        if model is None:
+            return {}
+        out = {}
+        for g in self.session.gcps:
+            if img in g.observations:
+                res = observation_residuals(model, g.observations)
+                if img in res:
+                    out[g.id] = (g.observations[img], res[img])
+        return out
+
+    def _draw_residual_vectors(self) -> None:
+        """Orange segments from each observation along its residual (x RESIDUAL_SCALE), with a
+        legend; red when the residual exceeds 1 px."""
+        for h in self._residual_nodes:
+            h.remove()
+        self._residual_nodes = []
+        vecs = self.residual_vectors()
+        if not vecs or self.pick_plane is None:
+            return
+        pl = self.pick_plane
+        k = self.RESIDUAL_SCALE
+        seg = np.array([[pl.point_of(c, r, lift=0.002 * pl.render_width),
+                         pl.point_of(c + k * dx, r + k * dy, lift=0.002 * pl.render_width)]
+                        for (c, r), (dx, dy) in vecs.values()], dtype=np.float32)
+        big = np.array([np.hypot(dx, dy) > 1.0 for _, (dx, dy) in vecs.values()])
+        cols = np.where(big[:, None, None], np.array([220, 30, 30]), np.array([255, 150, 0]))
+        cols = np.broadcast_to(cols, seg.shape).astype(np.uint8)
+        sc = self.server.scene
+        self._residual_nodes.append(sc.add_line_segments("/gcp/plane_residuals", seg, cols,
+                                                         thickness=3.0, thickness_units="screen"))
+        w = pl.window
+        self._residual_nodes.append(sc.add_label(
+            "/gcp/plane_residuals_legend", f"residual vectors x{k:g} (red: > 1 px)",
+            position=tuple(pl.point_of(w.col0, w.row0 + w.height, lift=0.002 * pl.render_width)),
+            anchor="top-left", font_screen_scale=0.7))
 
     # -- upgrade --------------------------------------------------------------------------------
     def _update_upgrade_button(self) -> None:

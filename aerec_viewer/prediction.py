@@ -217,3 +217,23 @@ def predict_observation(model, images: dict[str, ImageInfo], observations: dict,
         return Prediction(target, *geometric, geometric, None, how + "; no clear match to refine it")
     (c, r), score = got
     return Prediction(target, c, r, geometric, score, how + f"; refined by matching {src} (NCC {score:.2f})")
+
+
+def observation_residuals(model, observations: dict) -> dict[str, tuple[float, float]]:
+    """Per usable observation of a GCP (>= 2 images of the model's group), the pixel residual
+    observed - reprojected of its triangulated affine point: what the residual vectors show.
+    {} when it cannot be triangulated."""
+    obs = {im: cr for im, cr in observations.items() if im in model.images}
+    if len(obs) < 2:
+        return {}
+    tri = triangulate_gcp(model, obs)
+    if tri.xyz is None:
+        return {}
+    out = {}
+    for im, cr in obs.items():
+        t = _tile_camera(model, im, cr)
+        if t is None:
+            continue
+        p = _project(model, t, np.asarray(tri.xyz)[None])[0]
+        out[im] = (float(cr[0] - p[0]), float(cr[1] - p[1]))
+    return out

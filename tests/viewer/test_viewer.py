@@ -899,3 +899,37 @@ def test_predict_then_accept_from_the_gcp_panel(live):
     assert np.hypot(pred.col - before[0], pred.row - before[1]) < 6.0   # noisy clicks, short baseline
     app.call(gp._accept)
     assert app.session.get(gid).observations[img] == (pred.col, pred.row) and gp.accept.disabled
+
+
+def test_residual_vectors_on_the_image_plane(live):
+    """Each GCP observed in the plane's image and in another image of its group gets a segment
+    from its observation along its reprojection residual (x RESIDUAL_SCALE); a misclick of a few
+    pixels shows as a long red one."""
+    from aerec_viewer.prediction import observation_residuals
+
+    app, events, trace, out, site, cfg = live
+    app.wait_idle()
+    if app.pick_plane is None:
+        app.call(lambda: app.show_image_plane(wait=True))
+    img = app.pick_plane.window.image
+    model = next(m for m in app.models.values() if img in m.images)
+    vecs = app.call(app.residual_vectors)
+    expect = {g.id for g in app.session.gcps if img in g.observations
+              and img in observation_residuals(model, g.observations)}
+    assert set(vecs) == expect and len(expect) >= 3
+    gid = sorted(expect)[0]
+    (c, r), _ = vecs[gid]
+    app.call(lambda: add_observation(app.session, gid, img, c + 4.0, r - 3.0))   # a misclick
+    app.call(lambda: app.gcps_changed(select=gid))
+    (c2, r2), (dx, dy) = app.call(app.residual_vectors)[gid]
+    assert (c2, r2) == (c + 4.0, r - 3.0) and np.hypot(dx, dy) > 1.0
+    seg = app._residual_nodes[0]
+    assert len(seg.points) == len(expect)
+    k = list(app.call(app.residual_vectors)).index(gid)
+    a, b = np.asarray(seg.points[k], float)
+    pl = app.pick_plane
+    np.testing.assert_allclose(b - a, pl.point_of(c2 + app.RESIDUAL_SCALE * dx, r2 + app.RESIDUAL_SCALE * dy)
+                               - pl.point_of(c2, r2), atol=1e-3)
+    assert tuple(np.asarray(seg.colors)[k, 0]) == (220, 30, 30)
+    app.call(lambda: undo(app.session))
+    app.call(lambda: app.gcps_changed(select=gid))
