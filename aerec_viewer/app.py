@@ -503,14 +503,15 @@ class ViewerApp:
             self._marks_key = None
             return
         win = self.current_window()
+        contrast = self.gcp_panel.contrast.value
         token = self._plane_token = object()
         if wait:
-            self._place_plane(win, self.images.read(win, 2048), token)
+            self._place_plane(win, self.images.read(win, 2048, contrast), token)
             return
 
         def read() -> None:
             try:
-                tex = self.images.read(win, 2048)
+                tex = self.images.read(win, 2048, contrast)
             except Exception as exc:
                 msg = f"cannot read {win.image}: {exc}"   # exc is unbound once the block ends
                 self.submit(lambda: self.note(msg, "error"))

@@ -109,6 +109,9 @@ class GcpPanel:
         self.region = gui.add_dropdown("Region", ["whole image"], initial_value="whole image",
                                        hint="pick a tile to see it at full resolution")
         self.show_plane = gui.add_checkbox("Show image plane", True)
+        self.contrast = gui.add_dropdown("Contrast", ["site", "image", "window"], initial_value="site",
+                                         hint="site: one stretch for all images; image: this "
+                                              "image's own; window: stretched on what is shown")
         self.goto = gui.add_button("Look at the image plane", icon=None)
         gui.add_markdown("Click a pixel on the image plane: it becomes an observation of the GCP "
                          "selected here (or of a new GCP with the fields below).")
@@ -153,6 +156,7 @@ class GcpPanel:
                                                            self.app.show_image_plane())))
         self.region.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.show_plane.on_update(lambda _: app.submit(self.app.show_image_plane))
+        self.contrast.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.goto.on_click(lambda ev: app.submit(lambda: self.app.look_at_plane(ev.client)))
         self.select.on_update(lambda _: app.submit(lambda: (self.drop_prediction(), self.fill_fields())))
         self.crs.on_update(lambda _: app.submit(self._convert_fields))

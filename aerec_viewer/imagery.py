@@ -29,19 +29,48 @@ class ImageSource:
                 self._tone = tone_curve_for(list(self.images.values()))
             return self._tone
 
-    def read(self, win: Window, max_side: int) -> np.ndarray:
-        """(h, w) uint8 texture of a window, decimated so that its longer side <= max_side."""
-        return _read_cached(self, win, int(max_side))
+    CONTRAST = ("site", "image", "window")
+
+    def read(self, win: Window, max_side: int, contrast: str = "site") -> np.ndarray:
+        """(h, w) uint8 texture of a window, decimated so that its longer side <= max_side.
+
+        contrast: "site" one tone curve for all images (the scene's tiles match), "image" the
+        image's own (a 16-bit image among others, or a dark one), "window" stretched on the
+        window itself (the most contrast where the operator looks: a zoomed tile)."""
+        if contrast not in self.CONTRAST:
+            raise ValueError(f"contrast must be one of {self.CONTRAST}")
+        return _read_cached(self, win, int(max_side), contrast)
+
+    def image_tone(self, name: str):
+        from recon_core.sparse.features import tone_curve_for
+
+        return _image_tone(self, name) if name in self.images else tone_curve_for([])
 
     def whole(self, name: str) -> Window:
         im = self.images[name]
         return Window(name, 0, 0, im.width, im.height)
 
 
+@lru_cache(maxsize=64)
+def _image_tone(src: ImageSource, name: str):
+    from recon_core.sparse.features import tone_curve_for
+
+    return tone_curve_for([src.images[name]])
+
+
 @lru_cache(maxsize=256)
-def _read_cached(src: ImageSource, win: Window, max_side: int) -> np.ndarray:
+def _read_cached(src: ImageSource, win: Window, max_side: int, contrast: str = "site") -> np.ndarray:
+    from recon_core.sparse.features import ToneCurve
+
     im = src.images[win.image]
     f = max(1.0, max(win.width, win.height) / max_side)
     w, h = max(1, int(math.ceil(win.width / f))), max(1, int(math.ceil(win.height / f)))
     g = read_window(im, win.col0, win.row0, win.width, win.height, out_shape=(h, w))
+    if contrast == "image":
+        return _image_tone(src, win.image).apply(g)
+    if contrast == "window":
+        v = g[np.isfinite(g)]
+        if v.size:
+            lo, hi = np.percentile(v, (0.5, 99.5))
+            return ToneCurve(float(lo), float(hi)).apply(g)
     return src.tone.apply(g)

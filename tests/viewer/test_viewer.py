@@ -933,3 +933,23 @@ def test_residual_vectors_on_the_image_plane(live):
     assert tuple(np.asarray(seg.colors)[k, 0]) == (220, 30, 30)
     app.call(lambda: undo(app.session))
     app.call(lambda: app.gcps_changed(select=gid))
+
+
+def test_contrast_modes_stretch_a_dark_image(tmp_path):
+    """A dark 16-bit image among bright ones: with the site's shared stretch it is nearly black;
+    the "image" and "window" contrast modes give it the full range."""
+    from aerec_viewer.imagery import ImageSource
+    from recon_core.io.site import open_image
+    from recon_core.model.tiling import Window
+    from tests.conftest import write_tiff
+
+    rng = np.random.default_rng(0)
+    bright = rng.integers(0, 2047, (64, 80), dtype=np.uint16)
+    write_tiff(tmp_path / "a.tif", bright)
+    write_tiff(tmp_path / "b.tif", (bright // 20).astype(np.uint16))          # dark
+    src = ImageSource([open_image(tmp_path / "a.tif"), open_image(tmp_path / "b.tif")])
+    win = Window("b.tif", 0, 0, 80, 64)
+    site, own, local = (src.read(win, 256, m).astype(float) for m in ("site", "image", "window"))
+    assert site.max() < 100 and own.std() > 2 * site.std() and local.std() > 2 * site.std()
+    with pytest.raises(ValueError):
+        src.read(win, 256, "loud")
