@@ -41,7 +41,15 @@ from .gcp_session import (
     undo,
 )
 from .imagery import ImageSource
-from .results import DsmPanel, UpgradeOutcome, gcp_readiness, n_ready, outcome_markdown, run_upgrade
+from .results import (
+    DsmPanel,
+    UpgradeOutcome,
+    gcp_readiness,
+    gcp_state_table,
+    n_ready,
+    outcome_markdown,
+    run_upgrade,
+)
 from .scene import SceneView, safe_name, tile_windows_for
 from .worker import DisplaySnapshot, ReconWorker
 
@@ -122,6 +130,7 @@ class ViewerApp:
         self._reframe_on_plane = False
         self._marks: dict[str, tuple] = {}   # path -> (sphere, label, colour, radius, pos)
         self._residual_nodes: list = []      # the residual vectors on the image plane and their legend
+        self._state_table_key = None
         self._marks_key = None
         self._armed = None
         self._gui_cache: dict[str, object] = {}
@@ -318,6 +327,7 @@ class ViewerApp:
             self.g_ready = gui.add_markdown("")
             with gui.add_folder("GCP placement", expand_by_default=False):
                 self.g_ready_list = gui.add_markdown("")
+                self.g_state_table = gui.add_markdown("")
             self.g_frame_sel = gui.add_dropdown("Frame", ["affine", "Euclidean"],
                                                 initial_value="affine", disabled=True)
             self.g_upgrade_md = gui.add_markdown("")
@@ -785,6 +795,11 @@ class ViewerApp:
         self._set_md(self.g_ready, f"{why}.{stale}")
         self._set_md(self.g_ready_list, "\n".join(f"- {gid} ({self.session.get(gid).role}): {txt}"
                                                   for gid, (_, txt) in ready.items()))
+        key = (self.session.version, len(self.models), id(next(iter(self.models.values()), None)))
+        if key != self._state_table_key:          # recomputed when the GCPs or the models change
+            self._state_table_key = key
+            self._set_md(self.g_state_table, gcp_state_table(self.session, self.models,
+                                                             sorted(self.session.images)))
 
     def do_upgrade(self) -> UpgradeOutcome:
         """The Upgrade button: fit H_A with the pipeline's own function, switch the scene to

@@ -80,6 +80,31 @@ def gcp_readiness(session: GcpSession, models: dict) -> dict[str, tuple[bool, st
     return out
 
 
+def gcp_state_table(session: GcpSession, models: dict, images: list[str]) -> str:
+    """Markdown table: one row per GCP, one column per image: "placed" (usable: a registered tile
+    contains it), "unusable" (observed, but no registered tile there), "-" (not observed), and
+    "picked" (a cloud pick replaces the observations)."""
+    if not session.gcps:
+        return ""
+    head = "| GCP | role | " + " | ".join(images) + " |"
+    rows = [head, "|---|---|" + "---|" * len(images)]
+    for g in session.gcps:
+        usable: set[str] = set()
+        for m in models.values():
+            usable.update(usable_observations(m, g.observations)[0])
+        cells = []
+        for im in images:
+            if im not in g.observations:
+                cells.append("-")
+            elif not models or im in usable:
+                cells.append("placed")
+            else:
+                cells.append("**unusable**")
+        picked = " (picked)" if g.affine_picked else ""
+        rows.append(f"| {g.id}{picked} | {g.role} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
 def n_ready(session: GcpSession, models: dict, role: str | None = "control") -> int:
     """Number of GCPs (of a role) that can get an affine position."""
     ready = gcp_readiness(session, models)

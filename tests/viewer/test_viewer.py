@@ -953,3 +953,27 @@ def test_contrast_modes_stretch_a_dark_image(tmp_path):
     assert site.max() < 100 and own.std() > 2 * site.std() and local.std() > 2 * site.std()
     with pytest.raises(ValueError):
         src.read(win, 256, "loud")
+
+
+def test_gcp_state_table_shows_each_images_state(tiny_run, tmp_path):
+    import copy
+
+    from aerec_viewer.results import gcp_state_table
+    from recon_core.io.site import load_site
+
+    state, _ = tiny_run
+    m = copy.deepcopy(state.models[0])
+    s = open_session(tmp_path / "out", load_site(state.site.root))
+    imgs = sorted(s.images)
+    g = next(p for p in s.gcps if len(p.observations) == len(imgs))
+    md = gcp_state_table(s, {0: m}, imgs)
+    assert md.splitlines()[0] == "| GCP | role | " + " | ".join(imgs) + " |"
+    row = next(ln for ln in md.splitlines() if ln.startswith(f"| {g.id} |"))
+    assert row.count("placed") == len(imgs)
+    for t, tile in enumerate(m.tiles):                  # the first image's tiles fail
+        if tile.image == imgs[0]:
+            m.registered[t] = False
+    remove_observation(s, g.id, imgs[1])
+    row = next(ln for ln in gcp_state_table(s, {0: m}, imgs).splitlines() if ln.startswith(f"| {g.id} |"))
+    cells = [c.strip() for c in row.strip("|").split("|")][2:]
+    assert cells[0] == "**unusable**" and cells[1] == "-" and cells[2] == "placed"
