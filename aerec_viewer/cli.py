@@ -52,10 +52,14 @@ def demo_preset() -> str:
     return name
 
 
+def _demo_dir() -> Path:
+    name = "demo_site" if demo_preset() == "demo" else f"demo_site_{demo_preset()}"
+    return cache_dir() / name
+
+
 def demo_site(progress=None) -> Path:
     """The demo site, generated (offline, seed 0) on first use; atomic (tmp folder + rename)."""
-    name = "demo_site" if demo_preset() == "demo" else f"demo_site_{demo_preset()}"
-    site = cache_dir() / name
+    site = _demo_dir()
     if (site / "images").is_dir():
         return site
     from recon_core.synthetic.generator import generate_site
@@ -73,8 +77,7 @@ def demo_site(progress=None) -> Path:
 
 
 def demo_cached() -> bool:
-    name = "demo_site" if demo_preset() == "demo" else f"demo_site_{demo_preset()}"
-    return (cache_dir() / name / "images").is_dir()
+    return (_demo_dir() / "images").is_dir()
 
 
 def _demo_progress():

@@ -37,19 +37,14 @@ class Prediction:
 
 def _tile_camera(model, image: str, cr) -> int | None:
     """Index of the registered tile of `image` containing pixel cr, nearest its centre."""
-    best, dist = None, np.inf
-    for t, tile in enumerate(model.tiles):
-        if tile.image != image or not model.registered[t] or not tile.contains(np.array([cr]))[0]:
-            continue
-        d = float(np.hypot(*(np.asarray(cr) - tile.centre)))
-        if d < dist:
-            best, dist = t, d
-    return best
+    tiles = model.tiles_at(image, cr)
+    if not tiles:
+        return None
+    return min(tiles, key=lambda t: float(np.hypot(*(np.asarray(cr, float) - model.tiles[t].centre))))
 
 
 def _project(model, t: int, X: np.ndarray) -> np.ndarray:
-    P = model.cams[t]
-    return X @ P[:, :3].T + P[:, 3]
+    return model.camera(t).project(X)
 
 
 def _near_ray(model, t: int, cr, radius_px: float) -> np.ndarray:

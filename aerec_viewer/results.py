@@ -48,12 +48,12 @@ def usable_observations(model, observations: dict) -> tuple[list[str], list[str]
     for im, (c, r) in sorted(observations.items()):
         if im not in model.images:
             continue
-        tiles = [t for t, tile in enumerate(model.tiles) if tile.image == im
-                 and tile.contains(np.array([[c, r]]))[0]]
-        if any(model.registered[t] for t in tiles):
+        if model.tiles_at(im, (c, r)):
             ok.append(im)
+        elif model.tiles_at(im, (c, r), registered=False):
+            bad.append(f"{im} (its tile there is not registered)")
         else:
-            bad.append(f"{im} (its tile there is not registered)" if tiles else f"{im} (outside every tile)")
+            bad.append(f"{im} (outside every tile)")
     return ok, bad
 
 

@@ -207,7 +207,7 @@ def probe_scheduler(address: str, timeout_s: float = 20.0) -> int:
 def cmd_gcps(args) -> int:
     """`aerec gcps convert SRC DST`: gcps.geojson <-> CSV (recon_core.io.gcps_csv)."""
     from recon_core.errors import InputError
-    from recon_core.io.gcps import read_gcps_geojson, write_gcps_geojson
+    from recon_core.io.gcps import check_observation, read_gcps_geojson, write_gcps_geojson
     from recon_core.io.gcps_csv import read_gcps_csv, write_gcps_csv
 
     kinds = {".csv": "csv", ".geojson": "geojson", ".json": "geojson"}
@@ -223,13 +223,10 @@ def cmd_gcps(args) -> int:
         images = {im.name: im for im in load_site(args.site, require_times=False, read_gcps=False).images}
     if kinds[args.src.suffix.lower()] == "csv":
         gcps = read_gcps_csv(args.src, args.epsg)
-        if images is not None:                 # the same checks as the GeoJSON reader's
+        if images is not None:                 # the GeoJSON reader's checks
             for g in gcps:
-                for im, (c, r) in g.observations.items():
-                    if im not in images:
-                        raise InputError(args.src, f"{g.id}: image {im!r} is not in {args.site}/images")
-                    if not (-0.5 <= c <= images[im].width - 0.5 and -0.5 <= r <= images[im].height - 0.5):
-                        raise InputError(args.src, f"{g.id}: pixel ({c}, {r}) lies outside {im}")
+                for im, cr in g.observations.items():
+                    check_observation(args.src, g.id, im, cr, images)
     else:
         gcps = read_gcps_geojson(args.src, images)
     if kinds[args.dst.suffix.lower()] == "csv":

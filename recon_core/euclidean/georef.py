@@ -38,11 +38,10 @@ def triangulate_gcp(model: SparseModel, observations: dict[str, tuple[float, flo
     for name, (c, r) in observations.items():
         if name not in model.images:
             continue
-        for t, tile in enumerate(model.tiles):
-            if tile.image == name and model.registered[t] and tile.contains(np.array([[c, r]]))[0]:
-                cam_idx.append(t)
-                xy.append((c, r))
-                imgs.add(name)
+        for t in model.tiles_at(name, (c, r)):
+            cam_idx.append(t)
+            xy.append((c, r))
+            imgs.add(name)
     if len(imgs) < 2:
         why = (f"observed in {len(imgs)} registered image(s) of group {model.group}; "
                "needs >= 2 (or pick it on the cloud)")

@@ -107,12 +107,7 @@ def _parse_feature(path: Path, k: int, feat, epsg, images) -> GCP:
         if not (isinstance(xy, list) and len(xy) == 2 and all(_finite_number(v) for v in xy)):
             raise InputError(path, f"{where}: observation in {name} must be [col, row]")
         if images is not None:
-            if name not in images:
-                raise InputError(path, f"{where}: observation refers to unknown image {name!r}")
-            im = images[name]
-            if not (-0.5 <= xy[0] <= im.width - 0.5 and -0.5 <= xy[1] <= im.height - 0.5):
-                raise InputError(path, f"{where}: observation {xy} lies outside {name} "
-                                       f"({im.width} x {im.height} px)")
+            check_observation(path, where, name, xy, images)
         obs[name] = (float(xy[0]), float(xy[1]))
     sigma = props.get("sigma_m")
     if sigma is not None and not (_finite_number(sigma) and sigma > 0):
@@ -120,6 +115,16 @@ def _parse_feature(path: Path, k: int, feat, epsg, images) -> GCP:
     return GCP(id=gid, lon=lon, lat=lat, h=h, role=role,
                sigma_m=None if sigma is None else float(sigma), observations=obs,
                affine_picked=_parse_picked(path, where, props.get("affine_picked")))
+
+
+def check_observation(path: Path, where: str, name: str, xy, images: dict) -> None:
+    """An observation must name a site image and lie inside it (pixel-centre convention)."""
+    if name not in images:
+        raise InputError(path, f"{where}: observation refers to unknown image {name!r}")
+    im = images[name]
+    if not (-0.5 <= xy[0] <= im.width - 0.5 and -0.5 <= xy[1] <= im.height - 0.5):
+        raise InputError(path, f"{where}: observation {list(xy)} lies outside {name} "
+                               f"({im.width} x {im.height} px)")
 
 
 def _parse_picked(path: Path, where: str, picked) -> dict[int, np.ndarray]:

@@ -71,6 +71,13 @@ class SparseModel:
         ids = self.point_ids()
         return ids, nimg[ids], np.sqrt(sq[ids] / np.maximum(cnt[ids], 1))
 
+    def tiles_at(self, image: str, cr, registered: bool = True) -> list[int]:
+        """Tiles of `image` whose window contains the full-image pixel cr (registered ones only,
+        unless registered is False)."""
+        xy = np.asarray(cr, dtype=np.float64).reshape(1, 2)
+        return [t for t, tile in enumerate(self.tiles) if tile.image == image
+                and (self.registered[t] or not registered) and tile.contains(xy)[0]]
+
     def camera(self, t: int) -> AffineCamera:
         """The affine camera of tile t."""
         return AffineCamera.from_array(self.cams[t])

@@ -51,11 +51,16 @@ class ToneCurve:
 
 def tone_curve_for(images: list[ImageInfo], percentiles=(0.5, 99.5), factor: int = 8) -> ToneCurve:
     """One tone curve shared by several images, from joint percentiles of their overviews."""
-    vals = []
-    for im in images:
-        f = max(1, min(factor, min(im.width, im.height) // 64))
-        ov = read_downsampled(im, f)
-        vals.append(ov[np.isfinite(ov)].ravel())
+    return _curve_of([_overview_values(im, factor) for im in images], percentiles)
+
+
+def _overview_values(im: ImageInfo, factor: int = 8) -> np.ndarray:
+    f = max(1, min(factor, min(im.width, im.height) // 64))
+    ov = read_downsampled(im, f)
+    return ov[np.isfinite(ov)].ravel()
+
+
+def _curve_of(vals: list[np.ndarray], percentiles) -> ToneCurve:
     v = np.concatenate(vals) if vals else np.zeros(1)
     lo, hi = np.percentile(v, percentiles)
     return ToneCurve(float(lo), float(hi))
@@ -66,7 +71,8 @@ def group_tone_curves(images: list[ImageInfo], percentiles=(0.5, 99.5)) -> tuple
     for an image whose own value range does not fit the shared one (a float32 reflectance image
     among uint16 counts would map to black: no keypoint): that image gets its own curve, and a
     warning says so. Returns (curve per image, warnings)."""
-    owns = [tone_curve_for([im], percentiles) for im in images]
+    vals = [_overview_values(im) for im in images]          # each overview read once
+    owns = [_curve_of([v], percentiles) for v in vals]
     # the group's typical range: the median image's (an outlier, wider or narrower, cannot
     # drag it), then the shared curve from the images that fit it
     ref_lo = float(np.median([o.lo for o in owns]))
@@ -78,8 +84,8 @@ def group_tone_curves(images: list[ImageInfo], percentiles=(0.5, 99.5)) -> tuple
         overlap = max(0.0, min(o.hi, ref_hi) - max(o.lo, ref_lo))
         return 0.2 < w / ref_w < 5.0 and overlap / min(w, ref_w) >= 0.5
 
-    fit = [im for im, o in zip(images, owns) if fits(o)]
-    shared = tone_curve_for(fit or images, percentiles)
+    fit = [v for v, o in zip(vals, owns) if fits(o)]
+    shared = _curve_of(fit or vals, percentiles)
     curves, warnings = [], []
     for im, own in zip(images, owns):
         if not fits(own):
