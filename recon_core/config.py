@@ -57,6 +57,16 @@ class SfmConfig:
     init_min_inliers: int = 60        # the initial tile pair needs at least this many verified matches
     global_ba_growth: float = 0.15    # run a global BA when tiles grew by this fraction
     local_ba_window: int = 6          # cameras refined in a local BA after each registration
+    joint_groups: bool = True         # reconstruct all date groups in one affine frame when their
+                                      # images match across dates (each group keeps its tiles and
+                                      # points): all views hold the structure against bending;
+                                      # falls back to one reconstruction per group otherwise
+    joint_min_matches: int = 200      # verified matches an image needs with the other groups'
+                                      # images for the joint reconstruction
+    joint_partners: int = 2           # images of other groups each image is matched with
+    tie_sigma_px: float = 0.01        # the per-image pushbroom tie (recon_core.sparse.image_model)
+                                      # in the final global adjustments: the model's error against
+                                      # a pushbroom, px (0 = off)
 
 
 @dataclass

@@ -58,7 +58,15 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     if not groups:
         raise ReconstructionError("no upgraded group has a cloud")
     samples = {g: apply_affine_3d(Hs[g], sources[g].sample(c.icp_sample_points)) for g in groups}
-    Ts, fusion = align_groups(samples, c, reference=max(groups, key=lambda g: len(sources[g])))
+    if len(groups) > 1 and all(np.array_equal(Hs[g], Hs[groups[0]]) for g in groups):
+        # one joint reconstruction upgraded by one H_A: the groups already share a frame, and
+        # ICP between seasons would only move them by what differs (vegetation, shadows)
+        Ts = {g: np.eye(4) for g in groups}
+        fusion = {"reference_group": groups[0], "joint": True,
+                  "icp": {str(g): {"applied": False, "reason": "one joint reconstruction and one "
+                                   "upgrade: the groups share a frame"} for g in groups[1:]}}
+    else:
+        Ts, fusion = align_groups(samples, c, reference=max(groups, key=lambda g: len(sources[g])))
     epsg = output_epsg(site.hints, frame)
     res = float(c.resolution_m or site.hints.get("resolution_m") or max(0.5, round(gsd * 2) / 2))
     extent = np.concatenate([apply_affine_3d(Ts[g], samples[g]) for g in groups])
@@ -85,7 +93,8 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     finally:
         for acc in accs.values():
             acc.close()
-    order = rank_groups(groups, quality or {}, {g: len(sources[g]) for g in groups})
+    spread = {g: dsm_roughness(per_group[g]) for g in groups}
+    order = rank_groups(groups, quality or {}, {g: len(sources[g]) for g in groups}, spread)
     block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
     H, source = fuse_groups([per_group[g] for g in order], correct_block=block)
     raw_valid = float(np.isfinite(H).mean())
@@ -103,26 +112,56 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
         for k, g in enumerate(order):
             write_dsm(out.group_dsm(g), filled(per_group[g]), grid)
             groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),
+                                     "roughness_m": spread[g],
                                      "points": int(len(sources[g])),
                                      "valid_fraction_raw": float(np.isfinite(per_group[g]).mean()),
                                      "fused_cells_from_it": float((source == k).mean())}
     return {"crs_epsg": epsg, "resolution_m": res, "width": grid.width, "height": grid.height,
             "points": int(total), "points_in_grid": int(in_grid), "valid_fraction_raw": raw_valid,
             "valid_fraction": float(np.isfinite(H).mean()), "stat": c.stat, "fusion": fusion,
-            "fusion_rule": ("per cell, the best-ranked group with a value (ranked by check-point "
-                            "vertical RMSE)" + (f"; lower-ranked groups brought onto the fused surface "
+            "fusion_rule": ("per cell, the best-ranked group with a value (ranked by the expected "
+                            "height error: check-point vertical RMSE and the DSM's roughness)" + (f"; lower-ranked groups brought onto the fused surface "
                                                 f"by a smooth correction ({c.fusion_correction_m:g} m "
                                                 "blocks)" if block else ""))
                            if len(groups) > 1 else "one group",
             "group_order": order, "groups": groups_report, "gsd_m": gsd}
 
 
-def rank_groups(groups: list[int], quality: dict[int, float], size: dict[int, int]) -> list[int]:
-    """Best first: lower quality figure (check-point vertical RMSE) first; groups without one
-    after them; ties and the rest by cloud size, largest first."""
+def dsm_roughness(D: np.ndarray, size: int = 5, max_cells: int = 8_000_000) -> float | None:
+    """A DSM's noise: the 75th percentile of |D - its size x size median| over cells whose
+    neighbourhood is fully valid (edges and roofs move few cells; matching noise moves most).
+    Comparable between groups on one grid; bands of rows when the grid is large."""
+    from scipy import ndimage
+
+    band = 512
+    step = max(1, int(np.ceil(D.size / max_cells)))
+    vals = []
+    for r0 in range(0, D.shape[0], band * step):
+        B = D[r0:r0 + band].astype(np.float64)
+        ok = np.isfinite(B)
+        if ok.sum() < size * size:
+            continue
+        M = ndimage.median_filter(np.where(ok, B, np.nanmedian(B)), size=size)
+        full = ndimage.minimum_filter(ok.astype(np.uint8), size=size).astype(bool)
+        vals.append(np.abs(B - M)[full])
+    r = np.concatenate(vals) if vals else np.zeros(0)
+    return float(np.percentile(r, 75)) if len(r) >= 1000 else None
+
+
+def rank_groups(groups: list[int], quality: dict[int, float], size: dict[int, int],
+                spread: dict[int, float | None] | None = None) -> list[int]:
+    """Best first, by the expected height error of each group's DSM: sqrt(q^2 + s^2) with q its
+    check points' vertical RMSE (georeferencing) and s its roughness (dsm_roughness: matching
+    noise); a group without q after those with one; ties and the rest by cloud size, largest
+    first."""
+    spread = spread or {}
+
     def key(g):
-        q = quality.get(g)
-        return (0, float(q), -size[g]) if q is not None and np.isfinite(q) else (1, 0.0, -size[g])
+        q, s = quality.get(g), spread.get(g)
+        s = float(s) if s is not None and np.isfinite(s) else 0.0
+        if q is not None and np.isfinite(q):
+            return (0, float(np.hypot(q, s)), -size[g])
+        return (1, s, -size[g])
     return sorted(groups, key=key)
 
 

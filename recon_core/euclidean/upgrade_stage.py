@@ -7,7 +7,7 @@ shows its result at once, then re-runs the pipeline from this stage.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -19,6 +19,7 @@ from recon_core.events import EventBus
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.gcps import GCP
 from recon_core.io.models import load_upgrade, save_upgrade
+from recon_core.model.sparse_model import merge_joint
 
 
 def estimate_gsd(model, H: np.ndarray) -> float:
@@ -52,6 +53,7 @@ class Upgrade:
     affine: dict[int, dict[str, GcpAffine]] = field(default_factory=dict)
     gsd_m: dict[int, float] = field(default_factory=dict)
     errors: dict[int, str] = field(default_factory=dict)
+    joint: bool = False           # one H_A for all groups of one joint reconstruction
 
     @property
     def Hs(self) -> dict[int, np.ndarray]:
@@ -69,7 +71,19 @@ class Upgrade:
     def report(self) -> dict:
         groups = {str(g): self.record(g) for g in self.results}
         groups.update({str(g): {"error": e} for g, e in self.errors.items()})
-        return {"frame": self.frame.to_dict(), "groups": dict(sorted(groups.items()))}
+        out = {"frame": self.frame.to_dict(), "groups": dict(sorted(groups.items()))}
+        if self.joint:
+            out["joint"] = ("the date groups share one joint affine reconstruction: one H_A, fitted "
+                            "on every image's GCP observations, upgrades them all")
+        return out
+
+
+def _picks_joint(gcp: GCP, group: int) -> GCP:
+    """In a joint reconstruction every group's cloud is in one frame: a position picked on any
+    group's cloud stands for the merged model's (the lowest group's pick when several)."""
+    if not gcp.affine_picked or group in gcp.affine_picked:
+        return gcp
+    return replace(gcp, affine_picked={group: gcp.affine_picked[min(gcp.affine_picked)]})
 
 
 def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
@@ -85,6 +99,20 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
     if not models:
         raise ReconstructionError("no sparse model to upgrade")
     up = Upgrade(frame_for(gcps))
+    joint = merge_joint([models[g] for g in sorted(models)])
+    if joint is not None:
+        try:
+            res, _, aff = upgrade_group(joint, [_picks_joint(g, joint.group) for g in gcps], up.frame,
+                                        ransac_thresh_m=cfg.upgrade.ransac_thresh_m, seed=cfg.seed)
+            refusal = None if cfg.upgrade.allow_flat_gcps else flat_gcp_refusal(res.conditioning)
+            if refusal:
+                raise ReconstructionError(refusal)
+            for g, model in sorted(models.items()):
+                up.results[g], up.affine[g], up.gsd_m[g] = res, aff, estimate_gsd(model, res.H)
+            up.joint = True
+            return up
+        except ReconstructionError:
+            up.results.clear(), up.affine.clear(), up.gsd_m.clear()   # each group on its own
     for g, model in sorted(models.items()):
         try:
             res, _, aff = upgrade_group(model, gcps, up.frame, ransac_thresh_m=cfg.upgrade.ransac_thresh_m,

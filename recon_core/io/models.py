@@ -37,10 +37,12 @@ def save_model(model: SparseModel, out: OutLayout | str | Path) -> Path:
     d.mkdir(parents=True, exist_ok=True)
     doc = {"group": model.group, "images": model.images,
            "frame": "affine; gauge = canonical frame of the initial tile pair "
-                    "(first camera [I2|0|0], one row of the second camera [0 0 1|0])",
+                    "(first camera [I2|0|0], one row of the second camera [0 0 1|0])"
+                    + ("; shared by every date group of a joint reconstruction (stats.joint)"
+                       if "joint" in model.stats else ""),
            "camera_convention": "x = P @ [X, Y, Z, 1]: full-image pixel (col, row), centre of the "
                                 "top-left pixel at (0, 0)",
-           "init_tiles": [model.tiles[t].id for t in model.init_tiles],
+           "init_tiles": [model.tiles[t].id if t >= 0 else None for t in model.init_tiles],
            "register_order": [model.tiles[t].id for t in model.register_order],
            "tiles": [dict(t.to_dict(), registered=bool(model.registered[k]),
                           camera=model.cams[k].tolist(), fixed=model.fixed[k].tolist())
@@ -80,7 +82,8 @@ def load_model(out: OutLayout | str | Path, g: int) -> SparseModel:
     index = {t.id: k for k, t in enumerate(tiles)}
     m = SparseModel(doc["group"], doc["images"], tiles, cams, reg, fixed, obs, X, has, gray,
                     [index[i] for i in doc["register_order"]],
-                    tuple(index[i] for i in doc["init_tiles"]), doc.get("stats", {}))
+                    tuple(index.get(i, -1) if i is not None else -1 for i in doc["init_tiles"]),
+                    doc.get("stats", {}))
     return m
 
 

@@ -98,3 +98,38 @@ def images_per_track(track: np.ndarray, img: np.ndarray, n: int) -> np.ndarray:
     n_img = int(img.max()) + 1 if len(img) else 1
     keys = np.unique(track.astype(np.int64) * n_img + img)
     return np.bincount(keys // n_img, minlength=n)
+
+
+def merge_joint(models: list[SparseModel]) -> SparseModel | None:
+    """The date groups' models of one joint reconstruction (the sparse stage's split, stats
+    "joint") merged back into one model of all their images, in their shared frame; None unless
+    every model comes from the same joint reconstruction."""
+    joints = [m.stats.get("joint") for m in models]
+    if len(models) < 2 or any(j is None for j in joints) or any(j != joints[0] for j in joints):
+        return None
+    if any(len(m.X) != len(models[0].X) for m in models):
+        return None
+    images, tiles, parts = [], [], []
+    t_off = i_off = 0
+    for m in models:
+        o = m.obs
+        parts.append((o.tile + t_off, o.track, o.xy, o.img + i_off, o.valid))
+        images += m.images
+        tiles += m.tiles
+        t_off += len(m.tiles)
+        i_off += len(m.images)
+    tile, track, xy, img, valid = (np.concatenate(p) for p in zip(*parts))
+    has = np.zeros(len(models[0].X), bool)
+    X = np.zeros_like(models[0].X)
+    for m in models:
+        X[m.has_point] = m.X[m.has_point]
+        has |= m.has_point
+    merged = SparseModel(min(m.group for m in models), images, tiles,
+                         np.concatenate([m.cams for m in models]),
+                         np.concatenate([m.registered for m in models]),
+                         np.concatenate([m.fixed for m in models]),
+                         Observations(tile, track, xy.reshape(-1, 2), img, valid), X, has,
+                         models[0].gray.copy(), stats={"joint": joints[0]})
+    idx = merged.active_obs()
+    merged.has_point &= images_per_track(merged.obs.track[idx], merged.obs.img[idx], len(X)) >= 2
+    return merged

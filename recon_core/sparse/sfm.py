@@ -27,6 +27,7 @@ from recon_core.geometry import affine
 from recon_core.model.sparse_model import Observations, SparseModel, images_per_track
 from recon_core.model.tiling import Tile
 from recon_core.sparse.bundle import bundle_adjust
+from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.features import ImageFeatures
 from recon_core.sparse.matching import PairMatches
 from recon_core.sparse.tracks import Tracks
@@ -180,9 +181,9 @@ class IncrementalSfM:
                 break
             self._attempt(cand[best], why, tried, counts, img_reg)
         self._filter_outliers()
-        self._bundle("global")
+        self._bundle("global", tied=True)
         self._filter_outliers()
-        self._bundle("global")
+        self._bundle("global", tied=True)
         self._emit_model()
         idx, err = m.reprojection()
         counts = self._correspondence_counts()
@@ -363,7 +364,31 @@ class IncrementalSfM:
                 m.has_point[ids] &= cond[ids] >= self.cfg.min_triangulation_ratio * ref
 
     # -- bundle adjustment --------------------------------------------------------------------
-    def _bundle(self, scope: str, around: int | None = None) -> None:
+    def _image_ties(self, idx: np.ndarray) -> list:
+        """One pushbroom tie per image with >= 4 registered tiles (recon_core.sparse.image_model),
+        weighted by (sigma_obs / SfmConfig.tie_sigma_px)^2, sigma_obs from the reprojection error."""
+        m, o = self.m, self.m.obs
+        if self.cfg.tie_sigma_px <= 0:
+            return []
+        _, err = m.reprojection(idx)
+        sigma_obs = max(float(np.sqrt(np.mean(err ** 2))) / np.sqrt(2.0), 0.02)
+        w = (sigma_obs / self.cfg.tie_sigma_px) ** 2
+        rng = np.random.default_rng(0)
+        ties = []
+        for name in m.images:
+            tids = np.array([t for t in np.flatnonzero(m.registered) if m.tiles[t].image == name], np.int64)
+            if len(tids) < 4:
+                continue
+            samples = []
+            for t in tids:
+                k = np.unique(o.track[idx][o.tile[idx] == t])
+                if len(k) > 48:
+                    k = rng.choice(k, 48, replace=False)
+                samples.append(m.X[k])
+            ties.append(image_tie(m.cams[tids], samples, tids, w))
+        return ties
+
+    def _bundle(self, scope: str, around: int | None = None, tied: bool = False) -> None:
         m, o = self.m, self.m.obs
         idx = m.active_obs()
         if len(idx) == 0:
@@ -381,7 +406,8 @@ class IncrementalSfM:
             free_pts = np.unique(o.track[idx][np.isin(o.tile[idx], free_cams)])
         res = bundle_adjust(m.cams, m.X, o.tile[idx], o.track[idx], o.xy[idx], free_cams, free_pts,
                             m.fixed, loss=self.ba_cfg.loss, f_scale=self.ba_cfg.loss_scale_px,
-                            max_nfev=self.ba_cfg.max_nfev if scope == "global" else self.ba_cfg.local_max_nfev)
+                            max_nfev=self.ba_cfg.max_nfev if scope == "global" else self.ba_cfg.local_max_nfev,
+                            ties=self._image_ties(idx) if tied else None)
         m.cams, m.X = res.cams, res.X
         self.bus.emit(BundleAdjusted(m.group, scope, res.cost_before, res.cost_after, res.rms_px,
                                      len(free_cams), len(free_pts), res.seconds))

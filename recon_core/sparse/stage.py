@@ -5,15 +5,17 @@ from __future__ import annotations
 
 import itertools
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from recon_core.config import Config
 from recon_core.errors import ReconstructionError
-from recon_core.events import EventBus, Message, StageDone
+from recon_core.events import (BundleAdjusted, EventBus, Message, ModelUpdated, PointsAdded, StageDone,
+                               StageProgress, TileRegistered)
 from recon_core.io.models import load_model, save_model
 from recon_core.model.grouping import Group
-from recon_core.model.sparse_model import SparseModel
+from recon_core.model.sparse_model import Observations, SparseModel, images_per_track
 from recon_core.model.tiling import Tile, tile_image
 from recon_core.sparse.features import ImageFeatures, detect_image, detect_overview, group_tone_curves
 from recon_core.sparse.matching import CoarseLink, PairMatches, coarse_link, match_pair
@@ -26,17 +28,25 @@ def group_tiles(group: Group, cfg: Config) -> dict[str, list[Tile]]:
             for im in group.images}
 
 
-def select_pairs(links: dict[tuple[int, int], CoarseLink], n_images: int, k: int) -> list[tuple[int, int]]:
-    """Each image keeps its k partners with the most overview inliers (a pair kept by either side)."""
+def select_pairs(links: dict[tuple[int, int], CoarseLink], n_images: int, k: int,
+                 groups: list[int] | None = None, k_other: int = 0) -> list[tuple[int, int]]:
+    """Each image keeps its k partners with the most overview inliers (a pair kept by either side);
+    with `groups` (the date group of each image), its k partners among its own group's images and
+    its k_other best among the other groups' images."""
+    groups = groups or [0] * n_images
     keep = set()
     for a in range(n_images):
-        mine = sorted(((l.n_inliers, p) for p, l in links.items() if a in p), reverse=True)[:k]
-        keep.update(p for _, p in mine)
+        for same, kk in ((True, k), (False, k_other)):
+            mine = sorted(((l.n_inliers, p) for p, l in links.items() if a in p
+                           and (groups[p[0]] == groups[p[1]]) == same), reverse=True)[:kk]
+            keep.update(p for _, p in mine)
     return sorted(keep)
 
 
-def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None) -> tuple[SparseModel, dict]:
-    """Run the sparse affine reconstruction of one date group."""
+def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None,
+                      image_groups: list[int] | None = None) -> tuple[SparseModel, dict]:
+    """Run the sparse affine reconstruction of one date group (or, with image_groups, the date
+    group of each image, of several groups in one frame: see reconstruct_joint)."""
     bus = bus or EventBus()
     g = group.index
     names = [im.name for im in group.images]
@@ -71,7 +81,8 @@ def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None) ->
         link = coarse_link(names[a], overviews[a], names[b], overviews[b])
         if link is not None:
             links[(a, b)] = link
-    chosen = select_pairs(links, len(names), cfg.matching.k_partners)
+    chosen = select_pairs(links, len(names), cfg.matching.k_partners, image_groups,
+                          cfg.sfm.joint_partners if image_groups else 0)
     pairs: dict[tuple[int, int], PairMatches] = {}
     for n, (a, b) in enumerate(chosen):
         bus.progress("matching", n, len(chosen), f"{names[a]} x {names[b]}", group=g)
@@ -84,6 +95,15 @@ def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None) ->
                         "warning", g)
     bus.progress("matching", len(chosen), len(chosen), f"{sum(p.n for p in pairs.values())} matches", group=g)
     timings["matching"] = time.time() - t0
+    if image_groups is not None:
+        cross = np.zeros(len(names), int)
+        for (a, b), pm in pairs.items():
+            if image_groups[a] != image_groups[b]:
+                cross[[a, b]] += pm.n
+        weak = [f"{names[k]} ({cross[k]})" for k in range(len(names)) if cross[k] < cfg.sfm.joint_min_matches]
+        if weak:
+            raise JointUnavailable(f"too few verified matches with the other date groups' images "
+                                   f"(< {cfg.sfm.joint_min_matches}): {', '.join(weak)}")
     if not pairs:
         raise ReconstructionError(f"group {g}: no image pair has enough verified matches "
                                   f"(>= {cfg.matching.min_inliers}); the images may not overlap "
@@ -93,6 +113,8 @@ def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None) ->
     tracks = build_tracks([len(f) for f in feats], [(a, b, pm) for (a, b), pm in pairs.items()])
     all_tiles = [t for name in names for t in tiles[name]]
     sfm = IncrementalSfM(g, names, all_tiles, feats, pairs, tracks, cfg.sfm, cfg.bundle, bus, cfg.seed)
+    if isinstance(bus, GroupRouter):
+        bus.attach(sfm.m)
     model = sfm.run()
     timings["sfm"] = time.time() - t0
     summary = dict(model.stats)
@@ -104,12 +126,161 @@ def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None) ->
     return model, summary
 
 
+# -- several date groups in one frame ------------------------------------------------------------
+class JointUnavailable(Exception):
+    """The date groups cannot be reconstructed together (the reason is the message)."""
+
+
+JOINT = -1      # the group index of a joint reconstruction while it runs
+
+
+class GroupRouter(EventBus):
+    """The events of a joint reconstruction, passed on as each date group's own: a tile to its
+    image's group, points and models split by the groups whose images see them, progress and
+    messages without a group, adjustments to every group."""
+
+    def __init__(self, upstream: EventBus, image_group: dict[str, int]):
+        super().__init__()
+        self.up = upstream
+        self.image_group = image_group
+        self.groups = sorted(set(image_group.values()))
+        self.model: SparseModel | None = None
+
+    def attach(self, model: SparseModel) -> None:
+        self.model = model
+
+    def _sees(self, ids: np.ndarray) -> dict[int, np.ndarray]:
+        """Per group, a mask over ids: points observed in >= 2 of the group's images."""
+        m = self.model
+        idx = m.active_obs()
+        img_group = np.array([self.image_group[n] for n in m.images])
+        out = {}
+        for g in self.groups:
+            sel = idx[img_group[m.obs.img[idx]] == g]
+            n = images_per_track(m.obs.track[sel], m.obs.img[sel], len(m.X))
+            out[g] = n[ids] >= 2
+        return out
+
+    def emit(self, ev: object) -> None:
+        if getattr(ev, "group", None) != JOINT:
+            self.up.emit(ev)
+        elif isinstance(ev, TileRegistered):
+            g = self.image_group[ev.image]
+            self.up.emit(replace(ev, group=g, total_tiles=self._tiles_of_group().get(g, ev.total_tiles)))
+        elif isinstance(ev, (StageProgress, Message)):
+            self.up.emit(replace(ev, group=None))
+        elif isinstance(ev, BundleAdjusted):
+            for g in self.groups:
+                self.up.emit(replace(ev, group=g))
+        elif isinstance(ev, (PointsAdded, ModelUpdated)) and self.model is not None:
+            sees = self._sees(np.asarray(ev.ids, dtype=np.int64))
+            for g in self.groups:
+                k = sees[g]
+                arrays = {f: np.asarray(getattr(ev, f))[k] for f in ("ids", "xyz", "rgb", "n_views", "reproj_px")}
+                if isinstance(ev, ModelUpdated):
+                    mine = {t: c for t, c in ev.cameras.items() if self._tile_group(t) == g}
+                    fps = {t: f for t, f in ev.footprints.items() if t in mine}
+                    self.up.emit(replace(ev, group=g, cameras=mine, footprints=fps, **arrays))
+                elif k.any():
+                    self.up.emit(replace(ev, group=g, **arrays))
+        # StageDone of the joint run: each group's is emitted after the split
+
+    def _tile_group(self, tile_id: str) -> int:
+        if not hasattr(self, "_tid"):
+            self._tid = {t.id: self.image_group[t.image] for t in self.model.tiles}
+        return self._tid[tile_id]
+
+    def _tiles_of_group(self) -> dict[int, int]:
+        if self.model is None:
+            return {}
+        if not hasattr(self, "_count"):
+            self._count = {g: sum(self.image_group[t.image] == g for t in self.model.tiles) for g in self.groups}
+        return self._count
+
+
+def split_model(model: SparseModel, group: int, images: list[str]) -> SparseModel:
+    """The part of a joint model that belongs to one date group: its images' tiles and cameras,
+    their observations, the points seen by >= 2 of its images (same frame, same track ids)."""
+    keep_img = np.array([model.images.index(n) for n in images])
+    img_map = np.full(len(model.images), -1)
+    img_map[keep_img] = np.arange(len(keep_img))
+    keep_t = np.array([t.image in images for t in model.tiles])
+    t_map = np.cumsum(keep_t) - 1
+    o = model.obs
+    k = keep_t[o.tile]
+    obs = Observations(t_map[o.tile[k]], o.track[k].copy(), o.xy[k].copy(), img_map[o.img[k]],
+                       o.valid[k].copy())
+    part = SparseModel(group, list(images), [t for t, kt in zip(model.tiles, keep_t) if kt],
+                       model.cams[keep_t].copy(), model.registered[keep_t].copy(),
+                       model.fixed[keep_t].copy(), obs, model.X.copy(), model.has_point.copy(),
+                       model.gray.copy())
+    idx = part.active_obs()
+    part.has_point &= images_per_track(obs.track[idx], obs.img[idx], len(part.X)) >= 2
+    part.register_order = [int(t_map[t]) for t in model.register_order if keep_t[t]]
+    part.init_tiles = tuple(int(t_map[t]) if keep_t[t] else -1 for t in model.init_tiles)
+    idx, err = part.reprojection()
+    stats = dict(model.stats)
+    joint = model.stats.get("joint") or {"images": list(model.images),
+                                         "tiles_registered": int(model.registered.sum()),
+                                         "tiles_total": len(model.tiles), "points": int(model.has_point.sum())}
+    stats.update({"joint": joint,
+                  "tiles_registered": int(part.registered.sum()), "tiles_total": len(part.tiles),
+                  "points": int(part.has_point.sum()), "observations": int(len(idx)),
+                  "mean_reproj_px": float(err.mean()) if len(err) else float("nan"),
+                  "rms_reproj_px": float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan"),
+                  "unregistered": [t.id for t, r in zip(part.tiles, part.registered) if not r],
+                  "unregistered_reasons": {t: r for t, r in model.stats.get("unregistered_reasons", {}).items()
+                                           if t in {tt.id for tt in part.tiles}}})
+    part.stats = stats
+    return part
+
+
+def reconstruct_joint(groups: list[Group], cfg: Config, bus: EventBus) -> dict[int, tuple[SparseModel, dict]] | None:
+    """All date groups in one affine reconstruction (one frame), split back into one model per
+    group; None (with a message) when the groups' images do not match well enough across dates
+    or a group would lose its second view."""
+    images = [im for g in groups for im in g.images]
+    image_group = {im.name: g.index for g in groups for im in g.images}
+    router = GroupRouter(bus, image_group)
+    try:
+        model, summary = reconstruct_group(Group(JOINT, images), cfg, router,
+                                           [image_group[im.name] for im in images])
+    except (JointUnavailable, ReconstructionError) as exc:
+        bus.message(f"date groups reconstructed one by one, not jointly: {exc}", "warning")
+        return None
+    out = {}
+    for g in groups:
+        names = [im.name for im in g.images]
+        part = split_model(model, g.index, names)
+        n_views = len({part.tiles[t].image for t in np.flatnonzero(part.registered)})
+        if n_views < 2:
+            bus.message(f"date groups reconstructed one by one, not jointly: group {g.index} keeps "
+                        f"{n_views} registered image(s) in the joint reconstruction", "warning")
+            return None
+        s = dict(summary)
+        s.update(part.stats)
+        out[g.index] = (part, s)
+    for g in groups:
+        part, s = out[g.index]
+        bus.emit(StageDone("sparse", sum(summary["timings_s"].values()), s, g.index))
+    return out
+
+
 # -- the stage ------------------------------------------------------------------------------------
 def run(state, bus: EventBus) -> dict:
     """Reconstruct every date group of the run and save its model (a group that fails is
     reported; the stage fails only when no group could be reconstructed)."""
     out = {"groups": {}}
+    joint = None
+    if state.cfg.sfm.joint_groups and len(state.groups) > 1 and all(len(g.images) >= 2 for g in state.groups):
+        joint = reconstruct_joint(state.groups, state.cfg, bus)
     for g in state.groups:
+        if joint is not None:
+            model, summary = joint[g.index]
+            save_model(model, state.layout)
+            state.models[g.index] = model
+            out["groups"][str(g.index)] = summary
+            continue
         try:
             model, summary = reconstruct_group(g, state.cfg, bus)
         except ReconstructionError as exc:

@@ -13,9 +13,25 @@ from recon_core.io.layout import OutLayout
 from recon_core.io.raster import read_dsm
 
 
+def test_roughness_measures_matching_noise_not_relief():
+    """Buildings (steps of metres) barely move it; per-cell noise does, in proportion."""
+    from recon_core.euclidean.dsm_stage import dsm_roughness
+
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:600, 0:600]
+    relief = 0.01 * xx + 8.0 * (((xx // 40) + (yy // 40)) % 3 == 0)       # slope + blocks
+    quiet = relief + rng.normal(0, 0.05, relief.shape)
+    noisy = relief + rng.normal(0, 0.2, relief.shape)
+    noisy[rng.random(relief.shape) < 0.01] = np.nan
+    rq, rn = dsm_roughness(quiet), dsm_roughness(noisy)
+    assert rq < 0.06 and 3.0 < rn / rq < 5.0
+
+
 def test_rank_and_fuse():
     assert rank_groups([0, 1, 2], {0: 0.8, 2: 0.3}, {0: 10, 1: 99, 2: 5}) == [2, 0, 1]
     assert rank_groups([0, 1], {}, {0: 10, 1: 99}) == [1, 0]
+    # one joint upgrade gives every group the same check figure: the rougher DSM goes last
+    assert rank_groups([0, 1], {0: 0.2, 1: 0.2}, {0: 99, 1: 10}, {0: 0.3, 1: 0.1}) == [1, 0]
     a = np.array([[1.0, np.nan], [np.nan, np.nan]])
     b = np.array([[5.0, 2.0], [np.nan, 3.0]])
     H, src = fuse_groups([a, b])
@@ -32,9 +48,79 @@ def tiny2_run(tmp_path_factory):
     from recon_core.pipeline import run
     from recon_core.synthetic.generator import generate_site
 
+    from recon_core.events import EventBus
+
     root = tmp_path_factory.mktemp("tiny2")
     generate_site(root / "site", preset="tiny2", seed=0)
-    return run(root / "site", root / "out", resume=False)
+    events = []
+    state = run(root / "site", root / "out", resume=False, bus=EventBus(events.append))
+    state.events = events
+    return state
+
+
+def test_date_groups_are_reconstructed_in_one_frame_and_upgraded_by_one_map(tiny2_run):
+    """The joint reconstruction: each group keeps its own tiles and points, in one shared frame
+    (a GCP triangulated from either group's cameras alone lands on the same affine point),
+    upgraded by one H_A; ICP, which only sees seasonal differences then, is not applied."""
+    from recon_core.euclidean.georef import triangulate_gcp
+
+    state = tiny2_run
+    m0, m1 = state.models[0], state.models[1]
+    assert m0.stats["joint"] == m1.stats["joint"]
+    assert set(m0.images) | set(m1.images) == set(m0.stats["joint"]["images"])
+    assert not set(m0.images) & set(m1.images)
+    assert {t.image for t in m0.tiles} == set(m0.images) and {t.image for t in m1.tiles} == set(m1.images)
+    Hs, _ = state.upgrade
+    np.testing.assert_array_equal(Hs[0], Hs[1])
+    # metres, through the one upgrade: two-view height noise only (each tiny2 group has two
+    # views of small base; separate reconstructions would differ by an arbitrary affine map)
+    gaps = []
+    for g in state.gcps:
+        a, b = triangulate_gcp(m0, g.observations), triangulate_gcp(m1, g.observations)
+        if a.xyz is not None and b.xyz is not None:
+            gaps.append(Hs[0][:3, :3] @ (a.xyz - b.xyz))
+    gaps = np.array(gaps)
+    assert len(gaps) >= 4 and np.median(np.linalg.norm(gaps, axis=1)) < 1.5
+    assert np.median(np.linalg.norm(gaps[:, :2], axis=1)) < 0.5
+    rep = json.loads(state.layout.report.read_text())["stages"]
+    assert "joint" in rep["upgrade"]
+    assert rep["dsm"]["fusion"]["joint"] and not rep["dsm"]["fusion"]["icp"]["1"]["applied"]
+
+
+def test_a_joint_run_reports_each_tile_and_model_in_its_own_group(tiny2_run):
+    from recon_core.events import ModelUpdated, StageDone, TileRegistered
+
+    state = tiny2_run
+    group_of = {im.name: g.index for g in state.groups for im in g.images}
+    tiles = [e for e in state.events if isinstance(e, TileRegistered)]
+    assert tiles and all(e.group == group_of[e.image] for e in tiles)
+    assert all(e.total_tiles == len(state.models[e.group].tiles) for e in tiles)
+    last = {}
+    for e in state.events:
+        if isinstance(e, ModelUpdated):
+            last[e.group] = e
+    assert set(last) == {0, 1}
+    for g, e in last.items():
+        m = state.models[g]
+        assert {m.tiles[t].id for t in range(len(m.tiles)) if m.registered[t]} == set(e.cameras)
+        np.testing.assert_array_equal(np.sort(e.ids), m.point_ids())
+    done = [e.group for e in state.events if isinstance(e, StageDone) and e.stage == "sparse"
+            and e.group is not None]
+    assert sorted(done) == [0, 1]
+
+
+def test_a_joint_model_splits_and_merges_back(tiny2_run):
+    from recon_core.model.sparse_model import merge_joint
+    from recon_core.sparse.stage import split_model
+
+    m0, m1 = tiny2_run.models[0], tiny2_run.models[1]
+    merged = merge_joint([m0, m1])
+    assert merged.images == m0.images + m1.images and len(merged.tiles) == len(m0.tiles) + len(m1.tiles)
+    again = split_model(merged, 1, m1.images)
+    np.testing.assert_array_equal(again.cams, m1.cams)
+    np.testing.assert_array_equal(again.has_point, m1.has_point)
+    np.testing.assert_array_equal(again.obs.tile, m1.obs.tile)
+    assert merge_joint([m0]) is None
 
 
 def test_two_groups_fused_by_quality_with_their_own_dsms_and_scores(tiny2_run):
