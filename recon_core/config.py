@@ -121,6 +121,7 @@ class DsmConfig:
     resolution_m: float | None = None  # output cell size; None = site.json's, else the GSD
     stat: str = "median"              # per-cell statistic: median | upper_median | max
     fill_holes_px: int = 2            # fill only holes this small (radius, cells) with support
+    laz: bool = True                  # also write cloud.laz (LAS 1.4 with the CRS) from cloud.ply
     fusion_correction_m: float = 32.0  # a lower-ranked group is brought onto the fused surface by
                                       # a smooth correction (medians of the difference in blocks
                                       # of this size) before it fills holes; 0 = off

@@ -21,6 +21,7 @@ from recon_core.euclidean.georef import enu_to_output, output_epsg
 from recon_core.events import EventBus
 from recon_core.geometry.affine import apply_affine_3d
 from recon_core.geometry.geodesy import LocalFrame
+from recon_core.io.las import write_las
 from recon_core.io.layout import OutLayout
 from recon_core.io.models import PointSource
 from recon_core.io.ply import PlyWriter
@@ -104,6 +105,10 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
 
     H = filled(H)
     write_dsm(out.dsm, H, grid)
+    if c.laz:
+        write_las(out.cloud, out.cloud_laz, epsg)
+    elif out.cloud_laz.exists():                 # a previous run's: it would not match
+        out.cloud_laz.unlink()
     groups_report = {}
     for g in out.group_dsms():                   # a previous run's, of groups not fused now
         if len(groups) == 1 or g not in groups:

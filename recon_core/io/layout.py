@@ -11,6 +11,7 @@
       upgrade/group_<k>.json           H_A of group k and its GCP report
       upgrade/frame.json               the local ENU frame shared by all groups
       cloud.ply                        the Euclidean cloud (output CRS, ellipsoidal h)
+      cloud.laz                        the same as LAS 1.4 with its CRS (dsm.laz)
       dsm.tif                          the DSM (date groups fused)
       dsm_groups/group_<k>.tif         each date group's own DSM, when there are several
       eval/                            eval.json, height_error.tif/.png, dsm_vs_gt.png
@@ -79,6 +80,10 @@ class OutLayout:
     @property
     def cloud(self) -> Path:
         return self.root / "cloud.ply"
+
+    @property
+    def cloud_laz(self) -> Path:
+        return self.root / "cloud.laz"
 
     @property
     def dsm(self) -> Path:

@@ -202,3 +202,22 @@ def test_a_bent_lower_group_is_brought_onto_the_best_before_it_fills_holes():
     agree = truth + rng.normal(0, 0.1, truth.shape).astype(np.float32)
     same, _ = fuse_groups([best.astype(np.float32), agree.astype(np.float32)], correct_block=32)
     assert np.median(np.abs(same[filled] - agree[filled])) < 0.05
+
+
+def test_the_euclidean_cloud_is_also_a_laz_with_its_crs(tiny2_run):
+    """cloud.laz holds cloud.ply's points to the millimetre, in the DSM's CRS, heights said to
+    be ellipsoidal (what PDAL and QGIS read: the WKT VLR)."""
+    import laspy
+
+    from recon_core.io.ply import read_ply
+
+    lay = tiny2_run.layout
+    las = laspy.read(lay.cloud_laz)
+    xyz, rgb, _ = read_ply(lay.cloud)
+    epsg = json.loads(lay.report.read_text())["stages"]["dsm"]["crs_epsg"]
+    assert las.header.parse_crs().to_epsg() == epsg
+    assert las.header.point_count == len(xyz)
+    got = np.column_stack([las.x, las.y, las.z])
+    assert np.abs(got - xyz).max() <= 0.0006
+    np.testing.assert_array_equal(np.asarray(las.red) // 257, rgb[:, 0])
+    assert any(b"ellipsoid" in v.record_data for v in las.header.vlrs if v.user_id == "AE-Rec")
