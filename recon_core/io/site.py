@@ -22,7 +22,10 @@ from rasterio.windows import Window
 from recon_core.errors import InputError
 from recon_core.io.gcps import GCP, _finite_number, read_gcps_geojson
 
-IMAGE_SUFFIXES = (".tif", ".tiff", ".TIF", ".TIFF")
+IMAGE_SUFFIXES = (".tif", ".tiff", ".vrt", ".jp2")      # compared in lower case
+# what GDAL must read them as: GeoTIFF, a VRT (mosaics, band subsets, products delivered as
+# several tiles) or JPEG 2000 (how Pleiades and other products are often delivered)
+IMAGE_DRIVERS = {"GTiff": "a GeoTIFF", "VRT": "a GDAL VRT", "JP2OpenJPEG": "a JPEG 2000 image"}
 
 
 @dataclass
@@ -108,8 +111,9 @@ def open_image(path: Path) -> ImageInfo:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
             with rasterio.open(path) as ds:
-                if ds.driver != "GTiff":
-                    raise InputError(path, f"not a GeoTIFF (GDAL reads it as {ds.driver})")
+                if ds.driver not in IMAGE_DRIVERS:
+                    raise InputError(path, f"not an image this project reads (GDAL reads it as "
+                                           f"{ds.driver}; expected {', '.join(IMAGE_DRIVERS.values())})")
                 if ds.count not in (1, 3):
                     raise InputError(path, f"has {ds.count} bands; expected 1 (panchromatic) or 3 (RGB)")
                 dtype = ds.dtypes[0]
@@ -127,8 +131,8 @@ def open_image(path: Path) -> ImageInfo:
     except (RasterioIOError, rasterio.errors.RasterioError) as exc:
         msg = str(exc).split("\n")[0]
         if "not recognized as" in msg or "not a supported file format" in msg:
-            raise InputError(path, "not a GeoTIFF (GDAL cannot read it)") from None
-        raise InputError(path, f"unreadable or truncated TIFF ({msg})") from None
+            raise InputError(path, "not a GeoTIFF, VRT or JPEG 2000 (GDAL cannot read it)") from None
+        raise InputError(path, f"unreadable or truncated image ({msg})") from None
     info.acquired, info.time_source = _acquisition_time(path, tags)
     return info
 
@@ -139,10 +143,31 @@ def list_image_files(images_dir: Path) -> list[Path]:
     # hidden files are not images of the site: e.g. the temporary file of an interrupted
     # atomic write (.img_00.tif.XXXX.tif) or macOS's ._img_00.tif
     files = sorted(p for p in images_dir.iterdir()
-                   if p.suffix in IMAGE_SUFFIXES and p.is_file() and not p.name.startswith("."))
+                   if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file() and not p.name.startswith("."))
     if not files:
-        raise InputError(images_dir, "no .tif or .tiff image in the folder")
+        raise InputError(images_dir, "no .tif, .tiff, .vrt or .jp2 image in the folder")
+    stems: dict[str, Path] = {}
+    for p in files:
+        if p.stem in stems:
+            raise InputError(p, f"has the name of {stems[p.stem].name} (one sidecar {p.stem}.json, "
+                                "one acquisition?): keep one of them in images/")
+        stems[p.stem] = p
+    for p in files:
+        if p.suffix.lower() == ".vrt":
+            _check_vrt_sources(p, files)
     return files
+
+
+def _check_vrt_sources(vrt: Path, files: list[Path]) -> None:
+    """A VRT that wraps another file of images/ would be the same acquisition twice."""
+    try:
+        with rasterio.open(vrt) as ds:
+            sources = {Path(f).resolve() for f in ds.files[1:]}
+    except (RasterioIOError, rasterio.errors.RasterioError):
+        return                                   # open_image says what is wrong with it
+    for p in files:
+        if p != vrt and p.resolve() in sources:
+            raise InputError(vrt, f"wraps {p.name}, which is also in images/: keep one of them")
 
 
 def load_site(root: str | Path, *, require_times: bool = True, read_gcps: bool = True) -> Site:

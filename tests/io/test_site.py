@@ -78,8 +78,52 @@ def test_png_named_tif(small_site):
 
     cv2.imwrite(str(small_site / "images" / "p.png"), np.zeros((8, 8), np.uint8))
     (small_site / "images" / "p.png").rename(small_site / "images" / "p.tif")
-    err = _expect_error(small_site, "not a GeoTIFF")
+    err = _expect_error(small_site, "GDAL reads it as PNG")
     assert err.path.endswith("p.tif")
+
+
+def _move_out(small_site, name):
+    """Move images/NAME out of the site (to wrap or convert it) and give it a sidecar time."""
+    src = small_site / "images" / name
+    dst = small_site.parent / name
+    src.rename(dst)
+    (small_site / "images" / (src.stem + ".json")).write_text(json.dumps({"acquired": "2020-01-02T10:00:00Z"}))
+    return dst
+
+
+def test_vrt_and_jpeg2000_images_read_like_their_geotiff(small_site):
+    """Products delivered as a VRT (mosaic of tiles) or JPEG 2000 are images of the site; the
+    pixels read are those of the source (lossless JPEG 2000)."""
+    import rasterio
+    from rasterio.shutil import copy as gdal_copy
+
+    ref = [read_window(im, 0, 0, 64, 48) for im in load_site(small_site).images]
+    a = _move_out(small_site, "a.tif")
+    gdal_copy(a, small_site / "images" / "a.vrt", driver="VRT")
+    b = _move_out(small_site, "b.tif")
+    gdal_copy(b, small_site / "images" / "b.jp2", driver="JP2OpenJPEG", REVERSIBLE="YES", QUALITY="100")
+    site = load_site(small_site, read_gcps=False)     # its GCPs name a.tif and b.tif
+    assert [im.name for im in site.images] == ["a.vrt", "b.jp2"]
+    for old, new in zip(ref, site.images):
+        np.testing.assert_array_equal(old, read_window(new, 0, 0, 64, 48))
+    with rasterio.open(small_site / "images" / "b.jp2") as ds:
+        assert ds.driver == "JP2OpenJPEG"
+
+
+def test_a_vrt_wrapping_a_sibling_is_refused(small_site):
+    from rasterio.shutil import copy as gdal_copy
+
+    gdal_copy(small_site / "images" / "a.tif", small_site / "images" / "a2.vrt", driver="VRT")
+    err = _expect_error(small_site, "wraps a.tif, which is also in images/")
+    assert err.path.endswith("a2.vrt")
+
+
+def test_two_images_of_one_name_are_refused(small_site):
+    from rasterio.shutil import copy as gdal_copy
+
+    gdal_copy(small_site / "images" / "a.tif", small_site / "images" / "a.jp2", driver="JP2OpenJPEG")
+    err = _expect_error(small_site, "has the name of")
+    assert err.path.endswith(".tif") or err.path.endswith(".jp2")
 
 
 def test_truncated_tiff(small_site):
