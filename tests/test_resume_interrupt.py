@@ -75,6 +75,17 @@ def _children_of(pid: int) -> set[int]:
     return out
 
 
+def _descendants_of(pid: int) -> set[int]:
+    """Every process below pid: the forkserver and the resource tracker (its children), and the
+    pool workers (the forkserver's children)."""
+    out, todo = set(), [pid]
+    while todo:
+        kids = _children_of(todo.pop()) - out
+        out |= kids
+        todo += list(kids)
+    return out
+
+
 def _alive(pid: int) -> bool:
     try:
         st = Path(f"/proc/{pid}/stat").read_text()
@@ -84,7 +95,8 @@ def _alive(pid: int) -> bool:
 
 
 def test_pool_workers_end_when_the_main_process_is_killed(tmp_path):
-    """kill -9 of the process that owns the pool: its forkserver workers end by themselves."""
+    """kill -9 of the process that owns the pool: its workers, the forkserver and the resource
+    tracker all end by themselves (no orphan holds memory after a killed run)."""
     code = ("import os, sys, time\n"
             "from recon_core.dense.executor import LocalExecutor\n"
             "ex = LocalExecutor(2)\n"
@@ -94,12 +106,15 @@ def test_pool_workers_end_when_the_main_process_is_killed(tmp_path):
     p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=ROOT)
     pids = [int(x) for x in p.stdout.readline().split()]
     assert pids and all(_alive(w) for w in pids)
+    family = _descendants_of(p.pid)
+    assert set(pids) < family and len(family) >= len(pids) + 1      # + the forkserver (+ tracker)
     os.kill(p.pid, signal.SIGKILL)
     p.wait()
     deadline = time.time() + 15
-    while any(_alive(w) for w in pids) and time.time() < deadline:
+    while any(_alive(w) for w in family) and time.time() < deadline:
         time.sleep(0.2)
-    assert not any(_alive(w) for w in pids), "pool workers outlived their process"
+    left = sorted(w for w in family if _alive(w))
+    assert not left, f"outlived their process: {[Path(f'/proc/{w}/cmdline').read_bytes()[:80] for w in left]}"
 
 
 def test_sigterm_ends_a_run_like_ctrl_c_and_leaves_no_scratch(tiny_site, tmp_path):
@@ -112,7 +127,7 @@ def test_sigterm_ends_a_run_like_ctrl_c_and_leaves_no_scratch(tiny_site, tmp_pat
         assert p.poll() is None and time.time() < deadline, p.stderr.read() if p.poll() else "too slow"
         time.sleep(0.1)
     time.sleep(1.0)
-    kids = _children_of(p.pid)
+    kids = _descendants_of(p.pid)
     p.send_signal(signal.SIGTERM)
     try:
         rc = p.wait(60)
