@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import sys
 import time
 from pathlib import Path
@@ -355,6 +356,9 @@ def _add_plugin_commands(sub) -> None:
         register(sub)
 
 
+_MACHINE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG}
+
+
 def _terminate(signum, frame) -> None:
     raise KeyboardInterrupt          # SIGTERM ends a run as Ctrl-C does: cleanup runs
 
@@ -374,6 +378,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("aerec: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:
+        if exc.errno not in _MACHINE_ERRNOS:
+            raise
+        # the machine, not the input: a full disk, a quota, a file system gone read-only.
+        # Outputs are written atomically, so nothing half-written is left; finished stages
+        # are reused by the next run.
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"aerec: error: {where}{exc.strerror or exc} (nothing half-written was kept; "
+              "free space or fix the folder, then rerun: finished stages are reused)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

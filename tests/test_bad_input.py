@@ -202,3 +202,29 @@ def test_a_flat_group_is_a_warning_when_another_group_can_be_upgraded(tmp_path):
     (site / "gcps.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
     notes = preflight(site, tmp_path / "out", Config())
     assert len(notes) == 1 and notes[0].startswith("group 0 will not be upgraded: refused:")
+
+
+def test_a_full_disk_is_one_line_and_leaves_nothing_half_written(tiny_site, tmp_path, capsys, monkeypatch):
+    """The disk fills while the sparse model is written: one line naming the file, exit 1, no
+    half-written model and no scratch (the write was atomic)."""
+    import errno
+
+    import recon_core.io.models as models
+    from recon_core.io.files import atomic_path
+    from recon_core.io.layout import OutLayout
+
+    def full_disk(path, obj, indent=1):
+        with atomic_path(path) as tmp:
+            tmp.write_text('{"group": 0, "ima')                  # part of it went to disk
+            raise OSError(errno.ENOSPC, "No space left on device", str(tmp))
+
+    monkeypatch.setattr(models, "write_json", full_disk)
+    out = tmp_path / "out"
+    code = main(["run", str(tiny_site), "--out", str(out), "--preset", "tiny", "--stage", "sparse", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err, err
+    lines = [ln for ln in err.strip().splitlines() if ln.startswith("aerec: error:")]
+    assert len(lines) == 1 and "No space left on device" in lines[0]
+    assert f"{OutLayout(out).cameras(0)}: " in lines[0]                  # the file, not its temporary
+    lay = OutLayout(out)
+    assert not lay.cameras(0).exists() and lay.scratch() == []
