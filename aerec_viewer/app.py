@@ -55,6 +55,9 @@ from .worker import DisplaySnapshot, ReconWorker
 
 log = logging.getLogger("aerec.viewer")
 
+# A click that arrives within this many seconds of its client's camera moving was a drag (an
+# orbit that ended where it started, a wobble while pressing): it records nothing
+DRAG_GUARD_S = 0.35
 MARK_SEL = (255, 220, 0)
 MARK = (230, 40, 40)
 MARK_CHECK = (40, 200, 255)
@@ -136,7 +139,8 @@ class ViewerApp:
         self._gui_cache: dict[str, object] = {}
         self._tri_cache: dict = {}
         self._build_gui()
-        self.server.on_client_connect(lambda client: self.submit(lambda: self._frame_client(client)))
+        self._camera_moved: dict[int, tuple] = {}   # client id -> (position, wxyz, time it moved)
+        self.server.on_client_connect(self._on_connect)
 
     # -- lifecycle ------------------------------------------------------------------------------
     @property
@@ -459,6 +463,24 @@ class ViewerApp:
             hi[:2] = np.maximum(hi[:2], fp[:, :2].max(axis=0))
         return lo, hi
 
+    def _on_connect(self, client) -> None:
+        client.camera.on_update(self._camera_update)
+        self.submit(lambda: self._frame_client(client))
+
+    def _camera_update(self, camera) -> None:
+        """Remember when each client's view last moved (the drag guard of on_plane_click)."""
+        key = camera.client.client_id
+        pose = (np.asarray(camera.position, float).copy(), np.asarray(camera.wxyz, float).copy())
+        old = self._camera_moved.get(key)
+        if old is None or not (np.allclose(old[0], pose[0], rtol=0, atol=1e-9)
+                               and np.allclose(old[1], pose[1], rtol=0, atol=1e-9)):
+            self._camera_moved[key] = (*pose, time.time())
+
+    def moved_just_before(self, client_id: int | None, t_click: float) -> bool:
+        """Did this client's view move during the DRAG_GUARD_S before a click (a drag)?"""
+        moved = self._camera_moved.get(client_id)
+        return moved is not None and 0.0 <= t_click - moved[2] < DRAG_GUARD_S
+
     def _frame_client(self, client) -> None:
         """Point a client's camera at the cloud, obliquely from the south, leaving room for the
         panel on the right (the picking plane lies further east: "Look at the image plane")."""
@@ -538,7 +560,14 @@ class ViewerApp:
                                         plane.render_width, plane.render_height, format="jpeg",
                                         jpeg_quality=90, wxyz=plane.wxyz, position=plane.position,
                                         cast_shadow=False, receive_shadow=False)
-        h.on_click(lambda ev: self.submit(lambda: self.on_plane_click(ev.ray_origin, ev.ray_direction)))
+        def clicked(ev) -> None:
+            if self.moved_just_before(ev.client_id, time.time()):
+                self.submit(lambda: self.note("the view moved during that click (a drag): nothing "
+                                              "recorded; click without moving the mouse", "warning"))
+                return
+            self.submit(lambda: self.on_plane_click(ev.ray_origin, ev.ray_direction))
+
+        h.on_click(clicked)
         self._plane_handle, self.pick_plane = h, plane
         self._plane_key = self._bounds_key()
         self._marks_key = None

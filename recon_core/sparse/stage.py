@@ -145,6 +145,7 @@ class GroupRouter(EventBus):
         self.image_group = image_group
         self.groups = sorted(set(image_group.values()))
         self.model: SparseModel | None = None
+        self._order: dict[int, dict[str, int]] = {}     # group -> tile id -> its order in the group
 
     def attach(self, model: SparseModel) -> None:
         self.model = model
@@ -166,7 +167,9 @@ class GroupRouter(EventBus):
             self.up.emit(ev)
         elif isinstance(ev, TileRegistered):
             g = self.image_group[ev.image]
-            self.up.emit(replace(ev, group=g, total_tiles=self._tiles_of_group().get(g, ev.total_tiles)))
+            order = self._order.setdefault(g, {}).setdefault(ev.tile_id, len(self._order[g]))
+            self.up.emit(replace(ev, group=g, order=order,
+                                 total_tiles=self._tiles_of_group().get(g, ev.total_tiles)))
         elif isinstance(ev, (StageProgress, Message)):
             self.up.emit(replace(ev, group=None))
         elif isinstance(ev, BundleAdjusted):

@@ -95,6 +95,8 @@ def test_a_joint_run_reports_each_tile_and_model_in_its_own_group(tiny2_run):
     tiles = [e for e in state.events if isinstance(e, TileRegistered)]
     assert tiles and all(e.group == group_of[e.image] for e in tiles)
     assert all(e.total_tiles == len(state.models[e.group].tiles) for e in tiles)
+    for g in (0, 1):                          # registration order counted within the group
+        assert sorted({e.order for e in tiles if e.group == g}) == list(range(len(state.models[g].tiles)))
     last = {}
     for e in state.events:
         if isinstance(e, ModelUpdated):

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from aerec_viewer.app import DRAG_GUARD_S
 from aerec_viewer.display import quat_to_matrix
 from recon_core.events import TileRegistered
 
@@ -141,6 +142,21 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     assert np.allclose(app.session.get(gid).observations[image], (col, row))
     time.sleep(1.5)
     shot(page, shots, "3_gcp_pick")
+
+    # a press that wobbles by a few pixels and is released where it was pressed orbits the view
+    # and still reaches the server as a click: it must not record anything
+    recorded = dict(app.session.get(gid).observations)
+    x2, y2 = project(client, plane.point_of(win.col0 + 0.6 * win.width, win.row0 + 0.4 * win.height))
+    page.mouse.move(x2, y2)
+    page.mouse.down()
+    page.mouse.move(x2 + 3, y2 + 1, steps=3)
+    page.mouse.move(x2, y2, steps=3)                 # back where it was pressed
+    page.mouse.up()
+    time.sleep(3.0)
+    assert app.session.get(gid).observations == recorded and app.last_click[2:] == (col, row)
+    drag_noted = any("moved during that click" in t for _, t in app.worker.snapshot().messages)
+    assert drag_noted                    # viser did send that click: the guard refused it
+    time.sleep(DRAG_GUARD_S)
 
     # safe editing from the browser: Undo reverts the click, Redo re-applies it; Delete only
     # asks for confirmation (the GCP stays)
