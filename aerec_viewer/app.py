@@ -58,9 +58,22 @@ log = logging.getLogger("aerec.viewer")
 # A click that arrives within this many seconds of its client's camera moving was a drag (an
 # orbit that ended where it started, a wobble while pressing): it records nothing
 DRAG_GUARD_S = 0.35
+MARK_RING_PX = 11.0     # radius of a GCP marker ring on screen (pixels), whatever the zoom
 MARK_SEL = (255, 220, 0)
 MARK = (230, 40, 40)
 MARK_CHECK = (40, 200, 255)
+
+
+def ring_segments(r: float, n: int = 32) -> np.ndarray:
+    """(n, 2, 3) segments of a circle of radius r in the local xy plane."""
+    a = np.linspace(0.0, 2.0 * np.pi, n + 1)
+    p = np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(a)], axis=1).astype(np.float32)
+    return np.stack([p[:-1], p[1:]], axis=1)
+
+
+def label_offset(r: float, on_plane: bool) -> np.ndarray:
+    """Where a marker's label sits: beside its ring, not on the point."""
+    return np.array([r, r, 0.0]) if on_plane else np.array([r, 0.0, r])
 
 
 class ViewerApp:
@@ -131,7 +144,7 @@ class ViewerApp:
         self._plane_key = None
         self._plane_token = None
         self._reframe_on_plane = False
-        self._marks: dict[str, tuple] = {}   # path -> (sphere, label, colour, radius, pos)
+        self._marks: dict[str, tuple] = {}   # path -> (ring, label, colour, radius, pos)
         self._residual_nodes: list = []      # the residual vectors on the image plane and their legend
         self._state_table_key = None
         self._marks_key = None
@@ -140,6 +153,8 @@ class ViewerApp:
         self._tri_cache: dict = {}
         self._build_gui()
         self._camera_moved: dict[int, tuple] = {}   # client id -> (position, wxyz, time it moved)
+        self._ring_view: tuple | None = None          # (distance to look-at, fov, height px) of the
+        #                                               view that moved last: the rings' size
         self.server.on_client_connect(self._on_connect)
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -475,6 +490,12 @@ class ViewerApp:
         if old is None or not (np.allclose(old[0], pose[0], rtol=0, atol=1e-9)
                                and np.allclose(old[1], pose[1], rtol=0, atol=1e-9)):
             self._camera_moved[key] = (*pose, time.time())
+            d = float(np.linalg.norm(np.asarray(camera.position) - np.asarray(camera.look_at)))
+            view = (d, float(camera.fov), int(camera.image_height))
+            before = self._ring_view
+            self._ring_view = view
+            if before is None or abs(d / max(before[0], 1e-12) - 1.0) > 0.2:
+                self.submit(self._resize_marks)
 
     def moved_just_before(self, client_id: int | None, t_click: float) -> bool:
         """Did this client's view move during the DRAG_GUARD_S before a click (a drag)?"""
@@ -725,12 +746,19 @@ class ViewerApp:
         return want
 
     def _marker_radius(self) -> float:
+        """World radius of a marker ring MARK_RING_PX screen pixels wide in the view that moved
+        last (rings keep their size on screen as the operator zooms); before any view, a
+        fraction of the scene."""
+        if self._ring_view is not None:
+            d, fov, h_px = self._ring_view
+            return MARK_RING_PX * 2.0 * d * np.tan(fov / 2.0) / max(h_px, 1)
         b = self.scene_bounds()
         size = 1000.0 if b is None else float(max(b[1][0] - b[0][0], b[1][1] - b[0][1], 1e-6))
         return size / 90.0
 
     def _draw_marks(self) -> None:
-        """Add, move, recolour or remove GCP markers (spheres with labels) to match the state."""
+        """Add, move, recolour or remove GCP markers (rings with labels: the point itself stays
+        visible inside) to match the state."""
         snap_T = self.transforms(self.worker.snapshot())
         key = (self.session.version, self.gcp_panel.select.value, self.frame,
                None if self.pick_plane is None else (self.pick_plane.window, tuple(self.pick_plane.position)),
@@ -746,21 +774,30 @@ class ViewerApp:
                 h.remove()
         for name, (pos, col, text) in want.items():
             have = self._marks.get(name)
-            if have is not None and have[2] == col and abs(have[3] / r - 1) < 0.3:
+            if have is not None and have[2] == col and abs(have[3] / r - 1) < 0.1:
                 if np.linalg.norm(have[4] - pos) > 1e-6 * r:
+                    on_plane = name.startswith("/gcp/plane_marks/") and self.pick_plane is not None
                     have[0].position = tuple(pos)
-                    have[1].position = tuple(pos)
+                    have[1].position = tuple(pos + label_offset(have[3], on_plane))
                     self._marks[name] = (have[0], have[1], col, have[3], pos)
                 continue
             if have is not None:
                 have[0].remove()
                 have[1].remove()
-            sphere = sc.add_icosphere(name, radius=r, color=col, position=tuple(pos),
-                                      cast_shadow=False, subdivisions=2)
-            label = sc.add_label(f"{name}_label", text, position=tuple(pos), anchor="bottom-left",
-                                 font_screen_scale=0.7)
-            self._marks[name] = (sphere, label, col, r, pos)
+            on_plane = name.startswith("/gcp/plane_marks/") and self.pick_plane is not None
+            ring = sc.add_line_segments(name, ring_segments(r), np.array(col, np.uint8),
+                                          thickness=3.0 if col == MARK_SEL else 2.0,
+                                          thickness_units="screen", position=tuple(pos),
+                                          wxyz=tuple(self.pick_plane.wxyz) if on_plane else (1.0, 0.0, 0.0, 0.0))
+            label = sc.add_label(f"{name}_label", text, position=tuple(pos + label_offset(r, on_plane)),
+                                 anchor="bottom-left", font_screen_scale=0.7)
+            self._marks[name] = (ring, label, col, r, pos)
         self._draw_residual_vectors()
+
+    def _resize_marks(self) -> None:
+        """Redraw the rings at the size the last zoom asks for."""
+        self._marks_key = None
+        self._draw_marks()
 
     RESIDUAL_SCALE = 20.0          # residual vectors on the image plane: 1 px drawn as 20 px
 

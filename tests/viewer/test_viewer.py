@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from aerec_viewer.app import MARK_RING_PX
 from aerec_viewer import display as dp
 from aerec_viewer.gcp_panel import PickPlane, layout_pick_plane, pixel_from_ray
 from aerec_viewer.gcp_session import (
@@ -532,6 +533,23 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     app.wait_idle()
     names = set(app._marks)
     assert "/gcp/plane_marks/NEW-1" in names and "/gcp/cloud/g0/NEW-1" in names
+    # markers are rings that keep their size on screen: zooming in 4x shrinks them 4x in the
+    # world (the view that moved last sets it)
+    from types import SimpleNamespace
+
+    def view(d):
+        return SimpleNamespace(client=SimpleNamespace(client_id=99), position=np.array([0.0, 0.0, d]),
+                               wxyz=np.array([1.0, 0.0, 0.0, d]), look_at=np.zeros(3), fov=0.8,
+                               image_height=900)
+
+    app._camera_update(view(400.0))
+    app.wait_idle()
+    r_far = app._marks["/gcp/plane_marks/NEW-1"][3]
+    app._camera_update(view(100.0))
+    app.wait_idle()
+    r_near = app._marks["/gcp/plane_marks/NEW-1"][3]
+    assert r_far / r_near == pytest.approx(4.0, rel=1e-6)
+    assert r_near == pytest.approx(MARK_RING_PX * 2 * 100.0 * np.tan(0.4) / 900)
     app.call(lambda: delete_gcp(app.session, "NEW-1"))
     app.call(lambda: app.gcps_changed(select=None))
     assert "NEW-1" not in app.session.ids
