@@ -27,8 +27,8 @@ from recon_core.geometry import affine
 from recon_core.model.sparse_model import Observations, SparseModel, images_per_track
 from recon_core.model.tiling import Tile
 from recon_core.sparse.bundle import bundle_adjust
-from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.features import ImageFeatures
+from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.matching import PairMatches
 from recon_core.sparse.tracks import Tracks
 

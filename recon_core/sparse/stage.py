@@ -11,8 +11,16 @@ import numpy as np
 
 from recon_core.config import Config
 from recon_core.errors import ReconstructionError
-from recon_core.events import (BundleAdjusted, EventBus, Message, ModelUpdated, PointsAdded, StageDone,
-                               StageProgress, TileRegistered)
+from recon_core.events import (
+    BundleAdjusted,
+    EventBus,
+    Message,
+    ModelUpdated,
+    PointsAdded,
+    StageDone,
+    StageProgress,
+    TileRegistered,
+)
 from recon_core.io.models import load_model, save_model
 from recon_core.model.grouping import Group
 from recon_core.model.sparse_model import Observations, SparseModel, images_per_track

@@ -45,10 +45,9 @@ def test_rank_and_fuse():
 
 @pytest.fixture(scope="module")
 def tiny2_run(tmp_path_factory):
+    from recon_core.events import EventBus
     from recon_core.pipeline import run
     from recon_core.synthetic.generator import generate_site
-
-    from recon_core.events import EventBus
 
     root = tmp_path_factory.mktemp("tiny2")
     generate_site(root / "site", preset="tiny2", seed=0)

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aerec_viewer.app import MARK_RING_PX
 from aerec_viewer import display as dp
+from aerec_viewer.app import MARK_RING_PX
 from aerec_viewer.gcp_panel import PickPlane, layout_pick_plane, pixel_from_ray
 from aerec_viewer.gcp_session import (
     GcpError,
