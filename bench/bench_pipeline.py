@@ -53,10 +53,15 @@ def truth_figures(site: Path, state) -> dict:
     from recon_core.evaluation.colormap import save_png
     from recon_core.evaluation.truth import residual_map
 
+    from recon_core.model.sparse_model import merge_joint
+
     frame = frame_for(state.gcps)
+    # date groups of one joint reconstruction: each point's truth from all its views (a
+    # group's weak-baseline points would otherwise get an ill-conditioned truth)
+    joint = merge_joint([state.models[g] for g in sorted(state.models)])
     out = {}
     for g, m in state.models.items():
-        r = sparse_vs_truth(site, m, frame)
+        r = sparse_vs_truth(site, m, frame, views=joint)
         png = state.layout.root / "bench" / f"sparse_residual_u_g{g}.png"
         save_png(png, residual_map(r["truth"], r["residuals"][:, 2]))
         out[g] = {"sparse_affine_rms_m": r["rms_m"], "sparse_rms_xyz_m": r["rms_xyz_m"],

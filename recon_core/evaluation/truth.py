@@ -46,17 +46,24 @@ def true_points_enu(site_dir: str | Path, frame: LocalFrame, img_names: list[str
     return frame.ecef_to_enu(X)
 
 
-def sparse_vs_truth(site_dir: str | Path, model, frame: LocalFrame) -> dict:
-    """Fit one 3D affine map from the sparse points to their true positions; residual figures."""
-    idx = model.active_obs()
-    o = model.obs
+def sparse_vs_truth(site_dir: str | Path, model, frame: LocalFrame, views=None) -> dict:
+    """Fit one 3D affine map from the sparse points to their true positions; residual figures.
+
+    The true position of a point is triangulated by the true cameras from its observations in
+    the model's images, or in `views`' images (a model of more images holding the same track
+    ids: the merged joint model of the date groups, whose other views make the truth of a
+    group's weak-baseline points well-conditioned)."""
+    ids = model.point_ids()
+    src = model if views is None else views
+    idx = src.active_obs()
+    o = src.obs
+    idx = idx[np.isin(o.track[idx], ids)]
     # one observation per (track, image) is enough for the true triangulation
     key = np.unique(np.stack([o.track[idx], o.img[idx]], 1), axis=0, return_index=True)[1]
     idx = idx[key]
-    ids = model.point_ids()
     remap = np.full(len(model.X), -1)
     remap[ids] = np.arange(len(ids))
-    Xt = true_points_enu(site_dir, frame, model.images, o.img[idx], remap[o.track[idx]], o.xy[idx], len(ids))
+    Xt = true_points_enu(site_dir, frame, src.images, o.img[idx], remap[o.track[idx]], o.xy[idx], len(ids))
     return affine_fit_report(model.X[ids], Xt)
 
 
