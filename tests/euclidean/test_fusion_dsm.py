@@ -222,3 +222,22 @@ def test_the_euclidean_cloud_is_also_a_laz_with_its_crs(tiny2_run):
     assert np.abs(got - xyz).max() <= 0.0006
     np.testing.assert_array_equal(np.asarray(las.red) // 257, rgb[:, 0])
     assert any(b"ellipsoid" in v.record_data for v in las.header.vlrs if v.user_id == "AE-Rec")
+
+
+def test_groups_reconstructed_apart_are_fused_by_icp(tmp_path):
+    """With sfm.joint_groups off (as the paper does, or when the dates do not match), each group
+    has its own frame and its own H_A, and ICP brings the others onto the reference."""
+    from recon_core.config import Config
+    from recon_core.pipeline import run
+    from recon_core.synthetic.generator import generate_site
+
+    generate_site(tmp_path / "site", preset="tiny2", seed=0)
+    cfg = Config()
+    cfg.sfm.joint_groups = False
+    state = run(tmp_path / "site", tmp_path / "out", cfg, resume=False)
+    assert all("joint" not in m.stats for m in state.models.values())
+    Hs, _ = state.upgrade
+    assert not np.allclose(Hs[0], Hs[1])
+    fusion = json.loads(state.layout.report.read_text())["stages"]["dsm"]["fusion"]
+    other = str(1 - fusion["reference_group"])
+    assert "joint" not in fusion and fusion["icp"][other]["fitness"] > 0.3
