@@ -525,7 +525,7 @@ def raise_missing(out: Path) -> None:
 
 def _batch(ids, xyz, rgb, n_views, reproj, t: float) -> PointBatch:
     n = len(ids)
-    rgb = np.asarray(rgb, dtype=np.uint8).reshape(n, -1)
+    rgb = np.asarray(rgb, dtype=np.uint8).reshape(n, -1) if n else np.zeros((0, 3), np.uint8)
     if rgb.shape[1] == 1:
         rgb = np.repeat(rgb, 3, axis=1)
     return PointBatch(np.asarray(ids, dtype=np.int64), np.asarray(xyz, dtype=np.float64).reshape(n, 3),

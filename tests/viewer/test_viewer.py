@@ -995,3 +995,12 @@ def test_gcp_state_table_shows_each_images_state(tiny_run, tmp_path):
     row = next(ln for ln in gcp_state_table(s, {0: m}, imgs).splitlines() if ln.startswith(f"| {g.id} |"))
     cells = [c.strip() for c in row.strip("|").split("|")][2:]
     assert cells[0] == "**unusable**" and cells[1] == "-" and cells[2] == "placed"
+
+
+def test_an_empty_model_update_is_folded_without_error():
+    """A joint reconstruction's update can hold no point of one group yet (its images not
+    registered): the viewer folds it as an empty batch."""
+    from aerec_viewer.worker import _batch
+
+    b = _batch(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0), np.zeros(0), 0.0)
+    assert b.xyz.shape == (0, 3) and b.rgb.shape == (0, 3)
