@@ -178,8 +178,10 @@ class GroupRouter(EventBus):
             order = self._order.setdefault(g, {}).setdefault(ev.tile_id, len(self._order[g]))
             self.up.emit(replace(ev, group=g, order=order,
                                  total_tiles=self._tiles_of_group().get(g, ev.total_tiles)))
-        elif isinstance(ev, (StageProgress, Message)):
+        elif isinstance(ev, StageProgress):
             self.up.emit(replace(ev, group=None))
+        elif isinstance(ev, Message):
+            self.up.emit(replace(ev, group=None, text=ev.text.replace(f"group {JOINT}:", "joint reconstruction:")))
         elif isinstance(ev, BundleAdjusted):
             for g in self.groups:
                 self.up.emit(replace(ev, group=g))
