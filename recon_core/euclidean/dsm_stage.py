@@ -94,8 +94,8 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     finally:
         for acc in accs.values():
             acc.close()
-    spread = {g: dsm_roughness(per_group[g]) for g in groups}
-    order = rank_groups(groups, quality or {}, {g: len(sources[g]) for g in groups}, spread)
+    roughness = {g: dsm_roughness(per_group[g]) for g in groups}
+    order = rank_groups(groups, quality or {}, {g: len(sources[g]) for g in groups}, roughness)
     block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
     H, source = fuse_groups([per_group[g] for g in order], correct_block=block)
     raw_valid = float(np.isfinite(H).mean())
@@ -117,7 +117,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
         for k, g in enumerate(order):
             write_dsm(out.group_dsm(g), filled(per_group[g]), grid)
             groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),
-                                     "roughness_m": spread[g],
+                                     "roughness_m": roughness[g],
                                      "points": int(len(sources[g])),
                                      "valid_fraction_raw": float(np.isfinite(per_group[g]).mean()),
                                      "fused_cells_from_it": float((source == k).mean())}
@@ -154,15 +154,15 @@ def dsm_roughness(D: np.ndarray, size: int = 5, max_cells: int = 8_000_000) -> f
 
 
 def rank_groups(groups: list[int], quality: dict[int, float], size: dict[int, int],
-                spread: dict[int, float | None] | None = None) -> list[int]:
+                roughness: dict[int, float | None] | None = None) -> list[int]:
     """Best first, by the expected height error of each group's DSM: sqrt(q^2 + s^2) with q its
     check points' vertical RMSE (georeferencing) and s its roughness (dsm_roughness: matching
     noise); a group without q after those with one; ties and the rest by cloud size, largest
     first."""
-    spread = spread or {}
+    roughness = roughness or {}
 
     def key(g):
-        q, s = quality.get(g), spread.get(g)
+        q, s = quality.get(g), roughness.get(g)
         s = float(s) if s is not None and np.isfinite(s) else 0.0
         if q is not None and np.isfinite(q):
             return (0, float(np.hypot(q, s)), -size[g])

@@ -78,6 +78,15 @@ class Upgrade:
         return out
 
 
+def _fit(model, gcps: list[GCP], frame: LocalFrame, cfg: Config) -> tuple[UpgradeResult, dict[str, GcpAffine]]:
+    """H_A of one model, refused (ReconstructionError) when the control GCPs are too flat."""
+    res, _, aff = upgrade_group(model, gcps, frame, ransac_thresh_m=cfg.upgrade.ransac_thresh_m, seed=cfg.seed)
+    refusal = None if cfg.upgrade.allow_flat_gcps else flat_gcp_refusal(res.conditioning)
+    if refusal:
+        raise ReconstructionError(refusal)
+    return res, aff
+
+
 def _picks_joint(gcp: GCP, group: int) -> GCP:
     """In a joint reconstruction every group's cloud is in one frame: a position picked on any
     group's cloud stands for the merged model's (the lowest group's pick when several)."""
@@ -102,24 +111,16 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
     joint = merge_joint([models[g] for g in sorted(models)])
     if joint is not None:
         try:
-            res, _, aff = upgrade_group(joint, [_picks_joint(g, joint.group) for g in gcps], up.frame,
-                                        ransac_thresh_m=cfg.upgrade.ransac_thresh_m, seed=cfg.seed)
-            refusal = None if cfg.upgrade.allow_flat_gcps else flat_gcp_refusal(res.conditioning)
-            if refusal:
-                raise ReconstructionError(refusal)
+            res, aff = _fit(joint, [_picks_joint(g, joint.group) for g in gcps], up.frame, cfg)
             for g, model in sorted(models.items()):
                 up.results[g], up.affine[g], up.gsd_m[g] = res, aff, estimate_gsd(model, res.H)
             up.joint = True
             return up
-        except ReconstructionError:
-            up.results.clear(), up.affine.clear(), up.gsd_m.clear()   # each group on its own
+        except ReconstructionError:           # each group on its own, below
+            up = Upgrade(up.frame)
     for g, model in sorted(models.items()):
         try:
-            res, _, aff = upgrade_group(model, gcps, up.frame, ransac_thresh_m=cfg.upgrade.ransac_thresh_m,
-                                        seed=cfg.seed)
-            refusal = None if cfg.upgrade.allow_flat_gcps else flat_gcp_refusal(res.conditioning)
-            if refusal:
-                raise ReconstructionError(refusal)
+            res, aff = _fit(model, gcps, up.frame, cfg)
             gsd = estimate_gsd(model, res.H)
         except ReconstructionError as exc:
             up.errors[g] = f"group {g}: {exc}"

@@ -60,6 +60,13 @@ class SparseModel:
         err = affine.reprojection_errors(self.cams, o.tile[idx], o.track[idx], o.xy[idx], self.X)
         return idx, err
 
+    def reprojection_summary(self) -> dict:
+        """Observations in use and their mean and RMS reprojection error (px), for reports."""
+        idx, err = self.reprojection()
+        return {"observations": int(len(idx)),
+                "mean_reproj_px": float(err.mean()) if len(err) else float("nan"),
+                "rms_reproj_px": float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan")}
+
     def point_stats(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(point ids, number of distinct images, RMS reprojection px) per triangulated point."""
         idx, err = self.reprojection()

@@ -185,7 +185,6 @@ class IncrementalSfM:
         self._filter_outliers()
         self._bundle("global", tied=True)
         self._emit_model()
-        idx, err = m.reprojection()
         counts = self._correspondence_counts()
         reasons = {}
         for t in np.flatnonzero(~m.registered):
@@ -195,9 +194,7 @@ class IncrementalSfM:
             self.bus.message(f"group {m.group}: tile {m.tiles[t].id} not registered: "
                              f"{reasons[m.tiles[t].id]}", "warning", m.group)
         m.stats = {"init": init, "tiles_registered": int(m.registered.sum()), "tiles_total": len(m.tiles),
-                   "points": int(m.has_point.sum()), "observations": int(len(idx)),
-                   "mean_reproj_px": float(err.mean()) if len(err) else float("nan"),
-                   "rms_reproj_px": float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan"),
+                   "points": int(m.has_point.sum()), **m.reprojection_summary(),
                    "unregistered": [m.tiles[t].id for t in np.flatnonzero(~m.registered)],
                    "unregistered_reasons": reasons,
                    "flat_tiles_regularised": dict(self._regularised),
@@ -374,6 +371,10 @@ class IncrementalSfM:
         sigma_obs = max(float(np.sqrt(np.mean(err ** 2))) / np.sqrt(2.0), 0.02)
         w = (sigma_obs / self.cfg.tie_sigma_px) ** 2
         rng = np.random.default_rng(0)
+        # the points of every tile, from one sort of the observations in use
+        key = np.unique(o.tile[idx] * len(m.X) + o.track[idx])
+        tile_of, track_of = key // len(m.X), key % len(m.X)
+        bounds = np.searchsorted(tile_of, np.arange(len(m.tiles) + 1))
         ties = []
         for name in m.images:
             tids = np.array([t for t in np.flatnonzero(m.registered) if m.tiles[t].image == name], np.int64)
@@ -381,7 +382,7 @@ class IncrementalSfM:
                 continue
             samples = []
             for t in tids:
-                k = np.unique(o.track[idx][o.tile[idx] == t])
+                k = track_of[bounds[t]:bounds[t + 1]]
                 if len(k) > 48:
                     k = rng.choice(k, 48, replace=False)
                 samples.append(m.X[k])

@@ -156,19 +156,24 @@ class GroupRouter(EventBus):
         self._order: dict[int, dict[str, int]] = {}     # group -> tile id -> its order in the group
 
     def attach(self, model: SparseModel) -> None:
+        """The joint model the events describe (its tiles and images do not change)."""
         self.model = model
+        self._img_group = np.array([self.image_group[n] for n in model.images])
+        self._tile_group = {t.id: self.image_group[t.image] for t in model.tiles}
+        self._tiles_of = {g: sum(v == g for v in self._tile_group.values()) for g in self.groups}
 
     def _sees(self, ids: np.ndarray) -> dict[int, np.ndarray]:
-        """Per group, a mask over ids: points observed in >= 2 of the group's images."""
+        """Per group, a mask over ids: points observed in >= 2 of the group's images (one pass
+        over the observations of these points only)."""
         m = self.model
         idx = m.active_obs()
-        img_group = np.array([self.image_group[n] for n in m.images])
-        out = {}
-        for g in self.groups:
-            sel = idx[img_group[m.obs.img[idx]] == g]
-            n = images_per_track(m.obs.track[sel], m.obs.img[sel], len(m.X))
-            out[g] = n[ids] >= 2
-        return out
+        want = np.zeros(len(m.X), bool)
+        want[ids] = True
+        idx = idx[want[m.obs.track[idx]]]
+        n_img = len(m.images)
+        key = np.unique(m.obs.track[idx] * n_img + m.obs.img[idx])     # (track, image) pairs
+        track, group = key // n_img, self._img_group[key % n_img]
+        return {g: np.bincount(track[group == g], minlength=len(m.X))[ids] >= 2 for g in self.groups}
 
     def emit(self, ev: object) -> None:
         if getattr(ev, "group", None) != JOINT:
@@ -176,8 +181,7 @@ class GroupRouter(EventBus):
         elif isinstance(ev, TileRegistered):
             g = self.image_group[ev.image]
             order = self._order.setdefault(g, {}).setdefault(ev.tile_id, len(self._order[g]))
-            self.up.emit(replace(ev, group=g, order=order,
-                                 total_tiles=self._tiles_of_group().get(g, ev.total_tiles)))
+            self.up.emit(replace(ev, group=g, order=order, total_tiles=self._tiles_of[g]))
         elif isinstance(ev, StageProgress):
             self.up.emit(replace(ev, group=None))
         elif isinstance(ev, Message):
@@ -191,24 +195,12 @@ class GroupRouter(EventBus):
                 k = sees[g]
                 arrays = {f: np.asarray(getattr(ev, f))[k] for f in ("ids", "xyz", "rgb", "n_views", "reproj_px")}
                 if isinstance(ev, ModelUpdated):
-                    mine = {t: c for t, c in ev.cameras.items() if self._tile_group(t) == g}
+                    mine = {t: c for t, c in ev.cameras.items() if self._tile_group[t] == g}
                     fps = {t: f for t, f in ev.footprints.items() if t in mine}
                     self.up.emit(replace(ev, group=g, cameras=mine, footprints=fps, **arrays))
                 elif k.any():
                     self.up.emit(replace(ev, group=g, **arrays))
         # StageDone of the joint run: each group's is emitted after the split
-
-    def _tile_group(self, tile_id: str) -> int:
-        if not hasattr(self, "_tid"):
-            self._tid = {t.id: self.image_group[t.image] for t in self.model.tiles}
-        return self._tid[tile_id]
-
-    def _tiles_of_group(self) -> dict[int, int]:
-        if self.model is None:
-            return {}
-        if not hasattr(self, "_count"):
-            self._count = {g: sum(self.image_group[t.image] == g for t in self.model.tiles) for g in self.groups}
-        return self._count
 
 
 def split_model(model: SparseModel, group: int, images: list[str]) -> SparseModel:
@@ -223,6 +215,7 @@ def split_model(model: SparseModel, group: int, images: list[str]) -> SparseMode
     k = keep_t[o.tile]
     obs = Observations(t_map[o.tile[k]], o.track[k].copy(), o.xy[k].copy(), img_map[o.img[k]],
                        o.valid[k].copy())
+    mine = {t.id for t, kt in zip(model.tiles, keep_t) if kt}
     part = SparseModel(group, list(images), [t for t, kt in zip(model.tiles, keep_t) if kt],
                        model.cams[keep_t].copy(), model.registered[keep_t].copy(),
                        model.fixed[keep_t].copy(), obs, model.X.copy(), model.has_point.copy(),
@@ -231,19 +224,16 @@ def split_model(model: SparseModel, group: int, images: list[str]) -> SparseMode
     part.has_point &= images_per_track(obs.track[idx], obs.img[idx], len(part.X)) >= 2
     part.register_order = [int(t_map[t]) for t in model.register_order if keep_t[t]]
     part.init_tiles = tuple(int(t_map[t]) if keep_t[t] else -1 for t in model.init_tiles)
-    idx, err = part.reprojection()
     stats = dict(model.stats)
     joint = model.stats.get("joint") or {"images": list(model.images),
                                          "tiles_registered": int(model.registered.sum()),
                                          "tiles_total": len(model.tiles), "points": int(model.has_point.sum())}
     stats.update({"joint": joint,
                   "tiles_registered": int(part.registered.sum()), "tiles_total": len(part.tiles),
-                  "points": int(part.has_point.sum()), "observations": int(len(idx)),
-                  "mean_reproj_px": float(err.mean()) if len(err) else float("nan"),
-                  "rms_reproj_px": float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan"),
+                  "points": int(part.has_point.sum()), **part.reprojection_summary(),
                   "unregistered": [t.id for t, r in zip(part.tiles, part.registered) if not r],
                   "unregistered_reasons": {t: r for t, r in model.stats.get("unregistered_reasons", {}).items()
-                                           if t in {tt.id for tt in part.tiles}}})
+                                           if t in mine}})
     part.stats = stats
     return part
 
@@ -290,16 +280,13 @@ def run(state, bus: EventBus) -> dict:
     for g in state.groups:
         if joint is not None:
             model, summary = joint[g.index]
-            save_model(model, state.layout)
-            state.models[g.index] = model
-            out["groups"][str(g.index)] = summary
-            continue
-        try:
-            model, summary = reconstruct_group(g, state.cfg, bus)
-        except ReconstructionError as exc:
-            bus.emit(Message("error", str(exc), g.index))
-            out["groups"][str(g.index)] = {"error": str(exc), "images": [im.name for im in g.images]}
-            continue
+        else:
+            try:
+                model, summary = reconstruct_group(g, state.cfg, bus)
+            except ReconstructionError as exc:
+                bus.emit(Message("error", str(exc), g.index))
+                out["groups"][str(g.index)] = {"error": str(exc), "images": [im.name for im in g.images]}
+                continue
         save_model(model, state.layout)
         state.models[g.index] = model
         out["groups"][str(g.index)] = summary
