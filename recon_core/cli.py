@@ -106,7 +106,7 @@ def cmd_info(args) -> int:
         for level, _, text in gcp_findings(groups, site.gcps, Config()):
             if level == "error":
                 print(f"warning: `aerec run` would refuse: {text}")
-            elif level == "warning":
+            elif level in ("warning", "joint"):
                 print(f"warning: {text}")
         for g in groups:
             for w in group_tone_curves(g.images)[1]:

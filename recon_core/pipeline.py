@@ -141,6 +141,9 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
             flat.append((g, text))
         elif level == "ok":
             ok.append(g)
+        elif level == "joint":          # upgradable if the joint reconstruction happens
+            ok.append(g)
+            warnings.append(text)
         else:
             warnings.append(text)
     if flat and not ok:            # nothing could be upgraded: refuse, naming the first flat group
@@ -154,15 +157,34 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
 
 def gcp_findings(groups, gcps, cfg: Config) -> list[tuple[str, int, str]]:
     """Per date group, what the upgrade will make of the GCPs, from the GCP file alone:
-    ("ok" | "warning" | "error", group, text). A warning: fewer than 4 usable control GCPs (the
-    group is not upgraded); an error: a control set too flat to fix the height scale (the upgrade
+    ("ok" | "joint" | "warning" | "error", group, text). A warning: fewer than 4 usable control
+    GCPs (the group is not upgraded); "joint": fewer than 4 of its own but >= 4 over all the
+    groups' images (upgraded only if the groups are reconstructed jointly); an error: a control set too flat to fix the height scale (the upgrade
     refuses that group; the run refuses when no group is left)."""
     out = []
+    joint = None
+    if cfg.sfm.joint_groups and len(groups) > 1 and all(len(g.images) >= 2 for g in groups):
+        # the groups will share one frame and one upgrade when they match across dates: a GCP
+        # then counts when it is seen in >= 2 images of any groups
+        every = {im.name for g in groups for im in g.images}
+        joint = [p for p in gcps if p.role == "control"
+                 and (sum(1 for im in p.observations if im in every) >= 2 or p.affine_picked)]
     for g in groups:
         names = {im.name for im in g.images}
         usable = [p for p in gcps if p.role == "control"
                   and (sum(1 for im in p.observations if im in names) >= 2 or g.index in p.affine_picked)]
         n = len(usable)
+        if n < 4 and joint is not None and len(joint) >= 4:
+            refusal = None if cfg.upgrade.allow_flat_gcps else _flat_control_refusal(joint)
+            if refusal:
+                out.append(("error", g.index, refusal))
+            else:
+                out.append(("joint", g.index, f"group {g.index} ({', '.join(sorted(names))}): {n} control "
+                            f"GCP(s) observed in >= 2 of its images, 4 needed on its own: it will be "
+                            f"upgraded only with the other date groups, through the joint reconstruction "
+                            f"({len(joint)} control GCPs over all images), which needs the groups to match "
+                            "across dates (sfm.joint_groups)"))
+            continue
         if n < 4:
             out.append(("warning", g.index, f"group {g.index} ({', '.join(sorted(names))}): {n} control "
                         "GCP(s) observed in >= 2 of its images, 4 needed: it will not be upgraded"))

@@ -228,3 +228,29 @@ def test_a_full_disk_is_one_line_and_leaves_nothing_half_written(tiny_site, tmp_
     assert f"{OutLayout(out).cameras(0)}: " in lines[0]                  # the file, not its temporary
     lay = OutLayout(out)
     assert not lay.cameras(0).exists() and lay.scratch() == []
+
+
+def test_gcps_seen_across_date_groups_count_when_the_groups_are_reconstructed_jointly(tmp_path):
+    """Each GCP seen once in each of two date groups: no group has a control GCP of its own in 2
+    of its images, but the joint reconstruction (one frame, one upgrade) can use all four. The
+    run goes on, saying so; with the joint reconstruction off it refuses before any compute."""
+    import numpy as np
+
+    from recon_core.config import Config
+    from recon_core.errors import InputError
+    from recon_core.pipeline import preflight
+    from tests.conftest import write_tiff
+
+    site = tmp_path / "site"
+    rng = np.random.default_rng(0)
+    for name, day in (("a", "01"), ("b", "02"), ("c", "20"), ("d", "21")):
+        write_tiff(site / "images" / f"{name}.tif", rng.integers(0, 2047, (48, 64), dtype=np.uint16),
+                   when=f"2020:01:{day} 10:00:00")
+    feats = [gcp_feature(f"J{k}", 10.0 + 1e-4 * k, 45.0 + 2e-4 * (k % 2), (100.0, 110.0, 135.0, 104.0)[k],
+                         {"a.tif": [3.0 + k, 4.0], "c.tif": [5.0 + k, 6.0]}) for k in range(4)]
+    (site / "gcps.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    notes = preflight(site, tmp_path / "out", Config())
+    assert len(notes) == 2 and all("through the joint reconstruction (4 control GCPs" in n for n in notes)
+    off = Config().with_overrides({"sfm.joint_groups": False})
+    with pytest.raises(InputError, match="no date group has 4 control GCPs"):
+        preflight(site, tmp_path / "out", off)
