@@ -540,9 +540,10 @@ def replay_model(model, listener) -> None:
     total = len(model.tiles)
     order = list(model.register_order) or [int(t) for t in np.flatnonzero(model.registered)]
     fps = {}
+    by_index = model.footprints(order)
     for k, t in enumerate(order):
         tile = model.tiles[t]
-        fps[tile.id] = model.footprint(t)
+        fps[tile.id] = by_index[t]
         listener(TileRegistered(model.group, tile.id, tile.image, model.cams[t].copy(),
                                 fps[tile.id], 0, k, total))
     cams = {model.tiles[t].id: model.cams[t].copy() for t in order}

@@ -67,15 +67,24 @@ class SparseModel:
                 "mean_reproj_px": float(err.mean()) if len(err) else float("nan"),
                 "rms_reproj_px": float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan")}
 
-    def point_stats(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(point ids, number of distinct images, RMS reprojection px) per triangulated point."""
-        idx, err = self.reprojection()
-        tr = self.obs.track[idx]
+    def point_stats(self, ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(point ids, number of distinct images, RMS reprojection px) per triangulated point:
+        every one, or those of `ids` that are triangulated (from their observations only)."""
+        idx = self.active_obs()
         n = len(self.X)
+        if ids is None:
+            ids = self.point_ids()
+        else:
+            ids = np.unique(np.asarray(ids, dtype=np.int64))
+            ids = ids[self.has_point[ids]]
+            want = np.zeros(n, bool)
+            want[ids] = True
+            idx = idx[want[self.obs.track[idx]]]
+        idx, err = self.reprojection(idx)
+        tr = self.obs.track[idx]
         sq = np.bincount(tr, err ** 2, minlength=n)
         cnt = np.bincount(tr, minlength=n)
         nimg = images_per_track(tr, self.obs.img[idx], n)
-        ids = self.point_ids()
         return ids, nimg[ids], np.sqrt(sq[ids] / np.maximum(cnt[ids], 1))
 
     def tiles_at(self, image: str, cr, registered: bool = True) -> list[int]:
@@ -92,7 +101,20 @@ class SparseModel:
     def footprint(self, t: int) -> np.ndarray:
         """(4, 3) tile corners back-projected onto the best plane of the tile's points."""
         o = self.obs
-        sel = np.unique(o.track[(o.tile == t) & o.valid & self.has_point[o.track]])
+        return self._footprint(t, np.unique(o.track[(o.tile == t) & o.valid & self.has_point[o.track]]))
+
+    def footprints(self, tiles) -> dict[int, np.ndarray]:
+        """footprint(t) of every tile in `tiles`, from one sort of the observations (not one
+        pass over all of them per tile)."""
+        o = self.obs
+        sel = np.flatnonzero(o.valid & self.has_point[o.track])
+        n = len(self.X)
+        key = np.unique(o.tile[sel] * n + o.track[sel])          # (tile, track), sorted by tile
+        tile_of = key // n
+        bounds = np.searchsorted(tile_of, np.arange(len(self.tiles) + 1))
+        return {int(t): self._footprint(int(t), key[bounds[t]:bounds[t + 1]] % n) for t in tiles}
+
+    def _footprint(self, t: int, sel: np.ndarray) -> np.ndarray:
         pts = self.X[sel] if len(sel) >= 3 else self.X[self.has_point]
         c = pts.mean(axis=0)
         _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
@@ -103,8 +125,11 @@ class SparseModel:
 def images_per_track(track: np.ndarray, img: np.ndarray, n: int) -> np.ndarray:
     """(n,) number of distinct images among the observations of each track."""
     n_img = int(img.max()) + 1 if len(img) else 1
-    keys = np.unique(track.astype(np.int64) * n_img + img)
-    return np.bincount(keys // n_img, minlength=n)
+    keys = track.astype(np.int64) * n_img + img
+    if n * n_img <= 64_000_000:          # a count per (track, image) cell: no sort
+        seen = np.bincount(keys, minlength=n * n_img).reshape(n, n_img) > 0
+        return seen.sum(axis=1)
+    return np.bincount(np.unique(keys) // n_img, minlength=n)
 
 
 def merge_joint(models: list[SparseModel]) -> SparseModel | None:

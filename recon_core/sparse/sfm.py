@@ -32,15 +32,25 @@ from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.matching import PairMatches
 from recon_core.sparse.tracks import Tracks
 
+REF_SAMPLE = 20_000      # old points a new point's conditioning is compared with (at most ~2x this)
 
-def point_conditioning(cams: np.ndarray, obs_cam: np.ndarray, obs_pt: np.ndarray, n: int) -> np.ndarray:
-    """(n,) sqrt(lambda_min / lambda_max) of sum M^T M over each point's observations.
+
+def point_conditioning(cams: np.ndarray, obs_cam: np.ndarray, obs_pt: np.ndarray, n: int,
+                       ids: np.ndarray | None = None) -> np.ndarray:
+    """(n,) sqrt(lambda_min / lambda_max) of sum M^T M over each point's observations (or, with
+    `ids`, (len(ids),) for those points only, from their observations only).
 
     The affine counterpart of a triangulation angle: for two orthographic views it is
     sin(angle / 2), about B/H / 2 (0 for identical views); repeated views do not change it. The affine frame distorts it by one global
     factor, so it is compared with the model's own best points (90th percentile), never with an
     absolute threshold; not with the median either, which a weak pair's many matches can own.
     """
+    if ids is not None:
+        ids = np.asarray(ids, dtype=np.int64)
+        slot = np.full(n, -1, np.int64)
+        slot[ids] = np.arange(len(ids))
+        k = slot[obs_pt] >= 0
+        obs_cam, obs_pt, n = obs_cam[k], slot[obs_pt[k]], len(ids)
     M = cams[obs_cam, :, :3]
     MtM = np.einsum("kri,krj->kij", M, M)
     A = np.zeros((n, 9))
@@ -330,19 +340,25 @@ class IncrementalSfM:
         # new points from views too close in angle never enter (rather than appearing and
         # being dropped at the next global adjustment)
         if self.cfg.min_triangulation_ratio > 0:
-            cond = self._conditioning()
+            new = new[m.has_point[new]]
             old = m.has_point.copy()
             old[new] = False
-            ref = cond[old] if old.sum() >= 50 else cond[m.has_point]   # the model's points so far
-            if len(ref):
-                thresh = self.cfg.min_triangulation_ratio * np.percentile(ref, 90)
-                m.has_point[new[cond[new] < thresh]] = False
+            old = np.flatnonzero(old)
+            if len(old) < 50:
+                old = m.point_ids()                  # the model's points so far
+            # the reference from an even subsample of the old points: its 90th percentile is
+            # the same to a fraction of a percent, and the cost no longer grows with the model
+            old = old[:: max(1, len(old) // REF_SAMPLE)]
+            cond = self._conditioning(np.concatenate([new, old]))
+            if len(old):
+                thresh = self.cfg.min_triangulation_ratio * np.percentile(cond[len(new):], 90)
+                m.has_point[new[cond[:len(new)] < thresh]] = False
 
-    def _conditioning(self) -> np.ndarray:
-        """(N,) point_conditioning of every track over the active observations."""
+    def _conditioning(self, ids: np.ndarray | None = None) -> np.ndarray:
+        """point_conditioning over the active observations: of every track, or of `ids`."""
         m, o = self.m, self.m.obs
         idx = m.active_obs()
-        return point_conditioning(m.cams, o.tile[idx], o.track[idx], len(m.X))
+        return point_conditioning(m.cams, o.tile[idx], o.track[idx], len(m.X), ids)
 
     def _filter_outliers(self) -> None:
         """Invalidate observations with large error; drop points left with < 2 images, and
@@ -427,12 +443,10 @@ class IncrementalSfM:
         new = m.has_point & ~self._sent_points
         if not new.any():
             return
-        ids_all, nimg, rms = m.point_stats()
-        pos = np.searchsorted(ids_all, np.flatnonzero(new))
-        ids = ids_all[pos]
+        ids, nimg, rms = m.point_stats(np.flatnonzero(new))
         g = m.gray[ids]
         self.bus.emit(PointsAdded(m.group, ids.copy(), m.X[ids].copy(), np.stack([g, g, g], 1),
-                                  nimg[pos].copy(), rms[pos].copy()))
+                                  nimg, rms))
         self._sent_points |= new
 
     def _emit_model(self) -> None:
@@ -441,7 +455,7 @@ class IncrementalSfM:
         g = m.gray[ids]
         reg = np.flatnonzero(m.registered)
         self.bus.emit(ModelUpdated(m.group, {m.tiles[t].id: m.cams[t].copy() for t in reg},
-                                   {m.tiles[t].id: m.footprint(t) for t in reg}, ids.copy(),
+                                   {m.tiles[t].id: f for t, f in m.footprints(reg).items()}, ids.copy(),
                                    m.X[ids].copy(), np.stack([g, g, g], 1), nimg, rms))
         self._sent_points = m.has_point.copy()
 

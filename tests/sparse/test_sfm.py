@@ -52,6 +52,32 @@ def test_events_stream(tiny_run):
     assert len(final.ids) == m.stats["points"]
 
 
+def test_partial_views_of_the_model_equal_the_full_ones(tiny_run):
+    """What the incremental loop asks for per tile (statistics and conditioning of some points,
+    footprints from one sort, distinct images per track without a sort) equals the full
+    computations it replaces."""
+    from recon_core.model.sparse_model import images_per_track
+    from recon_core.sparse.sfm import point_conditioning
+
+    m = tiny_run[0].models[0]
+    ids, nimg, rms = m.point_stats()
+    some = ids[::5]
+    ids_s, nimg_s, rms_s = m.point_stats(np.r_[some, np.flatnonzero(~m.has_point)[:10]])
+    assert np.array_equal(ids_s, some) and np.array_equal(nimg_s, nimg[::5])
+    np.testing.assert_allclose(rms_s, rms[::5], rtol=0, atol=1e-12)
+    o, idx = m.obs, m.active_obs()
+    full = point_conditioning(m.cams, o.tile[idx], o.track[idx], len(m.X))
+    np.testing.assert_allclose(point_conditioning(m.cams, o.tile[idx], o.track[idx], len(m.X), some),
+                               full[some], rtol=0, atol=1e-12)
+    reg = np.flatnonzero(m.registered)
+    fps = m.footprints(reg)
+    for t in reg:
+        np.testing.assert_allclose(fps[t], m.footprint(t), rtol=0, atol=1e-9)
+    by_cells = images_per_track(o.track[idx], o.img[idx], len(m.X))
+    by_sort = np.bincount(np.unique(o.track[idx] * 8 + o.img[idx]) // 8, minlength=len(m.X))
+    assert np.array_equal(by_cells, by_sort) and by_cells.max() >= 2
+
+
 def test_model_round_trip(tiny_run):
     state, _ = tiny_run
     m = state.models[0]
