@@ -100,8 +100,11 @@ def main(argv=None) -> int:
 
     def listen(ev):
         if isinstance(ev, BundleAdjusted):
+            if ev.repeat:                      # the same adjustment, told to another group
+                return
             ba["seconds"] += ev.seconds
             ba["runs"] += 1
+            ba[ev.scope] = ba.get(ev.scope, 0.0) + ev.seconds
             if args.log and ev.scope == "global":
                 log(f"group {ev.group} global BA: {ev.n_cameras} cameras, {ev.n_points} points, "
                     f"{ev.seconds:.1f} s, RMS {ev.rms_px:.3f} px")
@@ -136,7 +139,8 @@ def main(argv=None) -> int:
               f"SfM {t['sfm']:.1f} s; tiles {s['tiles_registered']}/{s['tiles_total']}, "
               f"points {s['points']}, mean reprojection {s['mean_reproj_px']:.3f} px "
               f"(RMS {s['rms_reproj_px']:.3f})")
-    print(f"bundle adjustment: {ba['seconds']:.1f} s in {ba['runs']} runs (inside SfM)")
+    print(f"bundle adjustment: {ba['seconds']:.1f} s in {ba['runs']} runs (inside SfM; global "
+          f"{ba.get('global', 0.0):.1f} s, local {ba.get('local', 0.0):.1f} s)")
     for g, f in truth_figures(site, state).items():
         print(f"group {g} sparse vs truth (one best-fit affine map): RMS {f['sparse_affine_rms_m']:.3f} m "
               f"(E/N/U {', '.join(f'{v:.3f}' for v in f['sparse_rms_xyz_m'])}), p95 {f['sparse_p95_m']:.3f} m, "

@@ -84,6 +84,8 @@ class BundleAdjusted:
     n_cameras: int
     n_points: int
     seconds: float
+    repeat: bool = False         # a joint reconstruction's adjustment told again to another of
+    #                              its groups: count it once (time, runs)
 
 
 @dataclass(frozen=True)

@@ -187,8 +187,8 @@ class GroupRouter(EventBus):
         elif isinstance(ev, Message):
             self.up.emit(replace(ev, group=None, text=ev.text.replace(f"group {JOINT}:", "joint reconstruction:")))
         elif isinstance(ev, BundleAdjusted):
-            for g in self.groups:
-                self.up.emit(replace(ev, group=g))
+            for k, g in enumerate(self.groups):
+                self.up.emit(replace(ev, group=g, repeat=k > 0))
         elif isinstance(ev, (PointsAdded, ModelUpdated)) and self.model is not None:
             sees = self._sees(np.asarray(ev.ids, dtype=np.int64))
             for g in self.groups:

@@ -87,7 +87,7 @@ def test_date_groups_are_reconstructed_in_one_frame_and_upgraded_by_one_map(tiny
 
 
 def test_a_joint_run_reports_each_tile_and_model_in_its_own_group(tiny2_run):
-    from recon_core.events import ModelUpdated, StageDone, TileRegistered
+    from recon_core.events import BundleAdjusted, ModelUpdated, StageDone, TileRegistered
 
     state = tiny2_run
     group_of = {im.name: g.index for g in state.groups for im in g.images}
@@ -108,6 +108,11 @@ def test_a_joint_run_reports_each_tile_and_model_in_its_own_group(tiny2_run):
     done = [e.group for e in state.events if isinstance(e, StageDone) and e.stage == "sparse"
             and e.group is not None]
     assert sorted(done) == [0, 1]
+    # each adjustment is told to both groups, once marked as the original (counted once)
+    ba = [e for e in state.events if isinstance(e, BundleAdjusted)]
+    firsts = [e for e in ba if not e.repeat]
+    assert len(ba) == 2 * len(firsts) and {e.group for e in firsts} == {0}
+    assert {e.group for e in ba if e.repeat} == {1}
 
 
 def test_a_joint_model_splits_and_merges_back(tiny2_run):
