@@ -28,7 +28,15 @@ from recon_core.sparse.bundle import _robust, bundle_adjust  # noqa: E402
 
 
 def problem(out: Path, group: int, noise: float, seed: int = 0):
-    m = load_model(out, group)
+    if group < 0:                    # every group of a joint run, merged back into one model
+        from recon_core.io.layout import OutLayout
+        from recon_core.model.sparse_model import merge_joint
+
+        m = merge_joint([load_model(out, g) for g in OutLayout(out).model_groups()])
+        if m is None:
+            sys.exit(f"{out}: its groups are not one joint reconstruction")
+    else:
+        m = load_model(out, group)
     idx = m.active_obs()
     o = m.obs
     rng = np.random.default_rng(seed)
@@ -119,17 +127,24 @@ def main() -> None:
     ap.add_argument("--group", type=int, default=0)
     ap.add_argument("--noise", type=float, default=1.0)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--joint", action="store_true", help="all groups of a joint run as one problem")
+    ap.add_argument("--only-compiled", action="store_true", help="neither the scipy.sparse path nor Ceres")
     a = ap.parse_args()
+    if a.joint:
+        a.group = -1
     pr = problem(a.out, a.group, a.noise)
     n_cam = len(pr["free_cams"])
     print(f"global problem of {a.out} group {a.group}: {n_cam} tile cameras, {len(pr['free_pts'])} points, "
           f"{len(pr['oc'])} observations; start cost {robust_cost(pr, pr['cams'], pr['X']):.1f}")
     run_ours(pr, True)                                        # compile (cached on disk after)
-    for name, compiled in (("aerec, compiled assembly", True), ("aerec, scipy.sparse assembly", False)):
+    for name, compiled in (("aerec, compiled assembly", True), ("aerec, scipy.sparse assembly", False))[
+            :1 if a.only_compiled else 2]:
         runs = [run_ours(pr, compiled) for _ in range(a.repeat)]
         t = sorted(r[0] for r in runs)
         print(f"{name:30s} time min/median {t[0]:7.3f} / {t[len(t) // 2]:7.3f} s, "
               f"{runs[0][1]} iterations, final cost {runs[0][2]:.4f}")
+    if a.only_compiled:
+        return
     try:
         import pyceres  # noqa: F401
     except ImportError as exc:

@@ -103,6 +103,8 @@ def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start):
             for row in range(2):
                 for i in range(3):
                     G[q, row, i] = M[k, row, 0] * Vi[0, i] + M[k, row, 1] * Vi[1, i] + M[k, row, 2] * Vi[2, i]
+        # S is symmetric: each unordered pair of observations once (q2 >= q1), its entries
+        # filed in the upper triangle; the lower triangle is copied from it at the end
         for q1 in range(m):
             ka = order[k0 + q1]
             c1 = oc[ka]
@@ -112,7 +114,7 @@ def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start):
                     col1 = cam_col[c1, row1 * 4 + j1]
                     if col1 >= 0:
                         rhs[col1] += w[ka] * h[ka, j1] * gg
-                for q2 in range(m):
+                for q2 in range(q1, m):
                     kb = order[k0 + q2]
                     c2 = oc[kb]
                     for row2 in range(2):
@@ -125,8 +127,20 @@ def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start):
                             ah = a * h[ka, j1]
                             for j2 in range(4):
                                 col2 = cam_col[c2, row2 * 4 + j2]
-                                if col2 >= 0:
+                                if col2 < 0:
+                                    continue
+                                if col1 < col2:
                                     S[col1, col2] -= ah * h[kb, j2]
+                                elif col2 < col1:
+                                    if q1 != q2:
+                                        S[col2, col1] -= ah * h[kb, j2]
+                                elif q1 == q2:
+                                    S[col1, col2] -= ah * h[kb, j2]
+                                else:                # never in practice: one camera twice
+                                    S[col1, col2] -= 2.0 * ah * h[kb, j2]
+    for i in range(nc):
+        for j in range(i + 1, nc):
+            S[j, i] = S[i, j]
     return S, rhs, Vinv
 
 

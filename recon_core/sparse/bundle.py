@@ -156,9 +156,29 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
     return BAResult(cams, X, cost0, cost, rms, K, time.time() - t0, it)
 
 
+SPARSE_SOLVE_MIN = 1500      # camera unknowns from which a sparse factorisation is tried
+SPARSE_SOLVE_DENSITY = 0.25  # ... when at most this fraction of the reduced system is non-zero
+
+
 def _cholesky_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve the reduced camera system S dc = rhs (S symmetric positive definite).
+
+    Small systems: dense Cholesky. Large ones are sparse (two tile cameras are coupled only
+    when they share points: ~10 % of the entries on a 3.6 km joint site of 617 tiles), and a
+    dense factorisation, n^3 / 3, then dominates the whole adjustment; a sparse LU with a
+    fill-reducing column ordering (SuperLU, COLAMD) solves those ~4x faster there."""
     if len(rhs) == 0:
         return np.zeros(0)
+    if len(rhs) >= SPARSE_SOLVE_MIN and np.count_nonzero(S) <= SPARSE_SOLVE_DENSITY * S.size:
+        from scipy.sparse import csc_matrix
+        from scipy.sparse.linalg import splu
+
+        try:
+            dc = splu(csc_matrix(S), permc_spec="COLAMD", options={"SymmetricMode": True}).solve(rhs)
+            if np.all(np.isfinite(dc)):
+                return dc
+        except RuntimeError:                  # singular: the dense path below decides
+            pass
     try:
         return scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), rhs)
     except np.linalg.LinAlgError:

@@ -78,3 +78,69 @@ def test_compiled_assembly_takes_the_same_steps_as_the_sparse_path():
     assert abs(a.cost_after - b.cost_after) <= 1e-12 * b.cost_after
     assert np.abs(a.cams - b.cams).max() < 1e-7 and np.abs(a.X - b.X).max() < 1e-7
     assert np.array_equal(a.X[1::2], X0[1::2]) and np.array_equal(a.cams[0], start[0])
+
+
+def test_compiled_schur_with_a_point_seen_twice_by_one_camera():
+    """The compiled Schur complement files each pair of observations once in the upper triangle;
+    a point observed twice by one camera (an inconsistent track) must still give the sparse
+    path's equations."""
+    rng = np.random.default_rng(5)
+    n, T = 300, 5
+    X = rng.uniform([-500, -500, 0], [500, 500, 40], (n, 3))
+    cams = np.stack([np.hstack([rng.normal(0, 1, (2, 3)) + [[1, 0, 0], [0, 1, 0.3 * k]], [[500], [500]]])
+                     for k in range(T)])
+    cam_idx, pt_idx = np.nonzero(rng.uniform(size=(T, n)) < 0.6)
+    dup = np.flatnonzero(cam_idx >= 2)[::7]
+    cam_idx, pt_idx = np.r_[cam_idx, cam_idx[dup]], np.r_[pt_idx, pt_idx[dup]]
+    xy = affine.project(cams, X)[cam_idx, pt_idx] + rng.normal(0, 0.3, (len(cam_idx), 2))
+    fixed = np.zeros((T, 2, 4), bool)
+    fixed[0] = True
+    fixed[1, 0] = True
+    start = cams + rng.normal(0, 1e-3, cams.shape) * [1, 1, 1, 100]
+    start[fixed] = cams[fixed]
+    X0 = X + rng.normal(0, 2.0, X.shape)
+    a = bundle_adjust(start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(n), fixed, compiled=True)
+    b = bundle_adjust(start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(n), fixed, compiled=False)
+    assert a.iterations == b.iterations > 2
+    assert abs(a.cost_after - b.cost_after) <= 1e-12 * b.cost_after
+    assert np.abs(a.cams - b.cams).max() < 1e-7 and np.abs(a.X - b.X).max() < 1e-7
+
+
+def test_the_sparse_factorisation_takes_the_same_steps_as_the_dense_one(monkeypatch):
+    """Large reduced systems are solved by a sparse LU (bundle.SPARSE_SOLVE_MIN): forced on a
+    small problem whose cameras are coupled only to their neighbours (a strip of tiles), it
+    takes the dense Cholesky's steps."""
+    import recon_core.sparse.bundle as bundle
+
+    rng = np.random.default_rng(11)
+    T, per = 24, 120
+    cams = np.stack([np.hstack([rng.normal(0, 0.05, (2, 3)) + [[1, 0, 0], [0, 1, 0.2 * (k % 3)]],
+                                [[500.0], [500.0]]]) for k in range(T)])
+    X = np.concatenate([rng.uniform([60 * k, 0, 0], [60 * k + 100, 100, 30], (per, 3)) for k in range(T)])
+    # point block k is seen by cameras k - 1, k, k + 1: S is block tridiagonal
+    cam_idx = np.concatenate([np.repeat(c, per) for k in range(T) for c in range(max(0, k - 1), min(T, k + 2))])
+    pt_idx = np.concatenate([np.arange(per) + per * k for k in range(T) for c in range(max(0, k - 1), min(T, k + 2))])
+    xy = affine.project(cams, X)[cam_idx, pt_idx] + rng.normal(0, 0.2, (len(cam_idx), 2))
+    fixed = np.zeros((T, 2, 4), bool)
+    fixed[0] = True
+    fixed[1, 0] = True
+    start = cams + rng.normal(0, 1e-3, cams.shape) * [1, 1, 1, 100]
+    start[fixed] = cams[fixed]
+    X0 = X + rng.normal(0, 1.0, X.shape)
+    args = (start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(len(X)), fixed)
+    dense = bundle_adjust(*args)
+    import scipy.sparse.linalg as spl
+
+    calls, orig = [], spl.splu
+
+    def counting(*a, **k):
+        calls.append(1)
+        return orig(*a, **k)
+
+    monkeypatch.setattr(spl, "splu", counting)
+    monkeypatch.setattr(bundle, "SPARSE_SOLVE_MIN", 1)
+    sparse = bundle_adjust(*args)
+    assert calls
+    assert sparse.iterations == dense.iterations > 2
+    assert abs(sparse.cost_after - dense.cost_after) <= 1e-9 * dense.cost_after
+    assert np.abs(sparse.cams - dense.cams).max() < 1e-6 and np.abs(sparse.X - dense.X).max() < 1e-5
