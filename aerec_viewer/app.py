@@ -62,6 +62,40 @@ MARK_RING_PX = 11.0     # radius of a GCP marker ring on screen (pixels), whatev
 MARK_SEL = (255, 220, 0)
 MARK = (230, 40, 40)
 MARK_CHECK = (40, 200, 255)
+# The loupe: the first click on the image plane (when "Click zooms in first" is on) shows the
+# LOUPE_PX x LOUPE_PX full-resolution pixels around it, each drawn as LOUPE_SCALE x LOUPE_SCALE
+# texels (nearest neighbour, lossless), with a crosshair whose centre is left open; the second
+# click there is the observation, to a fraction of a pixel.
+LOUPE_PX = 40
+LOUPE_SCALE = 16
+LOUPE_CROSS = (255, 200, 0)
+
+
+def loupe_window(width: int, height: int, image: str, col: float, row: float,
+                 size: int = LOUPE_PX) -> Window:
+    """The size x size window of an image (width x height) centred on pixel (col, row), shifted
+    inside the image at its borders."""
+    w, h = min(size, width), min(size, height)
+    c0 = int(min(max(round(col) - size // 2, 0), width - w))
+    r0 = int(min(max(round(row) - size // 2, 0), height - h))
+    return Window(image, c0, r0, w, h)
+
+
+def loupe_texture(gray: np.ndarray, win: Window, centre: tuple[float, float],
+                  scale: int = LOUPE_SCALE) -> np.ndarray:
+    """(h * scale, w * scale, 3) uint8: the window's pixels enlarged by pixel replication and a
+    one-texel crosshair through the centre of the pixel `centre` (full-image col, row), open
+    over that pixel and its neighbours so that it never covers what is being aimed at."""
+    rgb = np.repeat(np.repeat(np.repeat(gray[..., None], 3, axis=2), scale, axis=0), scale, axis=1)
+    fx, fy = win.fraction(*centre)
+    H, W = rgb.shape[:2]
+    cx, cy = int(np.clip(fx * W, 0, W - 1)), int(np.clip(fy * H, 0, H - 1))
+    gap = int(1.5 * scale)
+    cols = np.r_[0:max(cx - gap, 0), min(cx + gap + 1, W):W]
+    rows = np.r_[0:max(cy - gap, 0), min(cy + gap + 1, H):H]
+    rgb[cy, cols] = LOUPE_CROSS
+    rgb[rows, cx] = LOUPE_CROSS
+    return rgb
 
 
 def ring_segments(r: float, n: int = 32) -> np.ndarray:
@@ -149,6 +183,8 @@ class ViewerApp:
         self._state_table_key = None
         self._marks_key = None
         self._armed = None
+        self.loupe: tuple[Window, tuple[float, float]] | None = None   # (window, pixel zoomed on)
+        self._loupe_views: dict[int, tuple] = {}   # client id -> its camera before the loupe
         self._gui_cache: dict[str, object] = {}
         self._tri_cache: dict = {}
         self._build_gui()
@@ -542,7 +578,42 @@ class ViewerApp:
 
     def current_window(self) -> Window:
         self._set_regions()
+        if self.loupe is not None and self.loupe[0].image == self.gcp_panel.image.value:
+            return self.loupe[0]
         return self._regions.get(self.gcp_panel.region.value, self.images.whole(self.gcp_panel.image.value))
+
+    def open_loupe(self, pix: tuple[float, float], client=None) -> Window:
+        """Show the full-resolution pixels around pix (in the plane's image) on the picking plane
+        and put the clicking client's camera straight above it; the next click places."""
+        image = self.pick_plane.window.image
+        im = self.images.images[image]
+        win = loupe_window(im.width, im.height, image, *pix)
+        self.loupe = (win, (float(pix[0]), float(pix[1])))
+        self.show_image_plane(wait=True)
+        if client is not None:
+            cam = client.camera
+            self._loupe_views[client.client_id] = (tuple(cam.position), tuple(cam.look_at),
+                                                   tuple(cam.up_direction))
+            self.look_at_plane(client)
+        self.gcp_panel.leave_loupe.disabled = False
+        self.note(f"loupe on {image} around col {pix[0]:.0f}, row {pix[1]:.0f}: click the exact "
+                  "pixel (or Leave the loupe)")
+        return win
+
+    def close_loupe(self, client=None) -> None:
+        """Back to the region the loupe was opened from (and the client's view before it)."""
+        if self.loupe is None:
+            return
+        self.loupe = None
+        self.gcp_panel.leave_loupe.disabled = True
+        self.show_image_plane(wait=True)
+        for cid, c in list(self.server.get_clients().items()):
+            view = self._loupe_views.pop(cid, None)
+            if view is not None and (client is None or cid == client.client_id):
+                c.camera.up_direction = view[2]
+                c.camera.position = view[0]
+                c.camera.look_at = view[1]
+        self._loupe_views.clear()
 
     def show_image_plane(self, wait: bool = False) -> None:
         """(Re)draw the picking plane for the image and region chosen in the GCP tab.
@@ -558,13 +629,19 @@ class ViewerApp:
         win = self.current_window()
         contrast = self.gcp_panel.contrast.value
         token = self._plane_token = object()
+        loupe = self.loupe if self.loupe is not None and self.loupe[0] == win else None
+
+        def texture() -> np.ndarray:
+            tex = self.images.read(win, 2048, contrast)
+            return tex if loupe is None else loupe_texture(tex, win, loupe[1])
+
         if wait:
-            self._place_plane(win, self.images.read(win, 2048, contrast), token)
+            self._place_plane(win, texture(), token)
             return
 
         def read() -> None:
             try:
-                tex = self.images.read(win, 2048, contrast)
+                tex = texture()
             except Exception as exc:
                 msg = f"cannot read {win.image}: {exc}"   # exc is unbound once the block ends
                 self.submit(lambda: self.note(msg, "error"))
@@ -577,16 +654,18 @@ class ViewerApp:
         if token is not self._plane_token:            # a newer choice superseded this one
             return
         plane = layout_pick_plane(win, self.scene_bounds())
-        h = self.server.scene.add_image("/gcp/plane", np.repeat(tex[..., None], 3, axis=2),
-                                        plane.render_width, plane.render_height, format="jpeg",
-                                        jpeg_quality=90, wxyz=plane.wxyz, position=plane.position,
+        rgb = tex if tex.ndim == 3 else np.repeat(tex[..., None], 3, axis=2)
+        lossless = self.loupe is not None and self.loupe[0] == win    # its pixels must stay sharp
+        h = self.server.scene.add_image("/gcp/plane", rgb, plane.render_width, plane.render_height,
+                                        format="png" if lossless else "jpeg", jpeg_quality=90,
+                                        wxyz=plane.wxyz, position=plane.position,
                                         cast_shadow=False, receive_shadow=False)
         def clicked(ev) -> None:
             if self.moved_just_before(ev.client_id, time.time()):
                 self.submit(lambda: self.note("the view moved during that click (a drag): nothing "
                                               "recorded; click without moving the mouse", "warning"))
                 return
-            self.submit(lambda: self.on_plane_click(ev.ray_origin, ev.ray_direction))
+            self.submit(lambda: self.on_plane_click(ev.ray_origin, ev.ray_direction, ev.client))
 
         h.on_click(clicked)
         self._plane_handle, self.pick_plane = h, plane
@@ -622,8 +701,9 @@ class ViewerApp:
             self._marks_key = None
         self._plane_key = key
 
-    def on_plane_click(self, ray_origin, ray_direction) -> tuple[float, float] | None:
-        """A click on the picking plane: an observation of the selected (or a new) GCP."""
+    def on_plane_click(self, ray_origin, ray_direction, client=None) -> tuple[float, float] | None:
+        """A click on the picking plane: an observation of the selected (or a new) GCP; with
+        "Click zooms in first", a click outside the loupe opens the loupe there instead."""
         if self._armed is not None or self.pick_plane is None:
             return None
         pix = pixel_from_ray(self.pick_plane, ray_origin, ray_direction)
@@ -636,6 +716,11 @@ class ViewerApp:
             if x == 0.0 and y == 0.0:
                 raise GcpError("select a GCP, or type the new GCP's ground coordinates "
                                "(or take one from the site list) before clicking")
+        in_loupe = self.loupe is not None and self.pick_plane.window == self.loupe[0]
+        if not in_loupe and self.gcp_panel.zoom_click.value:
+            self.open_loupe(pix, client)
+            return None
+        if gid is None:
             gid = new_gcp(self.session, self.gcp_panel.gid.value or None, x=x, y=y, h=h,
                           epsg=epsg, role=self.gcp_panel.role.value).id
             created = True
@@ -651,6 +736,8 @@ class ViewerApp:
         if created:
             merge_last(self.session, 2, f"new {gid} observed in {image}")
         self.last_click = (gid, image, pix[0], pix[1])
+        if in_loupe:
+            self.close_loupe(client)
         self.gcps_changed(select=gid, note=f"{gid}: observed in {image} at col {pix[0]:.2f}, "
                                            f"row {pix[1]:.2f}")
         return pix

@@ -89,6 +89,7 @@ class GcpPanelHost(Protocol):
     def submit(self, fn: Callable[[], object]) -> object: ...
     def show_image_plane(self) -> None: ...
     def look_at_plane(self, client) -> None: ...
+    def close_loupe(self, client=None) -> None: ...
     def arm_cloud_pick(self) -> None: ...
     def gcps_changed(self, select: str | None = "keep", note: str | None = None) -> None: ...
     def note(self, text: str, level: str = "info") -> None: ...
@@ -113,9 +114,16 @@ class GcpPanel:
                                          hint="site: one stretch for all images; image: this "
                                               "image's own; window: stretched on what is shown")
         self.goto = gui.add_button("Look at the image plane", icon=None)
+        self.zoom_click = gui.add_checkbox(
+            "Click zooms in first (loupe)", True,
+            hint="the first click on the image shows its full-resolution pixels around that point, "
+                 "enlarged, with a crosshair; the click there places the GCP and goes back")
+        self.leave_loupe = gui.add_button("Leave the loupe", disabled=True)
         gui.add_markdown("Click a pixel on the image plane: it becomes an observation of the GCP "
                          "selected here (or of a new GCP with the fields below).")
         self.select = gui.add_dropdown("GCP", [self.NEW], initial_value=self.NEW)
+        self.prev_gcp = gui.add_button("Previous GCP")
+        self.next_gcp = gui.add_button("Next GCP")
         self.info = gui.add_markdown("")
         with gui.add_folder("Ground coordinates", expand_by_default=False):
             self.gid = gui.add_text("Id", "")
@@ -138,6 +146,9 @@ class GcpPanel:
                                       hint="from its observations in the other images (and the "
                                            "sparse surface), refined by image matching")
         self.accept = gui.add_button("Accept the prediction", disabled=True)
+        self.place_all = gui.add_button(
+            "Place it in its other images", hint="predict it in every image of its group where it "
+            "has no observation yet and record the predictions that image matching confirms")
         self.pick_cloud = gui.add_button("Pick its position on the cloud (next click)")
         self.forget_pick = gui.add_button("Forget its cloud pick",
                                           hint="the image observations are used again")
@@ -152,9 +163,14 @@ class GcpPanel:
 
     def _wire(self) -> None:
         app = self.app
-        self.image.on_update(lambda _: app.submit(lambda: (self.drop_prediction(),
+        self.image.on_update(lambda _: app.submit(lambda: (self.drop_prediction(), self.app.close_loupe(),
                                                            self.app.show_image_plane())))
-        self.region.on_update(lambda _: app.submit(self.app.show_image_plane))
+        self.region.on_update(lambda _: app.submit(lambda: (self.app.close_loupe(),
+                                                            self.app.show_image_plane())))
+        self.leave_loupe.on_click(lambda ev: app.submit(lambda: self.app.close_loupe(ev.client)))
+        self.prev_gcp.on_click(lambda _: app.submit(lambda: self.step_gcp(-1)))
+        self.next_gcp.on_click(lambda _: app.submit(lambda: self.step_gcp(+1)))
+        self.place_all.on_click(lambda _: app.submit(self._place_all))
         self.show_plane.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.contrast.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.goto.on_click(lambda ev: app.submit(lambda: self.app.look_at_plane(ev.client)))
@@ -287,6 +303,54 @@ class GcpPanel:
         self.app.note(f"{gid} predicted in {image} at col {pred.col:.2f}, row {pred.row:.2f} "
                       f"({pred.how}); Accept records it, or click the right pixel")
         return pred
+
+    def step_gcp(self, step: int) -> str | None:
+        """Select the next (step +1) or previous (-1) GCP of the working set, wrapping."""
+        ids = self.app.session.ids
+        if not ids:
+            raise GcpError("the working set has no GCP yet")
+        gid = self.selected()
+        k = ids.index(gid) + step if gid in ids else (0 if step > 0 else len(ids) - 1)
+        new = ids[k % len(ids)]
+        self.app.gcps_changed(select=new, note=f"{new} selected")
+        return new
+
+    def _place_all(self) -> dict[str, str]:
+        """Predict the selected GCP in every image of its group(s) where it has no observation and
+        record the predictions confirmed by matching (one undo step); the others are named with
+        why they were left for the operator."""
+        from .prediction import predict_observation
+
+        gid = self.selected()
+        if gid is None:
+            raise GcpError("select a GCP first")
+        g = self.app.session.get(gid)
+        if not g.observations:
+            raise GcpError(f"{gid} has no observation yet: click it in one image first")
+        images = {im.name: im for im in self.app.site.images}
+        done, left = {}, {}
+        for model in self.app.models.values():
+            seen = {im: xy for im, xy in self.app.session.get(gid).observations.items() if im in model.images}
+            if not seen:
+                continue
+            for image in model.images:
+                if image in seen:
+                    continue
+                pred = predict_observation(model, images, seen, image)
+                if pred is None:
+                    left[image] = "no prediction (no registered tile holds it there)"
+                elif not pred.confirmed:
+                    left[image] = f"not confirmed by matching ({pred.how})"
+                else:
+                    add_observation(self.app.session, gid, image, pred.col, pred.row)
+                    seen[image] = (pred.col, pred.row)
+                    done[image] = f"col {pred.col:.2f}, row {pred.row:.2f} ({pred.how})"
+        if done:
+            merge_last(self.app.session, len(done), f"{gid} placed in {len(done)} image(s) by prediction")
+        note = (f"{gid}: placed in {', '.join(f'{k} at {v}' for k, v in done.items()) or 'no image'}"
+                + (f"; left to you: {'; '.join(f'{k}: {v}' for k, v in left.items())}" if left else ""))
+        self.app.gcps_changed(select=gid, note=note)
+        return {**{k: "placed" for k in done}, **left}
 
     def drop_prediction(self) -> None:
         if self.prediction is not None:

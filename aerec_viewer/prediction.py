@@ -34,6 +34,12 @@ class Prediction:
     score: float | None             # NCC of the refinement (None: not refined)
     how: str                        # plain words: from what, refined or why not
 
+    @property
+    def confirmed(self) -> bool:
+        """Triangulated from >= 2 observations, or refined by a clear match: good enough to
+        record without the operator looking (Place it in its other images)."""
+        return self.score is not None or self.how.startswith("triangulated")
+
 
 def _tile_camera(model, image: str, cr) -> int | None:
     """Index of the registered tile of `image` containing pixel cr, nearest its centre."""

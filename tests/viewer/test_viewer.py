@@ -438,6 +438,7 @@ def live(tmp_path_factory):
     # worker's final state has been applied, not whatever the last sample caught (a race)
     app.wait_idle()
     sample()
+    app.gcp_panel.zoom_click.value = False      # one click places (the loupe has its own test)
     yield app, events, trace, out, site, cfg
     app.stop()
 
@@ -575,6 +576,102 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     assert 20.0 < np.ptp(P[:, 0]) < 20_000.0 and np.ptp(P[:, 2]) < np.ptp(P[:, 0])
     app.call(lambda: app.set_frame("affine"))
     assert app.scene._clouds[(0, "sparse")].transform.kind == "affine"
+
+
+def test_loupe_texture_enlarges_pixels_and_leaves_the_aimed_pixel_clear():
+    from aerec_viewer.app import LOUPE_CROSS, loupe_texture, loupe_window
+
+    win = loupe_window(500, 300, "a.tif", 3.2, 297.0, size=40)     # shifted inside at the corner
+    assert (win.col0, win.row0, win.width, win.height) == (0, 260, 40, 40)
+    gray = np.arange(40 * 40, dtype=np.uint16).reshape(40, 40).astype(np.uint8)
+    tex = loupe_texture(gray, win, (12.0, 280.0), scale=8)
+    assert tex.shape == (320, 320, 3)
+    cross = np.all(tex == LOUPE_CROSS, axis=2)
+    # a pixel is an 8 x 8 block of one value where the cross does not pass
+    assert np.all(tex[0:8, 0:8] == gray[0, 0]) and np.all(tex[8:16, 24:32] == gray[1, 3])
+    # the cross runs through the centre of pixel (12, 20) of the window, open around it
+    cy, cx = 20 * 8 + 4, 12 * 8 + 4
+    assert cross[cy, :cx - 12].all() and cross[:cy - 12, cx].all() and cross[cy + 13:, cx].all()
+    assert not cross[cy - 8:cy + 9, cx - 8:cx + 9].any()
+    assert cross.sum() < 2 * 320
+
+
+def test_loupe_first_click_zooms_second_click_places(live):
+    """With "Click zooms in first": a click on the whole image opens the loupe there (nothing
+    recorded, the plane shows 40 x 40 full-resolution pixels losslessly), a click in the loupe is
+    the observation, to the same sub-pixel precision, and the plane goes back to the region."""
+    from aerec_viewer.app import LOUPE_PX
+
+    app, events, trace, out, site, cfg = live
+    gp = app.gcp_panel
+    gid = app.session.ids[0]
+    app.call(lambda: gp.refresh(select=gid))
+    app.call(lambda: setattr(gp.zoom_click, "value", True))
+    try:
+        if app.pick_plane is None:
+            app.call(lambda: app.show_image_plane(wait=True))
+        whole = app.pick_plane.window
+        img = whole.image
+        before = dict(app.session.get(gid).observations)
+        o, d = _ray_to(app, 150.4, 160.6)
+        assert app.call(lambda: app.on_plane_click(o, d)) is None
+        assert app.session.get(gid).observations == before              # nothing recorded
+        win = app.pick_plane.window
+        assert app.loupe is not None and win == app.loupe[0] and win.image == img
+        assert (win.width, win.height) == (LOUPE_PX, LOUPE_PX) and win.contains([(150.4, 160.6)])[0]
+        assert not gp.leave_loupe.disabled
+        o, d = _ray_to(app, 152.37, 158.81)
+        pix = app.call(lambda: app.on_plane_click(o, d))
+        assert pix is not None and abs(pix[0] - 152.37) < 1e-3 and abs(pix[1] - 158.81) < 1e-3
+        assert np.allclose(app.session.get(gid).observations[img], (152.37, 158.81), atol=1e-3)
+        assert app.loupe is None and app.pick_plane.window == whole and gp.leave_loupe.disabled
+        # Leave the loupe records nothing
+        o, d = _ray_to(app, 300.0, 100.0)
+        app.call(lambda: app.on_plane_click(o, d))
+        assert app.loupe is not None
+        app.call(app.close_loupe)
+        assert app.loupe is None and app.pick_plane.window == whole
+        assert np.allclose(app.session.get(gid).observations[img], (152.37, 158.81), atol=1e-3)
+    finally:
+        app.call(lambda: undo(app.session))
+        app.call(lambda: app.gcps_changed(select=gid))
+        app.call(lambda: setattr(gp.zoom_click, "value", False))
+
+
+def test_next_previous_gcp_and_place_it_in_its_other_images(live):
+    """Next / Previous walk the working set (wrapping); "Place it in its other images" records
+    the confirmed predictions of a GCP observed once, in one undo step, close to where the site's
+    own clicks put it."""
+    app, events, trace, out, site, cfg = live
+    gp = app.gcp_panel
+    ids = app.session.ids
+    app.call(lambda: gp.refresh(select=ids[-1]))
+    assert app.call(lambda: gp.step_gcp(+1)) == ids[0] and gp.select.value == ids[0]
+    assert app.call(lambda: gp.step_gcp(-1)) == ids[-1]
+    cat = {c.id: c for c in app.session.catalogue}
+    model = app.models[0]
+    gid = next(g.id for g in app.session.gcps if g.id in cat and len(cat[g.id].observations) >= 3
+               and all(im in model.images for im in cat[g.id].observations))
+    site_obs = dict(cat[gid].observations)
+    keep = sorted(site_obs)[0]
+    app.call(lambda: gp.refresh(select=gid))
+    for im in list(app.session.get(gid).observations):
+        if im != keep:
+            app.call(lambda im=im: remove_observation(app.session, gid, im))
+    app.call(lambda: add_observation(app.session, gid, keep, *site_obs[keep]))
+    n_undo = len(app.session._undo)
+    result = app.call(gp._place_all)
+    placed = [im for im, v in result.items() if v == "placed"]
+    assert placed, result
+    assert len(app.session._undo) == n_undo + 1                    # one step
+    for im in placed:
+        c, r = app.session.get(gid).observations[im]
+        assert np.hypot(c - site_obs[im][0], r - site_obs[im][1]) < 3.0, (im, (c, r), site_obs[im])
+    app.call(lambda: undo(app.session))
+    assert set(app.session.get(gid).observations) == {keep}
+    for im, xy in site_obs.items():                                 # as the site has it
+        app.call(lambda im=im, xy=xy: add_observation(app.session, gid, im, *xy))
+    app.call(lambda: app.gcps_changed(select=gid))
 
 
 def test_gcp_panel_is_safe_to_edit(live):

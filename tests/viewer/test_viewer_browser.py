@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aerec_viewer.app import DRAG_GUARD_S
+from aerec_viewer.app import DRAG_GUARD_S, LOUPE_PX
 from aerec_viewer.display import quat_to_matrix
 from recon_core.events import TileRegistered
 
@@ -130,16 +130,37 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     x, y = project(client, plane.point_of(*target))
     assert 0 < x < 950 and 0 < y < VIEW["height"], (x, y)
     before = app.last_click
+    view_before = client.camera.position.copy()
+    # the first click opens the loupe there: the plane shows the full-resolution pixels around
+    # it, enlarged, and this tab's camera goes straight above it
+    page.mouse.click(x, y)
+    wait_for(lambda: app.loupe is not None and app.pick_plane.window == app.loupe[0], 20,
+             "the first click to open the loupe")
+    assert app.last_click is before                      # nothing recorded
+    loupe = app.pick_plane
+    assert loupe.window.width < 0.2 * win.width
+    wait_for(lambda: np.linalg.norm(client.camera.position[:2] - loupe.position[:2])
+             < 0.01 * loupe.render_width, 20, "the camera to move above the loupe")
+    time.sleep(1.5)
+    shot(page, shots, "3a_loupe")
+    aim = (app.loupe[1][0] + 0.31, app.loupe[1][1] - 0.42)   # the exact pixel, seen enlarged
+    x, y = project(client, loupe.point_of(*aim))
     page.mouse.click(x, y)
     wait_for(lambda: app.last_click is not before and app.last_click is not None, 20,
-             "the click on the image plane to reach the server")
+             "the click in the loupe to reach the server")
     got_gid, image, col, row = app.last_click
-    px_per_css = win.width / (plane.render_width * (VIEW["height"] / 2) / np.tan(client.camera.fov / 2)
-                              / np.linalg.norm(client.camera.position - plane.position))
+    px_per_css = loupe.window.width / (loupe.render_width * (VIEW["height"] / 2) / np.tan(client.camera.fov / 2)
+                                       / np.linalg.norm(client.camera.position - loupe.position))
+    assert px_per_css < 0.15, px_per_css                 # a tenth of a pixel per screen pixel
     assert got_gid == gid and image == win.image
-    assert abs(col - target[0]) <= max(2.0, px_per_css) and abs(row - target[1]) <= max(2.0, px_per_css), \
-        (col, row, target, px_per_css)
+    assert abs(col - aim[0]) <= 1.5 * px_per_css and abs(row - aim[1]) <= 1.5 * px_per_css, \
+        (col, row, aim, px_per_css)
+    assert abs(col - target[0]) < 0.5 * LOUPE_PX and abs(row - target[1]) < 0.5 * LOUPE_PX
     assert np.allclose(app.session.get(gid).observations[image], (col, row))
+    # then back to the whole image, and to the view this tab had
+    wait_for(lambda: app.loupe is None and app.pick_plane.window == win, 20, "the loupe to close")
+    wait_for(lambda: np.linalg.norm(client.camera.position - view_before) < 1e-3 * plane.render_width,
+             20, "the view before the loupe")
     time.sleep(1.5)
     shot(page, shots, "3_gcp_pick")
 
