@@ -160,6 +160,50 @@ class GcpPanel:
         self._delete_armed: tuple[str, float] | None = None
         self.prediction = None              # (gid, Prediction) shown, waiting for Accept
         self._wire()
+        self.shortcuts = self._add_shortcuts(gui)
+        gui.add_markdown("Keys: " + ", ".join(f"**{k}** {what}" for k, what, _ in self.SHORTCUTS)
+                         + " (viser's W A S D Q E and arrows move the camera).")
+
+    # key, what, action (the camera keeps viser's W A S D Q E and arrow keys)
+    SHORTCUTS = (
+        ("N", "next GCP", lambda self, ev: self.step_gcp(+1)),
+        ("P", "previous GCP", lambda self, ev: self.step_gcp(-1)),
+        ("I", "next image", lambda self, ev: self.step_image(+1)),
+        ("shift+I", "previous image", lambda self, ev: self.step_image(-1)),
+        ("L", "look at the image plane", lambda self, ev: self.app.look_at_plane(ev.client)),
+        ("R", "predict in this image", lambda self, ev: self._predict()),
+        ("enter", "accept the prediction", lambda self, ev: self._accept()),
+        ("O", "place it in its other images", lambda self, ev: self._place_all()),
+        ("escape", "leave the loupe", lambda self, ev: self.app.close_loupe(ev.client)),
+        ("ctrl+Z", "undo", lambda self, ev: self._undo()),
+        ("ctrl+shift+Z", "redo", lambda self, ev: self._redo()),
+    )
+
+    def _add_shortcuts(self, gui) -> dict[str, object]:
+        """One viser command (palette entry + hotkey) per SHORTCUTS row; its action runs on the
+        update thread like a button's. Empty when this viser has no commands."""
+        if not hasattr(gui, "add_command"):
+            return {}
+        out = {}
+        for key, what, action in self.SHORTCUTS:
+            mods, _, hot = key.rpartition("+")
+            modifier = {"": None, "ctrl": "cmd/ctrl", "shift": "shift",
+                        "ctrl+shift": "cmd/ctrl+shift"}[mods]
+            h = gui.add_command(what.capitalize(), hotkey=hot if len(hot) > 1 else hot.upper(),
+                                modifier=modifier)
+            h.on_trigger(lambda ev, action=action: self.app.submit(lambda: action(self, ev)))
+            out[key] = h
+        return out
+
+    def step_image(self, step: int) -> str:
+        """Show the next (+1) or previous (-1) image on the picking plane, wrapping."""
+        names = list(self.image.options)
+        new = names[(names.index(self.image.value) + step) % len(names)]
+        self.image.value = new              # its on_update redraws the plane
+        self.drop_prediction()
+        self.app.close_loupe()
+        self.app.show_image_plane()
+        return new
 
     def _wire(self) -> None:
         app = self.app

@@ -210,3 +210,18 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     shot(page, shots, "4_after_upgrade")
     assert "Euclidean" in app.g_frame.content
 
+
+    # keyboard: N selects the next GCP, P the previous one (viser commands with hotkeys; the
+    # camera keeps W A S D Q E and the arrows)
+    if app.gcp_panel.shortcuts:
+        page.get_by_role("tab", name="GCPs").click()
+        page.mouse.click(200, 820)                   # focus the scene (empty background)
+        ids = app.session.ids
+        start = app.gcp_panel.select.value
+        page.keyboard.press("n")
+        wait_for(lambda: app.gcp_panel.select.value != start, 20, "the N key to select the next GCP")
+        nxt = app.gcp_panel.select.value
+        assert nxt == (ids[(ids.index(start) + 1) % len(ids)] if start in ids else ids[0])
+        page.keyboard.press("p")
+        wait_for(lambda: app.gcp_panel.select.value == (start if start in ids else ids[-1]), 20,
+                 "the P key to select the previous GCP")
