@@ -63,14 +63,8 @@ def test_compiled_assembly_takes_the_same_steps_as_the_sparse_path():
     cams = np.stack([np.hstack([rng.normal(0, 1, (2, 3)) + [[1, 0, 0], [0, 1, 0.3 * k]], [[500], [500]]])
                      for k in range(T)])
     cam_idx, pt_idx = np.nonzero(rng.uniform(size=(T, n)) < 0.5)
-    xy = affine.project(cams, X)[cam_idx, pt_idx] + rng.normal(0, 0.3, (len(cam_idx), 2))
+    xy, fixed, start, X0 = _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, 2.0)
     xy[::50] += 8.0                                                   # outliers: Huber weights
-    fixed = np.zeros((T, 2, 4), bool)
-    fixed[0] = True
-    fixed[1, 0] = True
-    start = cams + rng.normal(0, 1e-3, cams.shape) * [1, 1, 1, 100]
-    start[fixed] = cams[fixed]
-    X0 = X + rng.normal(0, 2.0, X.shape)
     free_pts = np.arange(0, n, 2)                                      # some points held
     a = bundle_adjust(start, X0, cam_idx, pt_idx, xy, np.arange(1, T), free_pts, fixed, compiled=True)
     b = bundle_adjust(start, X0, cam_idx, pt_idx, xy, np.arange(1, T), free_pts, fixed, compiled=False)
@@ -78,6 +72,19 @@ def test_compiled_assembly_takes_the_same_steps_as_the_sparse_path():
     assert abs(a.cost_after - b.cost_after) <= 1e-12 * b.cost_after
     assert np.abs(a.cams - b.cams).max() < 1e-7 and np.abs(a.X - b.X).max() < 1e-7
     assert np.array_equal(a.X[1::2], X0[1::2]) and np.array_equal(a.cams[0], start[0])
+
+
+def _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, point_noise, pixel_noise=0.3):
+    """Noisy observations of (cams, X) and a start away from them with the pipeline's gauge
+    (camera 0 and row 0 of camera 1 held): (xy, fixed, start cameras, start points)."""
+    T = len(cams)
+    xy = affine.project(cams, X)[cam_idx, pt_idx] + rng.normal(0, pixel_noise, (len(cam_idx), 2))
+    fixed = np.zeros((T, 2, 4), bool)
+    fixed[0] = True
+    fixed[1, 0] = True
+    start = cams + rng.normal(0, 1e-3, cams.shape) * [1, 1, 1, 100]
+    start[fixed] = cams[fixed]
+    return xy, fixed, start, X + rng.normal(0, point_noise, X.shape)
 
 
 def test_compiled_schur_with_a_point_seen_twice_by_one_camera():
@@ -92,13 +99,7 @@ def test_compiled_schur_with_a_point_seen_twice_by_one_camera():
     cam_idx, pt_idx = np.nonzero(rng.uniform(size=(T, n)) < 0.6)
     dup = np.flatnonzero(cam_idx >= 2)[::7]
     cam_idx, pt_idx = np.r_[cam_idx, cam_idx[dup]], np.r_[pt_idx, pt_idx[dup]]
-    xy = affine.project(cams, X)[cam_idx, pt_idx] + rng.normal(0, 0.3, (len(cam_idx), 2))
-    fixed = np.zeros((T, 2, 4), bool)
-    fixed[0] = True
-    fixed[1, 0] = True
-    start = cams + rng.normal(0, 1e-3, cams.shape) * [1, 1, 1, 100]
-    start[fixed] = cams[fixed]
-    X0 = X + rng.normal(0, 2.0, X.shape)
+    xy, fixed, start, X0 = _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, 2.0)
     a = bundle_adjust(start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(n), fixed, compiled=True)
     b = bundle_adjust(start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(n), fixed, compiled=False)
     assert a.iterations == b.iterations > 2
@@ -120,13 +121,7 @@ def test_the_sparse_factorisation_takes_the_same_steps_as_the_dense_one(monkeypa
     # point block k is seen by cameras k - 1, k, k + 1: S is block tridiagonal
     cam_idx = np.concatenate([np.repeat(c, per) for k in range(T) for c in range(max(0, k - 1), min(T, k + 2))])
     pt_idx = np.concatenate([np.arange(per) + per * k for k in range(T) for c in range(max(0, k - 1), min(T, k + 2))])
-    xy = affine.project(cams, X)[cam_idx, pt_idx] + rng.normal(0, 0.2, (len(cam_idx), 2))
-    fixed = np.zeros((T, 2, 4), bool)
-    fixed[0] = True
-    fixed[1, 0] = True
-    start = cams + rng.normal(0, 1e-3, cams.shape) * [1, 1, 1, 100]
-    start[fixed] = cams[fixed]
-    X0 = X + rng.normal(0, 1.0, X.shape)
+    xy, fixed, start, X0 = _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, 1.0, pixel_noise=0.2)
     args = (start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(len(X)), fixed)
     dense = bundle_adjust(*args)
     import scipy.sparse.linalg as spl
