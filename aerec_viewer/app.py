@@ -582,6 +582,10 @@ class ViewerApp:
             return self.loupe[0]
         return self._regions.get(self.gcp_panel.region.value, self.images.whole(self.gcp_panel.image.value))
 
+    def in_loupe(self, win: Window) -> bool:
+        """Is this window (the plane's, or the one about to be drawn) the open loupe?"""
+        return self.loupe is not None and self.loupe[0] == win
+
     def open_loupe(self, pix: tuple[float, float], client=None) -> Window:
         """Show the full-resolution pixels around pix (in the plane's image) on the picking plane
         and put the clicking client's camera straight above it; the next click places."""
@@ -608,7 +612,7 @@ class ViewerApp:
         self.gcp_panel.leave_loupe.disabled = True
         self.show_image_plane(wait=True)
         for cid, c in list(self.server.get_clients().items()):
-            view = self._loupe_views.pop(cid, None)
+            view = self._loupe_views.get(cid)
             if view is not None and (client is None or cid == client.client_id):
                 c.camera.up_direction = view[2]
                 c.camera.position = view[0]
@@ -629,7 +633,7 @@ class ViewerApp:
         win = self.current_window()
         contrast = self.gcp_panel.contrast.value
         token = self._plane_token = object()
-        loupe = self.loupe if self.loupe is not None and self.loupe[0] == win else None
+        loupe = self.loupe if self.in_loupe(win) else None
 
         def texture() -> np.ndarray:
             tex = self.images.read(win, 2048, contrast)
@@ -655,9 +659,9 @@ class ViewerApp:
             return
         plane = layout_pick_plane(win, self.scene_bounds())
         rgb = tex if tex.ndim == 3 else np.repeat(tex[..., None], 3, axis=2)
-        lossless = self.loupe is not None and self.loupe[0] == win    # its pixels must stay sharp
         h = self.server.scene.add_image("/gcp/plane", rgb, plane.render_width, plane.render_height,
-                                        format="png" if lossless else "jpeg", jpeg_quality=90,
+                                        # the loupe's enlarged pixels must stay sharp
+                                        format="png" if self.in_loupe(win) else "jpeg", jpeg_quality=90,
                                         wxyz=plane.wxyz, position=plane.position,
                                         cast_shadow=False, receive_shadow=False)
         def clicked(ev) -> None:
@@ -716,7 +720,7 @@ class ViewerApp:
             if x == 0.0 and y == 0.0:
                 raise GcpError("select a GCP, or type the new GCP's ground coordinates "
                                "(or take one from the site list) before clicking")
-        in_loupe = self.loupe is not None and self.pick_plane.window == self.loupe[0]
+        in_loupe = self.in_loupe(self.pick_plane.window)
         if not in_loupe and self.gcp_panel.zoom_click.value:
             self.open_loupe(pix, client)
             return None

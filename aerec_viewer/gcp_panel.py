@@ -199,10 +199,7 @@ class GcpPanel:
         """Show the next (+1) or previous (-1) image on the picking plane, wrapping."""
         names = list(self.image.options)
         new = names[(names.index(self.image.value) + step) % len(names)]
-        self.image.value = new              # its on_update redraws the plane
-        self.drop_prediction()
-        self.app.close_loupe()
-        self.app.show_image_plane()
+        self.image.value = new     # its on_update drops the prediction and the loupe, redraws
         return new
 
     def _wire(self) -> None:

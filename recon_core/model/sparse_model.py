@@ -107,12 +107,15 @@ class SparseModel:
         """footprint(t) of every tile in `tiles`, from one sort of the observations (not one
         pass over all of them per tile)."""
         o = self.obs
-        sel = np.flatnonzero(o.valid & self.has_point[o.track])
-        n = len(self.X)
-        key = np.unique(o.tile[sel] * n + o.track[sel])          # (tile, track), sorted by tile
-        tile_of = key // n
-        bounds = np.searchsorted(tile_of, np.arange(len(self.tiles) + 1))
-        return {int(t): self._footprint(int(t), key[bounds[t]:bounds[t + 1]] % n) for t in tiles}
+        tracks, bounds = self.tracks_by_tile(np.flatnonzero(o.valid & self.has_point[o.track]))
+        return {int(t): self._footprint(int(t), tracks[bounds[t]:bounds[t + 1]]) for t in tiles}
+
+    def tracks_by_tile(self, obs_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(tracks, bounds): the distinct tracks of the observations obs_idx, grouped by tile
+        and sorted; tile t's are tracks[bounds[t]:bounds[t + 1]] (one sort for all tiles)."""
+        o, n = self.obs, len(self.X)
+        key = np.unique(o.tile[obs_idx] * n + o.track[obs_idx])
+        return key % n, np.searchsorted(key // n, np.arange(len(self.tiles) + 1))
 
     def _footprint(self, t: int, sel: np.ndarray) -> np.ndarray:
         pts = self.X[sel] if len(sel) >= 3 else self.X[self.has_point]

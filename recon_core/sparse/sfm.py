@@ -387,10 +387,7 @@ class IncrementalSfM:
         sigma_obs = max(float(np.sqrt(np.mean(err ** 2))) / np.sqrt(2.0), 0.02)
         w = (sigma_obs / self.cfg.tie_sigma_px) ** 2
         rng = np.random.default_rng(0)
-        # the points of every tile, from one sort of the observations in use
-        key = np.unique(o.tile[idx] * len(m.X) + o.track[idx])
-        tile_of, track_of = key // len(m.X), key % len(m.X)
-        bounds = np.searchsorted(tile_of, np.arange(len(m.tiles) + 1))
+        track_of, bounds = m.tracks_by_tile(idx)      # the points of every tile, one sort
         ties = []
         for name in m.images:
             tids = np.array([t for t in np.flatnonzero(m.registered) if m.tiles[t].image == name], np.int64)
