@@ -114,6 +114,9 @@ class UpgradeConfig:
     ransac_thresh_m: float = 2.0      # GCP inlier threshold of the H_A RANSAC (metres)
     allow_flat_gcps: bool = False     # go on when the control GCPs of a group are (nearly) on one
                                       # plane: expected height error > 10 m on a 40 m structure
+    metric_prior_sigma_cos: float = 2e-3  # the cameras' metric constraint in the fit of H_A: the
+                                      # cosine between a tile camera's rows in metres, per image
+                                      # (recon_core.euclidean.metric_prior; 0 = GCPs only)
 
 
 @dataclass

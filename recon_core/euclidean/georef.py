@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon_core.errors import ReconstructionError
+from recon_core.euclidean.metric_prior import camera_rows
 from recon_core.euclidean.upgrade import GcpInput, UpgradeResult, upgrade
 from recon_core.geometry import affine
 from recon_core.geometry.geodesy import LocalFrame, geodetic_to_projected, utm_epsg_for
@@ -79,14 +80,17 @@ def frame_for(gcps: list[GCP]) -> LocalFrame:
 
 
 def upgrade_group(model: SparseModel, gcps: list[GCP], frame: LocalFrame | None = None, *,
-                  ransac_thresh_m: float = 2.0, seed: int = 0) -> tuple[UpgradeResult, LocalFrame, dict[str, GcpAffine]]:
-    """Fit H_A for one group: affine frame -> local ENU metres."""
+                  ransac_thresh_m: float = 2.0, seed: int = 0,
+                  sigma_cos: float = 0.0) -> tuple[UpgradeResult, LocalFrame, dict[str, GcpAffine]]:
+    """Fit H_A for one group: affine frame -> local ENU metres (with sigma_cos > 0, with the
+    metric constraint of the model's tile cameras: recon_core.euclidean.metric_prior)."""
     frame = frame or frame_for(gcps)
     aff = gcp_affine_points(model, gcps)
     enu = frame.geodetic_to_enu(np.array([g.llh for g in gcps])) if gcps else np.zeros((0, 3))
     inputs = [GcpInput(g.id, g.role, aff[g.id].xyz, enu[k], g.sigma_m, aff[g.id].reproj_rms_px)
               for k, g in enumerate(gcps)]
-    result = upgrade(inputs, ransac_thresh_m=ransac_thresh_m, rng=np.random.default_rng(seed))
+    result = upgrade(inputs, ransac_thresh_m=ransac_thresh_m, rng=np.random.default_rng(seed),
+                     camera_rows=camera_rows(model) if sigma_cos > 0 else None, sigma_cos=sigma_cos)
     return result, frame, aff
 
 

@@ -22,6 +22,12 @@ Conventions of the report (the photogrammetric ones):
 - Leave-one-out (N >= 5): refit without each control point; its residual then is an honest
   prediction error.
 
+The cameras' metric constraint (`metric_prior`, on by default in the pipeline): every image's
+tile cameras have orthogonal rows in metres; one equation per image joins the GCPs' 3N in a
+weighted least squares, which fixes the height scale and the shear of height into E and N that
+nearly coplanar GCPs leave loose (then dof = 3N - 12 + images, and the control residuals are not
+zero even at N = 4).
+
 Conditioning (flat land is the normal case): the height scale of H_A is set by how far the GCPs
 lie off their best-fit plane. Its relative error is about sigma / d_rms, where sigma is the
 height uncertainty of a GCP's affine point (in metres) and d_rms the RMS distance of the GCPs
@@ -37,6 +43,8 @@ from typing import Any
 import numpy as np
 
 from recon_core.errors import ReconstructionError
+from recon_core.euclidean.metric_prior import (ImageRows, fit_with_metric_prior, gcp_only_cov,
+                                               height_sigma, row_cosines)
 from recon_core.geometry.affine import apply_affine_3d, fit_affine_3d
 
 CE90_FACTOR = 2.146
@@ -208,7 +216,7 @@ def _refit_inliers(X_aff: np.ndarray, X_enu: np.ndarray, mask: np.ndarray,
 # --------------------------------------------------------------------------------------------
 def conditioning(X_enu: np.ndarray, affine_height_sigma_m: float = 0.4,
                  structure_height_m: float = 40.0, warn_height_error_m: float = 2.0,
-                 poor_height_error_m: float = 5.0) -> dict[str, Any]:
+                 poor_height_error_m: float = 5.0, prior_ratio: float | None = None) -> dict[str, Any]:
     """How well the control GCPs fix the height scale of H_A.
 
     Fits a plane to the control points (SVD of the centred coordinates) and predicts the height
@@ -244,6 +252,10 @@ def conditioning(X_enu: np.ndarray, affine_height_sigma_m: float = 0.4,
     d = Xc @ normal
     d_rms = float(np.sqrt(np.mean(d ** 2)))
     frac = affine_height_sigma_m / d_rms if d_rms > 0 else float("inf")
+    if prior_ratio is not None and np.isfinite(prior_ratio):
+        out.update(gcp_only_expected_height_error_m=float(frac * structure_height_m),
+                   metric_prior_ratio=float(prior_ratio))
+        frac = frac * prior_ratio if np.isfinite(frac) else frac
     err_m = frac * structure_height_m
     level = "ok" if err_m <= warn_height_error_m else ("warning" if err_m <= poor_height_error_m
                                                       else "poor")
@@ -253,10 +265,11 @@ def conditioning(X_enu: np.ndarray, affine_height_sigma_m: float = 0.4,
                level=level, warning=_conditioning_warning(level, d_rms, frac, err_m,
                                                           structure_height_m,
                                                           affine_height_sigma_m,
-                                                          warn_height_error_m))
+                                                          warn_height_error_m, prior_ratio))
     return out
 
 
+WITH_PRIOR = " (with the cameras' metric constraint)"
 REFUSE_HEIGHT_ERROR_M = 10.0   # expected error on the quoted structure (25 % of 40 m)
 
 
@@ -271,11 +284,13 @@ def flat_gcp_refusal(cond: dict[str, Any]) -> str | None:
 
 
 def _conditioning_warning(level: str, d_rms: float, frac: float, err_m: float,
-                          h: float, sigma: float, target_m: float) -> str | None:
+                          h: float, sigma: float, target_m: float,
+                          prior_ratio: float | None = None) -> str | None:
     """Plain-words warning for a poorly conditioned (flat) GCP set, or None."""
     if level == "ok":
         return None
-    need = sigma * h / target_m
+    prior = prior_ratio is not None and np.isfinite(prior_ratio)
+    need = sigma * h * (prior_ratio if prior else 1.0) / target_m
     if err_m > 1000.0:          # (nearly) exactly coplanar: the figure itself means nothing
         return (f"the control GCPs lie within {d_rms:.3f} m (RMS) of one plane: the height scale "
                 f"is undetermined (expected height error over 1 km on a {h:.0f} m structure). "
@@ -283,7 +298,8 @@ def _conditioning_warning(level: str, d_rms: float, frac: float, err_m: float,
                 f"{need:.0f} m RMS off-plane spread brings it to {target_m:g} m.")
     return (f"the control GCPs lie within {d_rms:.2f} m (RMS) of one plane, so the height scale "
             f"is poorly fixed: expected height error about {100 * frac:.0f} %, i.e. "
-            f"{err_m:.1f} m on a {h:.0f} m structure. Add a GCP well off that plane (a roof, a "
+            f"{err_m:.1f} m on a {h:.0f} m structure"
+            f"{WITH_PRIOR if prior else ''}. Add a GCP well off that plane (a roof, a "
             f"hill top or a valley bottom); about {need:.0f} m RMS off-plane spread brings it "
             f"to {target_m:g} m.")
 
@@ -303,7 +319,8 @@ class UpgradeResult:
             N >= 5.
         stats: {"control": {...}, "check": {...}, "loo": {...}} with n, rmse_E_m, rmse_N_m,
             rmse_U_m, rmse_horizontal_m, rmse_radial_m, rmse_3d_m, ce90_m, le90_m.
-        dof: 3 N - 12.
+        dof: 3 N - 12, plus one per image with the metric prior.
+        metric_prior: what the cameras' metric constraint did (None when off).
         rejections: [{"id", "reason"}] RANSAC rejections and unusable GCPs.
         conditioning: dict of `conditioning`.
         notes: plain-words remarks (no redundancy, ...); warnings: things to act on.
@@ -318,6 +335,7 @@ class UpgradeResult:
     conditioning: dict[str, Any]
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    metric_prior: dict[str, Any] | None = None
 
     def apply(self, X_aff: np.ndarray) -> np.ndarray:
         """Affine-frame points (n, 3) -> ENU metres (n, 3)."""
@@ -332,6 +350,7 @@ class UpgradeResult:
                                           "CE90 = 2.146 * that, LE90 = 1.645 * RMSE_U",
             "points": self.points, "stats": self.stats, "rejections": self.rejections,
             "conditioning": self.conditioning, "notes": self.notes, "warnings": self.warnings,
+            "metric_prior": self.metric_prior,
         }
 
 
@@ -375,15 +394,16 @@ def _check_rank(ids: list[str], X_enu: np.ndarray, X_aff: np.ndarray) -> None:
                 "scale) is undetermined; add a GCP off their plane")
 
 
-def _loo(X_aff: np.ndarray, X_enu: np.ndarray) -> np.ndarray:
-    """Leave-one-out residuals (n, 3): refit without point i, residual at i (NaN if degenerate)."""
+def _loo(X_aff: np.ndarray, X_enu: np.ndarray, fit=fit_affine_upgrade) -> np.ndarray:
+    """Leave-one-out residuals (n, 3): refit (by `fit`) without point i, residual at i (NaN if
+    degenerate)."""
     n = len(X_aff)
     out = np.full((n, 3), np.nan)
     for i in range(n):
         keep = np.arange(n) != i
         if _rank(X_aff[keep]) < 3 or _rank(X_enu[keep]) < 3:
             continue
-        H = fit_affine_upgrade(X_aff[keep], X_enu[keep])
+        H = fit(X_aff[keep], X_enu[keep])
         out[i] = apply_affine_3d(H, X_aff[i:i + 1])[0] - X_enu[i]
     return out
 
@@ -399,10 +419,15 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
             rng: np.random.Generator | None = None, ransac_iters: int = 1000,
             affine_height_sigma_m: float = 0.4, structure_height_m: float = 40.0,
             warn_height_error_m: float = 2.0, poor_height_error_m: float = 5.0,
-            reproj_warn_px: float = 2.0) -> UpgradeResult:
+            reproj_warn_px: float = 2.0, camera_rows: list[ImageRows] | None = None,
+            sigma_cos: float = 0.0) -> UpgradeResult:
     """Fit H_A on the control GCPs (RANSAC when N >= 5) and build the full residual report.
 
     Check points never enter the fit. GCPs without an affine position are listed as unusable.
+    With `camera_rows` (each image's tile cameras) and sigma_cos > 0, the fit on the inliers
+    also asks every image's tile cameras to have orthogonal rows in metres
+    (recon_core.euclidean.metric_prior): one equation per image with that sigma, which fixes
+    the height scale and shear that nearly coplanar GCPs leave loose.
 
     Raises:
         ReconstructionError: fewer than max(4, min_points) usable control GCPs (says how many and
@@ -425,10 +450,54 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
     else:
         H, inl = fit_affine_upgrade(Xa, Xe), np.ones(len(ctrl), bool)
     used = [i for i, ok in zip(ctrl, inl) if ok]
+    sigma = _combined_sigma([gcps[i] for i in used], affine_height_sigma_m)
+    prior = None
+    if camera_rows and sigma_cos > 0:
+        prior = _MetricPrior(camera_rows, sigma_cos, sigma)
+        H = prior.fit(Xa[inl], Xe[inl], H, structure_height_m)
     return _build_result(gcps, reasons, ctrl, used, H, Xa[inl], Xe[inl], ransac_thresh_m,
-                         _combined_sigma([gcps[i] for i in used], affine_height_sigma_m),
-                         structure_height_m, warn_height_error_m, poor_height_error_m,
-                         reproj_warn_px)
+                         sigma, structure_height_m, warn_height_error_m, poor_height_error_m,
+                         reproj_warn_px, prior)
+
+
+class _MetricPrior:
+    """The cameras' metric constraint in the fit, and what it did (for the report)."""
+
+    def __init__(self, rows: list[ImageRows], sigma_cos: float, sigma_m: float):
+        self.rows, self.sigma_cos, self.sigma_m = rows, float(sigma_cos), float(sigma_m)
+        self.report: dict[str, Any] = {}
+        self.ratio: float | None = None
+
+    def refit(self, Xa: np.ndarray, Xe: np.ndarray) -> np.ndarray:
+        """H from these control points with the prior (leave-one-out refits)."""
+        return fit_with_metric_prior(Xa, Xe, self.sigma_m, self.rows, self.sigma_cos)[0]
+
+    def fit(self, Xa: np.ndarray, Xe: np.ndarray, H_gcp: np.ndarray, height_m: float) -> np.ndarray:
+        H, cov = fit_with_metric_prior(Xa, Xe, self.sigma_m, self.rows, self.sigma_cos, H0=H_gcp)
+        Xc = Xe - Xe.mean(axis=0)
+        normal = np.linalg.svd(Xc, full_matrices=False)[2][-1]
+        normal = normal if normal[2] >= 0 else -normal
+        s_prior = height_sigma(H, cov, normal, height_m)
+        s_gcp = height_sigma(H_gcp, gcp_only_cov(Xa, self.sigma_m), normal, height_m)
+        self.ratio = min(1.0, s_prior / s_gcp) if s_gcp > 0 else None
+        top = Xe.mean(axis=0) + normal * height_m            # a point height_m above the GCPs
+        base = Xe.mean(axis=0)
+        back = np.linalg.solve(H_gcp[:3, :3], np.c_[top - H_gcp[:3, 3], base - H_gcp[:3, 3]]).T
+        moved = apply_affine_3d(H, back) - np.array([top, base])
+        self.report = {
+            "sigma_cos": self.sigma_cos, "sigma_gcp_m": self.sigma_m, "images": len(self.rows),
+            "row_cosine_gcp_only": dict(zip((r.image for r in self.rows),
+                                            row_cosines(H_gcp[:3, :3], self.rows).round(6).tolist())),
+            "row_cosine": dict(zip((r.image for r in self.rows),
+                                   row_cosines(H[:3, :3], self.rows).round(6).tolist())),
+            "height_change_m": float(moved[0, 2] - moved[1, 2]), "at_height_m": float(height_m),
+            "height_sigma_gcp_only_m": s_gcp, "height_sigma_m": s_prior,
+            "what": "each image's tile cameras have orthogonal rows in metres (one equation per "
+                    "image, sigma_cos on the cosine), fitted with the control GCPs; "
+                    "height_change_m: how the height of a point at_height_m above the control "
+                    "GCPs moved against the GCP-only fit",
+        }
+        return H
 
 
 def _point_row(g: GcpInput, status: str, reason: str | None, r: np.ndarray | None) -> dict:
@@ -444,7 +513,7 @@ def _point_row(g: GcpInput, status: str, reason: str | None, r: np.ndarray | Non
 
 
 def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, sigma, struct_h,
-                  warn_m, poor_m, reproj_warn_px) -> UpgradeResult:
+                  warn_m, poor_m, reproj_warn_px, prior: _MetricPrior | None = None) -> UpgradeResult:
     """Residual rows, statistics, LOO, rejections and notes for a fitted H."""
     rows, rejections, res = [], [], {"control": [], "check": []}
     for i, g in enumerate(gcps):
@@ -467,10 +536,16 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, sigma,
     n = len(used)
     stats = {k: accuracy_stats(np.array(v).reshape(-1, 3)) for k, v in res.items()}
     notes, warnings = [], []
+    k = len(prior.rows) if prior is not None else 0
     if n >= 5:
-        loo = _loo(Xa_used, Xe_used)
+        loo = _loo(Xa_used, Xe_used, prior.refit if prior is not None else fit_affine_upgrade)
         _attach_loo(rows, [gcps[i].id for i in used], loo)
         stats["loo"] = accuracy_stats(loo[np.all(np.isfinite(loo), axis=1)])
+    elif prior is not None:
+        notes.append(f"N = 4 control GCPs and {k} images' metric constraint: 3N - 12 + {k} = {k} "
+                     "degrees of freedom. The control residuals are not zero: they show how far the "
+                     "GCPs and the cameras' orthogonal rows disagree. Check points and each GCP's "
+                     "reprojection residual (reproj_rms_px) tell the rest.")
     else:
         notes.append("N = 4 control GCPs: no redundancy (3N - 12 = 0 degrees of freedom), so the "
                      "control residuals are zero by construction and say nothing. What still "
@@ -486,16 +561,17 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, sigma,
     if n_ransac and n == 4:
         warnings.append(f"RANSAC rejected {n_ransac} control GCP(s) and only 4 remain: no "
                         "redundancy is left to confirm the rejection; add control GCPs")
-    cond = conditioning(Xe_used, sigma, struct_h, warn_m, poor_m)
+    cond = conditioning(Xe_used, sigma, struct_h, warn_m, poor_m,
+                        prior.ratio if prior is not None else None)
     if cond.get("warning"):
         warnings.append(cond["warning"])
     warnings += _reproj_warnings(rows, reproj_warn_px)
     if not res["check"]:
         notes.append("no check points: hold one or more GCPs out as 'check' for an independent "
                      "accuracy figure")
-    return UpgradeResult(H=H, points=rows, stats=stats, dof=3 * n - 12, n_control_used=n,
+    return UpgradeResult(H=H, points=rows, stats=stats, dof=3 * n - 12 + k, n_control_used=n,
                          rejections=rejections, conditioning=cond, notes=notes,
-                         warnings=warnings)
+                         warnings=warnings, metric_prior=prior.report if prior is not None else None)
 
 
 def _attach_loo(rows: list[dict], ids: list[str], loo: np.ndarray) -> None:

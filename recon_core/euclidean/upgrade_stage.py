@@ -80,7 +80,8 @@ class Upgrade:
 
 def _fit(model, gcps: list[GCP], frame: LocalFrame, cfg: Config) -> tuple[UpgradeResult, dict[str, GcpAffine]]:
     """H_A of one model, refused (ReconstructionError) when the control GCPs are too flat."""
-    res, _, aff = upgrade_group(model, gcps, frame, ransac_thresh_m=cfg.upgrade.ransac_thresh_m, seed=cfg.seed)
+    res, _, aff = upgrade_group(model, gcps, frame, ransac_thresh_m=cfg.upgrade.ransac_thresh_m, seed=cfg.seed,
+                                sigma_cos=cfg.upgrade.metric_prior_sigma_cos)
     refusal = None if cfg.upgrade.allow_flat_gcps else flat_gcp_refusal(res.conditioning)
     if refusal:
         raise ReconstructionError(refusal)
