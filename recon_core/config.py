@@ -128,6 +128,8 @@ class DsmConfig:
     fusion_correction_m: float = 32.0  # a lower-ranked group is brought onto the fused surface by
                                       # a smooth correction (medians of the difference in blocks
                                       # of this size) before it fills holes; 0 = off
+    fusion_agree_sigmas: float = 2.5   # cells where groups agree within this many sigma (each DSM's
+                                      # noise from its roughness) take their weighted mean (0 = off)
     icp_max_corr_m: float = 3.0       # ICP correspondence distance when fusing date groups
     icp_voxel_m: float = 1.0          # both clouds are reduced to voxel centroids of this size
     icp_max_iter: int = 60            # ICP iteration cap (it stops earlier when converged)

@@ -97,7 +97,9 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     roughness = {g: dsm_roughness(per_group[g]) for g in groups}
     order = rank_groups(groups, quality or {}, {g: len(sources[g]) for g in groups}, roughness)
     block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
-    H, source = fuse_groups([per_group[g] for g in order], correct_block=block)
+    H, source = fuse_groups([per_group[g] for g in order], correct_block=block,
+                            sigmas=[None if roughness[g] is None else ROUGHNESS_TO_SIGMA * roughness[g]
+                                    for g in order], agree_sigmas=c.fusion_agree_sigmas)
     raw_valid = float(np.isfinite(H).mean())
 
     def filled(D: np.ndarray) -> np.ndarray:
@@ -127,7 +129,10 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
             "fusion_rule": ("per cell, the best-ranked group with a value (ranked by the expected "
                             "height error: check-point vertical RMSE and the DSM's roughness)" + (f"; lower-ranked groups brought onto the fused surface "
                                                 f"by a smooth correction ({c.fusion_correction_m:g} m "
-                                                "blocks)" if block else ""))
+                                                "blocks)" if block else "") +
+                            (f"; where groups agree within {c.fusion_agree_sigmas:g} sigma (sigma "
+                             "from each DSM's roughness), their inverse-variance weighted mean"
+                             if c.fusion_agree_sigmas > 0 else ""))
                            if len(groups) > 1 else "one group",
             "group_order": order, "groups": groups_report, "gsd_m": gsd}
 
@@ -170,24 +175,57 @@ def rank_groups(groups: list[int], quality: dict[int, float], size: dict[int, in
     return sorted(groups, key=key)
 
 
-def fuse_groups(dsms: list[np.ndarray], correct_block: int = 0,
-                min_overlap: int = 2000) -> tuple[np.ndarray, np.ndarray]:
-    """Per cell, the first DSM (in the given order) with a value. Returns (H, index of the DSM
-    each cell came from, -1 where none has one).
+ROUGHNESS_TO_SIGMA = 1.4826      # a Gaussian's sigma from the 75th percentile of |deviation|
 
-    With `correct_block` > 0 (cells), a lower-ranked DSM is first brought onto the fused surface
-    where they overlap: the difference's median per block of correct_block x correct_block cells,
-    spread to blocks without overlap from the nearest ones and smoothed, is subtracted before it
-    fills holes. A smooth bend of a worse group (ICP is rigid) then no longer shows where it fills
-    in; its own detail stays. Needs `min_overlap` common cells, else no correction."""
+
+def fuse_groups(dsms: list[np.ndarray], correct_block: int = 0, min_overlap: int = 2000,
+                sigmas: list[float | None] | None = None,
+                agree_sigmas: float = 2.5) -> tuple[np.ndarray, np.ndarray]:
+    """Fuse per-group DSMs given best first. Returns (H, index of the DSM each cell's reference
+    value came from, -1 where none has one).
+
+    1. The reference surface: per cell, the first DSM (in the given order) with a value. With
+       `correct_block` > 0 (cells), a lower-ranked DSM is first brought onto the fused surface
+       where they overlap: the difference's median per block of correct_block x correct_block
+       cells, spread to blocks without overlap from the nearest ones and smoothed, is subtracted
+       before it fills holes. A smooth bend of a worse group (ICP is rigid) then no longer shows
+       where it fills in; its own detail stays. Needs `min_overlap` common cells, else no
+       correction.
+    2. With `sigmas` (each DSM's noise, metres; None: that DSM only fills): where several
+       (corrected) DSMs agree with the reference within agree_sigmas * sqrt(s_ref^2 + s_k^2),
+       the cell is their inverse-variance weighted mean: independent matchings of the same
+       ground average their noise down; a DSM that disagrees (a shadow, a moved car, a
+       mismatch) is left out of that cell.
+    """
     H = np.full(dsms[0].shape, np.nan, np.float32)
     source = np.full(dsms[0].shape, -1, np.int16)
+    corrected = []
     for k, D in enumerate(dsms):
         if k > 0 and correct_block > 0:
-            D = D - relative_correction(D, H, correct_block, min_overlap)
+            D = (D - relative_correction(D, H, correct_block, min_overlap)).astype(np.float32)
         take = np.isnan(H) & np.isfinite(D)
         H[take] = D[take]
         source[take] = k
+        corrected.append(D)
+    sig = [None if s is None or not np.isfinite(s) or s <= 0 else float(s) for s in (sigmas or [])]
+    if agree_sigmas <= 0 or len(sig) != len(dsms) or sum(s is not None for s in sig) < 2:
+        return H, source
+    # each cell's reference noise: that of the DSM its value came from
+    s_ref = np.full(H.shape, np.nan, np.float32)
+    for k, s in enumerate(sig):
+        s_ref[source == k] = np.nan if s is None else s
+    num = np.zeros(H.shape, np.float32)
+    den = np.zeros(H.shape, np.float32)
+    for k, (D, s) in enumerate(zip(corrected, sig)):
+        if s is None:
+            continue
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(D) & (np.abs(D - H) <= agree_sigmas * np.sqrt(s_ref ** 2 + s * s))
+        w = 1.0 / (s * s)
+        num[ok] += w * D[ok]
+        den[ok] += w
+    avg = den > 0
+    H[avg] = num[avg] / den[avg]
     return H, source
 
 
