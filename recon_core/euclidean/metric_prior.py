@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from recon_core.geometry.affine import apply_affine_3d, fit_affine_3d
+from recon_core.geometry.affine import fit_affine_3d, normalize_points
 
 SIGMA_COS = 2e-3
 
@@ -67,29 +67,16 @@ def row_cosines(A: np.ndarray, rows: list[ImageRows]) -> np.ndarray:
     return out
 
 
-def _normaliser(X: np.ndarray) -> np.ndarray:
-    """4 x 4 similarity moving X's centroid to 0 and its RMS distance to sqrt(3)."""
-    c = X.mean(axis=0)
-    s = np.sqrt(3.0) / max(float(np.sqrt(np.mean(np.sum((X - c) ** 2, axis=1)))), 1e-12)
-    T = np.eye(4)
-    T[:3, :3] *= s
-    T[:3, 3] = -s * c
-    return T
-
-
 def fit_with_metric_prior(X_aff: np.ndarray, X_enu: np.ndarray, sigma_m: float,
                           rows: list[ImageRows], sigma_cos: float = SIGMA_COS,
                           H0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """H_A (4 x 4) minimising sum |H x_i - X_i|^2 / sigma_m^2 + sum_images c_k(A)^2 / sigma_cos^2.
 
     Solved in similarity-normalised coordinates (the cosines do not change under them) by
-    Levenberg-Marquardt from the GCP-only fit (or H0). Returns (H, covariance of the 12
-    parameters of the normalised map, whitened units)."""
-    Xa = np.asarray(X_aff, dtype=np.float64)
-    Xe = np.asarray(X_enu, dtype=np.float64)
-    Ta, Te = _normaliser(Xa), _normaliser(Xe)
-    xa = apply_affine_3d(Ta, Xa)
-    xe = apply_affine_3d(Te, Xe)
+    Levenberg-Marquardt from the GCP-only fit (or H0). Returns (H, covariance of H[:3]'s 12
+    entries, row by row, in metres)."""
+    xa, Ta = normalize_points(X_aff)
+    xe, Te = normalize_points(X_enu)
     s_e = Te[0, 0]                       # metres -> normalised units
     sig = max(float(sigma_m), 1e-6) * s_e
     if H0 is None:

@@ -246,10 +246,8 @@ def conditioning(X_enu: np.ndarray, affine_height_sigma_m: float = 0.4,
                    warning=f"only {len(X)} control GCPs: the height scale is undetermined; "
                            "add GCPs, at least 4 and not all on one plane")
         return out
-    Xc = X - X.mean(axis=0)
-    _, s, Vt = np.linalg.svd(Xc, full_matrices=False)
-    normal = Vt[-1] * (1.0 if Vt[-1][2] >= 0 else -1.0)
-    d = Xc @ normal
+    normal, s = _plane(X)
+    d = (X - X.mean(axis=0)) @ normal
     d_rms = float(np.sqrt(np.mean(d ** 2)))
     frac = affine_height_sigma_m / d_rms if d_rms > 0 else float("inf")
     if prior_ratio is not None and np.isfinite(prior_ratio):
@@ -270,6 +268,13 @@ def conditioning(X_enu: np.ndarray, affine_height_sigma_m: float = 0.4,
 
 
 WITH_PRIOR = " (with the cameras' metric constraint)"
+def _plane(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The best-fit plane of (n, 3) points: its unit normal (pointing up) and the singular
+    values of the centred coordinates."""
+    _, s, Vt = np.linalg.svd(X - X.mean(axis=0), full_matrices=False)
+    return Vt[-1] * (1.0 if Vt[-1][2] >= 0 else -1.0), s
+
+
 REFUSE_HEIGHT_ERROR_M = 10.0   # expected error on the quoted structure (25 % of 40 m)
 
 
@@ -474,23 +479,21 @@ class _MetricPrior:
 
     def fit(self, Xa: np.ndarray, Xe: np.ndarray, H_gcp: np.ndarray, height_m: float) -> np.ndarray:
         H, cov = fit_with_metric_prior(Xa, Xe, self.sigma_m, self.rows, self.sigma_cos, H0=H_gcp)
-        Xc = Xe - Xe.mean(axis=0)
-        normal = np.linalg.svd(Xc, full_matrices=False)[2][-1]
-        normal = normal if normal[2] >= 0 else -normal
+        normal = _plane(Xe)[0]
         s_prior = height_sigma(H, cov, normal, height_m)
         s_gcp = height_sigma(H_gcp, gcp_only_cov(Xa, self.sigma_m), normal, height_m)
         self.ratio = min(1.0, s_prior / s_gcp) if s_gcp > 0 else None
-        top = Xe.mean(axis=0) + normal * height_m            # a point height_m above the GCPs
-        base = Xe.mean(axis=0)
-        back = np.linalg.solve(H_gcp[:3, :3], np.c_[top - H_gcp[:3, 3], base - H_gcp[:3, 3]]).T
-        moved = apply_affine_3d(H, back) - np.array([top, base])
+        # the affine offset that the GCP-only fit puts height_m above the GCPs' plane, and its
+        # height through the new fit
+        d = np.linalg.solve(H_gcp[:3, :3], normal * height_m)
+        height_change = float(H[2, :3] @ d - normal[2] * height_m)
         self.report = {
             "sigma_cos": self.sigma_cos, "sigma_gcp_m": self.sigma_m, "images": len(self.rows),
             "row_cosine_gcp_only": dict(zip((r.image for r in self.rows),
                                             row_cosines(H_gcp[:3, :3], self.rows).round(6).tolist())),
             "row_cosine": dict(zip((r.image for r in self.rows),
                                    row_cosines(H[:3, :3], self.rows).round(6).tolist())),
-            "height_change_m": float(moved[0, 2] - moved[1, 2]), "at_height_m": float(height_m),
+            "height_change_m": height_change, "at_height_m": float(height_m),
             "height_sigma_gcp_only_m": s_gcp, "height_sigma_m": s_prior,
             "what": "each image's tile cameras have orthogonal rows in metres (one equation per "
                     "image, sigma_cos on the cosine), fitted with the control GCPs; "
