@@ -90,11 +90,13 @@ def cmd_info(args) -> int:
         print(f"{len(groups)} date group(s) (gap < {args.max_gap_days:g} d, {cap}):")
         for g in groups:
             print(f"  {g.describe()}: {', '.join(im.name for im in g.images)}")
-    n_ctrl = sum(g.role == "control" for g in site.gcps)
-    print(f"{len(site.gcps)} GCP(s): {n_ctrl} control, {len(site.gcps) - n_ctrl} check")
+    n_ctrl = sum(g.role == "control" and g.enabled for g in site.gcps)
+    n_off = sum(not g.enabled for g in site.gcps)
+    print(f"{len(site.gcps)} GCP(s): {n_ctrl} control, {len(site.gcps) - n_ctrl - n_off} check"
+          + (f", {n_off} disabled" if n_off else ""))
     for g in site.gcps:
         print(f"  {g.id:10s} {g.role:7s} lon {g.lon:.7f} lat {g.lat:.7f} h {g.h:8.2f} m, "
-              f"seen in {len(g.observations)} image(s)")
+              f"seen in {len(g.observations)} image(s)" + ("" if g.enabled else ", disabled"))
     print(f"ground-truth DSM: {'yes' if site.gt_dsm else 'no'}")
     print(f"site.json: {site.hints if site.hints else 'none'}")
     if not missing:
@@ -236,6 +238,11 @@ def cmd_gcps(args) -> int:
             raise InputError(args.src, f"{', '.join(picked)} carry positions picked on a cloud "
                                        "(the viewer's working set), which CSV cannot hold; convert "
                                        "the site's gcps.geojson, or forget the picks in the viewer")
+        off = [g.id for g in gcps if not g.enabled]
+        if off:
+            raise InputError(args.src, f"{', '.join(off)} {'is' if len(off) == 1 else 'are'} disabled "
+                                       "(\"enabled\": false), which CSV cannot hold; enable them or "
+                                       "delete them first")
         write_gcps_csv(args.dst, gcps, args.epsg)
     else:
         write_gcps_geojson(args.dst, gcps)

@@ -167,11 +167,11 @@ def gcp_findings(groups, gcps, cfg: Config) -> list[tuple[str, int, str]]:
         # the groups will share one frame and one upgrade when they match across dates: a GCP
         # then counts when it is seen in >= 2 images of any groups
         every = {im.name for g in groups for im in g.images}
-        joint = [p for p in gcps if p.role == "control"
+        joint = [p for p in gcps if p.role == "control" and p.enabled
                  and (sum(1 for im in p.observations if im in every) >= 2 or p.affine_picked)]
     for g in groups:
         names = {im.name for im in g.images}
-        usable = [p for p in gcps if p.role == "control"
+        usable = [p for p in gcps if p.role == "control" and p.enabled
                   and (sum(1 for im in p.observations if im in names) >= 2 or g.index in p.affine_picked)]
         n = len(usable)
         if n < 4 and joint is not None and len(joint) >= 4:
@@ -207,7 +207,7 @@ def gcp_file_note(site_root: Path, out: Path) -> str | None:
     if site_file.stat().st_mtime <= own.stat().st_mtime:
         return None
     def key(path):
-        return sorted((g.id, round(g.lon, 9), round(g.lat, 9), round(g.h, 4), g.role,
+        return sorted((g.id, round(g.lon, 9), round(g.lat, 9), round(g.h, 4), g.role, g.enabled,
                        tuple(sorted((k, tuple(np.round(v, 4))) for k, v in g.observations.items())))
                       for g in read_gcps_geojson(path))
 

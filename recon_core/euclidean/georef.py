@@ -72,7 +72,7 @@ def gcp_affine_points(model: SparseModel, gcps: list[GCP]) -> dict[str, GcpAffin
 
 def frame_for(gcps: list[GCP]) -> LocalFrame:
     """Local ENU frame at the centroid of the control GCPs (all GCPs if none is control)."""
-    sel = [g for g in gcps if g.role == "control"] or gcps
+    sel = [g for g in gcps if g.role == "control" and g.enabled] or [g for g in gcps if g.enabled] or gcps
     if not sel:
         raise ReconstructionError("no GCP: the Euclidean upgrade needs >= 4 control GCPs")
     llh = np.array([g.llh for g in sel])
@@ -87,7 +87,8 @@ def upgrade_group(model: SparseModel, gcps: list[GCP], frame: LocalFrame | None 
     frame = frame or frame_for(gcps)
     aff = gcp_affine_points(model, gcps)
     enu = frame.geodetic_to_enu(np.array([g.llh for g in gcps])) if gcps else np.zeros((0, 3))
-    inputs = [GcpInput(g.id, g.role, aff[g.id].xyz, enu[k], g.sigma_m, aff[g.id].reproj_rms_px)
+    inputs = [GcpInput(g.id, g.role, aff[g.id].xyz, enu[k], g.sigma_m, aff[g.id].reproj_rms_px,
+                       enabled=g.enabled)
               for k, g in enumerate(gcps)]
     result = upgrade(inputs, ransac_thresh_m=ransac_thresh_m, rng=np.random.default_rng(seed),
                      camera_rows=camera_rows(model) if sigma_cos > 0 else None, sigma_cos=sigma_cos)

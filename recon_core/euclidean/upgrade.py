@@ -70,6 +70,8 @@ class GcpInput:
         sigma_m: a-priori accuracy of the surveyed position (metres), if known.
         reproj_rms_px: RMS reprojection residual of the GCP's image observations after
             triangulation (pixels), if known. It catches a bad click even when N = 4.
+        enabled: False leaves the point out of the fit and the scores (listed as unusable, with
+            the reason "disabled").
     """
 
     id: str
@@ -78,6 +80,7 @@ class GcpInput:
     enu: np.ndarray
     sigma_m: float | None = None
     reproj_rms_px: float | None = None
+    enabled: bool = True
 
 
 def singular_ratio(X: np.ndarray) -> float:
@@ -377,6 +380,8 @@ def _usable(g: GcpInput) -> str | None:
     """Reason a GCP cannot be used, or None."""
     if g.role not in ("control", "check"):
         return f"unknown role {g.role!r} (expected 'control' or 'check')"
+    if not g.enabled:
+        return "disabled (\"enabled\": false in the GCP file)"
     if g.affine_xyz is None:
         return "no affine position (observed in fewer than two images of this group)"
     if not np.all(np.isfinite(np.asarray(g.affine_xyz, dtype=float))):

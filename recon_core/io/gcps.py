@@ -38,6 +38,9 @@ class GCP:
     # positions picked on a group's affine cloud (the viewer): group -> (3,) affine point; they
     # take the place of triangulating the observations in that group
     affine_picked: dict[int, np.ndarray] = field(default_factory=dict)
+    # False: kept in the file (and shown) but left out of the fit and of the scores, with that
+    # reason in the report (optional property "enabled", written only when false)
+    enabled: bool = True
 
     @property
     def llh(self) -> np.ndarray:
@@ -112,9 +115,13 @@ def _parse_feature(path: Path, k: int, feat, epsg, images) -> GCP:
     sigma = props.get("sigma_m")
     if sigma is not None and not (_finite_number(sigma) and sigma > 0):
         raise InputError(path, f"{where}: sigma_m must be a positive number of metres, not {sigma!r}")
+    enabled = props.get("enabled", True)
+    if not isinstance(enabled, bool):
+        raise InputError(path, f"{where}: enabled must be true or false, not {enabled!r}")
     return GCP(id=gid, lon=lon, lat=lat, h=h, role=role,
                sigma_m=None if sigma is None else float(sigma), observations=obs,
-               affine_picked=_parse_picked(path, where, props.get("affine_picked")))
+               affine_picked=_parse_picked(path, where, props.get("affine_picked")),
+               enabled=enabled)
 
 
 def check_observation(path: Path, where: str, name: str, xy, images: dict) -> None:
@@ -149,6 +156,8 @@ def gcps_to_geojson(gcps: list[GCP]) -> dict:
                  "observations": {k: [round(v[0], 4), round(v[1], 4)] for k, v in g.observations.items()}}
         if g.sigma_m is not None:
             props["sigma_m"] = g.sigma_m
+        if not g.enabled:
+            props["enabled"] = False
         if g.affine_picked:
             props["affine_picked"] = {str(k): [float(v) for v in xyz]
                                       for k, xyz in sorted(g.affine_picked.items())}

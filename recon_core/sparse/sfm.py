@@ -380,7 +380,7 @@ class IncrementalSfM:
     def _image_ties(self, idx: np.ndarray) -> list:
         """One pushbroom tie per image with >= 4 registered tiles (recon_core.sparse.image_model),
         weighted by (sigma_obs / SfmConfig.tie_sigma_px)^2, sigma_obs from the reprojection error."""
-        m, o = self.m, self.m.obs
+        m = self.m
         if self.cfg.tie_sigma_px <= 0:
             return []
         _, err = m.reprojection(idx)

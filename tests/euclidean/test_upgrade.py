@@ -186,6 +186,20 @@ def test_unusable_gcps_and_too_few_controls():
         upgrade(g)
 
 
+def test_a_disabled_gcp_is_left_out_of_the_fit_and_the_scores():
+    rng = np.random.default_rng(12)
+    enu, aff, H = scene(rng, 6)
+    g = gcps_from(enu, aff)
+    g[2].affine_xyz = g[2].affine_xyz + 50.0          # a gross blunder, disabled by the operator
+    g[2].enabled = False
+    res = upgrade(g)
+    row = next(p for p in res.points if p["id"] == "G02")
+    assert row["status"] == "unusable" and "disabled" in row["reason"]
+    np.testing.assert_allclose(res.H, H, atol=1e-6 * np.abs(H).max())
+    g[2].enabled = True                                 # enabled, the blunder enters the fit
+    assert not np.allclose(upgrade(g, ransac_thresh_m=np.inf).H, H, atol=1e-3 * np.abs(H).max())
+
+
 def test_apply_maps_affine_to_enu():
     rng = np.random.default_rng(11)
     enu, aff, _ = scene(rng, 10)

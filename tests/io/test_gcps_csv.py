@@ -82,6 +82,10 @@ def test_csv_export_refuses_what_it_cannot_hold(small_site, tmp_path, capsys):
     write_gcps_geojson(tmp_path / "work.geojson", [g])
     assert main(["gcps", "convert", str(tmp_path / "work.geojson"), str(tmp_path / "w.csv")]) == 2
     assert "picked on a cloud" in capsys.readouterr().err and not (tmp_path / "w.csv").exists()
+    g.affine_picked, g.enabled = {}, False
+    write_gcps_geojson(tmp_path / "work.geojson", [g])
+    assert main(["gcps", "convert", str(tmp_path / "work.geojson"), str(tmp_path / "w.csv")]) == 2
+    assert "P1 is disabled" in capsys.readouterr().err and not (tmp_path / "w.csv").exists()
     assert main(["gcps", "convert", str(small_site / "gcps.geojson"), str(tmp_path / "x.csv"),
                  "--epsg", "999999"]) == 2
     err = capsys.readouterr().err

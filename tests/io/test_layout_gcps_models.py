@@ -45,6 +45,21 @@ def test_picked_positions_round_trip_and_working_set(tmp_path):
         read_gcps_geojson(out / "gcps.geojson")
 
 
+def test_disabled_gcp_round_trips_and_a_bad_enabled_value_is_refused(tmp_path):
+    on = GCP("G1", 30.0, 31.2, 55.5, "control", None, {"a.tif": (1.0, 2.0)})
+    off = GCP("G2", 30.1, 31.3, 56.5, "check", None, {"a.tif": (3.0, 4.0)}, enabled=False)
+    write_gcps_geojson(tmp_path / "g.geojson", [on, off])
+    doc = json.loads((tmp_path / "g.geojson").read_text())
+    props = [f["properties"] for f in doc["features"]]
+    assert "enabled" not in props[0] and props[1]["enabled"] is False    # written only when false
+    back = read_gcps_geojson(tmp_path / "g.geojson")
+    assert [g.enabled for g in back] == [True, False] and back[1].role == "check"
+    props[1]["enabled"] = "no"
+    (tmp_path / "g.geojson").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="enabled must be true or false"):
+        read_gcps_geojson(tmp_path / "g.geojson")
+
+
 def test_model_and_upgrade_files_round_trip(tiny_run, tmp_path):
     state, _ = tiny_run
     m = state.models[0]
