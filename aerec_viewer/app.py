@@ -62,6 +62,7 @@ MARK_RING_PX = 11.0     # radius of a GCP marker ring on screen (pixels), whatev
 MARK_SEL = (255, 220, 0)
 MARK = (230, 40, 40)
 MARK_CHECK = (40, 200, 255)
+MARK_OFF = (150, 150, 150)   # a disabled GCP
 # The loupe: the first click on the image plane (when "Click zooms in first" is on) shows the
 # LOUPE_PX x LOUPE_PX full-resolution pixels around it, each drawn as LOUPE_SCALE x LOUPE_SCALE
 # texels (nearest neighbour, lossless), with a crosshair whose centre is left open; the second
@@ -586,10 +587,11 @@ class ViewerApp:
         """Is this window (the plane's, or the one about to be drawn) the open loupe?"""
         return self.loupe is not None and self.loupe[0] == win
 
-    def open_loupe(self, pix: tuple[float, float], client=None) -> Window:
-        """Show the full-resolution pixels around pix (in the plane's image) on the picking plane
-        and put the clicking client's camera straight above it; the next click places."""
-        image = self.pick_plane.window.image
+    def open_loupe(self, pix: tuple[float, float], client=None, image: str | None = None) -> Window:
+        """Show the full-resolution pixels around pix (in the plane's image, or `image`, the one
+        chosen in the GCP tab) on the picking plane and put the client's camera straight above
+        it; the next click places."""
+        image = image or self.pick_plane.window.image
         im = self.images.images[image]
         win = loupe_window(im.width, im.height, image, *pix)
         self.loupe = (win, (float(pix[0]), float(pix[1])))
@@ -812,10 +814,10 @@ class ViewerApp:
         picking plane for observations in its window, on each group's cloud for placed GCPs."""
         snap_T = {g: T for g, T in self.transforms(self.worker.snapshot()).items() if T is not None}
         sel = self.gcp_panel.selected()
-        roles = {g.id: g.role for g in self.session.gcps}
+        roles = {g.id: g.role if g.enabled else "disabled" for g in self.session.gcps}
 
         def colour(gid):
-            return MARK_SEL if gid == sel else (MARK_CHECK if roles.get(gid) == "check" else MARK)
+            return MARK_SEL if gid == sel else {"check": MARK_CHECK, "disabled": MARK_OFF}.get(roles.get(gid), MARK)
 
         want = {}
         r = self._marker_radius()

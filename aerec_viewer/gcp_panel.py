@@ -12,6 +12,7 @@ import numpy as np
 from recon_core.model.tiling import Window
 
 from .display import FLAT_WXYZ, plane_hit, plane_point
+from .prediction import place_in_other_images
 from .gcp_session import (
     ROLES,
     GcpError,
@@ -30,6 +31,8 @@ from .gcp_session import (
     redo,
     remove_observation,
     set_affine_position,
+    set_enabled,
+    toggle_role,
     undo,
 )
 
@@ -89,6 +92,7 @@ class GcpPanelHost(Protocol):
     def submit(self, fn: Callable[[], object]) -> object: ...
     def show_image_plane(self) -> None: ...
     def look_at_plane(self, client) -> None: ...
+    def open_loupe(self, pix: tuple[float, float], client=None, image: str | None = None) -> object: ...
     def close_loupe(self, client=None) -> None: ...
     def arm_cloud_pick(self) -> None: ...
     def gcps_changed(self, select: str | None = "keep", note: str | None = None) -> None: ...
@@ -125,6 +129,11 @@ class GcpPanel:
         self.prev_gcp = gui.add_button("Previous GCP")
         self.next_gcp = gui.add_button("Next GCP")
         self.info = gui.add_markdown("")
+        self.role_toggle = gui.add_button("Make it a check point", disabled=True,
+                                          hint="control points enter the fit; check points are only scored")
+        self.enable_toggle = gui.add_button("Disable it", disabled=True,
+                                            hint="a disabled GCP keeps its observations but is left "
+                                                 "out of the upgrade (fit and scores)")
         with gui.add_folder("Ground coordinates", expand_by_default=False):
             self.gid = gui.add_text("Id", "")
             self.role = gui.add_dropdown("Role", list(ROLES), initial_value="control")
@@ -173,7 +182,7 @@ class GcpPanel:
         ("L", "look at the image plane", lambda self, ev: self.app.look_at_plane(ev.client)),
         ("R", "predict in this image", lambda self, ev: self._predict()),
         ("enter", "accept the prediction", lambda self, ev: self._accept()),
-        ("O", "place it in its other images", lambda self, ev: self._place_all()),
+        ("O", "place it in its other images", lambda self, ev: self._place_all(ev.client)),
         ("escape", "leave the loupe", lambda self, ev: self.app.close_loupe(ev.client)),
         ("ctrl+Z", "undo", lambda self, ev: self._undo()),
         ("ctrl+shift+Z", "redo", lambda self, ev: self._redo()),
@@ -211,7 +220,7 @@ class GcpPanel:
         self.leave_loupe.on_click(lambda ev: app.submit(lambda: self.app.close_loupe(ev.client)))
         self.prev_gcp.on_click(lambda _: app.submit(lambda: self.step_gcp(-1)))
         self.next_gcp.on_click(lambda _: app.submit(lambda: self.step_gcp(+1)))
-        self.place_all.on_click(lambda _: app.submit(self._place_all))
+        self.place_all.on_click(lambda ev: app.submit(lambda: self._place_all(ev.client)))
         self.show_plane.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.contrast.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.goto.on_click(lambda ev: app.submit(lambda: self.app.look_at_plane(ev.client)))
@@ -225,6 +234,8 @@ class GcpPanel:
         self.unobserve.on_click(lambda _: app.submit(self._unobserve))
         self.delete.on_click(lambda _: app.submit(self._delete))
         self.forget_pick.on_click(lambda _: app.submit(self._forget_pick))
+        self.role_toggle.on_click(lambda _: app.submit(self._toggle_role))
+        self.enable_toggle.on_click(lambda _: app.submit(self._toggle_enabled))
         self.predict.on_click(lambda _: app.submit(self._predict))
         self.accept.on_click(lambda _: app.submit(self._accept))
         self.undo.on_click(lambda _: app.submit(self._undo))
@@ -308,6 +319,20 @@ class GcpPanel:
         self._delete_armed = None
         self.delete.label = "Delete the selected GCP"
 
+    def _toggle_role(self) -> None:
+        gid = self.selected()
+        if gid is None:
+            raise GcpError("select a GCP first")
+        g = toggle_role(self.app.session, gid)
+        self.app.gcps_changed(select=gid, note=f"{gid} is now a {g.role} point")
+
+    def _toggle_enabled(self) -> None:
+        gid = self.selected()
+        if gid is None:
+            raise GcpError("select a GCP first")
+        g = set_enabled(self.app.session, gid, not self.app.session.get(gid).enabled)
+        self.app.gcps_changed(select=gid, note=f"{gid} {'enabled' if g.enabled else 'disabled: the upgrade leaves it out'}")
+
     def _forget_pick(self) -> None:
         gid = self.selected()
         if gid is None:
@@ -356,12 +381,13 @@ class GcpPanel:
         self.app.gcps_changed(select=new, note=f"{new} selected")
         return new
 
-    def _place_all(self) -> dict[str, str]:
+    def _place_all(self, client=None) -> dict[str, str]:
         """Predict the selected GCP in every image of its group(s) where it has no observation and
-        record the predictions confirmed by matching (one undo step); the others are named with
-        why they were left for the operator."""
-        from .prediction import predict_observation
-
+        record the predictions that are triangulated from >= 2 observations, or confirmed by
+        matching *and* consistent with its other observations (one undo step); the others are
+        named with why they were left for the operator, and the first of them that has a
+        prediction is shown at once: its image on the plane, the loupe open at the predicted
+        pixel (a click there places it, Enter accepts the prediction as it is)."""
         gid = self.selected()
         if gid is None:
             raise GcpError("select a GCP first")
@@ -369,29 +395,40 @@ class GcpPanel:
         if not g.observations:
             raise GcpError(f"{gid} has no observation yet: click it in one image first")
         images = {im.name: im for im in self.app.site.images}
-        done, left = {}, {}
+        done, left, hints = {}, {}, {}
         for model in self.app.models.values():
-            seen = {im: xy for im, xy in self.app.session.get(gid).observations.items() if im in model.images}
-            if not seen:
-                continue
-            for image in model.images:
-                if image in seen:
-                    continue
-                pred = predict_observation(model, images, seen, image)
-                if pred is None:
-                    left[image] = "no prediction (no registered tile holds it there)"
-                elif not pred.confirmed:
-                    left[image] = f"not confirmed by matching ({pred.how})"
-                else:
+            seen = {im: xy for im, xy in g.observations.items() if im in model.images}
+            if seen:
+                placed, why, hint = place_in_other_images(model, images, seen)
+                for image, pred in placed.items():
                     add_observation(self.app.session, gid, image, pred.col, pred.row)
-                    seen[image] = (pred.col, pred.row)
                     done[image] = f"col {pred.col:.2f}, row {pred.row:.2f} ({pred.how})"
+                left.update(why)
+                hints.update(hint)
         if done:
             merge_last(self.app.session, len(done), f"{gid} placed in {len(done)} image(s) by prediction")
         note = (f"{gid}: placed in {', '.join(f'{k} at {v}' for k, v in done.items()) or 'no image'}"
                 + (f"; left to you: {'; '.join(f'{k}: {v}' for k, v in left.items())}" if left else ""))
         self.app.gcps_changed(select=gid, note=note)
+        if hints:
+            self.show_hint(gid, next(iter(hints.values())), client)
         return {**{k: "placed" for k in done}, **left}
+
+    def show_hint(self, gid: str, pred, client=None) -> None:
+        """Show an image left to the operator: the plane switches to it (queued redraw), then the
+        loupe opens at the prediction, which Enter accepts as it is."""
+        if self.image.value != pred.image:
+            self.image.value = pred.image       # its callback queues: drop prediction, redraw
+
+        def offer() -> None:
+            self.prediction = (gid, pred)
+            self.accept.disabled = False
+            self.accept.label = f"Accept: {gid} at col {pred.col:.2f}, row {pred.row:.2f}"
+            self.app.open_loupe((pred.col, pred.row), client, image=pred.image)
+            self.app.note(f"{gid} in {pred.image}: predicted at col {pred.col:.2f}, row {pred.row:.2f} "
+                          f"({pred.how}), shown in the loupe: click the exact pixel, or Enter to "
+                          "accept the prediction as it is")
+        self.app.submit(offer)
 
     def drop_prediction(self) -> None:
         if self.prediction is not None:
@@ -442,6 +479,11 @@ class GcpPanel:
         already typing into them: clear_new False)."""
         gid = self.selected()
         s = self.app.session
+        g = s.get(gid) if gid is not None and gid in s.ids else None
+        self.role_toggle.disabled = self.enable_toggle.disabled = g is None
+        if g is not None:
+            self.role_toggle.label = "Make it a check point" if g.role == "control" else "Make it a control point"
+            self.enable_toggle.label = "Disable it" if g.enabled else "Enable it"
         if gid is None or gid not in s.ids:
             self.info.content = (f"{len(s.gcps)} GCP(s) in the working set "
                                  f"(`{s.path.name}` in the output folder). Type the new GCP's "

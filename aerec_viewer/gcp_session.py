@@ -223,6 +223,23 @@ def edit_gcp(s: GcpSession, gcp_id: str, *, new_id: str | None = None, x: float 
     return g
 
 
+def set_enabled(s: GcpSession, gcp_id: str, enabled: bool) -> GCP:
+    """Enable or disable a GCP: a disabled one stays in the working set (with its observations)
+    but the upgrade leaves it out of the fit and the scores ("enabled": false in the file)."""
+    g = s.get(gcp_id)
+    if g.enabled == bool(enabled):
+        raise GcpError(f"{gcp_id} is already {'enabled' if enabled else 'disabled'}")
+    g.enabled = bool(enabled)
+    _changed(s, f"{'enable' if enabled else 'disable'} {gcp_id}")
+    return g
+
+
+def toggle_role(s: GcpSession, gcp_id: str) -> GCP:
+    """Control <-> check."""
+    g = s.get(gcp_id)
+    return edit_gcp(s, gcp_id, role="check" if g.role == "control" else "control")
+
+
 def delete_gcp(s: GcpSession, gcp_id: str) -> None:
     g = s.get(gcp_id)
     s.gcps.remove(g)
@@ -264,7 +281,8 @@ def set_affine_position(s: GcpSession, gcp_id: str, group: int, xyz: np.ndarray 
 
 def describe(g: GCP) -> str:
     """Markdown description of one GCP."""
-    lines = [f"**{g.id}** ({g.role}): lon {g.lon:.7f}, lat {g.lat:.7f}, h {g.h:.2f} m"]
+    lines = [f"**{g.id}** ({g.role}{'' if g.enabled else ', **disabled**: left out of the upgrade'}): "
+             f"lon {g.lon:.7f}, lat {g.lat:.7f}, h {g.h:.2f} m"]
     if g.observations:
         lines += [f"- {im}: col {c:.2f}, row {r:.2f}" for im, (c, r) in sorted(g.observations.items())]
     else:

@@ -238,3 +238,58 @@ def observation_residuals(model, observations: dict) -> dict[str, tuple[float, f
         p = _project(model, t, np.asarray(tri.xyz)[None])[0]
         out[im] = (float(cr[0] - p[0]), float(cr[1] - p[1]))
     return out
+
+
+# A GCP placed by prediction must triangulate with its other observations within this many
+# pixels: about twice the sparse reprojection RMS of the affine tile cameras (0.2-0.35 px on
+# the synthetic and the real sites), and far below a wrong match (1-35 px measured by
+# bench/bench_operator.py on matches that NCC alone accepted: a repeated roof, a roof corner
+# whose patch straddles a depth step).
+PLACE_RESIDUAL_PX = 0.5
+
+
+def place_in_other_images(model, images: dict[str, ImageInfo], observed: dict,
+                          tol_px: float = PLACE_RESIDUAL_PX
+                          ) -> tuple[dict[str, Prediction], dict[str, str], dict[str, Prediction]]:
+    """Where to record a GCP in the images of `model`'s group it is not observed in, from its
+    operator's observations `observed` there: ({image: Prediction} to record, {image: why it is
+    left to the operator}, {image left: its geometric prediction, where there is one, for the
+    operator to look at}).
+
+    1. Every other image is predicted from the operator's observations alone (independently).
+    2. The confirmed ones (triangulated, or refined by a clear match) are triangulated together
+       with the observations; if any of them then reprojects farther than tol_px, the matched
+       predictions are all left to the operator (a wrong match is not always a weak one).
+    3. Images still left are predicted again by triangulation from what was kept (>= 2 images).
+    """
+    placed: dict[str, Prediction] = {}
+    left: dict[str, str] = {}
+    hints: dict[str, Prediction] = {}
+    targets = [im for im in model.images if im not in observed]
+    for image in targets:
+        pred = predict_observation(model, images, observed, image)
+        if pred is not None:
+            hints[image] = Prediction(image, *pred.geometric, pred.geometric, None,
+                                      pred.how.split(";")[0] + "; not confirmed: look before accepting")
+        if pred is None:
+            left[image] = "no prediction (no registered tile holds it there)"
+        elif not pred.confirmed:
+            left[image] = f"not confirmed by matching ({pred.how})"
+        else:
+            placed[image] = pred
+    matched = [im for im, p in placed.items() if p.score is not None]
+    if matched:
+        res = observation_residuals(model, {**observed, **{im: (p.col, p.row) for im, p in placed.items()}})
+        worst = max((float(np.hypot(*v)) for v in res.values()), default=np.inf)
+        if not worst <= tol_px:
+            for im in matched:
+                left[im] = (f"matched (NCC {placed.pop(im).score:.2f}) but it does not agree with the "
+                            f"other observations: residual {worst:.2f} px > {tol_px} px")
+    kept = {**observed, **{im: (p.col, p.row) for im, p in placed.items()}}
+    if len(kept) >= 2:
+        for image in [im for im in targets if im in left]:
+            pred = predict_observation(model, images, kept, image)
+            if pred is not None and pred.confirmed and pred.score is None:
+                placed[image] = pred
+                left.pop(image)
+    return placed, left, {im: p for im, p in hints.items() if im in left}

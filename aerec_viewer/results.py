@@ -63,6 +63,9 @@ def gcp_readiness(session: GcpSession, models: dict) -> dict[str, tuple[bool, st
     are named with the reason."""
     out = {}
     for g in session.gcps:
+        if not g.enabled:
+            out[g.id] = (False, "disabled")
+            continue
         if g.affine_picked:
             out[g.id] = (True, "picked on the cloud")
             continue
@@ -101,7 +104,8 @@ def gcp_state_table(session: GcpSession, models: dict, images: list[str]) -> str
             else:
                 cells.append("**unusable**")
         picked = " (picked)" if g.affine_picked else ""
-        rows.append(f"| {g.id}{picked} | {g.role} | " + " | ".join(cells) + " |")
+        role = g.role if g.enabled else f"{g.role}, **disabled**"
+        rows.append(f"| {g.id}{picked} | {role} | " + " | ".join(cells) + " |")
     return "\n".join(rows)
 
 
