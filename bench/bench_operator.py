@@ -1,0 +1,329 @@
+"""An operator places 4 GCPs in every image of a 3-image site through the browser, as a person
+would, and the bench counts the inputs (clicks, keys, wheel notches) and scores each observation
+against the truth.
+
+The "person" is headless Chromium driven by Playwright. It never calls into the viewer's Python:
+it sees the page (screenshots), presses keys and clicks the mouse, and reads only the files a user
+can read (OUT/gcps.geojson, to know that an edit was saved). It knows what each GCP looks like
+(a chip of the image around its true pixel, as an operator knows the spot from the survey's
+photo) and finds it on the screen by normalised cross-correlation over scales; it aims at the
+true sub-pixel position inside what it found. So the bench measures what the viewer adds: how
+many inputs it takes and how precisely a click on the screen becomes a pixel, and how good the
+predictions are in the images the operator did not click.
+
+    python bench/bench_operator.py                   # generates a 3-image site (2000 px) once
+    python bench/bench_operator.py --shots /tmp/op   # also saves a screenshot after each step
+
+Site: a synthetic scene (seed 0, one date group of 3 images of 2000 x 2000 px, d = 1000); its
+working GCP set holds 4 control GCPs with ground coordinates only (no observation: the operator
+has survey coordinates, not pixels). The sparse reconstruction is run first (`aerec run
+--stage sparse`), then `aerec view OUT` is opened at 1600 x 1000.
+
+Targets (the operator issue): at most 25 inputs in all, every observation within 0.3 px of the
+truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+VIEW = {"width": 1600, "height": 1000}
+PANEL_PX = 470            # the control panel on the right ("large" control width) is not searched
+FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+         "--disable-quic", "--no-first-run", "--disable-background-networking",
+         "--disable-component-update", "--disable-sync"]
+
+
+# -- the site ---------------------------------------------------------------------------------
+def ensure_site(root: Path, seed: int) -> Path:
+    from recon_core.synthetic.generator import SynthPreset, generate_site
+
+    site = root / f"operator3_s{seed}"
+    if not (site / "site.json").exists():
+        t0 = time.time()
+        p = SynthPreset(name="operator3", groups=(3,), group_months=(5,), image_size=(2000, 2000),
+                        n_gcps=12)
+        generate_site(site, preset=p, seed=seed)
+        print(f"generated the 3-image site in {time.time() - t0:.0f} s -> {site}")
+    return site
+
+
+def choose_gcps(site: Path, n: int = 4) -> list[dict]:
+    """The site's control GCPs seen in every image (truth file), completed by check points seen
+    in every image if fewer than n."""
+    truth = json.loads((site / "truth" / "gcps_truth.json").read_text())["gcps"]
+    names = sorted(p.name for p in (site / "images").glob("*.tif"))
+    seen = [g for g in truth if set(g["true_observations"]) >= set(names)]
+    seen.sort(key=lambda g: g["role"] != "control")
+    if len(seen) < n:
+        raise SystemExit(f"only {len(seen)} GCPs are seen in all {len(names)} images")
+    return seen[:n]
+
+
+def prepare_out(site: Path, out: Path, gcps: list[dict]) -> None:
+    """Sparse reconstruction, then the working set = the chosen GCPs, ground coordinates only."""
+    from recon_core.io.gcps import GCP, write_gcps_geojson
+
+    if not (out / "report.json").exists():
+        t0 = time.time()
+        subprocess.run(["aerec", "run", str(site), "--out", str(out), "--stage", "sparse", "--quiet"],
+                       check=True)
+        print(f"sparse reconstruction in {time.time() - t0:.0f} s -> {out}")
+    write_gcps_geojson(out / "gcps.geojson",
+                       [GCP(g["id"], *g["llh"], role="control") for g in gcps],
+                       written_by="bench_operator (ground coordinates only)")
+
+
+# -- the person -------------------------------------------------------------------------------
+class Person:
+    """Sees screenshots, clicks and presses keys; counts every input."""
+
+    def __init__(self, page, shots: Path | None):
+        self.page = page
+        self.inputs: list[str] = []
+        self.shots = shots
+        self._k = 0
+
+    def screen(self) -> np.ndarray:
+        import cv2
+
+        png = self.page.screenshot()
+        return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+
+    def settle(self, timeout: float = 20.0) -> np.ndarray:
+        """Wait until the screen stops changing (camera transitions, textures arriving)."""
+        t0, last = time.time(), self.screen()
+        while time.time() - t0 < timeout:
+            time.sleep(0.4)
+            now = self.screen()
+            if np.abs(now.astype(np.int16) - last).max() <= 2:
+                return now
+            last = now
+        return last
+
+    def shot(self, name: str) -> None:
+        if self.shots is not None:
+            self._k += 1
+            self.page.screenshot(path=str(self.shots / f"{self._k:02d}_{name}.png"))
+
+    def click(self, x: float, y: float, what: str) -> None:
+        self.inputs.append(f"click {what}")
+        self.page.mouse.click(x, y)
+
+    def key(self, k: str, what: str) -> None:
+        self.inputs.append(f"key {k} ({what})")
+        self.page.keyboard.press(k)
+
+    def click_role(self, role: str, name: str) -> None:
+        self.inputs.append(f"click {role} '{name}'")
+        self.page.get_by_role(role, name=name).first.click()
+
+
+def chip(img: np.ndarray, col: float, row: float, half: int) -> tuple[np.ndarray, int, int]:
+    c0, r0 = int(round(col)) - half, int(round(row)) - half
+    c0 = min(max(c0, 0), img.shape[1] - 2 * half - 1)
+    r0 = min(max(r0, 0), img.shape[0] - 2 * half - 1)
+    return img[r0:r0 + 2 * half + 1, c0:c0 + 2 * half + 1].astype(np.float32), c0, r0
+
+
+def find_on_screen(screen: np.ndarray, img: np.ndarray, col: float, row: float, *, half: int,
+                   scales: np.ndarray, nearest: bool) -> tuple[float, float, float, float]:
+    """Where the true pixel (col, row) of `img` is on the screen: the chip around it matched over
+    scales (screen px per image px); returns (x, y, scale, ncc)."""
+    import cv2
+
+    c, c0, r0 = chip(img, col, row, half)
+    c = (c - c.mean()) / (c.std() + 1e-6)
+    region = screen[:, : screen.shape[1] - PANEL_PX].astype(np.float32)
+    best = (-2.0, 0.0, 0.0, 1.0)
+    for s in scales:
+        w = int(round(c.shape[1] * s))
+        h = int(round(c.shape[0] * s))
+        if w < 10 or h < 10 or w >= region.shape[1] or h >= region.shape[0]:
+            continue
+        t = cv2.resize(c, (w, h), interpolation=cv2.INTER_NEAREST if nearest else cv2.INTER_AREA)
+        res = cv2.matchTemplate(region, t, cv2.TM_CCOEFF_NORMED)
+        _, v, _, loc = cv2.minMaxLoc(res)
+        if v > best[0]:
+            best = (v, loc[0], loc[1], w / c.shape[1], h / c.shape[0])
+    v, x0, y0, sx, sy = best
+    return x0 + (col - c0 + 0.5) * sx, y0 + (row - r0 + 0.5) * sy, sx, v
+
+
+def read_working_set(out: Path) -> dict[str, dict[str, tuple[float, float]]]:
+    try:
+        doc = json.loads((out / "gcps.geojson").read_text())
+    except (OSError, ValueError):
+        return {}
+    return {f["properties"]["id"]: {k: tuple(v) for k, v in f["properties"].get("observations", {}).items()}
+            for f in doc["features"]}
+
+
+def saved_after(out: Path, t: float, timeout: float = 30.0) -> None:
+    """Wait until the working set is written after time t (the viewer saves after every edit)."""
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        try:
+            if (out / "gcps.geojson").stat().st_mtime > t:
+                return
+        except OSError:
+            pass
+        time.sleep(0.2)
+
+
+def wait_file(out: Path, cond, timeout: float = 30.0):
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        obs = read_working_set(out)
+        if cond(obs):
+            return obs
+        time.sleep(0.2)
+    return None
+
+
+def place(person: Person, out: Path, img: np.ndarray, gid: str, image: str, true_xy) -> bool:
+    """Click the GCP on the whole image (the loupe opens there), then click it in the loupe."""
+    screen = person.settle()
+    x, y, s, v = find_on_screen(screen, img, *true_xy, half=48,
+                                scales=np.geomspace(0.12, 2.5, 40), nearest=False)
+    if v < 0.4:
+        print(f"  {gid} in {image}: not found on the screen (NCC {v:.2f})")
+        return False
+    person.click(x, y, f"{gid} on {image}")
+    return click_in_loupe(person, out, img, gid, image, true_xy)
+
+
+def click_in_loupe(person: Person, out: Path, img: np.ndarray, gid: str, image: str, true_xy) -> bool:
+    """The loupe is open: find the spot among the enlarged pixels and click it."""
+    person.settle()
+    person.shot(f"{gid}_{image}_loupe")
+    screen = person.settle()
+    x, y, s, v = find_on_screen(screen, img, *true_xy, half=8,
+                                scales=np.geomspace(3.0, 40.0, 40), nearest=True)
+    if v < 0.4:
+        print(f"  {gid} in {image}: not found in the loupe (NCC {v:.2f})")
+        return False
+    x, y, s, v = find_on_screen(screen, img, *true_xy, half=8,
+                                scales=np.linspace(0.94 * s, 1.06 * s, 25), nearest=True)
+    person.click(x, y, f"{gid} in the loupe on {image} ({s:.1f} screen px per image px)")
+    return wait_file(out, lambda o: image in o.get(gid, {})) is not None
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--root", type=Path, default=Path("/tmp/aerec_bench"))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--shots", type=Path, default=None, help="save a screenshot after each step")
+    args = ap.parse_args()
+
+    import rasterio
+    from playwright.sync_api import sync_playwright
+
+    site = ensure_site(args.root, args.seed)
+    gcps = choose_gcps(site)
+    out = args.root / f"operator3_s{args.seed}_out"
+    prepare_out(site, out, gcps)
+    names = sorted(p.name for p in (site / "images").glob("*.tif"))
+    images = {}
+    for n in names:
+        with rasterio.open(site / "images" / n) as ds:
+            images[n] = ds.read(1).astype(np.float32)
+    if args.shots:
+        args.shots.mkdir(parents=True, exist_ok=True)
+
+    t0 = time.time()
+    proc = subprocess.Popen([sys.executable, "-m", "aerec_viewer", str(out), "--port", "0",
+                             "--no-browser-hint"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, env=dict(os.environ))
+    lines: list[str] = []
+    threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
+    try:
+        while not any(ln.startswith("aerec view: open") for ln in lines):
+            if proc.poll() is not None or time.time() - t0 > 120:
+                raise SystemExit("the viewer did not start:\n" + "".join(lines[-20:]))
+            time.sleep(0.2)
+        url = next(ln for ln in lines if ln.startswith("aerec view: open")).split()[-1]
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path="/usr/bin/chromium", args=FLAGS, headless=True)
+            page = browser.new_context(viewport=VIEW).new_page()
+            page.goto(url)
+            page.get_by_role("tab", name="GCPs").wait_for(timeout=60_000)
+            person = Person(page, args.shots)
+            t_start = time.time()
+            person.click_role("tab", "GCPs")
+            person.key("l", "look at the image plane")
+            person.shot("start")
+            shown = 0                                   # index of the image on the plane
+            for g in gcps:
+                gid = g["id"]
+                person.key("n", "next GCP")
+                page.get_by_text(f"{gid} (control)").first.wait_for(timeout=20_000)
+                im = names[shown]                       # start in the image on the screen
+                if not place(person, out, images[im], gid, im, g["true_observations"][im]):
+                    continue
+                t_o = time.time()
+                person.key("o", "place it in its other images")
+                saved_after(out, t_o, timeout=15)
+                person.settle()
+                person.shot(f"{gid}_placed")
+                # an image the prediction left to the operator: the viewer shows it at once, the
+                # loupe open at the predicted pixel (its note says "shown in the loupe"); the
+                # person clicks the exact pixel there, then O again (now triangulated)
+                for _ in range(len(names) - 1):
+                    obs = read_working_set(out).get(gid, {})
+                    if len(obs) == len(names):
+                        break
+                    hint = page.get_by_text("shown in the loupe").first
+                    try:
+                        hint.wait_for(timeout=5_000)
+                        txt = hint.inner_text()
+                        im = next(n for n in names if f"in {n}: predicted" in txt)
+                    except Exception:
+                        print(f"  {gid}: images left ({sorted(set(names) - set(obs))}) but no loupe shown")
+                        break
+                    shown = names.index(im)
+                    if not click_in_loupe(person, out, images[im], gid, im, g["true_observations"][im]):
+                        break
+                    if len(read_working_set(out).get(gid, {})) < len(names):
+                        t_o = time.time()
+                        person.key("o", "place it in its other images")
+                        saved_after(out, t_o, timeout=10)
+            t_total = time.time() - t_start
+            browser.close()
+    finally:
+        proc.terminate()
+        proc.wait(20)
+
+    obs = read_working_set(out)
+    errs, rows = [], []
+    for g in gcps:
+        for n in names:
+            t = g["true_observations"][n]
+            o = obs.get(g["id"], {}).get(n)
+            e = None if o is None else float(np.hypot(o[0] - t[0], o[1] - t[1]))
+            errs.append(e)
+            rows.append(f"  {g['id']} {n}: " + ("missing" if e is None else f"{e:.3f} px"))
+    print(f"\ninputs: {len(person.inputs)} (target <= 25)")
+    for i in person.inputs:
+        print(f"  {i}")
+    print("observations against the truth:")
+    print("\n".join(rows))
+    got = [e for e in errs if e is not None]
+    print(f"placed {len(got)} / {len(errs)}; within 0.3 px: {sum(e <= 0.3 for e in got)}; "
+          f"max {max(got, default=float('nan')):.3f} px, median {np.median(got) if got else float('nan'):.3f} px")
+    print(f"wall time of the session (waiting included): {t_total:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
