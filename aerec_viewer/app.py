@@ -746,6 +746,8 @@ class ViewerApp:
             self.close_loupe(client)
         self.gcps_changed(select=gid, note=f"{gid}: observed in {image} at col {pix[0]:.2f}, "
                                            f"row {pix[1]:.2f}")
+        if in_loupe:                          # a precise click: on to the GCP's next image
+            self.gcp_panel.walk_on(gid, client)
         return pix
 
     def arm_cloud_pick(self) -> None:

@@ -122,6 +122,10 @@ class GcpPanel:
             "Click zooms in first (loupe)", True,
             hint="the first click on the image shows its full-resolution pixels around that point, "
                  "enlarged, with a crosshair; the click there places the GCP and goes back")
+        self.walk = gui.add_checkbox(
+            "Then its next image", True,
+            hint="after a click in the loupe (or Enter on a prediction), the GCP's next image "
+                 "without an observation opens in the loupe at its predicted pixel")
         self.leave_loupe = gui.add_button("Leave the loupe", disabled=True)
         gui.add_markdown("Click a pixel on the image plane: it becomes an observation of the GCP "
                          "selected here (or of a new GCP with the fields below).")
@@ -181,7 +185,7 @@ class GcpPanel:
         ("shift+I", "previous image", lambda self, ev: self.step_image(-1)),
         ("L", "look at the image plane", lambda self, ev: self.app.look_at_plane(ev.client)),
         ("R", "predict in this image", lambda self, ev: self._predict()),
-        ("enter", "accept the prediction", lambda self, ev: self._accept()),
+        ("enter", "accept the prediction", lambda self, ev: self._accept(ev.client)),
         ("O", "place it in its other images", lambda self, ev: self._place_all(ev.client)),
         ("escape", "leave the loupe", lambda self, ev: self.app.close_loupe(ev.client)),
         ("ctrl+Z", "undo", lambda self, ev: self._undo()),
@@ -237,7 +241,7 @@ class GcpPanel:
         self.role_toggle.on_click(lambda _: app.submit(self._toggle_role))
         self.enable_toggle.on_click(lambda _: app.submit(self._toggle_enabled))
         self.predict.on_click(lambda _: app.submit(self._predict))
-        self.accept.on_click(lambda _: app.submit(self._accept))
+        self.accept.on_click(lambda ev: app.submit(lambda: self._accept(ev.client)))
         self.undo.on_click(lambda _: app.submit(self._undo))
         self.redo.on_click(lambda _: app.submit(self._redo))
 
@@ -430,20 +434,57 @@ class GcpPanel:
                           "accept the prediction as it is")
         self.app.submit(offer)
 
+    def walk_on(self, gid: str, client=None) -> str | None:
+        """After an observation of `gid`: open the loupe in the next image of its group(s) that
+        has none, at the GCP's predicted pixel there (from every observation so far); returns
+        that image, or None when every image that can see it has an observation."""
+        from .prediction import predict_observation
+
+        if not self.walk.value or gid not in self.app.session.ids:
+            return None
+        obs = self.app.session.get(gid).observations
+        images = {im.name: im for im in self.app.site.images}
+        order = [im.name for im in self.app.site.images]
+        current = self.image.value
+        start = order.index(current) + 1 if current in order else 0
+        skipped = []
+        for image in order[start:] + order[:start]:
+            if image in obs:
+                continue
+            model = next((m for m in self.app.models.values() if image in m.images), None)
+            if model is None or not any(im in model.images for im in obs):
+                continue
+            pred = predict_observation(model, images, obs, image)
+            if pred is None:
+                skipped.append(image)
+                continue
+            self.show_hint(gid, pred, client)
+            return image
+        n = len(obs)
+        self.app.note(f"{gid} is observed in {n} image(s)"
+                      + (f"; no registered tile of {', '.join(skipped)} sees it" if skipped else "")
+                      + ": N for the next GCP")
+        return None
+
     def drop_prediction(self) -> None:
         if self.prediction is not None:
             self.prediction = None
             self.accept.disabled = True
             self.accept.label = "Accept the prediction"
 
-    def _accept(self) -> None:
+    def _accept(self, client=None) -> None:
         if self.prediction is None:
             raise GcpError("no prediction to accept: press Predict first")
         gid, pred = self.prediction
         self.drop_prediction()
         add_observation(self.app.session, gid, pred.image, pred.col, pred.row)
+        in_loupe = self.app.loupe is not None
+        if in_loupe:
+            self.app.close_loupe(client)
         self.app.gcps_changed(select=gid, note=f"{gid}: observed in {pred.image} at col {pred.col:.2f}, "
                                                f"row {pred.row:.2f} (accepted prediction)")
+        if in_loupe:
+            self.walk_on(gid, client)
 
     def _undo(self) -> None:
         what = undo(self.app.session)

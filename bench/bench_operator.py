@@ -7,9 +7,12 @@ it sees the page (screenshots), presses keys and clicks the mouse, and reads onl
 can read (OUT/gcps.geojson, to know that an edit was saved). It knows what each GCP looks like
 (a chip of the image around its true pixel, as an operator knows the spot from the survey's
 photo) and finds it on the screen by normalised cross-correlation over scales; it aims at the
-true sub-pixel position inside what it found. So the bench measures what the viewer adds: how
-many inputs it takes and how precisely a click on the screen becomes a pixel, and how good the
-predictions are in the images the operator did not click.
+true sub-pixel position inside what it found. The workflow: N (next GCP), a click on it in the
+image on the screen (the loupe opens), a click in the loupe; the viewer then opens the GCP's
+next image in the loupe at its prediction, where the person clicks again, and so on; when the
+spot is not in the loupe (its best match there is poor), Escape and a click on the whole image.
+So the bench measures what the viewer adds: how many inputs it takes, how precisely a click on
+the screen becomes a pixel, and how often the predictions bring the spot into the loupe.
 
     python bench/bench_operator.py                   # generates a 3-image site (2000 px) once
     python bench/bench_operator.py --shots /tmp/op   # also saves a screenshot after each step
@@ -192,6 +195,23 @@ def wait_file(out: Path, cond, timeout: float = 30.0):
     return None
 
 
+def wait_hint(page, left: list[str], timeout: float = 8.0) -> str | None:
+    """The image the viewer's note says it shows in the loupe, among `left` (the note the person
+    reads in the GCP tab), or None."""
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        for el in page.locator("text=shown in the loupe >> visible=true").all():
+            try:
+                txt = el.inner_text(timeout=1_000)
+            except Exception:
+                continue
+            im = next((n for n in left if f"in {n}: predicted" in txt), None)
+            if im is not None:
+                return im
+        time.sleep(0.2)
+    return None
+
+
 def place(person: Person, out: Path, img: np.ndarray, gid: str, image: str, true_xy) -> bool:
     """Click the GCP on the whole image (the loupe opens there), then click it in the loupe."""
     screen = person.settle()
@@ -211,8 +231,8 @@ def click_in_loupe(person: Person, out: Path, img: np.ndarray, gid: str, image: 
     screen = person.settle()
     x, y, s, v = find_on_screen(screen, img, *true_xy, half=8,
                                 scales=np.geomspace(3.0, 40.0, 40), nearest=True)
-    if v < 0.4:
-        print(f"  {gid} in {image}: not found in the loupe (NCC {v:.2f})")
+    if v < 0.8:        # the enlarged pixels are the image's own: the spot matches at ~0.95+
+        print(f"  {gid} in {image}: not in the loupe (best NCC {v:.2f})")
         return False
     x, y, s, v = find_on_screen(screen, img, *true_xy, half=8,
                                 scales=np.linspace(0.94 * s, 1.06 * s, 25), nearest=True)
@@ -272,33 +292,24 @@ def main() -> None:
                 im = names[shown]                       # start in the image on the screen
                 if not place(person, out, images[im], gid, im, g["true_observations"][im]):
                     continue
-                t_o = time.time()
-                person.key("o", "place it in its other images")
-                saved_after(out, t_o, timeout=15)
-                person.settle()
-                person.shot(f"{gid}_placed")
-                # an image the prediction left to the operator: the viewer shows it at once, the
-                # loupe open at the predicted pixel (its note says "shown in the loupe"); the
-                # person clicks the exact pixel there, then O again (now triangulated)
-                for _ in range(len(names) - 1):
+                # "Then its next image": after each click in the loupe the viewer opens the
+                # GCP's next image in the loupe at its prediction (its note says "shown in the
+                # loupe"); the person clicks the exact pixel there, or, when the GCP is not in
+                # the loupe, leaves it (Escape) and clicks it on the whole image
+                for _ in range(2 * len(names)):
                     obs = read_working_set(out).get(gid, {})
                     if len(obs) == len(names):
                         break
-                    hint = page.get_by_text("shown in the loupe").first
-                    try:
-                        hint.wait_for(timeout=5_000)
-                        txt = hint.inner_text()
-                        im = next(n for n in names if f"in {n}: predicted" in txt)
-                    except Exception:
+                    im = wait_hint(page, [n for n in names if n not in obs])
+                    if im is None:
                         print(f"  {gid}: images left ({sorted(set(names) - set(obs))}) but no loupe shown")
                         break
                     shown = names.index(im)
-                    if not click_in_loupe(person, out, images[im], gid, im, g["true_observations"][im]):
+                    if click_in_loupe(person, out, images[im], gid, im, g["true_observations"][im]):
+                        continue
+                    person.key("Escape", "leave the loupe")
+                    if not place(person, out, images[im], gid, im, g["true_observations"][im]):
                         break
-                    if len(read_working_set(out).get(gid, {})) < len(names):
-                        t_o = time.time()
-                        person.key("o", "place it in its other images")
-                        saved_after(out, t_o, timeout=10)
             t_total = time.time() - t_start
             browser.close()
     finally:

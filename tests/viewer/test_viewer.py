@@ -638,6 +638,55 @@ def test_loupe_first_click_zooms_second_click_places(live):
         app.call(lambda: setattr(gp.zoom_click, "value", False))
 
 
+def test_a_click_in_the_loupe_walks_on_to_the_gcps_next_image(live):
+    """With "Then its next image": after a click in the loupe records an observation, the next
+    image without one opens in the loupe at the GCP's prediction (close to its true pixel);
+    Enter there records it and walks on; once every image has one, the plane stays."""
+    app, events, trace, out, site, cfg = live
+    if not (site / "truth" / "gcps_truth.json").exists():
+        pytest.skip("needs the synthetic site's truth")
+    gp = app.gcp_panel
+    truth = {g["id"]: {k: tuple(v) for k, v in g["true_observations"].items()} for g in _truth_gcps(site)}
+    model = app.models[0]
+    gid = next(g for g in app.session.ids if g in truth
+               and sum(im in model.images for im in truth[g]) >= 3)
+    tob = {k: v for k, v in truth[gid].items() if k in model.images}
+    saved = dict(app.session.get(gid).observations)
+    app.call(lambda: gp.refresh(select=gid))
+    for im in list(saved):
+        app.call(lambda im=im: remove_observation(app.session, gid, im))
+    first = sorted(tob)[0]
+    app.call(lambda: setattr(gp.image, "value", first))
+    app.call(lambda: setattr(gp.zoom_click, "value", True))
+    try:
+        app.call(lambda: app.show_image_plane(wait=True))
+        o, d = _ray_to(app, *tob[first])
+        app.call(lambda: app.on_plane_click(o, d))                     # opens the loupe
+        o, d = _ray_to(app, *tob[first])
+        app.call(lambda: app.on_plane_click(o, d))                     # records, walks on
+        app.wait_idle()
+        nxt = gp.image.value
+        assert nxt != first and nxt in tob and app.loupe is not None and app.loupe[0].image == nxt
+        assert np.hypot(*(np.asarray(app.loupe[1]) - tob[nxt])) < 3.0, (app.loupe[1], tob[nxt])
+        assert gp.prediction is not None and gp.prediction[1].image == nxt
+        for _ in range(len(tob) - 1):                                   # Enter on each in turn
+            app.call(gp._accept)
+            app.wait_idle()
+        obs = app.session.get(gid).observations
+        assert set(obs) == set(tob)
+        assert app.loupe is None and "N for the next GCP" in gp.status.content
+        err = [np.hypot(obs[k][0] - tob[k][0], obs[k][1] - tob[k][1]) for k in tob if k != first]
+        assert max(err) < 1.5, err
+    finally:
+        app.call(app.close_loupe)
+        for im in list(app.session.get(gid).observations):
+            app.call(lambda im=im: remove_observation(app.session, gid, im))
+        for im, xy in saved.items():
+            app.call(lambda im=im, xy=xy: add_observation(app.session, gid, im, *xy))
+        app.call(lambda: setattr(gp.zoom_click, "value", False))
+        app.call(lambda: app.gcps_changed(select=gid))
+
+
 def test_next_previous_gcp_and_place_it_in_its_other_images(live):
     """Next / Previous walk the working set (wrapping); "Place it in its other images" records
     the confirmed predictions of a GCP observed once, in one undo step, close to where the site's
