@@ -85,8 +85,11 @@ def gcp_readiness(session: GcpSession, models: dict) -> dict[str, tuple[bool, st
 
 def gcp_state_table(session: GcpSession, models: dict, images: list[str]) -> str:
     """Markdown table: one row per GCP, one column per image: "placed" (usable: a registered tile
-    contains it), "unusable" (observed, but no registered tile there), "-" (not observed), and
-    "picked" (a cloud pick replaces the observations)."""
+    contains it), "unusable" (observed, but no registered tile there), "predicted" (not observed,
+    but predictable there from its observations in that image's group: the loupe can show it),
+    "-" (neither), and "picked" (a cloud pick replaces the observations)."""
+    from .prediction import predict_observation
+
     if not session.gcps:
         return ""
     head = "| GCP | role | " + " | ".join(images) + " |"
@@ -98,7 +101,10 @@ def gcp_state_table(session: GcpSession, models: dict, images: list[str]) -> str
         cells = []
         for im in images:
             if im not in g.observations:
-                cells.append("-")
+                model = next((m for m in models.values() if im in m.images), None)
+                seen = {} if model is None else {k: v for k, v in g.observations.items() if k in model.images}
+                pred = predict_observation(model, {}, seen, im, refine=False) if seen else None
+                cells.append("-" if pred is None else "predicted")
             elif not models or im in usable:
                 cells.append("placed")
             else:

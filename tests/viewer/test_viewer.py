@@ -1204,7 +1204,11 @@ def test_gcp_state_table_shows_each_images_state(tiny_run, tmp_path):
     remove_observation(s, g.id, imgs[1])
     row = next(ln for ln in gcp_state_table(s, {0: m}, imgs).splitlines() if ln.startswith(f"| {g.id} |"))
     cells = [c.strip() for c in row.strip("|").split("|")][2:]
-    assert cells[0] == "**unusable**" and cells[1] == "-" and cells[2] == "placed"
+    assert cells[0] == "**unusable**" and cells[1] == "predicted" and cells[2] == "placed"
+    remove_observation(s, g.id, imgs[2])              # nothing usable left to predict from
+    row = next(ln for ln in gcp_state_table(s, {0: m}, imgs).splitlines() if ln.startswith(f"| {g.id} |"))
+    cells = [c.strip() for c in row.strip("|").split("|")][2:]
+    assert cells == ["**unusable**", "-", "-"]
 
 
 def test_an_empty_model_update_is_folded_without_error():
