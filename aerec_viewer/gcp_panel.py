@@ -133,6 +133,9 @@ class GcpPanel:
         self.prev_gcp = gui.add_button("Previous GCP")
         self.next_gcp = gui.add_button("Next GCP")
         self.info = gui.add_markdown("")
+        self.jump = gui.add_dropdown("Go to its observation", [self.JUMP_NONE], initial_value=self.JUMP_NONE,
+                                     hint="opens the loupe on the selected GCP's observation in that "
+                                          "image: a click there moves it")
         self.role_toggle = gui.add_button("Make it a check point", disabled=True,
                                           hint="control points enter the fit; check points are only scored")
         self.enable_toggle = gui.add_button("Disable it", disabled=True,
@@ -238,6 +241,7 @@ class GcpPanel:
         self.unobserve.on_click(lambda _: app.submit(self._unobserve))
         self.delete.on_click(lambda _: app.submit(self._delete))
         self.forget_pick.on_click(lambda _: app.submit(self._forget_pick))
+        self.jump.on_update(lambda ev: app.submit(lambda: self._on_jump(ev.client)))
         self.role_toggle.on_click(lambda _: app.submit(self._toggle_role))
         self.enable_toggle.on_click(lambda _: app.submit(self._toggle_enabled))
         self.predict.on_click(lambda _: app.submit(self._predict))
@@ -322,6 +326,43 @@ class GcpPanel:
     def _disarm_delete(self) -> None:
         self._delete_armed = None
         self.delete.label = "Delete the selected GCP"
+
+    JUMP_NONE = "(choose an image)"
+
+    def jump_to(self, image: str, client=None) -> None:
+        """Show the selected GCP's observation in `image` in the loupe (a click there moves it)."""
+        gid = self.selected()
+        if gid is None:
+            raise GcpError("select a GCP first")
+        obs = self.app.session.get(gid).observations
+        if image not in obs:
+            raise GcpError(f"{gid} has no observation in {image}")
+        if self.image.value != image:
+            self.image.value = image            # its callback queues the redraw
+        col, row = obs[image]
+
+        def show() -> None:
+            self.app.open_loupe((col, row), client, image=image)
+            self.app.note(f"{gid} in {image} at col {col:.2f}, row {row:.2f}: a click in the loupe "
+                          "moves it, Escape leaves it as it is")
+        self.app.submit(show)
+
+    def _on_jump(self, client=None) -> None:
+        image = self.jump.value
+        if image == self.JUMP_NONE:
+            return
+        self.jump.value = self.JUMP_NONE
+        self.jump_to(image, client)
+
+    def residuals(self, gid: str) -> dict[str, float]:
+        """Image -> reprojection residual (px) of the GCP's observations, per group."""
+        from .prediction import observation_residuals
+
+        g = self.app.session.get(gid)
+        out: dict[str, float] = {}
+        for m in self.app.models.values():
+            out.update({im: float(np.hypot(*v)) for im, v in observation_residuals(m, g.observations).items()})
+        return out
 
     def _toggle_role(self) -> None:
         gid = self.selected()
@@ -529,13 +570,18 @@ class GcpPanel:
             self.info.content = (f"{len(s.gcps)} GCP(s) in the working set "
                                  f"(`{s.path.name}` in the output folder). Type the new GCP's "
                                  "ground coordinates below before clicking its pixel.")
+            if tuple(self.jump.options) != (self.JUMP_NONE,):
+                self.jump.options = [self.JUMP_NONE]
             if clear_new:    # a new GCP never starts from the previous GCP's coordinates
                 self.gid.value = ""
                 self.role.value = "control"
                 self.x.value, self.y.value, self.h.value = 0.0, 0.0, 0.0
             return
         g = s.get(gid)
-        self.info.content = describe(g)
+        self.info.content = describe(g, self.residuals(gid))
+        opts = [self.JUMP_NONE] + sorted(g.observations)
+        if tuple(self.jump.options) != tuple(opts):
+            self.jump.options = opts
         self.gid.value = g.id
         self.role.value = g.role
         self.crs.value = "lon, lat, h (WGS84)"

@@ -279,12 +279,24 @@ def set_affine_position(s: GcpSession, gcp_id: str, group: int, xyz: np.ndarray 
         _changed(s, f"pick {gcp_id} on the cloud of group {group}")
 
 
-def describe(g: GCP) -> str:
-    """Markdown description of one GCP."""
+# an observation whose reprojection residual exceeds this is flagged (as its red residual vector)
+FLAG_RESIDUAL_PX = 1.0
+
+
+def describe(g: GCP, residuals: dict[str, float] | None = None) -> str:
+    """Markdown description of one GCP; `residuals`: image -> reprojection residual (px) of
+    its observations (where it is triangulated), shown and flagged above FLAG_RESIDUAL_PX."""
     lines = [f"**{g.id}** ({g.role}{'' if g.enabled else ', **disabled**: left out of the upgrade'}): "
              f"lon {g.lon:.7f}, lat {g.lat:.7f}, h {g.h:.2f} m"]
+    res = residuals or {}
+
+    def tail(im: str) -> str:
+        if im not in res:
+            return ""
+        r = res[im]
+        return f", residual **{r:.2f} px: check it**" if r > FLAG_RESIDUAL_PX else f", residual {r:.2f} px"
     if g.observations:
-        lines += [f"- {im}: col {c:.2f}, row {r:.2f}" for im, (c, r) in sorted(g.observations.items())]
+        lines += [f"- {im}: col {c:.2f}, row {r:.2f}{tail(im)}" for im, (c, r) in sorted(g.observations.items())]
     else:
         lines.append("- no observation yet: click its pixel on the image plane")
     for grp in sorted(g.affine_picked):

@@ -687,6 +687,37 @@ def test_a_click_in_the_loupe_walks_on_to_the_gcps_next_image(live):
         app.call(lambda: app.gcps_changed(select=gid))
 
 
+def test_go_to_an_observation_opens_it_in_the_loupe_and_flags_a_large_residual(live):
+    """The GCP's description gives each observation's reprojection residual and flags one above
+    1 px; "Go to its observation" shows it in the loupe, where a click moves it."""
+    app, events, trace, out, site, cfg = live
+    gp = app.gcp_panel
+    model = app.models[0]
+    gid = next(g.id for g in app.session.gcps
+               if sum(im in model.images for im in g.observations) >= 3)
+    obs = dict(app.session.get(gid).observations)
+    im = sorted(obs)[1]
+    app.call(lambda: gp.refresh(select=gid))
+    assert "residual" in gp.info.content and "check it" not in gp.info.content, gp.info.content
+    assert set(gp.jump.options) == {gp.JUMP_NONE, *obs}
+    c, r = obs[im]
+    app.call(lambda: add_observation(app.session, gid, im, c + 6.0, r))     # a misclick
+    app.call(lambda: app.gcps_changed(select=gid))
+    line = next(ln for ln in gp.info.content.splitlines() if ln.startswith(f"- {im}"))
+    assert "check it" in line, gp.info.content
+    try:
+        app.call(lambda: setattr(gp.jump, "value", im))
+        app.wait_idle()
+        assert gp.jump.value == gp.JUMP_NONE and gp.image.value == im
+        assert app.loupe is not None and app.loupe[0].image == im
+        assert np.allclose(app.loupe[1], (c + 6.0, r))
+    finally:
+        app.call(app.close_loupe)
+        app.call(lambda: undo(app.session))
+        app.call(lambda: app.gcps_changed(select=gid))
+    assert app.session.get(gid).observations[im] == obs[im]
+
+
 def test_next_previous_gcp_and_place_it_in_its_other_images(live):
     """Next / Previous walk the working set (wrapping); "Place it in its other images" records
     the confirmed predictions of a GCP observed once, in one undo step, close to where the site's
