@@ -8,6 +8,7 @@ connected and the time until the first points are rendered on its screen is meas
 
     python bench/bench_viewer.py                      # the demo site (generated on first use)
     python bench/bench_viewer.py --site /work/shared/data/reunion_pair --tile-size 400
+    python bench/bench_viewer.py --cold               # `aerec view` from a bare cache
 """
 
 from __future__ import annotations
@@ -189,6 +190,70 @@ def run(args) -> None:
         shutil.rmtree(out, ignore_errors=True)
 
 
+def cold(args) -> None:
+    """`aerec view` (no argument) from a bare cache, as a new user's first run: command ->
+    page served, -> first points on a connected client (reconnecting when the preparation page
+    hands its address over to the viewer)."""
+    import os
+    import subprocess
+    import urllib.request
+
+    cache = Path(tempfile.mkdtemp(prefix="bench_cold_cache_"))
+    # an empty numba cache too: a fresh machine compiles the renderer's and the solver's kernels
+    env = {**os.environ, "AEREC_CACHE": str(cache), "NUMBA_CACHE_DIR": str(cache / "numba")}
+    t0 = time.time()
+    proc = subprocess.Popen([sys.executable, "-m", "aerec_viewer", "--port", "0", "--no-browser-hint"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    lines: list[tuple[float, str]] = []
+    threading.Thread(target=lambda: [lines.append((time.time(), ln)) for ln in iter(proc.stdout.readline, "")],
+                     daemon=True).start()
+    t_page = t_points = None
+    client = None
+    try:
+        port = None
+        while port is None and time.time() - t0 < 120 and proc.poll() is None:
+            for _, ln in list(lines):
+                if "http://" in ln:
+                    port = int(ln.split("http://", 1)[1].split("/")[0].split(":")[1].split()[0].rstrip(";"))
+                    break
+            time.sleep(0.05)
+        if port is None:
+            raise SystemExit("no address printed:\n" + "".join(ln for _, ln in lines[-20:]))
+        while t_page is None and time.time() - t0 < 120:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as r:
+                    if r.status == 200:
+                        t_page = time.time()
+            except OSError:
+                time.sleep(0.05)
+        while t_points is None and time.time() - t0 < args.cold_timeout and proc.poll() is None:
+            if client is None or not client._thread.is_alive():
+                try:
+                    client = WireClient(port)
+                except OSError:
+                    time.sleep(0.3)
+                    continue
+            t_points = client.first("PointCloudMessage")
+            time.sleep(0.2)
+    finally:
+        if client is not None:
+            client.close()
+        proc.terminate()
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        shutil.rmtree(cache, ignore_errors=True)
+    ready = next((t for t, ln in lines if "reconstructing" in ln), None)
+    print(f"aerec view from a bare cache, numba's included (demo preset "
+          f"{os.environ.get('AEREC_DEMO_PRESET') or 'the default'}):")
+    print(f"  command -> page served: {t_page - t0:.1f} s" if t_page else "  page never served")
+    if ready:
+        print(f"  command -> demo site generated, viewer started: {ready - t0:.1f} s")
+    print(f"  command -> first points on a connected client: {t_points - t0:.1f} s" if t_points
+          else f"  no points within {args.cold_timeout:.0f} s")
+
+
 class BrowserProbe:
     """Headless Chromium on the page; a thread notes when points first appear on its screen."""
 
@@ -242,7 +307,11 @@ def main() -> None:
     p.add_argument("--browser", action="store_true", help="also time the first points on a "
                                                           "headless Chromium screen")
     p.add_argument("--keep", action="store_true", help="keep the output folder")
-    run(p.parse_args())
+    p.add_argument("--cold", action="store_true", help="time `aerec view` (no argument) from a "
+                                                        "bare cache: page served, first points")
+    p.add_argument("--cold-timeout", type=float, default=900.0)
+    args = p.parse_args()
+    cold(args) if args.cold else run(args)
 
 
 if __name__ == "__main__":

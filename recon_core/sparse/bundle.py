@@ -156,6 +156,22 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
     return BAResult(cams, X, cost0, cost, rms, K, time.time() - t0, it)
 
 
+def warm_compiled_kernels() -> None:
+    """Compile the kernels of recon_core.sparse.ba_kernels into numba's cache (one LM iteration
+    on 2 cameras x 8 points, with the argument types the SfM passes): a first `aerec view`
+    does this in a second process while the demo renders."""
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-1.0, 1.0, (8, 3))
+    cams = np.stack([np.hstack([np.eye(2, 3) + rng.normal(0, 0.1, (2, 3)), [[5.0], [5.0]]])
+                     for _ in range(2)])
+    obs_cam = np.repeat(np.arange(2, dtype=np.int64), 8)
+    obs_pt = np.tile(np.arange(8, dtype=np.int64), 2)
+    xy = np.einsum("kij,kj->ki", cams[obs_cam, :, :3], X[obs_pt]) + cams[obs_cam, :, 3]
+    fixed = np.zeros((2, 2, 4), bool)
+    fixed[0] = True
+    bundle_adjust(cams, X, obs_cam, obs_pt, xy, np.arange(2), np.arange(8), fixed, max_nfev=1)
+
+
 SPARSE_SOLVE_MIN = 1500      # camera unknowns from which a sparse factorisation is tried
 SPARSE_SOLVE_DENSITY = 0.25  # ... when at most this fraction of the reduced system is non-zero
 

@@ -139,3 +139,16 @@ def test_the_sparse_factorisation_takes_the_same_steps_as_the_dense_one(monkeypa
     assert sparse.iterations == dense.iterations > 2
     assert abs(sparse.cost_after - dense.cost_after) <= 1e-9 * dense.cost_after
     assert np.abs(sparse.cams - dense.cams).max() < 1e-6 and np.abs(sparse.X - dense.X).max() < 1e-5
+
+
+def test_the_kernel_warmup_compiles_the_signatures_the_sfm_uses(tiny_run):
+    """A first `aerec view` compiles the BA kernels ahead on a toy problem: the SfM (run by the
+    tiny_run fixture in this process) must have called them with the same argument types, or
+    the warm-up compiles signatures nobody uses."""
+    from recon_core.sparse import ba_kernels as kern
+    from recon_core.sparse.bundle import warm_compiled_kernels
+
+    used = {f: set(getattr(kern, f).signatures) for f in ("assemble", "schur", "back_substitute")}
+    assert all(used.values()), used
+    warm_compiled_kernels()
+    assert {f: set(getattr(kern, f).signatures) for f in used} == used

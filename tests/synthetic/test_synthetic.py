@@ -277,3 +277,15 @@ def test_determinism(tmp_path):
     for f in files:
         assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f
     assert a.rpc_fit["max_px"] < 0.05 and b.bounds == a.bounds
+
+
+def test_the_render_warmup_compiles_the_signature_the_renderer_uses():
+    """The first `aerec view` compiles the render kernel in a second process on a stand-in
+    context: its types must be a real scene's, or the warm-up compiles a signature nobody uses."""
+    import numba
+
+    from recon_core.synthetic.scene_model import SceneModel
+
+    fake = syn.warm_render_kernel()
+    real = SceneModel.create(0, 30.0, 31.2, 50.0).ctx
+    assert [numba.typeof(v) for v in fake] == [numba.typeof(v) for v in real]
