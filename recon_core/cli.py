@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import os
 import sys
 import time
 from pathlib import Path
@@ -120,7 +121,7 @@ def cmd_run(args) -> int:
     from recon_core.config import PRESETS, preset
     from recon_core.errors import InputError
     from recon_core.events import EventBus, Message
-    from recon_core.pipeline import preflight, run
+    from recon_core.pipeline import check_config, preflight, run
 
     if args.preset not in PRESETS:
         raise InputError(None, f"unknown --preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}")
@@ -128,6 +129,11 @@ def cmd_run(args) -> int:
         raise InputError(None, f"--tile-size must be at least 64 px, not {args.tile_size}")
     if args.workers is not None and args.workers < 1:
         raise InputError(None, f"--workers must be at least 1, not {args.workers}")
+    if args.seed is not None and args.seed < 0:
+        raise InputError(None, f"--seed must be >= 0, not {args.seed}")
+    if not str(args.out).strip():
+        raise InputError(None, "--out is empty: name the output folder")
+    args.out = Path(args.out)
     cfg = preset(args.preset)
     if args.config is not None:
         from recon_core.config import config_from_toml
@@ -143,6 +149,11 @@ def cmd_run(args) -> int:
     if args.workers:
         overrides["dense.workers"] = args.workers
     cfg = cfg.with_overrides(overrides)
+    try:
+        check_config(cfg)
+    except InputError as exc:          # name where the value came from
+        where = args.config if args.config is not None else None
+        raise InputError(where, exc.problem + ("" if where else " (from the command line)")) from None
     if cfg.dense.scheduler:            # from --scheduler or from --config
         probe_scheduler(cfg.dense.scheduler)
     prog = ProgressPrinter(not args.quiet)
@@ -232,6 +243,9 @@ def cmd_gcps(args) -> int:
                     check_observation(args.src, g.id, im, cr, images)
     else:
         gcps = read_gcps_geojson(args.src, images)
+    from recon_core.io.files import writable_folder
+
+    writable_folder(args.dst.parent if str(args.dst.parent) else Path("."), create=False)
     if kinds[args.dst.suffix.lower()] == "csv":
         picked = [g.id for g in gcps if g.affine_picked]
         if picked:
@@ -303,7 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("run", help="reconstruct a site (resumes finished stages)")
     s.add_argument("site", type=Path)
-    s.add_argument("--out", type=Path, required=True, help="output folder")
+    s.add_argument("--out", required=True, help="output folder")
     s.add_argument("--stage", default=None, help="stop after this stage (default: run all)")
     s.add_argument("--preset", default="default", help="parameter preset (default, tiny)")
     s.add_argument("--config", type=Path, default=None, metavar="FILE",
@@ -366,8 +380,23 @@ def _add_plugin_commands(sub) -> None:
 _MACHINE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG}
 
 
+_INTERRUPTED = False
+
+
 def _terminate(signum, frame) -> None:
+    global _INTERRUPTED
+    _INTERRUPTED = True
     raise KeyboardInterrupt          # SIGTERM ends a run as Ctrl-C does: cleanup runs
+
+
+def _disk_full(exc: BaseException) -> bool:
+    """The machine, not the input: a full disk, a quota, a file system gone read-only, also as
+    numpy's short write ("N requested and M written") or GDAL's "Write error"."""
+    if isinstance(exc, OSError) and exc.errno in _MACHINE_ERRNOS:
+        return True
+    text = str(exc)
+    return ("requested and" in text and "written" in text) or "Write error" in text \
+        or "No space left" in text
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -377,6 +406,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
+        signal.signal(signal.SIGINT, _terminate)
     try:
         return int(args.func(args) or 0)
     except AerecError as exc:
@@ -385,14 +415,25 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("aerec: interrupted", file=sys.stderr)
         return 130
-    except OSError as exc:
-        if exc.errno not in _MACHINE_ERRNOS:
+    except BrokenPipeError:               # `aerec info SITE | head`: the reader left, not an error
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except OSError:
+            pass
+        return 0
+    except Exception as exc:
+        if _INTERRUPTED:
+            # the signal arrived inside compiled code (numba re-raises it as a SystemError)
+            print("aerec: interrupted", file=sys.stderr)
+            return 130
+        if not _disk_full(exc):
             raise
         # the machine, not the input: a full disk, a quota, a file system gone read-only.
         # Outputs are written atomically, so nothing half-written is left; finished stages
         # are reused by the next run.
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"aerec: error: {where}{exc.strerror or exc} (nothing half-written was kept; "
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        what = getattr(exc, "strerror", None) or f"a write failed ({exc}): is the disk full?"
+        print(f"aerec: error: {where}{what} (nothing half-written was kept; "
               "free space or fix the folder, then rerun: finished stages are reused)", file=sys.stderr)
         return 1
 

@@ -111,6 +111,55 @@ def _open(site_path, out, until, redo_from) -> tuple[Site, Path]:
     return site, out
 
 
+def check_config(cfg: Config) -> None:
+    """The parameters' values, before any compute (types are checked where a file is read):
+    sizes and counts positive, choices among what exists. Raises InputError naming the field
+    (without a file: the caller names where the value came from)."""
+    from recon_core.dense.matchers import MATCHERS
+    from recon_core.euclidean.dsm import STATS
+    from recon_core.sparse.bundle import LOSSES
+
+    def bad(field: str, value, need: str) -> InputError:
+        return InputError(None, f"{field} = {value!r}: {need}")
+
+    t = cfg.tiling
+    if t.tile_size < 64:
+        raise bad("tiling.tile_size", t.tile_size, "must be at least 64 px")
+    if t.overlap is not None and not 0 <= t.overlap < t.tile_size:
+        raise bad("tiling.overlap", t.overlap, f"must be >= 0 and smaller than the tile size {t.tile_size}")
+    if cfg.seed < 0:
+        raise bad("seed", cfg.seed, "must be >= 0")
+    if cfg.bundle.loss not in LOSSES:
+        raise bad("bundle.loss", cfg.bundle.loss, f"choose one of {', '.join(LOSSES)}")
+    if cfg.dense.matcher not in MATCHERS:
+        raise bad("dense.matcher", cfg.dense.matcher, f"choose one of {', '.join(sorted(MATCHERS))}")
+    if cfg.dsm.stat not in STATS:
+        raise bad("dsm.stat", cfg.dsm.stat, f"choose one of {', '.join(STATS)}")
+    if cfg.dense.workers is not None and cfg.dense.workers < 1:
+        raise bad("dense.workers", cfg.dense.workers, "must be at least 1 (or absent: all cores)")
+    if cfg.dsm.resolution_m is not None and not (np.isfinite(cfg.dsm.resolution_m) and cfg.dsm.resolution_m > 0):
+        raise bad("dsm.resolution_m", cfg.dsm.resolution_m, "must be a positive number of metres")
+    if not 0 < cfg.matching.ratio <= 1:
+        raise bad("matching.ratio", cfg.matching.ratio, "Lowe's ratio must be in (0, 1]")
+    if cfg.dense.step < 1:
+        raise bad("dense.step", cfg.dense.step, "must be at least 1")
+    positive = {"bundle.loss_scale_px": cfg.bundle.loss_scale_px, "bundle.max_nfev": cfg.bundle.max_nfev,
+                "bundle.local_max_nfev": cfg.bundle.local_max_nfev,
+                "sfm.resect_thresh_px": cfg.sfm.resect_thresh_px, "sfm.max_reproj_px": cfg.sfm.max_reproj_px,
+                "matching.fa_thresh_px": cfg.matching.fa_thresh_px,
+                "upgrade.ransac_thresh_m": cfg.upgrade.ransac_thresh_m,
+                "features.max_features_per_mpx": cfg.features.max_features_per_mpx,
+                "features.detect_block": cfg.features.detect_block,
+                "dsm.chunk_points": cfg.dsm.chunk_points, "dsm.icp_voxel_m": cfg.dsm.icp_voxel_m,
+                "grouping.max_gap_days": cfg.grouping.max_gap_days}
+    for name, v in positive.items():
+        if not (np.isfinite(v) and v > 0):
+            raise bad(name, v, "must be positive")
+    sb = cfg.sgbm.block_size
+    if sb < 1 or sb % 2 == 0:
+        raise bad("sgbm.block_size", sb, "must be odd and positive")
+
+
 def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | None = None,
               redo_from: str | None = None) -> list[str]:
     """What can be checked before any compute, for a run that should reach `until`: the site
@@ -118,6 +167,7 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     folder (creatable and writable), and, when the run goes as far as the upgrade, GCPs: at
     least one date group must have >= 4 control GCPs observed in >= 2 of its images (or picked
     on its cloud). Raises InputError; returns warnings (a group that will not be upgraded)."""
+    check_config(cfg)
     site, out = _open(site_path, out, until, redo_from)
     try:
         probe = out / f".aerec_write_test_{os.getpid()}"

@@ -254,3 +254,83 @@ def test_gcps_seen_across_date_groups_count_when_the_groups_are_reconstructed_jo
     off = Config().with_overrides({"sfm.joint_groups": False})
     with pytest.raises(InputError, match="no date group has 4 control GCPs"):
         preflight(site, tmp_path / "out", off)
+
+
+@pytest.mark.parametrize("body, words", [
+    ("[tiling]\ntile_size = -5\n", "tiling.tile_size = -5: must be at least 64 px"),
+    ("[tiling]\noverlap = 5000\n", "tiling.overlap = 5000"),
+    ("seed = -3\n", "seed = -3: must be >= 0"),
+    ("[bundle]\nloss = 'bogus'\n", "bundle.loss = 'bogus': choose one of linear, huber, cauchy"),
+    ("[dense]\nworkers = -1\n", "dense.workers = -1"),
+    ("[dense]\nmatcher = 'nope'\n", "dense.matcher = 'nope': choose one of sgbm"),
+    ("[dsm]\nstat = 'foo'\n", "dsm.stat = 'foo'"),
+    ("[dsm]\nresolution_m = -1.0\n", "dsm.resolution_m = -1.0: must be a positive number"),
+    ("[matching]\nratio = 5.0\n", "matching.ratio = 5.0"),
+    ("[sgbm]\nblock_size = 4\n", "sgbm.block_size = 4: must be odd"),
+], ids=lambda v: v.split("\n")[0] if "\n" in v else None)
+def test_config_values_are_checked_before_any_compute(body, words, small_site, tmp_path, capsys):
+    """Each of these reached a stage and ended in a traceback there (some after sparse, dense and
+    the upgrade): now one line naming the file and the field, exit 2, nothing written."""
+    f = tmp_path / "c.toml"
+    f.write_text(body)
+    out = tmp_path / "o"
+    assert main(["run", str(small_site), "--out", str(out), "--config", str(f), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("aerec: error:") == 1 and "Traceback" not in err and str(f) in err and words in err, err
+    assert not out.exists()
+
+
+def test_every_preset_passes_the_value_checks():
+    from recon_core.config import PRESETS, preset
+    from recon_core.pipeline import check_config
+
+    for name in PRESETS:
+        check_config(preset(name))
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--seed", "-1"], "--seed must be >= 0"),
+    (["--out", ""], "--out is empty"),
+])
+def test_command_line_values(argv, words, small_site, tmp_path, capsys):
+    args = ["run", str(small_site), "--quiet"] + (argv if "--out" in argv else argv + ["--out", str(tmp_path / "o")])
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("aerec: error:") == 1 and words in err, err
+
+
+def test_outputs_under_a_file_or_nowhere_are_refused_before_compute(small_site, tmp_path, capsys):
+    f = tmp_path / "f.txt"
+    f.write_text("x")
+    gt = small_site / "gt_dsm.tif"
+    for argv, words in [(["eval", str(gt), str(gt), "--out", str(f / "x")], "cannot create or write"),
+                        (["gcps", "convert", str(small_site / "gcps.geojson"), str(f / "o.csv")], "is a file"),
+                        (["gcps", "convert", str(small_site / "gcps.geojson"), str(tmp_path / "no" / "o.csv")],
+                         "no such folder")]:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.count("aerec: error:") == 1 and words in err and "Traceback" not in err, err
+
+
+def test_a_closed_pipe_ends_quietly(small_site):
+    """`aerec info SITE | head -1`: the reader leaves early; no BrokenPipeError traceback."""
+    import subprocess
+    import sys
+
+    r = subprocess.run(f"{sys.executable} -m recon_core.cli info {small_site} | head -1",
+                       shell=True, capture_output=True, text=True)
+    assert r.stdout.count("\n") == 1 and "Traceback" not in r.stderr, r.stderr
+
+
+def test_a_short_write_is_reported_as_a_full_disk(tiny_site, tmp_path, capsys, monkeypatch):
+    """numpy's short write ("N requested and M written", no errno) on a full disk: one line."""
+    import recon_core.io.models as models
+
+    def short(path, obj, indent=1):
+        raise OSError("129710 requested and 102939 written")
+
+    monkeypatch.setattr(models, "write_json", short)
+    code = main(["run", str(tiny_site), "--out", str(tmp_path / "o"), "--preset", "tiny", "--stage",
+                 "sparse", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err and "is the disk full?" in err, err

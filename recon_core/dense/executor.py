@@ -18,6 +18,11 @@ def _init_worker(parent_pid: int | None = None) -> None:
     """Two cores shared by several processes: one thread per library inside each worker; and
     the worker ends itself when the process that started the pool is gone (killed with -9, say):
     forkserver workers are not its children, so nothing else would end them."""
+    import signal
+
+    # Ctrl-C reaches the whole process group: the parent shuts the pool down and sweeps its
+    # scratch; a worker interrupted mid-job would only print a traceback after "interrupted"
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
     import cv2

@@ -448,6 +448,10 @@ def run_cli(a) -> int:
     """Evaluate and print the table; bad input raises InputError (one line, exit 2 upstream)."""
     if a.out is not None and Path(a.out).exists() and not Path(a.out).is_dir():
         raise InputError(a.out, "--out must be a folder (it exists and is a file)")
+    if a.out is not None:
+        from recon_core.io.files import writable_folder
+
+        writable_folder(a.out)
     if a.max_shift < 0 or (a.step is not None and a.step <= 0):
         raise InputError(None, "--max-shift must be >= 0 and --step > 0")
     r = evaluate_dsm(a.dsm, a.gt, a.out, max_shift_m=a.max_shift, step_m=a.step)

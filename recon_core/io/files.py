@@ -49,3 +49,25 @@ def _json_default(o):
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def writable_folder(path: str | Path, create: bool = True) -> Path:
+    """Check, before any compute, that `path` is (or can be made, with `create`) a folder this
+    process can write into; raises InputError naming it."""
+    from recon_core.errors import InputError
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(path, "is a file, not a folder")
+    try:
+        if create:
+            path.mkdir(parents=True, exist_ok=True)
+        elif not path.is_dir():
+            raise InputError(path, "no such folder")
+        probe = path / f".aerec_write_test_{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise InputError(path, f"cannot {'create or ' if create else ''}write this folder "
+                               f"({exc.strerror or exc})") from None
+    return path

@@ -33,6 +33,9 @@ class BAResult:
     iterations: int = 0
 
 
+LOSSES = ("linear", "huber", "cauchy")     # BundleConfig.loss
+
+
 def _robust(sq: np.ndarray, loss: str, delta: float) -> tuple[np.ndarray, np.ndarray]:
     """(rho(s), rho'(s)) for squared residual norms s."""
     if loss == "linear":
