@@ -298,7 +298,7 @@ def _conditioning_warning(level: str, d_rms: float, frac: float, err_m: float,
     if level == "ok":
         return None
     prior = prior_ratio is not None and np.isfinite(prior_ratio)
-    need = sigma * h * (prior_ratio if prior else 1.0) / target_m
+    need = sigma * h / target_m          # with the GCPs alone: what the operator can change
     if err_m > 1000.0:          # (nearly) exactly coplanar: the figure itself means nothing
         return (f"the control GCPs lie within {d_rms:.3f} m (RMS) of one plane: the height scale "
                 f"is undetermined (expected height error over 1 km on a {h:.0f} m structure). "
@@ -307,9 +307,12 @@ def _conditioning_warning(level: str, d_rms: float, frac: float, err_m: float,
     return (f"the control GCPs lie within {d_rms:.2f} m (RMS) of one plane, so the height scale "
             f"is poorly fixed: expected height error about {100 * frac:.0f} %, i.e. "
             f"{err_m:.1f} m on a {h:.0f} m structure"
-            f"{WITH_PRIOR if prior else ''}. Add a GCP well off that plane (a roof, a "
-            f"hill top or a valley bottom); about {need:.0f} m RMS off-plane spread brings it "
-            f"to {target_m:g} m.")
+            + (f"{WITH_PRIOR}; the GCPs alone: {err_m / prior_ratio:.1f} m"
+               + ("; the constraint is a linear estimate that cannot be relied on to make up for "
+                  "a set this flat: the check points will tell" if err_m / prior_ratio > REFUSE_HEIGHT_ERROR_M
+                  else "") if prior and prior_ratio > 0 else "")
+            + f". Add a GCP well off that plane (a roof, a hill top or a valley bottom); about "
+              f"{need:.0f} m RMS off-plane spread brings it to {target_m:g} m with the GCPs alone.")
 
 
 # --------------------------------------------------------------------------------------------
@@ -465,9 +468,57 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
     if camera_rows and sigma_cos > 0:
         prior = _MetricPrior(camera_rows, sigma_cos, sigma)
         H = prior.fit(Xa[inl], Xe[inl], H, structure_height_m)
-    return _build_result(gcps, reasons, ctrl, used, H, Xa[inl], Xe[inl], ransac_thresh_m,
-                         sigma, structure_height_m, warn_height_error_m, poor_height_error_m,
-                         reproj_warn_px, prior)
+    result = _build_result(gcps, reasons, ctrl, used, H, Xa[inl], Xe[inl], ransac_thresh_m,
+                           sigma, structure_height_m, warn_height_error_m, poor_height_error_m,
+                           reproj_warn_px, prior)
+    checks = [i for i, g in enumerate(gcps) if g.role == "check" and reasons[i] is None]
+
+    def check_rmse(Hx: np.ndarray) -> float | None:
+        if not checks:
+            return None
+        r = np.array([apply_affine_3d(Hx, np.asarray(gcps[i].affine_xyz, float)[None])[0]
+                      - np.asarray(gcps[i].enu, float) for i in checks])
+        return float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+    if len(ctrl) > 4 and not inl.all():
+        rivals = _rival_consensus(Xa, Xe, inl, ransac_thresh_m)
+        if rivals:
+            now_out = ", ".join(gcps[ctrl[j]].id for j in np.flatnonzero(~inl))
+            alt_out = sorted({gcps[ctrl[i]].id for _, i, _ in rivals})
+            text = (f"RANSAC cannot tell which control GCP is wrong: rejecting {' or '.join(alt_out)} "
+                    f"instead of {now_out} fits the others as well (with {len(ctrl)} control GCPs a "
+                    "blunder can look like a good point); verify them")
+            now = check_rmse(H)
+            if now is not None:
+                alts = sorted((check_rmse(Hx), gcps[ctrl[i]].id) for _, i, Hx in rivals)
+                text += (f"; the check points are off by {now:.2f} m RMS (3D) with this fit, "
+                         f"{alts[0][0]:.2f} m if {alts[0][1]} is rejected instead")
+            result.warnings.append(text)
+    rm = check_rmse(H)
+    if rm is not None and rm > ransac_thresh_m:
+        result.warnings.append(
+            f"the check points are off by {rm:.2f} m RMS (3D), more than the {ransac_thresh_m:g} m "
+            "the control GCPs must agree within: a control GCP (or a check point) is probably wrong; "
+            "see the per-point residuals")
+    return result
+
+
+def _rival_consensus(Xa: np.ndarray, Xe: np.ndarray, inl: np.ndarray, thresh: float
+                     ) -> list[tuple[int, int, np.ndarray]]:
+    """Other consensus sets as large as RANSAC's: (index of a rejected point the rival keeps,
+    index of an inlier it rejects, its H), where swapping the two gives as many inliers."""
+    out = []
+    best = int(inl.sum())
+    for j in np.flatnonzero(~inl):
+        for i in np.flatnonzero(inl):
+            m = inl.copy()
+            m[i], m[j] = False, True
+            if _rank(Xa[m]) < 3 or _rank(Xe[m]) < 3:
+                continue
+            Hx = fit_affine_upgrade(Xa[m], Xe[m])
+            ok = np.linalg.norm(apply_affine_3d(Hx, Xa) - Xe, axis=1) < thresh
+            if ok.sum() >= best and ok[j] and not ok[i]:
+                out.append((int(j), int(i), Hx))
+    return out
 
 
 class _MetricPrior:

@@ -225,3 +225,26 @@ def test_a_misclick_stands_out_among_good_clicks():
     for g in gcps:
         g.reproj_rms_px = 0.6 + 0.05 * int(g.id[1:])
     assert not any(p.get("reproj_suspect") for p in upgrade(gcps).to_dict()["points"])
+
+
+def test_a_blunder_among_five_controls_is_flagged_as_ambiguous_and_by_the_check_points():
+    """5 control GCPs, one with a 25 m height blunder: any 4 of them fit exactly, so the sample
+    with the blunder and the sample without it tie; the report must say so (naming both), and
+    when the fit took the wrong one the check points, 17 m off in the trial that found this,
+    must raise a warning rather than pass in silence."""
+    rng = np.random.default_rng(21)
+    enu, aff, H = scene(rng, 9)
+    g = gcps_from(enu, aff, roles=["control"] * 5 + ["check"] * 4)
+    g[2].enu = g[2].enu + np.array([0.0, 0.0, 25.0])
+    res = upgrade(g)
+    amb = [w for w in res.warnings if "cannot tell which control GCP" in w]
+    rejected = {p["id"] for p in res.points if p["status"] == "rejected"}
+    assert len(amb) == 1 and "G02" in amb[0] and rejected and all(r in amb[0] for r in rejected), res.warnings
+    check_rmse = res.stats["check"]["rmse_3d_m"]
+    if "G02" in rejected:                               # the right choice: check points agree
+        assert check_rmse < 1e-6
+    else:
+        assert any("check points are off by" in w and "RMS (3D), more than" in w for w in res.warnings)
+    # no blunder: no ambiguity and no check-point warning
+    g[2].enu = enu[2]
+    assert not [w for w in upgrade(g).warnings if "cannot tell" in w or "check points are off" in w]
