@@ -344,4 +344,28 @@ def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
             bus.emit(StageDone(stage, summary["seconds"], summary))
         if stage == "sparse":
             bus.emit(ModelsReady(dict(state.models)))
+    if first_redo <= last:
+        _drop_later_products(state, STAGES[last + 1:], STAGES[first_redo], bus)
     return state
+
+
+def _drop_later_products(state: RunState, later: list[str], recomputed: str, bus: EventBus) -> None:
+    """A run that recomputed `recomputed` and stopped before `later`: what those stages wrote
+    came from other inputs (another site, other images, other GCPs): remove their products,
+    records and report entries, so OUT holds only what this run's report describes."""
+    lay = OutLayout(state.out)
+    gone = []
+    for stage in later:
+        for p in lay.stage_products(stage):
+            if p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+            gone.append(p.name)
+        lay.stage_record(stage).unlink(missing_ok=True)
+        state.report.get("stages", {}).pop(stage, None)
+    if gone:
+        write_json(lay.report, state.report)
+        bus.emit(Message("warning", f"{recomputed} was recomputed and the run stopped before "
+                                    f"{later[0]}: removed what the later stages had written from "
+                                    f"other inputs ({', '.join(gone)}); run them to make it again"))

@@ -7,10 +7,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from recon_core.cli import main
-from tests.conftest import gcp_feature
+from tests.conftest import gcp_feature, write_tiff
 
 
 def _site_json(site: Path, doc) -> None:
@@ -68,6 +69,8 @@ CASES = [
     ("negative workers", _four_control_gcps, ["--workers", "-1"], "--workers", "at least 1"),
     ("unknown stage", _four_control_gcps, ["--stage", "dsn"], "stage", "dsn"),
     ("coplanar control GCPs", _coplanar_control_gcps, [], "gcps.geojson", "height scale is undetermined"),
+    ("a blank image", lambda s: write_tiff(s / "images" / "b.tif", np.full((48, 64), 812, np.uint16),
+                                           when="2020:01:03 10:00:00"), [], "b.tif", "is blank"),
 ]
 
 

@@ -46,6 +46,30 @@ def test_changed_inputs_make_the_stages_stale(tiny_run, tmp_path):
     assert "dsm" not in finished_stages(out2, cfg, load_site(site2))
 
 
+def test_a_partial_rerun_on_other_inputs_leaves_no_product_of_the_earlier_run(tiny_run, tmp_path):
+    """The trial: `--stage sparse` from another site into a finished OUT rewrote report.json for
+    the new site but left the old dense cloud, upgrade, DSM and evaluation (and their summaries)
+    in place. Now the later stages' products, records and summaries go, with a warning."""
+    from recon_core.events import EventBus, Message
+
+    state, _ = tiny_run
+    site, out = _copy(state, tmp_path)
+    lay = OutLayout(out)
+    assert lay.dsm.exists() and lay.dense_ply(0).exists()
+    msgs = []
+    run(site, out, preset("tiny"), until="sparse", resume=False,
+        bus=EventBus(lambda ev: msgs.append(ev) if isinstance(ev, Message) else None))
+    report = json.loads(lay.report.read_text())
+    assert set(report["stages"]) == {"sparse"}
+    assert not any(lay.stage_products(s) for s in ("dense", "upgrade", "dsm", "eval"))
+    assert not lay.stage_record("dsm").exists() and lay.cameras(0).exists()
+    assert any(m.level == "warning" and "dsm.tif" in m.text for m in msgs), [m.text for m in msgs]
+    # resuming a finished run without recomputing anything removes nothing
+    site2, out2 = _copy(state, tmp_path / "b")
+    run(site2, out2, preset("tiny"), until="sparse")
+    assert OutLayout(out2).dsm.exists()
+
+
 def test_a_rerun_sweeps_an_interrupted_runs_scratch(tiny_run, tmp_path):
     state, _ = tiny_run
     site, out = _copy(state, tmp_path)

@@ -106,15 +106,23 @@ def disparity_range(d: np.ndarray, margin_px: float, margin_frac: float) -> tupl
 
 
 def to_8bit_pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One tone curve for both images: joint 0.5-99.5 percentiles, then a square root."""
-    v = np.concatenate([a[np.isfinite(a)].ravel()[::7], b[np.isfinite(b)].ravel()[::7]])
+    """One tone curve for both images: joint 0.5-99.5 percentiles, then a square root. Images
+    of different kinds (radiometric ranges that barely overlap: a float reflectance image
+    beside 12-bit counts) get a curve each, or the joint one would crush one of them to black."""
+    va, vb = (x[np.isfinite(x)].ravel()[::7] for x in (a, b))
+    v = np.concatenate([va, vb])
     lo, hi = np.percentile(v, [0.5, 99.5]) if len(v) else (0.0, 1.0)
 
-    def conv(x):
+    def conv(x, lo, hi):
         t = np.clip((x - lo) / max(hi - lo, 1e-6), 0, 1)
         return (np.sqrt(np.nan_to_num(t)) * 255 + 0.5).astype(np.uint8)
 
-    return conv(a), conv(b)
+    if len(va) and len(vb):
+        (la, ha), (lb, hb) = np.percentile(va, [0.5, 99.5]), np.percentile(vb, [0.5, 99.5])
+        inter = max(0.0, min(ha, hb) - max(la, lb))
+        if inter < 0.25 * (max(ha, hb) - min(la, lb)):
+            return conv(a, la, ha), conv(b, lb, hb)
+    return conv(a, lo, hi), conv(b, lo, hi)
 
 
 def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: PartnerSpec,

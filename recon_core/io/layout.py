@@ -116,6 +116,23 @@ class OutLayout:
     def dsm_vs_gt_png(self) -> Path:
         return self.eval_dir / "dsm_vs_gt.png"
 
+    def stage_products(self, stage: str) -> list[Path]:
+        """The files and folders a stage writes (those that exist), beside its record."""
+        if stage == "sparse":
+            found = [p for g in self.model_groups() for p in (self.cameras(g), self.sparse_ply(g),
+                                                             self.observations(g))]
+        elif stage == "dense":
+            found = [self.dense_ply(g) for g in self.model_groups()]
+        elif stage == "upgrade":
+            found = [self.root / "upgrade"]
+        elif stage == "dsm":
+            found = [self.dsm, self.root / "dsm_groups", self.cloud, self.cloud_laz]
+        elif stage == "eval":
+            found = [self.eval_dir]
+        else:
+            raise ValueError(f"unknown stage {stage!r}")
+        return [p for p in found if p.exists()]
+
     def scratch(self) -> list[Path]:
         """Scratch left by an interrupted run: atomic-write temporaries (.NAME.XXXXXXXX.SUFFIX),
         dense job parts (.dense_parts_*) and spilled DSM blocks (dsm_blocks_*), down to the

@@ -136,7 +136,7 @@ def test_truncated_tiff(small_site):
 
 
 def test_missing_time(small_site):
-    write_tiff(small_site / "images" / "c.tif", np.zeros((8, 8), np.uint16), when=None)
+    write_tiff(small_site / "images" / "c.tif", np.arange(64, dtype=np.uint16).reshape(8, 8), when=None)
     err = _expect_error(small_site, "no acquisition time")
     assert err.path.endswith("c.tif")
 
