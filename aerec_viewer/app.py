@@ -722,6 +722,7 @@ class ViewerApp:
             if x == 0.0 and y == 0.0:
                 raise GcpError("select a GCP, or type the new GCP's ground coordinates "
                                "(or take one from the site list) before clicking")
+        self.gcp_panel.check_choice(client)
         in_loupe = self.in_loupe(self.pick_plane.window)
         if not in_loupe and self.gcp_panel.zoom_click.value:
             self.open_loupe(pix, client)
@@ -741,6 +742,7 @@ class ViewerApp:
             raise
         if created:
             merge_last(self.session, 2, f"new {gid} observed in {image}")
+            self.gcp_panel.note_choice(client, gid)
         self.last_click = (gid, image, pix[0], pix[1])
         if in_loupe:
             self.close_loupe(client)

@@ -175,6 +175,7 @@ class GcpPanel:
         self.status = gui.add_markdown("")
         self._delete_armed: tuple[str, float] | None = None
         self.prediction = None              # (gid, Prediction) shown, waiting for Accept
+        self.chosen: dict[int, str] = {}     # client id -> what that tab chose in the GCP list
         self._wire()
         self.shortcuts = self._add_shortcuts(gui)
         gui.add_markdown("Keys: " + ", ".join(f"**{k}** {what}" for k, what, _ in self.SHORTCUTS)
@@ -182,8 +183,8 @@ class GcpPanel:
 
     # key, what, action (the camera keeps viser's W A S D Q E and arrow keys)
     SHORTCUTS = (
-        ("N", "next GCP", lambda self, ev: self.step_gcp(+1)),
-        ("P", "previous GCP", lambda self, ev: self.step_gcp(-1)),
+        ("N", "next GCP", lambda self, ev: self.step_gcp(+1, ev.client)),
+        ("P", "previous GCP", lambda self, ev: self.step_gcp(-1, ev.client)),
         ("I", "next image", lambda self, ev: self.step_image(+1)),
         ("shift+I", "previous image", lambda self, ev: self.step_image(-1)),
         ("L", "look at the image plane", lambda self, ev: self.app.look_at_plane(ev.client)),
@@ -225,13 +226,14 @@ class GcpPanel:
         self.region.on_update(lambda _: app.submit(lambda: (self.app.close_loupe(),
                                                             self.app.show_image_plane())))
         self.leave_loupe.on_click(lambda ev: app.submit(lambda: self.app.close_loupe(ev.client)))
-        self.prev_gcp.on_click(lambda _: app.submit(lambda: self.step_gcp(-1)))
-        self.next_gcp.on_click(lambda _: app.submit(lambda: self.step_gcp(+1)))
+        self.prev_gcp.on_click(lambda ev: app.submit(lambda: self.step_gcp(-1, ev.client)))
+        self.next_gcp.on_click(lambda ev: app.submit(lambda: self.step_gcp(+1, ev.client)))
         self.place_all.on_click(lambda ev: app.submit(lambda: self._place_all(ev.client)))
         self.show_plane.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.contrast.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.goto.on_click(lambda ev: app.submit(lambda: self.app.look_at_plane(ev.client)))
-        self.select.on_update(lambda _: app.submit(lambda: (self.drop_prediction(), self.fill_fields())))
+        self.select.on_update(lambda ev: app.submit(lambda: (self.note_choice(ev.client),
+                                                             self.drop_prediction(), self.fill_fields())))
         self.crs.on_update(lambda _: app.submit(self._convert_fields))
         self.apply.on_click(lambda _: app.submit(self._apply))
         self.create.on_click(lambda _: app.submit(self._create))
@@ -415,7 +417,25 @@ class GcpPanel:
                       f"({pred.how}); Accept records it, or click the right pixel")
         return pred
 
-    def step_gcp(self, step: int) -> str | None:
+    def note_choice(self, client, value: str | None = None) -> None:
+        """Remember what this tab chose in the GCP list (the list itself is shared by all tabs)."""
+        if client is not None:
+            self.chosen[client.client_id] = self.select.value if value is None else value
+
+    def check_choice(self, client) -> None:
+        """Before a click records an observation: the GCP list is shared between tabs, so if
+        another tab has changed it since this tab chose, the click must not land on the other
+        tab's GCP. It records nothing and says so (the next click goes to what is shown)."""
+        if client is None:
+            return
+        cur = self.select.value
+        mine = self.chosen.get(client.client_id)
+        self.chosen[client.client_id] = cur
+        if mine is not None and mine != cur:
+            raise GcpError(f"another tab changed the GCP to {cur} after this tab chose {mine}: the "
+                           f"click recorded nothing; click again to place {cur}, or choose another")
+
+    def step_gcp(self, step: int, client=None) -> str | None:
         """Select the next (step +1) or previous (-1) GCP of the working set, wrapping."""
         ids = self.app.session.ids
         if not ids:
@@ -424,6 +444,7 @@ class GcpPanel:
         k = ids.index(gid) + step if gid in ids else (0 if step > 0 else len(ids) - 1)
         new = ids[k % len(ids)]
         self.app.gcps_changed(select=new, note=f"{new} selected")
+        self.note_choice(client, new)
         return new
 
     def _place_all(self, client=None) -> dict[str, str]:

@@ -27,7 +27,7 @@ from recon_core.events import EventBus, Message, ModelsReady, StageDone, StageSt
 from recon_core.io.files import write_json
 from recon_core.io.gcps import read_gcps_geojson, working_gcp_file
 from recon_core.io.layout import OutLayout
-from recon_core.io.site import Site, load_site
+from recon_core.io.site import Site, load_site, refuse_blank
 from recon_core.model.grouping import group_by_date
 from recon_core.sparse import stage as sparse_stage
 
@@ -169,6 +169,8 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     on its cloud). Raises InputError; returns warnings (a group that will not be upgraded)."""
     check_config(cfg)
     site, out = _open(site_path, out, until, redo_from)
+    for im in site.images:
+        refuse_blank(im)
     try:
         probe = out / f".aerec_write_test_{os.getpid()}"
         probe.write_bytes(b"")

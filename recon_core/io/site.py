@@ -105,21 +105,26 @@ def _acquisition_time(path: Path, tags: dict) -> tuple[datetime | None, str]:
     return (t, "TIFFTAG_DATETIME") if t else (None, "none")
 
 
-def _refuse_blank(path: Path, ds, last: np.ndarray) -> None:
+def refuse_blank(image: "ImageInfo") -> None:
     """A blank image (one value everywhere: a failed export, an all-black product) gives no
     feature and ended, after sparse and dense, in an error that blamed the GCPs. 3 x 3 windows
-    of 32 px and the last rows read above: all one value (nodata aside) refuses it now."""
-    w, h = min(ds.width, 32), min(ds.height, 32)
-    parts = [last.ravel()]
-    for fy in (0.1, 0.5, 0.9):
-        for fx in (0.1, 0.5, 0.9):
-            c0 = int(fx * (ds.width - w))
-            r0 = int(fy * (ds.height - h))
-            parts.append(ds.read(1, window=Window(c0, r0, w, h)).ravel())
+    of 32 px and the last rows all one value (nodata aside): InputError naming it. `aerec run`
+    checks this before any compute (the reconstruction itself copes with textureless tiles)."""
+    path = image.path
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        with rasterio.open(path) as ds:
+            w, h = min(ds.width, 32), min(ds.height, 32)
+            parts = [ds.read(1, window=Window(0, ds.height - h, ds.width, h)).ravel()]
+            for fy in (0.1, 0.5, 0.9):
+                for fx in (0.1, 0.5, 0.9):
+                    c0, r0 = int(fx * (ds.width - w)), int(fy * (ds.height - h))
+                    parts.append(ds.read(1, window=Window(c0, r0, w, h)).ravel())
+            nodata = ds.nodata
     v = np.concatenate(parts).astype(np.float64)
     v = v[np.isfinite(v)]
-    if ds.nodata is not None:
-        v = v[v != ds.nodata]
+    if nodata is not None:
+        v = v[v != nodata]
     if len(v) and v.min() == v.max():
         raise InputError(path, f"is blank: every pixel sampled has the value {v[0]:g} (nothing to "
                                "match in it; check the export)")
@@ -141,8 +146,7 @@ def open_image(path: Path) -> ImageInfo:
                     raise InputError(path, f"pixel type {dtype}; expected uint8, uint16 or float32")
                 # Read the last block row: a truncated file fails here, not deep in a stage.
                 h = min(ds.height, 16)
-                last = ds.read(1, window=Window(0, ds.height - h, ds.width, h))
-                _refuse_blank(path, ds, last)
+                ds.read(1, window=Window(0, ds.height - h, ds.width, h))
                 info = ImageInfo(name=path.name, path=path, width=ds.width, height=ds.height,
                                  bands=ds.count, dtype=dtype, nodata=ds.nodata, acquired=None,
                                  time_source="none", has_rpc=bool(ds.rpcs))

@@ -818,6 +818,40 @@ def test_role_and_enable_toggles_are_saved_undoable_and_drive_readiness(live):
     assert "enabled" not in saved[gid] and saved[gid]["role"] == "control"
 
 
+def test_a_click_never_lands_on_the_gcp_another_tab_chose(live):
+    """The GCP list is shared by the tabs: tab A chooses one GCP, tab B then another; A's next
+    click records nothing (and says which GCP is now chosen) instead of observing B's GCP; its
+    click after that, and B's clicks, go through."""
+    from types import SimpleNamespace
+
+    app, events, trace, out, site, cfg = live
+    gp = app.gcp_panel
+    a, b = SimpleNamespace(client_id=9001), SimpleNamespace(client_id=9002)
+    ids = app.session.ids
+    g1, g2 = ids[0], ids[1]
+    before = {g: dict(app.session.get(g).observations) for g in (g1, g2)}
+    app.call(lambda: gp.refresh(select=g1))
+    app.call(lambda: gp.note_choice(a))                        # A chose g1 in the list
+    app.call(lambda: gp.step_gcp(+1, b))                       # B pressed N: g2 for everyone
+    assert gp.selected() == g2
+    if app.pick_plane is None:
+        app.call(lambda: app.show_image_plane(wait=True))
+    o, d = _ray_to(app, 120.0, 130.0)
+    with pytest.raises(GcpError, match=f"another tab changed the GCP to {g2}"):
+        app.call(lambda: app.on_plane_click(o, d, a))
+    assert {g: dict(app.session.get(g).observations) for g in (g1, g2)} == before
+    n_undo = len(app.session._undo)
+    try:
+        assert app.call(lambda: app.on_plane_click(o, d, b)) is not None          # B: its own GCP
+        assert app.call(lambda: app.on_plane_click(o, d, a)) is not None          # A, warned: goes through
+        assert len(app.session._undo) == n_undo + 2
+    finally:
+        for _ in range(len(app.session._undo) - n_undo):
+            app.call(lambda: undo(app.session))
+        app.call(lambda: app.gcps_changed(select=g1))
+    assert {g: dict(app.session.get(g).observations) for g in (g1, g2)} == before
+
+
 def test_gcp_panel_is_safe_to_edit(live):
     """The operator's safety nets in the GCP tab: choosing "(new GCP ...)" empties the ground
     fields, so a click cannot create a control GCP at the previous GCP's coordinates; Delete asks

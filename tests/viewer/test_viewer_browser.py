@@ -197,6 +197,19 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     # the pick shows in the second tab's message list (its Reconstruction tab is open)
     page2.get_by_text(f"{gid}: observed in {image}").filter(visible=True).first.wait_for(
         timeout=60_000)
+    # the GCP list is shared: the second tab chooses the next GCP; the first tab's next click
+    # must not land on it (it records nothing and says so)
+    page2.get_by_role("tab", name="GCPs").click()
+    page2.get_by_role("button", name="Next GCP").click()
+    wait_for(lambda: app.gcp_panel.select.value != gid, 20, "the second tab's Next GCP")
+    other = app.gcp_panel.select.value
+    held = {g: dict(app.session.get(g).observations) for g in (gid, other)}
+    x3, y3 = project(client, app.pick_plane.point_of(win.col0 + 0.3 * win.width, win.row0 + 0.3 * win.height))
+    page.mouse.click(x3, y3)
+    wait_for(lambda: any(f"another tab changed the GCP to {other}" in t
+                         for _, t in app.worker.snapshot().messages), 20, "the refused click")
+    assert {g: dict(app.session.get(g).observations) for g in (gid, other)} == held and app.loupe is None
+    app.call(lambda: setattr(app.gcp_panel.select, "value", gid))
     page2.close()
 
     # upgrade from the browser, then the Euclidean scene and the residual table
