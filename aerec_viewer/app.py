@@ -896,7 +896,17 @@ class ViewerApp:
         self._marks_key = None
         self._draw_marks()
 
-    RESIDUAL_SCALE = 20.0          # residual vectors on the image plane: 1 px drawn as 20 px
+    RESIDUAL_SCALE = 20.0          # residual vectors on the image plane: 1 px drawn as >= 20 px
+
+    def residual_scale(self) -> float:
+        """The vectors' magnification for the window on the plane: 1 px of residual is drawn as
+        about 5 % of the window (a round 20, 50, 100, 200 or 500), so a 1 px residual shows on a
+        whole 2000 px image as well as in the loupe."""
+        if self.pick_plane is None:
+            return self.RESIDUAL_SCALE
+        w = self.pick_plane.window
+        target = 0.05 * max(w.width, w.height)
+        return float(next((n for n in (20, 50, 100, 200, 500) if n >= target), 500))
 
     def residual_vectors(self) -> dict[str, tuple[tuple[float, float], tuple[float, float]]]:
         """GCP id -> (observed pixel, residual observed - reprojected) in the plane's image, for
@@ -918,7 +928,7 @@ class ViewerApp:
         return out
 
     def _draw_residual_vectors(self) -> None:
-        """Orange segments from each observation along its residual (x RESIDUAL_SCALE), with a
+        """Orange segments from each observation along its residual (x residual_scale()), with a
         legend; red when the residual exceeds 1 px."""
         for h in self._residual_nodes:
             h.remove()
@@ -927,7 +937,7 @@ class ViewerApp:
         if not vecs or self.pick_plane is None:
             return
         pl = self.pick_plane
-        k = self.RESIDUAL_SCALE
+        k = self.residual_scale()
         seg = np.array([[pl.point_of(c, r, lift=0.002 * pl.render_width),
                          pl.point_of(c + k * dx, r + k * dy, lift=0.002 * pl.render_width)]
                         for (c, r), (dx, dy) in vecs.values()], dtype=np.float32)

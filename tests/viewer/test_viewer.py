@@ -1196,7 +1196,7 @@ def test_predict_then_accept_from_the_gcp_panel(live):
 
 def test_residual_vectors_on_the_image_plane(live):
     """Each GCP observed in the plane's image and in another image of its group gets a segment
-    from its observation along its reprojection residual (x RESIDUAL_SCALE); a misclick of a few
+    from its observation along its reprojection residual (x residual_scale()); a misclick of a few
     pixels shows as a long red one."""
     from aerec_viewer.prediction import observation_residuals
 
@@ -1221,9 +1221,13 @@ def test_residual_vectors_on_the_image_plane(live):
     k = list(app.call(app.residual_vectors)).index(gid)
     a, b = np.asarray(seg.points[k], float)
     pl = app.pick_plane
-    np.testing.assert_allclose(b - a, pl.point_of(c2 + app.RESIDUAL_SCALE * dx, r2 + app.RESIDUAL_SCALE * dy)
+    np.testing.assert_allclose(b - a, pl.point_of(c2 + app.residual_scale() * dx, r2 + app.residual_scale() * dy)
                                - pl.point_of(c2, r2), atol=1e-3)
     assert tuple(np.asarray(seg.colors)[k, 0]) == (220, 30, 30)
+    # the magnification follows the window: ~5 % of it per pixel of residual, 20 at least
+    w = pl.window
+    assert app.residual_scale() >= max(20.0, 0.05 * max(w.width, w.height))
+    assert f"x{app.residual_scale():g}" in app._residual_nodes[1].text
     app.call(lambda: undo(app.session))
     app.call(lambda: app.gcps_changed(select=gid))
 
