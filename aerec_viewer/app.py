@@ -181,6 +181,8 @@ class ViewerApp:
         self._reframe_on_plane = False
         self._marks: dict[str, tuple] = {}   # path -> (ring, label, colour, radius, pos)
         self._residual_nodes: list = []      # the residual vectors on the image plane and their legend
+        self._drag_handle = None             # the drag handle on the selected observation (loupe)
+        self._drag_key = None
         self._state_table_key = None
         self._marks_key = None
         self._armed = None
@@ -890,6 +892,66 @@ class ViewerApp:
                                  anchor="bottom-left", font_screen_scale=0.7)
             self._marks[name] = (ring, label, col, r, pos)
         self._draw_residual_vectors()
+        self._draw_drag_handle()
+
+    def drag_target(self) -> tuple[str, str, tuple[float, float]] | None:
+        """(GCP, image, pixel) the drag handle adjusts: the selected GCP's observation, when the
+        loupe shows it (full-resolution pixels: a drag there is as precise as a click)."""
+        gid, pl = self.gcp_panel.selected(), self.pick_plane
+        if gid is None or pl is None or self.loupe is None or not self.in_loupe(pl.window) \
+                or gid not in self.session.ids:
+            return None
+        ob = self.session.get(gid).observations.get(pl.window.image)
+        if ob is None or not pl.window.contains([ob])[0]:
+            return None
+        return gid, pl.window.image, (float(ob[0]), float(ob[1]))
+
+    def _draw_drag_handle(self) -> None:
+        """Arrows in the plane (no rotation, no height) on the selected GCP's observation in the
+        loupe: dragging them moves the observation, which is recorded when the drag ends."""
+        want = self.drag_target()
+        key = None if want is None else (want, tuple(self.pick_plane.position))
+        if key == self._drag_key:
+            return
+        if self._drag_handle is not None:
+            self._drag_handle.remove()
+            self._drag_handle = None
+        self._drag_key = key
+        if want is None:
+            return
+        gid, image, ob = want
+        pl = self.pick_plane
+        h = self.server.scene.add_transform_controls(
+            "/gcp/drag", scale=0.18 * pl.render_width, line_width=2.0, disable_rotations=True,
+            active_axes=(True, True, False), depth_test=False,
+            position=tuple(pl.point_of(*ob, lift=0.004 * pl.render_width)))
+
+        @h.on_update
+        def _(ev) -> None:
+            if ev.phase == "end":
+                pos = np.array(ev.target.position, dtype=np.float64)
+                self.submit(lambda: self.on_handle_dragged(gid, image, pos, ev.client))
+        self._drag_handle = h
+
+    def on_handle_dragged(self, gid: str, image: str, position, client=None) -> tuple[float, float] | None:
+        """The drag handle was released at `position` (display coordinates): the GCP's
+        observation in `image` moves to the pixel under it."""
+        pl = self.pick_plane
+        if pl is None or pl.window.image != image or gid not in self.session.ids:
+            self._drag_key = None
+            self._draw_drag_handle()
+            return None
+        p = np.asarray(position, dtype=np.float64)
+        pix = pixel_from_ray(pl, p + np.array([0.0, 0.0, pl.render_width]), np.array([0.0, 0.0, -1.0]))
+        if pix is None:
+            self._drag_key = None
+            self._draw_drag_handle()
+            self.note("the drag left the image: nothing moved", "warning")
+            return None
+        add_observation(self.session, gid, image, *pix)
+        self.gcps_changed(select="keep", note=f"{gid}: moved in {image} to col {pix[0]:.2f}, "
+                                              f"row {pix[1]:.2f} (dragged)")
+        return pix
 
     def _resize_marks(self) -> None:
         """Redraw the rings at the size the last zoom asks for."""

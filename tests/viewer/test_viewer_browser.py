@@ -238,3 +238,50 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
         page.keyboard.press("p")
         wait_for(lambda: app.gcp_panel.select.value == (start if start in ids else ids[-1]), 20,
                  "the P key to select the previous GCP")
+
+
+def test_drag_the_handle_in_the_loupe_to_adjust_an_observation(browser_app, tiny_run, tmp_path):
+    """In the loupe, the selected GCP's observation carries a drag handle (arrows and a square
+    in the image plane): a mouse drag of 2 image pixels along the columns moves the observation
+    by 2 pixels, to a tenth of a pixel, and says so; no click is recorded on the way."""
+    from aerec_viewer.app import ViewerApp
+
+    ctx = browser_app[2]                  # one Playwright per process: the module's browser
+    state, _ = tiny_run
+    out = tmp_path / "out"
+    shutil.copytree(state.out, out)
+    app = ViewerApp(out, state.site.root, None, mode="reopen", port=0)
+    app.start()
+    try:
+        page = ctx.new_page()
+        try:
+            page.goto(app.url)
+            client = wait_for(lambda: next(iter(app.server.get_clients().values()), None), 60, "the client")
+            gp = app.gcp_panel
+            gid = next(g.id for g in app.session.gcps if len(g.observations) >= 2)
+            app.call(lambda: gp.refresh(select=gid))
+            im = sorted(app.session.get(gid).observations)[0]
+            ob = app.session.get(gid).observations[im]
+            app.call(lambda: gp.jump_to(im, client))
+            app.wait_idle()
+            wait_for(lambda: app._drag_handle is not None and app.loupe is not None, 20, "the drag handle")
+            pl = app.pick_plane
+            time.sleep(2.0)                      # the camera's move above the loupe
+            shot(page, tmp_path, "6_drag_handle")
+            lift = 0.004 * pl.render_width
+            x0, y0 = project(client, pl.point_of(ob[0] + 3.0, ob[1], lift=lift))     # on the column arrow
+            x1, y1 = project(client, pl.point_of(ob[0] + 5.0, ob[1], lift=lift))
+            n_undo = len(app.session._undo)
+            page.mouse.move(x0, y0)
+            page.mouse.down()
+            page.mouse.move(x1, y1, steps=8)
+            page.mouse.up()
+            wait_for(lambda: app.session.get(gid).observations[im] != ob, 20, "the drag to reach the server")
+            c, r = app.session.get(gid).observations[im]
+            assert abs(c - (ob[0] + 2.0)) < 0.1 and abs(r - ob[1]) < 0.1, ((c, r), ob)
+            assert len(app.session._undo) == n_undo + 1
+            assert any(f"{gid}: moved in {im}" in t and "dragged" in t for _, t in app.worker.snapshot().messages)
+        finally:
+            page.close()
+    finally:
+        app.stop()
