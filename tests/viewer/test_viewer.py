@@ -1300,13 +1300,17 @@ def test_placing_in_other_images_keeps_only_predictions_that_agree(tiny_run, mon
     state, _ = tiny_run
     m = state.models[0]
     images = {im.name: im for im in state.site.images}
+
+    def each_gcp_from_one_click():
+        """(true observations, place_in_other_images from the first image's true pixel)."""
+        for g in _truth_gcps(state.site.root):
+            tob = {k: tuple(v) for k, v in g["true_observations"].items()}
+            if len(tob) >= 3:
+                src = sorted(tob)[0]
+                yield tob, pr.place_in_other_images(m, images, {src: tob[src]})
+
     errs, n_left = [], 0
-    for g in _truth_gcps(state.site.root):
-        tob = {k: tuple(v) for k, v in g["true_observations"].items()}
-        if len(tob) < 3:
-            continue
-        src = sorted(tob)[0]
-        placed, left, hints = pr.place_in_other_images(m, images, {src: tob[src]})
+    for tob, (placed, left, hints) in each_gcp_from_one_click():
         n_left += len(left)
         errs += [np.hypot(p.col - tob[im][0], p.row - tob[im][1]) for im, p in placed.items()]
     errs = np.array(errs)
@@ -1320,12 +1324,7 @@ def test_placing_in_other_images_keeps_only_predictions_that_agree(tiny_run, mon
 
     monkeypatch.setattr(pr, "refine_by_matching", wrong)
     refused = 0
-    for g in _truth_gcps(state.site.root):
-        tob = {k: tuple(v) for k, v in g["true_observations"].items()}
-        if len(tob) < 3:
-            continue
-        src = sorted(tob)[0]
-        placed, left, hints = pr.place_in_other_images(m, images, {src: tob[src]})
+    for tob, (placed, left, hints) in each_gcp_from_one_click():
         assert all(p.score is None for p in placed.values())          # no wrong match recorded
         assert all(np.hypot(p.col - tob[im][0], p.row - tob[im][1]) < 2.0 for im, p in placed.items())
         refused += sum("does not agree" in why for why in left.values())
