@@ -91,6 +91,10 @@ def cmd_info(args) -> int:
         print(f"{len(groups)} date group(s) (gap < {args.max_gap_days:g} d, {cap}):")
         for g in groups:
             print(f"  {g.describe()}: {', '.join(im.name for im in g.images)}")
+    if not (site.root / "gcps.geojson").exists():
+        for csv in sorted(site.root.glob("*.csv")):
+            print(f"note: {csv.name} is not read (the site's GCPs are gcps.geojson): "
+                  f"aerec gcps convert {csv} {site.root / 'gcps.geojson'}")
     n_ctrl = sum(g.role == "control" and g.enabled for g in site.gcps)
     n_off = sum(not g.enabled for g in site.gcps)
     print(f"{len(site.gcps)} GCP(s): {n_ctrl} control, {len(site.gcps) - n_ctrl - n_off} check"

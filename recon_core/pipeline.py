@@ -184,8 +184,12 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
         gcp_path, {im.name: im for im in site.images})
     notes = [] if (w := gcp_file_note(site.root, out)) is None else [w]
     if not gcps:
+        csv = sorted(site.root.glob("*.csv"))
+        hint = (f"; {csv[0].name} is not read: `aerec gcps convert {csv[0]} {site.root / 'gcps.geojson'}`"
+                if csv and not (site.root / "gcps.geojson").exists() else "")
         raise InputError(gcp_path, "no GCP: the Euclidean upgrade needs >= 4 control GCPs observed "
-                                   "in >= 2 images of each date group (stop before it with --stage dense)")
+                                   "in >= 2 images of each date group (stop before it with --stage dense)"
+                                   + hint)
     groups = group_by_date(site.images, cfg.grouping.max_gap_days, cfg.grouping.max_span_days)
     warnings, ok, flat = [], [], []
     for level, g, text in gcp_findings(groups, gcps, cfg):

@@ -64,6 +64,8 @@ CASES = [
     ("gcps file is a folder", _gcps_dir, [], "gcps.geojson", "not a file"),
     ("too few control GCPs", lambda s: None, [], "gcps.geojson", "4 control GCPs"),
     ("no GCP file", lambda s: (s / "gcps.geojson").unlink(), [], "gcps.geojson", "no GCP"),
+    ("GCPs only as CSV", lambda s: ((s / "gcps.csv").write_text("id,x,y,h\n"), (s / "gcps.geojson").unlink()),
+     [], "gcps.geojson", "gcps.csv is not read: `aerec gcps convert"),
     ("unknown preset", _four_control_gcps, ["--preset", "huge"], "--preset", "huge"),
     ("negative tile size", _four_control_gcps, ["--tile-size", "-5"], "--tile-size", "64"),
     ("negative workers", _four_control_gcps, ["--workers", "-1"], "--workers", "at least 1"),
