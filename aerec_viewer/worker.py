@@ -485,10 +485,15 @@ class ReconWorker:
     def _run_pipeline(self) -> None:
         from recon_core import pipeline
         from recon_core.config import Config
-        from recon_core.io.site import load_site
+        from recon_core.io.site import load_site, refuse_blank
 
         cfg = self.cfg or Config()
-        done = pipeline.finished_stages(self.out, cfg, load_site(self.site)) if self.redo_from is None else set()
+        site = load_site(self.site)
+        done = pipeline.finished_stages(self.out, cfg, site) if self.redo_from is None else set()
+        if "sparse" not in done:              # what `aerec run` refuses before any compute
+            pipeline.check_config(cfg)
+            for im in site.images:
+                refuse_blank(im)
         if "sparse" in done:
             self._replay_saved(dense="dense" in done)
         state = pipeline.run(self.site, self.out, cfg, until=self.until,

@@ -1330,3 +1330,17 @@ def test_placing_in_other_images_keeps_only_predictions_that_agree(tiny_run, mon
         refused += sum("does not agree" in why for why in left.values())
         assert set(hints) <= set(left) and all(h.score is None for h in hints.values())
     assert refused >= 4, refused
+
+
+def test_the_viewer_refuses_a_blank_image_before_computing(small_site, tmp_path):
+    """What `aerec run` refuses before any compute, the viewer's worker refuses too, naming the
+    file: a blank image no longer runs sparse and dense to fail on the GCPs."""
+    from recon_core.config import preset
+    from tests.conftest import write_tiff
+
+    write_tiff(small_site / "images" / "b.tif", np.full((48, 64), 812, np.uint16), when="2020:01:03 10:00:00")
+    w = ReconWorker(small_site, tmp_path / "out", preset("tiny"), mode="run", until="sparse").start()
+    assert w.join(60)
+    snap = w.snapshot()
+    assert snap.status == "failed" and "b.tif" in snap.error and "is blank" in snap.error, snap.error
+    assert not (tmp_path / "out" / "affine").exists()
