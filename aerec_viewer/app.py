@@ -518,6 +518,7 @@ class ViewerApp:
         return lo, hi
 
     def _on_connect(self, client) -> None:
+        self.gcp_panel.note_choice(client, chooser=False)   # what this tab sees at first
         client.camera.on_update(self._camera_update)
         self.submit(lambda: self._frame_client(client))
 
@@ -930,13 +931,17 @@ class ViewerApp:
         def _(ev) -> None:
             if ev.phase == "end":
                 pos = np.array(ev.target.position, dtype=np.float64)
-                self.submit(lambda: self.on_handle_dragged(gid, image, pos, ev.client))
+                self.submit(lambda: self.on_handle_dragged(gid, image, pos, ev.client, handle=h, plane=pl))
         self._drag_handle = h
 
-    def on_handle_dragged(self, gid: str, image: str, position, client=None) -> tuple[float, float] | None:
-        """The drag handle was released at `position` (display coordinates): the GCP's
-        observation in `image` moves to the pixel under it."""
-        pl = self.pick_plane
+    def on_handle_dragged(self, gid: str, image: str, position, client=None, handle=None,
+                          plane: PickPlane | None = None) -> tuple[float, float] | None:
+        """The drag handle was released at `position` (display coordinates, on `plane`, the plane
+        it was drawn on): the GCP's observation in `image` moves to the pixel under it. A handle
+        replaced meanwhile (the plane moved, another tab edited) is ignored."""
+        if handle is not None and handle is not self._drag_handle:
+            return None
+        pl = plane or self.pick_plane
         if pl is None or pl.window.image != image or gid not in self.session.ids:
             self._drag_key = None
             self._draw_drag_handle()
@@ -948,6 +953,9 @@ class ViewerApp:
             self._draw_drag_handle()
             self.note("the drag left the image: nothing moved", "warning")
             return None
+        was = self.session.get(gid).observations.get(image)
+        if was is not None and np.hypot(pix[0] - was[0], pix[1] - was[1]) < 1e-3:
+            return None                      # pressed and released without moving
         add_observation(self.session, gid, image, *pix)
         self.gcps_changed(select="keep", note=f"{gid}: moved in {image} to col {pix[0]:.2f}, "
                                               f"row {pix[1]:.2f} (dragged)")

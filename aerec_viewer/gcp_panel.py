@@ -175,7 +175,8 @@ class GcpPanel:
         self.status = gui.add_markdown("")
         self._delete_armed: tuple[str, float] | None = None
         self.prediction = None              # (gid, Prediction) shown, waiting for Accept
-        self.chosen: dict[int, str] = {}     # client id -> what that tab chose in the GCP list
+        self.chosen: dict[int, str] = {}     # client id -> what that tab chose or saw in the GCP list
+        self.last_chooser: tuple[int, str] | None = None   # the tab that changed the list last, and to what
         self._wire()
         self.shortcuts = self._add_shortcuts(gui)
         gui.add_markdown("Keys: " + ", ".join(f"**{k}** {what}" for k, what, _ in self.SHORTCUTS)
@@ -232,8 +233,10 @@ class GcpPanel:
         self.show_plane.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.contrast.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.goto.on_click(lambda ev: app.submit(lambda: self.app.look_at_plane(ev.client)))
-        self.select.on_update(lambda ev: app.submit(lambda: (self.note_choice(ev.client),
-                                                             self.drop_prediction(), self.fill_fields())))
+        def chosen(ev) -> None:          # the value this tab chose, read now, not when queued
+            v = ev.target.value
+            app.submit(lambda: (self.note_choice(ev.client, v), self.drop_prediction(), self.fill_fields()))
+        self.select.on_update(chosen)
         self.crs.on_update(lambda _: app.submit(self._convert_fields))
         self.apply.on_click(lambda _: app.submit(self._apply))
         self.create.on_click(lambda _: app.submit(self._create))
@@ -344,6 +347,9 @@ class GcpPanel:
         col, row = obs[image]
 
         def show() -> None:
+            if (self.selected() != gid or self.image.value != image
+                    or self.app.session.get(gid).observations.get(image) != (col, row)):
+                return
             self.app.open_loupe((col, row), client, image=image)
             self.app.note(f"{gid} in {image} at col {col:.2f}, row {row:.2f}: a click in the loupe "
                           "moves it, Escape leaves it as it is")
@@ -417,21 +423,29 @@ class GcpPanel:
                       f"({pred.how}); Accept records it, or click the right pixel")
         return pred
 
-    def note_choice(self, client, value: str | None = None) -> None:
-        """Remember what this tab chose in the GCP list (the list itself is shared by all tabs)."""
-        if client is not None:
-            self.chosen[client.client_id] = self.select.value if value is None else value
+    def note_choice(self, client, value: str | None = None, chooser: bool = True) -> None:
+        """Remember what this tab chose in the GCP list (the list itself is shared by all tabs);
+        `chooser`: the tab changed the list itself (not only looked at it)."""
+        if client is None:
+            return
+        v = self.select.value if value is None else value
+        self.chosen[client.client_id] = v
+        if chooser:
+            self.last_chooser = (client.client_id, v)
 
     def check_choice(self, client) -> None:
         """Before a click records an observation: the GCP list is shared between tabs, so if
-        another tab has changed it since this tab chose, the click must not land on the other
-        tab's GCP. It records nothing and says so (the next click goes to what is shown)."""
+        another tab has chosen the GCP now shown since this tab chose or saw its own, the click
+        must not land on the other tab's GCP. It records nothing and says so (the next click goes
+        to what is shown). One tab alone is never refused, whatever its actions did to the list."""
         if client is None:
             return
         cur = self.select.value
         mine = self.chosen.get(client.client_id)
         self.chosen[client.client_id] = cur
-        if mine is not None and mine != cur:
+        other = self.last_chooser
+        if mine is not None and mine != cur and other is not None and other[0] != client.client_id \
+                and other[1] == cur:
             raise GcpError(f"another tab changed the GCP to {cur} after this tab chose {mine}: the "
                            f"click recorded nothing; click again to place {cur}, or choose another")
 
@@ -485,8 +499,14 @@ class GcpPanel:
         loupe opens at the prediction, which Enter accepts as it is."""
         if self.image.value != pred.image:
             self.image.value = pred.image       # its callback queues: drop prediction, redraw
+        made_from = dict(self.app.session.get(gid).observations)
 
         def offer() -> None:
+            # the operator may have acted in between (Undo, N, another image): offer only the
+            # prediction of the state it was made from
+            if (gid not in self.app.session.ids or self.selected() != gid or self.image.value != pred.image
+                    or dict(self.app.session.get(gid).observations) != made_from):
+                return
             self.prediction = (gid, pred)
             self.accept.disabled = False
             self.accept.label = f"Accept: {gid} at col {pred.col:.2f}, row {pred.row:.2f}"

@@ -393,6 +393,18 @@ def _terminate(signum, frame) -> None:
     raise KeyboardInterrupt          # SIGTERM ends a run as Ctrl-C does: cleanup runs
 
 
+def _stdout_reader_gone() -> bool:
+    """Is stdout a pipe whose reader has closed it (poll reports an error on its write end)?"""
+    import select
+
+    try:
+        p = select.poll()
+        p.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in p.poll(0))
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
 def _disk_full(exc: BaseException) -> bool:
     """The machine, not the input: a full disk, a quota, a file system gone read-only, also as
     numpy's short write ("N requested and M written") or GDAL's "Write error"."""
@@ -407,6 +419,8 @@ def main(argv: list[str] | None = None) -> int:
     import signal
     import threading
 
+    global _INTERRUPTED
+    _INTERRUPTED = False
     args = build_parser().parse_args(argv)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
@@ -420,6 +434,8 @@ def main(argv: list[str] | None = None) -> int:
         print("aerec: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:               # `aerec info SITE | head`: the reader left, not an error
+        if not _stdout_reader_gone():
+            raise                         # another pipe broke (a worker's): a real failure
         try:
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         except OSError:

@@ -339,3 +339,15 @@ def test_a_short_write_is_reported_as_a_full_disk(tiny_site, tmp_path, capsys, m
                  "sparse", "--quiet"])
     err = capsys.readouterr().err
     assert code == 1 and "Traceback" not in err and "is the disk full?" in err, err
+
+
+def test_a_broken_pipe_that_is_not_stdout_is_not_swallowed(monkeypatch):
+    """Only a reader leaving stdout ends quietly; a pipe to a dead worker is a real failure."""
+    import recon_core.cli as cli
+
+    def broken(args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(cli, "cmd_info", broken)
+    with pytest.raises(BrokenPipeError):
+        main(["info", "x"])

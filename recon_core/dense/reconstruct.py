@@ -108,7 +108,8 @@ def disparity_range(d: np.ndarray, margin_px: float, margin_frac: float) -> tupl
 def to_8bit_pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One tone curve for both images: joint 0.5-99.5 percentiles, then a square root. Images
     of different kinds (radiometric ranges that barely overlap: a float reflectance image
-    beside 12-bit counts) get a curve each, or the joint one would crush one of them to black."""
+    beside 12-bit counts: robust widths 20x apart or more) get a curve each, or the joint one
+    would crush one of them to black; a dark and a bright image of one kind keep the joint one."""
     va, vb = (x[np.isfinite(x)].ravel()[::7] for x in (a, b))
     v = np.concatenate([va, vb])
     lo, hi = np.percentile(v, [0.5, 99.5]) if len(v) else (0.0, 1.0)
@@ -119,8 +120,8 @@ def to_8bit_pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     if len(va) and len(vb):
         (la, ha), (lb, hb) = np.percentile(va, [0.5, 99.5]), np.percentile(vb, [0.5, 99.5])
-        inter = max(0.0, min(ha, hb) - max(la, lb))
-        if inter < 0.25 * (max(ha, hb) - min(la, lb)):
+        wa, wb = max(ha - la, 1e-12), max(hb - lb, 1e-12)
+        if max(wa, wb) > 20.0 * min(wa, wb):
             return conv(a, la, ha), conv(b, lb, hb)
     return conv(a, lo, hi), conv(b, lo, hi)
 

@@ -111,6 +111,17 @@ def refuse_blank(image: "ImageInfo") -> None:
     of 32 px and the last rows all one value (nodata aside): InputError naming it. `aerec run`
     checks this before any compute (the reconstruction itself copes with textureless tiles)."""
     path = image.path
+    try:
+        v, nodata = _sample_values(path)
+    except (RasterioIOError, rasterio.errors.RasterioError) as exc:
+        raise InputError(path, f"unreadable block ({str(exc).splitlines()[0]})") from None
+    if len(v) and v.min() == v.max():
+        raise InputError(path, f"is blank: every pixel sampled has the value {v[0]:g} (nothing to "
+                               "match in it; check the export)")
+
+
+def _sample_values(path: Path) -> tuple[np.ndarray, float | None]:
+    """Finite, non-nodata values of 3 x 3 windows of 32 px and the last rows of band 1."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
         with rasterio.open(path) as ds:
@@ -125,9 +136,7 @@ def refuse_blank(image: "ImageInfo") -> None:
     v = v[np.isfinite(v)]
     if nodata is not None:
         v = v[v != nodata]
-    if len(v) and v.min() == v.max():
-        raise InputError(path, f"is blank: every pixel sampled has the value {v[0]:g} (nothing to "
-                               "match in it; check the export)")
+    return v, nodata
 
 
 def open_image(path: Path) -> ImageInfo:

@@ -183,3 +183,6 @@ def test_a_float_image_beside_12_bit_counts_keeps_its_contrast_for_matching():
     assert b8.std() > 0.5 * a8.std() and np.corrcoef(a8.ravel(), b8.ravel())[0, 1] > 0.99
     a8, b8 = to_8bit_pair(counts, 1.2 * counts)             # one kind: one curve (gain kept)
     assert b8.mean() > a8.mean() + 5
+    dark, bright = counts / 3.0 + 40.0, 1.6 * counts + 100.0  # winter and summer, one kind
+    a8, b8 = to_8bit_pair(dark, bright)
+    assert b8.mean() > a8.mean() + 40

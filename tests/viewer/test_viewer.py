@@ -656,6 +656,12 @@ def test_a_click_in_the_loupe_walks_on_to_the_gcps_next_image(live):
     for im in list(saved):
         app.call(lambda im=im: remove_observation(app.session, gid, im))
     first = sorted(tob)[0]
+
+    def predict_now(image):
+        from aerec_viewer.prediction import predict_observation
+
+        return predict_observation(model, {im.name: im for im in app.site.images},
+                                   app.session.get(gid).observations, image)
     app.call(lambda: setattr(gp.image, "value", first))
     app.call(lambda: setattr(gp.zoom_click, "value", True))
     try:
@@ -669,6 +675,17 @@ def test_a_click_in_the_loupe_walks_on_to_the_gcps_next_image(live):
         assert nxt != first and nxt in tob and app.loupe is not None and app.loupe[0].image == nxt
         assert np.hypot(*(np.asarray(app.loupe[1]) - tob[nxt])) < 3.0, (app.loupe[1], tob[nxt])
         assert gp.prediction is not None and gp.prediction[1].image == nxt
+        # an offer made stale before it is shown (the operator pressed Undo meanwhile) is dropped
+        app.call(app.close_loupe)
+        app.call(gp.drop_prediction)
+        pred = gp.prediction
+        app.call(lambda: gp.show_hint(gid, predict_now(nxt), None) or undo(app.session))
+        app.wait_idle()
+        assert gp.prediction is None and app.loupe is None
+        app.call(lambda: redo(app.session))
+        app.call(lambda: gp.show_hint(gid, predict_now(nxt), None))
+        app.wait_idle()
+        assert gp.prediction is not None and app.loupe is not None and pred is None
         for _ in range(len(tob) - 1):                                   # Enter on each in turn
             app.call(gp._accept)
             app.wait_idle()
@@ -845,6 +862,11 @@ def test_a_click_never_lands_on_the_gcp_another_tab_chose(live):
         assert app.call(lambda: app.on_plane_click(o, d, b)) is not None          # B: its own GCP
         assert app.call(lambda: app.on_plane_click(o, d, a)) is not None          # A, warned: goes through
         assert len(app.session._undo) == n_undo + 2
+        # one tab's own actions that change the list on the server (Create, Delete, Undo, a
+        # selection made for it) never refuse its click
+        app.call(lambda: gp.refresh(select=g1))
+        assert app.call(lambda: app.on_plane_click(o, d, b)) is not None
+        assert len(app.session._undo) == n_undo + 3
     finally:
         for _ in range(len(app.session._undo) - n_undo):
             app.call(lambda: undo(app.session))

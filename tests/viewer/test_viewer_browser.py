@@ -277,6 +277,7 @@ def test_drag_the_handle_in_the_loupe_to_adjust_an_observation(browser_app, tiny
             page.mouse.move(x1, y1, steps=8)
             page.mouse.up()
             wait_for(lambda: app.session.get(gid).observations[im] != ob, 20, "the drag to reach the server")
+            app.wait_idle()                       # the edit is made before its note: let it finish
             c, r = app.session.get(gid).observations[im]
             assert abs(c - (ob[0] + 2.0)) < 0.1 and abs(r - ob[1]) < 0.1, ((c, r), ob)
             assert len(app.session._undo) == n_undo + 1
