@@ -248,3 +248,15 @@ def test_a_blunder_among_five_controls_is_flagged_as_ambiguous_and_by_the_check_
     # no blunder: no ambiguity and no check-point warning
     g[2].enu = enu[2]
     assert not [w for w in upgrade(g).warnings if "cannot tell" in w or "check points are off" in w]
+
+
+def test_no_ambiguity_warning_with_many_noisy_controls_and_one_blunder():
+    """12 control GCPs with 0.3 m noise and one 25 m blunder: RANSAC's choice is clear (swapping
+    the blunder for a good point costs far more), so no "cannot tell" warning."""
+    rng = np.random.default_rng(22)
+    enu, aff, H = scene(rng, 12)
+    g = gcps_from(enu + rng.normal(0, 0.3, enu.shape), aff)
+    g[5].enu = g[5].enu + np.array([0.0, 0.0, 25.0])
+    res = upgrade(g)
+    assert {p["id"] for p in res.points if p["status"] == "rejected"} == {"G05"}
+    assert not [w for w in res.warnings if "cannot tell" in w], res.warnings
