@@ -120,6 +120,10 @@ def demo_site(progress=None) -> Path:
         if warm is not None and warm.poll() is None:
             warm.kill()
         raise
+    if warm is not None:                  # it goes on compiling the BA kernels: reap it when done
+        import threading
+
+        threading.Thread(target=warm.wait, daemon=True, name="aerec-warmup-reaper").start()
     try:
         os.replace(tmp, site)
     except OSError:                       # another process won the race
