@@ -342,17 +342,29 @@ class GcpPanel:
         obs = self.app.session.get(gid).observations
         if image not in obs:
             raise GcpError(f"{gid} has no observation in {image}")
-        if self.image.value != image:
-            self.image.value = image            # its callback queues the redraw
         col, row = obs[image]
+        self._loupe_after_switch(gid, image, (col, row), client,
+                                 f"{gid} in {image} at col {col:.2f}, row {row:.2f}: a click in the "
+                                 "loupe moves it, Escape leaves it as it is")
+
+    def _loupe_after_switch(self, gid: str, image: str, pix: tuple[float, float], client,
+                            note: str, before_open: Callable[[], None] | None = None) -> None:
+        """Switch the plane to `image` (its callback queues the redraw and drops any prediction),
+        then, queued behind it, open the loupe at `pix`, unless the operator acted in between
+        (Undo, N, another image, an edit of this GCP): what is shown must match the state it
+        was computed from."""
+        if self.image.value != image:
+            self.image.value = image
+        made_from = dict(self.app.session.get(gid).observations)
 
         def show() -> None:
-            if (self.selected() != gid or self.image.value != image
-                    or self.app.session.get(gid).observations.get(image) != (col, row)):
+            if (gid not in self.app.session.ids or self.selected() != gid or self.image.value != image
+                    or dict(self.app.session.get(gid).observations) != made_from):
                 return
-            self.app.open_loupe((col, row), client, image=image)
-            self.app.note(f"{gid} in {image} at col {col:.2f}, row {row:.2f}: a click in the loupe "
-                          "moves it, Escape leaves it as it is")
+            if before_open is not None:
+                before_open()
+            self.app.open_loupe(pix, client, image=image)
+            self.app.note(note)
         self.app.submit(show)
 
     def _on_jump(self, client=None) -> None:
@@ -497,24 +509,14 @@ class GcpPanel:
     def show_hint(self, gid: str, pred, client=None) -> None:
         """Show an image left to the operator: the plane switches to it (queued redraw), then the
         loupe opens at the prediction, which Enter accepts as it is."""
-        if self.image.value != pred.image:
-            self.image.value = pred.image       # its callback queues: drop prediction, redraw
-        made_from = dict(self.app.session.get(gid).observations)
-
         def offer() -> None:
-            # the operator may have acted in between (Undo, N, another image): offer only the
-            # prediction of the state it was made from
-            if (gid not in self.app.session.ids or self.selected() != gid or self.image.value != pred.image
-                    or dict(self.app.session.get(gid).observations) != made_from):
-                return
             self.prediction = (gid, pred)
             self.accept.disabled = False
             self.accept.label = f"Accept: {gid} at col {pred.col:.2f}, row {pred.row:.2f}"
-            self.app.open_loupe((pred.col, pred.row), client, image=pred.image)
-            self.app.note(f"{gid} in {pred.image}: predicted at col {pred.col:.2f}, row {pred.row:.2f} "
-                          f"({pred.how}), shown in the loupe: click the exact pixel, or Enter to "
-                          "accept the prediction as it is")
-        self.app.submit(offer)
+        self._loupe_after_switch(gid, pred.image, (pred.col, pred.row), client,
+                                 f"{gid} in {pred.image}: predicted at col {pred.col:.2f}, row "
+                                 f"{pred.row:.2f} ({pred.how}), shown in the loupe: click the exact "
+                                 "pixel, or Enter to accept the prediction as it is", before_open=offer)
 
     def walk_on(self, gid: str, client=None) -> str | None:
         """After an observation of `gid`: open the loupe in the next image of its group(s) that

@@ -485,15 +485,14 @@ class ReconWorker:
     def _run_pipeline(self) -> None:
         from recon_core import pipeline
         from recon_core.config import Config
-        from recon_core.io.site import load_site, refuse_blank
+        from recon_core.io.site import load_site
 
         cfg = self.cfg or Config()
         site = load_site(self.site)
         done = pipeline.finished_stages(self.out, cfg, site) if self.redo_from is None else set()
         if "sparse" not in done:              # what `aerec run` refuses before any compute
             pipeline.check_config(cfg)
-            for im in site.images:
-                refuse_blank(im)
+            pipeline.check_images(site)
         if "sparse" in done:
             self._replay_saved(dense="dense" in done)
         state = pipeline.run(self.site, self.out, cfg, until=self.until,

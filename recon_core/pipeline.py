@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 import time
 from pathlib import Path
@@ -24,7 +23,7 @@ from recon_core.errors import InputError
 from recon_core.euclidean import dsm_stage, upgrade_stage
 from recon_core.evaluation import stage as eval_stage
 from recon_core.events import EventBus, Message, ModelsReady, StageDone, StageStarted
-from recon_core.io.files import write_json
+from recon_core.io.files import writable_folder, write_json
 from recon_core.io.gcps import read_gcps_geojson, working_gcp_file
 from recon_core.io.layout import OutLayout
 from recon_core.io.site import Site, load_site, refuse_blank
@@ -160,6 +159,20 @@ def check_config(cfg: Config) -> None:
         raise bad("sgbm.block_size", sb, "must be odd and positive")
 
 
+def check_images(site: Site) -> None:
+    """What the images can be refused for before any compute beyond opening them (a blank one)."""
+    for im in site.images:
+        refuse_blank(im)
+
+
+def _remove(paths: list[Path]) -> None:
+    for p in paths:
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+
+
 def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | None = None,
               redo_from: str | None = None) -> list[str]:
     """What can be checked before any compute, for a run that should reach `until`: the site
@@ -169,14 +182,8 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     on its cloud). Raises InputError; returns warnings (a group that will not be upgraded)."""
     check_config(cfg)
     site, out = _open(site_path, out, until, redo_from)
-    for im in site.images:
-        refuse_blank(im)
-    try:
-        probe = out / f".aerec_write_test_{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise InputError(out, f"cannot write the output folder ({exc.strerror or exc})") from None
+    check_images(site)
+    writable_folder(out, create=False)
     if STAGES.index(until or STAGES[-1]) < STAGES.index("upgrade"):
         return []
     gcp_path = working_gcp_file(site.root, out)
@@ -308,11 +315,7 @@ def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
     site, out = _open(site_path, out, until, redo_from)
     lay = OutLayout(out)
     swept = lay.scratch()
-    for p in swept:                            # an interrupted run's leftovers
-        if p.is_dir():
-            shutil.rmtree(p, ignore_errors=True)
-        else:
-            p.unlink(missing_ok=True)
+    _remove(swept)                             # an interrupted run's leftovers
     if swept:
         bus.emit(Message("info", f"removed {len(swept)} scratch file(s) of an interrupted run from {out}"))
     gcp_path = working_gcp_file(site.root, out)
@@ -362,12 +365,9 @@ def _drop_later_products(state: RunState, later: list[str], recomputed: str, bus
     lay = OutLayout(state.out)
     gone = []
     for stage in later:
-        for p in lay.stage_products(stage):
-            if p.is_dir():
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                p.unlink(missing_ok=True)
-            gone.append(p.name)
+        products = lay.stage_products(stage)
+        _remove(products)
+        gone += [p.name for p in products]
         lay.stage_record(stage).unlink(missing_ok=True)
         state.report.get("stages", {}).pop(stage, None)
     if gone:

@@ -479,6 +479,7 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
         r = np.array([apply_affine_3d(Hx, np.asarray(gcps[i].affine_xyz, float)[None])[0]
                       - np.asarray(gcps[i].enu, float) for i in checks])
         return float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+    now = check_rmse(H)
     if len(ctrl) > 4 and not inl.all():
         rivals = _rival_consensus(Xa, Xe, inl, ransac_thresh_m)
         if rivals:
@@ -487,16 +488,14 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
             text = (f"RANSAC cannot tell which control GCP is wrong: rejecting {' or '.join(alt_out)} "
                     f"instead of {now_out} fits the others as well (with {len(ctrl)} control GCPs a "
                     "blunder can look like a good point); verify them")
-            now = check_rmse(H)
             if now is not None:
                 alts = sorted((check_rmse(Hx), gcps[ctrl[i]].id) for _, i, Hx in rivals)
                 text += (f"; the check points are off by {now:.2f} m RMS (3D) with this fit, "
                          f"{alts[0][0]:.2f} m if {alts[0][1]} is rejected instead")
             result.warnings.append(text)
-    rm = check_rmse(H)
-    if rm is not None and rm > ransac_thresh_m:
+    if now is not None and now > ransac_thresh_m:
         result.warnings.append(
-            f"the check points are off by {rm:.2f} m RMS (3D), more than the {ransac_thresh_m:g} m "
+            f"the check points are off by {now:.2f} m RMS (3D), more than the {ransac_thresh_m:g} m "
             "the control GCPs must agree within: a control GCP (or a check point) is probably wrong; "
             "see the per-point residuals")
     return result
