@@ -154,6 +154,9 @@ def check_config(cfg: Config) -> None:
     for name, v in positive.items():
         if not (np.isfinite(v) and v > 0):
             raise bad(name, v, "must be positive")
+    tv = cfg.dense.max_two_view_spread
+    if not (np.isfinite(tv) and (tv == 0 or tv >= 1)):
+        raise bad("dense.max_two_view_spread", tv, "must be 0 (keep every two-view point) or at least 1")
     sb = cfg.sgbm.block_size
     if sb < 1 or sb % 2 == 0:
         raise bad("sgbm.block_size", sb, "must be odd and positive")

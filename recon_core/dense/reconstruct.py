@@ -60,6 +60,8 @@ class DenseJob:
     partners: list[PartnerSpec]
     cfg: DenseConfig
     matcher: StereoMatcher = field(default_factory=SgbmMatcher)
+    sigma_best: float | None = None    # the group's best image pair's triangulation spread
+                                       # (pair_spread); None = no two-view precision test
 
 
 @dataclass
@@ -89,6 +91,7 @@ class DenseResult:
     seconds: float = 0.0
     kernel_s: float = 0.0
     message: str | None = None
+    weak: np.ndarray | None = None     # (n,) bool: a two-view point of a weak pair (DSM fallback)
 
 
 # -- pair geometry ----------------------------------------------------------------------------
@@ -316,7 +319,15 @@ def run_job(job: DenseJob) -> DenseResult:
         best_q[im][idx] = q + (pt.col0, pt.row0)
         best_cam[im][idx] = len(cams) - 1
         best_c[im][idx] = centr
-    xyz, nv, err, keep_idx = _triangulate(pix, cams, best_q, best_cam, cfg.max_reproj_px, cfg.view_drop_rounds)
+    xyz, nv, err, keep_idx, pair = _triangulate(pix, cams, best_q, best_cam, cfg.max_reproj_px,
+                                                cfg.view_drop_rounds)
+    weak = np.zeros(len(xyz), bool)
+    if job.sigma_best and cfg.max_two_view_spread > 0 and len(xyz):
+        # a two-view point's height is as precise as its pair's geometry: those of a pair far
+        # weaker than the group's best (a small-angle pair) are marked, and the DSM uses them
+        # only in cells no other point reaches
+        spread = np.array([[pair_spread(a, b) for b in cams] for a in cams])
+        weak = (nv == 2) & (spread[pair[:, 0], pair[:, 1]] > cfg.max_two_view_spread * job.sigma_best)
     g8, _ = to_8bit_pair(ref_img, ref_img)
     gray = g8[loc[keep_idx, 1], loc[keep_idx, 0]]
     needed = [i for i in infos if i.skipped != NOT_NEEDED]
@@ -324,7 +335,16 @@ def run_job(job: DenseJob) -> DenseResult:
     msg = None if len(xyz) or not needed else \
         f"{rt.id}: no dense points ({'; '.join(i.skipped or 'no valid disparity' for i in needed)})"
     return DenseResult(job.group, rt.id, xyz, gray, nv.astype(np.uint8), err.astype(np.float32), infos,
-                       time.time() - t_start, kernel, msg)
+                       time.time() - t_start, kernel, msg, weak)
+
+
+def pair_spread(P1: np.ndarray, P2: np.ndarray) -> float:
+    """How far a point triangulated by two affine cameras (2, 4) moves per pixel of image
+    error, along its worst-determined direction: 1 / the smallest singular value of the stacked
+    4 x 3 linear parts. In one affine frame, pairs compare by it (a small intersection angle
+    gives a large spread, mostly in height)."""
+    s = np.linalg.svd(np.vstack([np.asarray(P1)[:2, :3], np.asarray(P2)[:2, :3]]), compute_uv=False)
+    return float(1.0 / s[-1]) if s[-1] > 0 else float("inf")
 
 
 def _triangulate(pix, cams, best_q, best_cam, max_err, rounds=3):
@@ -332,6 +352,8 @@ def _triangulate(pix, cams, best_q, best_cam, max_err, rounds=3):
 
     A point whose worst view is off by more than max_err loses that view (if it keeps >= 2)
     and is re-triangulated (`rounds` triangulations at most); points still off are dropped.
+    Returns (X, views, RMS error, kept pixel indices, (k, 2) the lowest and highest camera index
+    among each kept point's views: its pair when it has two).
     """
     n = len(pix)
     cams = np.array(cams)
@@ -359,7 +381,11 @@ def _triangulate(pix, cams, best_q, best_cam, max_err, rounds=3):
     keep = ok & (nv >= 2) & (worst <= max_err)
     rms = np.sqrt(sq / np.maximum(nv, 1))
     idx = np.flatnonzero(keep)
-    return X[idx], nv[idx], rms[idx], idx
+    lo = np.full(n, len(cams), np.int64)
+    hi = np.full(n, -1, np.int64)
+    np.minimum.at(lo, pt[good], cam[good])
+    np.maximum.at(hi, pt[good], cam[good])
+    return X[idx], nv[idx], rms[idx], idx, np.stack([lo[idx], hi[idx]], 1)
 
 
 # -- planning and running a group --------------------------------------------------------------
@@ -395,6 +421,7 @@ def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig,
     # sigma3/sigma4 over its tile pairs. A flat tile pair of a good image pair is still matched:
     # its low ratio says "no relief", not "no baseline".
     best_par: dict[tuple[str, str], float] = {}
+    spreads: dict[tuple[str, str], list[float]] = {}
     for r in reg:
         for t in reg:
             a, b = model.tiles[r].image, model.tiles[t].image
@@ -404,9 +431,14 @@ def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig,
             if len(common) >= max(cfg.min_pair_matches, 30):
                 par = affine.parallax_ratio(by_tile[r][1][ia], by_tile[t][1][ib])
                 best_par[(a, b)] = max(best_par.get((a, b), 0.0), par)
+                spreads.setdefault((a, b), []).append(pair_spread(model.cams[r], model.cams[t]))
 
     def _image_pair_has_parallax(a: str, b: str) -> bool:
         return best_par.get((a, b), 0.0) >= cfg.min_parallax_ratio
+    # the two-view precision test's yardstick: the group's most precise image pair (the median
+    # spread over its tile pairs)
+    good = [float(np.median(v)) for k, v in spreads.items() if _image_pair_has_parallax(*k)]
+    sigma_best = min(good) if good else None
 
     same_of: dict[str, list[Tile]] = {}
     for t in model.tiles:
@@ -431,7 +463,8 @@ def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig,
         if not partners:
             continue
         jobs.append(DenseJob(model.group, TileSpec(images[rt.image], rt, model.cams[r].copy()),
-                             tile_core(rt, same_of[rt.image]), partners, cfg, matcher or SgbmMatcher()))
+                             tile_core(rt, same_of[rt.image]), partners, cfg, matcher or SgbmMatcher(),
+                             sigma_best))
     return jobs
 
 
@@ -457,6 +490,7 @@ def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfi
     pairs, kernel, job_s = [], 0.0, 0.0
     next_id = 0
     views_hist = np.zeros(256, np.int64)
+    n_weak = 0
     err_edges = np.linspace(0.0, max(cfg.max_reproj_px, 1e-3) * 1.001, 2001)
     err_hist = np.zeros(len(err_edges) - 1, np.int64)
     if path is not None:
@@ -478,6 +512,8 @@ def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfi
                     rec = np.empty(len(res.xyz), _PART_DTYPE)
                     rec["xyz"], rec["gray"], rec["n_views"], rec["reproj_px"] = (res.xyz, res.gray,
                                                                                 res.n_views, res.reproj_px)
+                    rec["weak"] = False if res.weak is None else res.weak
+                    n_weak += int(rec["weak"].sum())
                     parts[res.ref] = Path(scratch) / f"{len(parts):06d}.npy"
                     np.save(parts[res.ref], rec)
                     bus.emit(PointsAdded(model.group, ids, res.xyz, np.repeat(res.gray[:, None], 3, 1),
@@ -493,13 +529,14 @@ def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfi
                 for ref in order:
                     rec = np.load(parts[ref])
                     w.append(rec["xyz"], rec["gray"][:, None], {"n_views": rec["n_views"].astype(np.float32),
-                                                               "reproj_px": rec["reproj_px"]})
+                                                               "reproj_px": rec["reproj_px"],
+                                                               "weak": rec["weak"].astype(np.float32)})
             cloud = None
         else:
             recs = [np.load(parts[ref]) for ref in order]
             rec = np.concatenate(recs) if recs else np.zeros(0, _PART_DTYPE)
             cloud = DenseCloud(rec["xyz"].copy(), rec["gray"].copy(), rec["n_views"].copy(),
-                               rec["reproj_px"].copy())
+                               rec["reproj_px"].copy(), rec["weak"].astype(bool))
     n_points = int(views_hist.sum())
     matched = [p for p in pairs if p.skipped is None]
     wall = time.time() - t0
@@ -513,6 +550,7 @@ def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfi
                                  if p.skipped and p.skipped != NOT_NEEDED},
                "points": n_points,
                "views_histogram": np.trim_zeros(views_hist, "b").tolist(),
+               "weak_pair_points": n_weak,
                "median_reproj_px": med_err,
                "median_rectified_row_err_px": float(np.median([p.row_err_px for p in matched])) if matched else None,
                "median_fa_cam_rms_px": float(np.median([p.fa_cam_rms_px for p in matched])) if matched else None,
@@ -526,5 +564,6 @@ def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfi
     return cloud, summary
 
 
-_PART_DTYPE = np.dtype([("xyz", "<f8", 3), ("gray", "u1"), ("n_views", "u1"), ("reproj_px", "<f4")])
+_PART_DTYPE = np.dtype([("xyz", "<f8", 3), ("gray", "u1"), ("n_views", "u1"), ("reproj_px", "<f4"),
+                        ("weak", "u1")])
 

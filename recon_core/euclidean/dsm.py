@@ -81,14 +81,18 @@ def rasterize(xyz: np.ndarray, grid: Grid, *, stat: str = "median") -> tuple[np.
     return H, count
 
 
-def _points_in_grid(xyz: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(row, col, h) of the finite points of (n, 3) xyz that fall inside the grid."""
+def _points_in_grid(xyz: np.ndarray, grid: Grid,
+                    extra: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """(row, col, h) of the finite points of (n, 3) xyz that fall inside the grid, and `extra`'s
+    values of those points when given."""
     if xyz.ndim != 2 or xyz.shape[1] < 3:
         raise ValueError(f"expected (n, 3) points, got shape {xyz.shape}")
     row, col = grid.cell_of(xyz[:, 0], xyz[:, 1])
     h = xyz[:, 2].astype(np.float64)
     keep = grid.contains(row, col) & np.isfinite(h)
-    return row[keep], col[keep], h[keep]
+    if extra is None:
+        return row[keep], col[keep], h[keep]
+    return row[keep], col[keep], h[keep], np.asarray(extra)[keep]
 
 
 class DsmAccumulator:
@@ -98,6 +102,9 @@ class DsmAccumulator:
     `block_rows` grid rows, so the caller can drop each chunk after `add`. With `spill_dir` the
     per-block values go to files on disk (12 bytes per point) instead of memory. `finish` then
     reduces one block at a time with the same code as `rasterize`, so results are identical.
+
+    Tiers: points added with tier 1 (fallbacks: a weak pair's two-view points) count only in
+    cells where no tier-0 point falls; there the cell takes the statistic of its tier-1 points.
     """
 
     def __init__(self, grid: Grid, *, stat: str = "median", block_rows: int = 512,
@@ -108,17 +115,22 @@ class DsmAccumulator:
         self.n_points = 0
         self._mem: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
         self._tmp = None
+        self._idx_dtype = "<i4" if 2 * self.block_rows * grid.width < 2**31 else "<i8"
         if spill_dir is not None:
             self._tmp = tempfile.TemporaryDirectory(prefix="dsm_blocks_", dir=spill_dir)
 
-    def add(self, xyz: np.ndarray) -> None:
-        """File a chunk of (n, 3) points (x, y, h in the grid's CRS) under their blocks."""
-        row, col, h = _points_in_grid(np.asarray(xyz), self.grid)
+    def add(self, xyz: np.ndarray, tier: np.ndarray | None = None) -> None:
+        """File a chunk of (n, 3) points (x, y, h in the grid's CRS) under their blocks; `tier`
+        (n,) 0 or 1 per point (None: all 0)."""
+        xyz = np.asarray(xyz)
+        row, col, h, t = _points_in_grid(xyz, self.grid, np.zeros(len(xyz), np.int64)
+                                         if tier is None else np.asarray(tier, np.int64))
         if not len(h):
             return
         self.n_points += len(h)
         block = row // self.block_rows
-        local = ((row - block * self.block_rows) * self.grid.width + col).astype(np.int64)
+        # two slots per cell, tier 0 then tier 1
+        local = 2 * ((row - block * self.block_rows) * self.grid.width + col).astype(np.int64) + t
         order = np.argsort(block, kind="stable")
         block, local, h = block[order], local[order], h[order]
         cuts = np.flatnonzero(np.r_[True, block[1:] != block[:-1], True])
@@ -131,7 +143,7 @@ class DsmAccumulator:
             return
         base = Path(self._tmp.name) / f"b{b:06d}"
         with open(f"{base}.idx", "ab") as f:
-            local.astype("<i4" if self.block_rows * self.grid.width < 2**31 else "<i8").tofile(f)
+            local.astype(self._idx_dtype).tofile(f)
         with open(f"{base}.h", "ab") as f:
             h.astype("<f8").tofile(f)
 
@@ -144,8 +156,7 @@ class DsmAccumulator:
         base = Path(self._tmp.name) / f"b{b:06d}"
         if not os.path.exists(f"{base}.h"):
             return None
-        dt = "<i4" if self.block_rows * self.grid.width < 2**31 else "<i8"
-        return (np.fromfile(f"{base}.idx", dtype=dt).astype(np.int64),
+        return (np.fromfile(f"{base}.idx", dtype=self._idx_dtype).astype(np.int64),
                 np.fromfile(f"{base}.h", dtype="<f8"))
 
     def finish(self) -> tuple[np.ndarray, np.ndarray]:
@@ -156,7 +167,10 @@ class DsmAccumulator:
             data = self._load(b)
             if data is None:
                 continue
-            cells, vals, counts = _reduce_sorted(data[0], data[1], self.stat)
+            slots, vals, counts = _reduce_sorted(data[0], data[1], self.stat)
+            cells = slots >> 1
+            first = np.r_[True, cells[1:] != cells[:-1]]     # tier 0 where a cell has both
+            cells, vals, counts = cells[first], vals[first], counts[first]
             r0 = b * self.block_rows
             r1 = min(r0 + self.block_rows, self.grid.height)
             H[r0:r1].flat[cells] = vals

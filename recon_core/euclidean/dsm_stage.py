@@ -82,9 +82,10 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
             for g in groups:
                 src = sources[g]
                 for a in range(0, len(src), c.chunk_points):
-                    xyz, gray = src.read(a, min(a + c.chunk_points, len(src)))
+                    b = min(a + c.chunk_points, len(src))
+                    xyz, gray = src.read(a, b)
                     xyh = enu_to_output(apply_affine_3d(Ts[g], apply_affine_3d(Hs[g], xyz)), frame, epsg)
-                    accs[g].add(xyh)
+                    accs[g].add(xyh, src.tier(a, b))
                     w.append(xyh, gray[:, None])
                     done += len(xyz)
                     if bus is not None:

@@ -4,7 +4,7 @@
   affine/group_<k>/sparse.ply       points (affine frame, float64), grey colour, views, error
   affine/group_<k>/observations.npz every (tile, track) observation: tile, track, xy, img, valid;
                                     point_ids = track id of each sparse.ply vertex, in order
-  affine/group_<k>/dense.ply        dense points (affine frame), grey, n_views, reproj_px
+  affine/group_<k>/dense.ply        dense points (affine frame), grey, n_views, reproj_px, weak
   upgrade/group_<k>.json            H_A (affine -> local ENU) and the group's GCP report
   upgrade/frame.json                the local ENU frame (origin lon, lat, h)
 """
@@ -88,7 +88,7 @@ def load_model(out: OutLayout | str | Path, g: int) -> SparseModel:
 
 
 # -- dense clouds -------------------------------------------------------------------------------
-DENSE_EXTRA = ("n_views", "reproj_px")
+DENSE_EXTRA = ("n_views", "reproj_px", "weak")
 
 
 def affine_frame_comments(group: int) -> list[str]:
@@ -99,7 +99,8 @@ def affine_frame_comments(group: int) -> list[str]:
 
 
 def dense_writer(path: Path, group: int | None = None) -> PlyWriter:
-    """The streaming writer of a dense.ply (x y z float64, grey as RGB, n_views, reproj_px)."""
+    """The streaming writer of a dense.ply (x y z float64, grey as RGB, n_views, reproj_px,
+    weak: 1 for a two-view point of a weak pair)."""
     return PlyWriter(path, list(DENSE_EXTRA), with_colors=True,
                      comments=() if group is None else affine_frame_comments(group))
 
@@ -110,16 +111,17 @@ def load_dense(out: OutLayout | str | Path, g: int) -> DenseCloud | None:
     if not path.exists():
         return None
     xyz, rgb, extra = ply_fields(open_ply(path))
-    return DenseCloud(xyz, rgb[:, 0].copy(), extra["n_views"].astype(np.uint8), extra["reproj_px"])
+    return DenseCloud(xyz, rgb[:, 0].copy(), extra["n_views"].astype(np.uint8), extra["reproj_px"],
+                      extra["weak"] > 0 if "weak" in extra else None)
 
 
 class PointSource:
     """A group's affine cloud, read by slices: a memory-mapped PLY on disk, or arrays."""
 
     def __init__(self, xyz: np.ndarray | None = None, gray: np.ndarray | None = None,
-                 ply: Path | None = None):
+                 ply: Path | None = None, weak: np.ndarray | None = None):
         self._rec = open_ply(ply) if ply is not None else None
-        self._xyz, self._gray = xyz, gray
+        self._xyz, self._gray, self._weak = xyz, gray, weak
 
     def __len__(self) -> int:
         return len(self._rec) if self._rec is not None else len(self._xyz)
@@ -130,6 +132,15 @@ class PointSource:
             return np.asarray(self._xyz[a:b:step], np.float64), np.asarray(self._gray[a:b:step], np.uint8)
         xyz, rgb, _ = ply_fields(self._rec[a:b:step])
         return xyz, (rgb[:, 0] if rgb is not None else np.full(len(xyz), 128, np.uint8))
+
+    def tier(self, a: int, b: int) -> np.ndarray | None:
+        """(k,) uint8 DSM tier of points a..b (1: a weak pair's two-view point, a fallback), or
+        None when the cloud has no such marks (every point counts alike)."""
+        if self._rec is None:
+            return None if self._weak is None else np.asarray(self._weak[a:b], np.uint8)
+        if "weak" not in self._rec.dtype.names:
+            return None
+        return (np.asarray(self._rec["weak"][a:b]) > 0).astype(np.uint8)
 
     def sample(self, max_n: int) -> np.ndarray:
         """At most max_n points spread evenly through the cloud (every k-th)."""

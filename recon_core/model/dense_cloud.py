@@ -15,6 +15,8 @@ class DenseCloud:
     gray: np.ndarray         # (n,) uint8
     n_views: np.ndarray      # (n,) uint8
     reproj_px: np.ndarray    # (n,) float32
+    weak: np.ndarray | None = None   # (n,) bool: two-view points of a weak (small-angle) pair,
+                                     # which the DSM uses only where no other point falls
 
     def __len__(self) -> int:
         return len(self.xyz)

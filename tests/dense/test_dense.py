@@ -106,7 +106,7 @@ def test_track_triangulation_drops_the_bad_view():
     q2[7] += [6.0, -4.0]                                             # one corrupted link
     best_q = {"b": q1, "c": q2}
     best_cam = {"b": np.ones(50, np.int64), "c": np.full(50, 2, np.int64)}
-    Xr, nv, rms, idx = _triangulate(pix, list(cams), best_q, best_cam, max_err=1.0)
+    Xr, nv, rms, idx, pair = _triangulate(pix, list(cams), best_q, best_cam, max_err=1.0)
     assert len(idx) == 50
     np.testing.assert_allclose(Xr, X[idx], atol=1e-6)
     assert nv[7] == 2 and np.all(nv[np.arange(50) != 7] == 3)
@@ -186,3 +186,44 @@ def test_a_float_image_beside_12_bit_counts_keeps_its_contrast_for_matching():
     dark, bright = counts / 3.0 + 40.0, 1.6 * counts + 100.0  # winter and summer, one kind
     a8, b8 = to_8bit_pair(dark, bright)
     assert b8.mean() > a8.mean() + 40
+
+
+def test_weak_pair_points_are_the_imprecise_ones_and_only_fill(tiny_run, tiny_site):
+    """`tiny` has one small-angle pair among its three views. The two-view points marked weak
+    (their pair triangulates > 2x less precisely than the best pair) are the least accurate
+    against the ground truth, and a DSM that uses them only where nothing else falls is more
+    accurate than one that mixes them in, with the same cells covered."""
+    import rasterio
+
+    from recon_core.euclidean.dsm import DsmAccumulator
+    from recon_core.euclidean.georef import frame_for
+    from recon_core.evaluation.truth import sparse_vs_truth
+    from recon_core.geometry.geodesy import geodetic_to_projected
+    from recon_core.io.models import load_dense
+    from recon_core.io.raster import Grid
+
+    state, _ = tiny_run
+    frame = frame_for(state.gcps)
+    fit = sparse_vs_truth(tiny_site, state.models[0], frame)
+    cloud = load_dense(state.layout, 0)
+    assert cloud.weak is not None and 0.02 < cloud.weak.mean() < 0.6
+    with rasterio.open(tiny_site / "gt_dsm.tif") as ds:
+        gt = ds.read(1).astype(np.float64)
+        grid = Grid(ds.crs.to_epsg(), ds.transform.c, ds.transform.f, ds.transform.a, ds.width, ds.height)
+    xyh = geodetic_to_projected(frame.enu_to_geodetic(affine.apply_affine_3d(fit["A"], cloud.xyz)),
+                                grid.crs_epsg)
+    r, c = grid.cell_of(xyh[:, 0], xyh[:, 1])
+    inside = grid.contains(r, c)
+    e = np.full(len(xyh), np.nan)
+    e[inside] = np.abs(xyh[inside, 2] - gt[r[inside], c[inside]])
+    two = cloud.n_views == 2
+    assert np.nanmedian(e[cloud.weak]) > 2.0 * np.nanmedian(e[two & ~cloud.weak])
+
+    def dsm(tier):
+        acc = DsmAccumulator(grid)
+        acc.add(xyh, tier)
+        return acc.finish()[0]
+    mixed, tiered = dsm(None), dsm(cloud.weak)
+    assert np.array_equal(np.isfinite(mixed), np.isfinite(tiered))
+    ok = np.isfinite(gt) & np.isfinite(tiered)
+    assert np.median(np.abs(tiered - gt)[ok]) < 0.8 * np.median(np.abs(mixed - gt)[ok])

@@ -114,6 +114,30 @@ def test_streaming_equals_one_shot(tmp_path, spill):
     assert list(tmp_path.iterdir()) == []                     # spilled blocks removed
 
 
+@pytest.mark.parametrize("spill", [False, True])
+def test_fallback_points_count_only_where_no_other_point_falls(tmp_path, spill):
+    """Tier 1 (a weak pair's two-view points): a cell with any tier-0 point is the statistic of
+    its tier-0 points alone; a cell with tier-1 points only takes theirs."""
+    g = Grid(EPSG, X0, Y0, 0.5, 40, 30)
+    rng = np.random.default_rng(5)
+    n = 20_000
+    xyz = np.column_stack([rng.uniform(X0, X0 + 20, n), rng.uniform(Y0 - 15, Y0, n),
+                           rng.normal(50, 1, n)])
+    tier = (rng.random(n) < 0.4).astype(np.uint8)
+    tier[xyz[:, 0] > X0 + 15] = 1                             # a strip of fallback cells only
+    xyz[tier == 1, 2] += 30.0                                 # fallbacks are far off
+    acc = DsmAccumulator(g, block_rows=7, spill_dir=tmp_path if spill else None)
+    for part, t in zip(np.array_split(xyz, 5), np.array_split(tier, 5)):
+        acc.add(part, t)
+    H, count = acc.finish()
+    H0, c0 = rasterize(xyz[tier == 0], g)
+    H1, c1 = rasterize(xyz[tier == 1], g)
+    has0 = np.isfinite(H0)
+    assert has0.sum() > 500 and (~has0 & np.isfinite(H1)).sum() > 200
+    assert np.array_equal(H[has0], H0[has0]) and np.array_equal(count[has0], c0[has0])
+    assert np.array_equal(H[~has0], H1[~has0], equal_nan=True)
+
+
 def test_fill_small_holes_but_not_voids():
     rng = np.random.default_rng(4)
     H = (100 + rng.normal(0, 0.1, (60, 60))).astype(np.float32)
