@@ -132,7 +132,10 @@ class DsmConfig:
                                       # a smooth correction (medians of the difference in blocks
                                       # of this size) before it fills holes; 0 = off
     fusion_agree_sigmas: float = 2.5   # cells where groups agree within this many sigma (each DSM's
-                                      # noise from its roughness) take their weighted mean (0 = off)
+                                      # noise from the groups' disagreement) take their weighted
+                                      # mean (0 = off)
+    fuse_weak_pair_cells: bool = False  # the fused DSM also takes cells that only a weak pair's
+                                      # two-view points reach (1.2 m median error on `demo`)
     icp_max_corr_m: float = 3.0       # ICP correspondence distance when fusing date groups
     icp_voxel_m: float = 1.0          # both clouds are reduced to voxel centroids of this size
     icp_max_iter: int = 60            # ICP iteration cap (it stops earlier when converged)

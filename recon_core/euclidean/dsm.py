@@ -160,7 +160,9 @@ class DsmAccumulator:
                 np.fromfile(f"{base}.h", dtype="<f8"))
 
     def finish(self) -> tuple[np.ndarray, np.ndarray]:
-        """Reduce every block. Returns H (height, width) float32 NaN-empty, count int32."""
+        """Reduce every block. Returns H (height, width) float32 NaN-empty, count int32;
+        `fallback` (height, width) bool then marks the cells whose value came from tier 1."""
+        self.fallback = np.zeros(self.grid.shape, bool)
         H = np.full(self.grid.shape, np.nan, dtype=np.float32)
         count = np.zeros(self.grid.shape, dtype=np.int32)
         for b in range(self.n_blocks):
@@ -170,9 +172,10 @@ class DsmAccumulator:
             slots, vals, counts = _reduce_sorted(data[0], data[1], self.stat)
             cells = slots >> 1
             first = np.r_[True, cells[1:] != cells[:-1]]     # tier 0 where a cell has both
-            cells, vals, counts = cells[first], vals[first], counts[first]
+            cells, vals, counts, tier1 = cells[first], vals[first], counts[first], (slots[first] & 1) > 0
             r0 = b * self.block_rows
             r1 = min(r0 + self.block_rows, self.grid.height)
+            self.fallback[r0:r1].flat[cells[tier1]] = True
             H[r0:r1].flat[cells] = vals
             count[r0:r1].flat[cells] = counts
         self.close()

@@ -49,10 +49,13 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     filed into that group's DSM accumulator, which reduces one block of grid rows at a time;
     memory does not grow with the number of points.
 
-    Fusion of several groups (`fuse_groups`): each cell takes the value of the best group that
-    has one, groups ranked by `quality` (their check points' vertical RMSE, lower is better;
-    groups without a figure come after, larger clouds first), so the fused DSM is the best
-    group's wherever that group sees the ground and the others only fill its holes.
+    Fusion of several groups (`fuse_groups`): each group's DSM without the cells only a weak
+    pair's two-view points reach (dense `weak` marks); groups ranked by `quality` (their check
+    points' vertical RMSE) and their noise from the groups' disagreement (`group_noise`), ties
+    by their number of precise cells; the best group is the reference, the others are brought
+    onto it by a smooth correction and fill its holes, and where they agree within
+    fusion_agree_sigmas the cell is their inverse-variance weighted mean. Each group's own DSM
+    (written to dsm_groups/) keeps its weak-pair cells.
     """
     c = cfg.dsm
     groups = [g for g in sorted(Hs) if g in sources and len(sources[g])]
@@ -91,16 +94,29 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
                     if bus is not None:
                         bus.progress("dsm", done, total, f"group {g}")
         in_grid = sum(a.n_points for a in accs.values())
-        per_group = {g: accs[g].finish()[0] for g in groups}
+        per_group, precise = {}, {}
+        for g in groups:
+            per_group[g] = accs[g].finish()[0]
+            # without the cells only a weak pair's two-view points reach
+            precise[g] = np.where(accs[g].fallback, np.float32(np.nan), per_group[g])
+            accs[g].fallback = None
     finally:
         for acc in accs.values():
             acc.close()
-    roughness = {g: dsm_roughness(per_group[g]) for g in groups}
-    order = rank_groups(groups, quality or {}, {g: len(sources[g]) for g in groups}, roughness)
     block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
-    H, source = fuse_groups([per_group[g] for g in order], correct_block=block,
-                            sigmas=[None if roughness[g] is None else ROUGHNESS_TO_SIGMA * roughness[g]
-                                    for g in order], agree_sigmas=c.fusion_agree_sigmas)
+    noise = group_noise(precise, block) if len(groups) > 1 else {groups[0]: None}
+    coverage = {g: int(np.isfinite(precise[g]).sum()) for g in groups}
+    order = rank_groups(groups, quality or {}, coverage, noise)
+    if len(groups) == 1:
+        H, source = per_group[groups[0]].copy(), np.zeros(grid.shape, np.int16)
+    else:
+        # every group's precise cells first; a weak pair's cells only where none has any
+        fill = [np.where(np.isnan(precise[g]), per_group[g], np.float32(np.nan)) for g in order] \
+            if c.fuse_weak_pair_cells else []
+        H, source = fuse_groups([precise[g] for g in order] + fill, correct_block=block,
+                                sigmas=[noise[g] for g in order] + [None] * len(fill),
+                                agree_sigmas=c.fusion_agree_sigmas)
+    del precise
     raw_valid = float(np.isfinite(H).mean())
 
     def filled(D: np.ndarray) -> np.ndarray:
@@ -120,55 +136,39 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
         for k, g in enumerate(order):
             write_dsm(out.group_dsm(g), filled(per_group[g]), grid)
             groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),
-                                     "roughness_m": roughness[g],
+                                     "noise_m": noise[g],
                                      "points": int(len(sources[g])),
                                      "valid_fraction_raw": float(np.isfinite(per_group[g]).mean()),
-                                     "fused_cells_from_it": float((source == k).mean())}
+                                     "precise_fraction": coverage[g] / grid.width / grid.height,
+                                     "fused_cells_from_it": float((source == k).mean()),
+                                     "fused_cells_from_its_weak_pair": float((source == k + len(order)).mean())}
     return {"crs_epsg": epsg, "resolution_m": res, "width": grid.width, "height": grid.height,
             "points": int(total), "points_in_grid": int(in_grid), "valid_fraction_raw": raw_valid,
             "valid_fraction": float(np.isfinite(H).mean()), "stat": c.stat, "fusion": fusion,
-            "fusion_rule": ("per cell, the best-ranked group with a value (ranked by the expected "
-                            "height error: check-point vertical RMSE and the DSM's roughness)" + (f"; lower-ranked groups brought onto the fused surface "
-                                                f"by a smooth correction ({c.fusion_correction_m:g} m "
-                                                "blocks)" if block else "") +
-                            (f"; where groups agree within {c.fusion_agree_sigmas:g} sigma (sigma "
-                             "from each DSM's roughness), their inverse-variance weighted mean"
-                             if c.fusion_agree_sigmas > 0 else ""))
+            "fusion_rule": ("per cell, the best-ranked group with a precise value (ranked by the "
+                            "expected height error: check-point vertical RMSE and the DSM's noise "
+                            "from the groups' disagreement; ties: the group with the most precise "
+                            "cells first)" + (f"; lower-ranked groups brought onto the fused surface "
+                                              f"by a smooth correction ({c.fusion_correction_m:g} m "
+                                              "blocks)" if block else "") +
+                            (f"; where groups agree within {c.fusion_agree_sigmas:g} sigma, their "
+                             "inverse-variance weighted mean" if c.fusion_agree_sigmas > 0 else "") +
+                            ("; cells only a weak pair's two-view points reach, last"
+                             if c.fuse_weak_pair_cells else "; cells only a weak pair's two-view "
+                             "points reach are left out (they stay in each group's own DSM)"))
                            if len(groups) > 1 else "one group",
             "group_order": order, "groups": groups_report, "gsd_m": gsd}
 
 
-def dsm_roughness(D: np.ndarray, size: int = 5, max_cells: int = 8_000_000) -> float | None:
-    """A DSM's noise: the 75th percentile of |D - its size x size median| over cells whose
-    neighbourhood is fully valid (edges and roofs move few cells; matching noise moves most).
-    Comparable between groups on one grid; bands of rows when the grid is large."""
-    from scipy import ndimage
-
-    band = 512
-    step = max(1, int(np.ceil(D.size / max_cells)))
-    vals = []
-    for r0 in range(0, D.shape[0], band * step):
-        B = D[r0:r0 + band].astype(np.float64)
-        ok = np.isfinite(B)
-        if ok.sum() < size * size:
-            continue
-        M = ndimage.median_filter(np.where(ok, B, np.nanmedian(B)), size=size)
-        full = ndimage.minimum_filter(ok.astype(np.uint8), size=size).astype(bool)
-        vals.append(np.abs(B - M)[full])
-    r = np.concatenate(vals) if vals else np.zeros(0)
-    return float(np.percentile(r, 75)) if len(r) >= 1000 else None
-
-
 def rank_groups(groups: list[int], quality: dict[int, float], size: dict[int, int],
-                roughness: dict[int, float | None] | None = None) -> list[int]:
+                noise: dict[int, float | None] | None = None) -> list[int]:
     """Best first, by the expected height error of each group's DSM: sqrt(q^2 + s^2) with q its
-    check points' vertical RMSE (georeferencing) and s its roughness (dsm_roughness: matching
-    noise); a group without q after those with one; ties and the rest by cloud size, largest
-    first."""
-    roughness = roughness or {}
+    check points' vertical RMSE (georeferencing) and s its noise (group_noise); a group without
+    q after those with one; ties and the rest by `size` (its precise cells), largest first."""
+    noise = noise or {}
 
     def key(g):
-        q, s = quality.get(g), roughness.get(g)
+        q, s = quality.get(g), noise.get(g)
         s = float(s) if s is not None and np.isfinite(s) else 0.0
         if q is not None and np.isfinite(q):
             return (0, float(np.hypot(q, s)), -size[g])
@@ -176,7 +176,49 @@ def rank_groups(groups: list[int], quality: dict[int, float], size: dict[int, in
     return sorted(groups, key=key)
 
 
-ROUGHNESS_TO_SIGMA = 1.4826      # a Gaussian's sigma from the 75th percentile of |deviation|
+def group_noise(dsms: dict[int, np.ndarray], correct_block: int = 0, min_overlap: int = 2000,
+                max_cells: int = 4_000_000) -> dict[int, float | None]:
+    """Each DSM's height noise (metres) from how the groups disagree with one another.
+
+    For each pair sharing >= min_overlap cells: v_ij = (1.4826 MAD of D_i - D_j)^2 after the
+    smooth relative correction (fuse_groups' step 1), the noise of both: v_ij = s_i^2 + s_j^2
+    for independent matchings. Three or more groups: the s_i^2 by least squares over the pairs
+    (a three-cornered hat; floored at a tenth of the mean); two groups cannot be told apart and
+    share v / 2 each. A group that overlaps none gets None. Grids above max_cells are
+    decimated evenly first.
+    """
+    keys = sorted(dsms)
+    step = max(1, int(np.ceil(np.sqrt(next(iter(dsms.values())).size / max_cells)))) if dsms else 1
+    small = {g: dsms[g][::step, ::step] for g in keys}
+    block = max(1, correct_block // step) if correct_block > 0 else 0
+    rows, vals = [], []
+    for a in range(len(keys)):
+        for b in range(a + 1, len(keys)):
+            A, B = small[keys[a]], small[keys[b]]
+            if block:
+                B = B - relative_correction(B, A, block, min_overlap)
+            both = np.isfinite(A) & np.isfinite(B)
+            if int(both.sum()) < min_overlap:
+                continue
+            d = (B - A)[both].astype(np.float64)
+            v = (1.4826 * np.median(np.abs(d - np.median(d)))) ** 2
+            row = np.zeros(len(keys))
+            row[[a, b]] = 1.0
+            rows.append(row)
+            vals.append(v)
+    out: dict[int, float | None] = {g: None for g in keys}
+    if not rows:
+        return out
+    M, v = np.array(rows), np.array(vals)
+    seen = M.any(0)
+    if len(rows) >= 3 and np.linalg.matrix_rank(M[:, seen]) == int(seen.sum()):
+        s2 = np.linalg.lstsq(M[:, seen], v, rcond=None)[0]
+        s2 = np.maximum(s2, 0.1 * float(v.mean()) / 2)
+    else:                                   # pairs alone: each shares its pairs' mean equally
+        s2 = (M[:, seen] * v[:, None]).sum(0) / M[:, seen].sum(0) / 2
+    for k, g in enumerate(np.array(keys)[seen]):
+        out[int(g)] = float(np.sqrt(s2[k]))
+    return out
 
 
 def fuse_groups(dsms: list[np.ndarray], correct_block: int = 0, min_overlap: int = 2000,

@@ -13,25 +13,35 @@ from recon_core.io.layout import OutLayout
 from recon_core.io.raster import read_dsm
 
 
-def test_roughness_measures_matching_noise_not_relief():
-    """Buildings (steps of metres) barely move it; per-cell noise does, in proportion."""
-    from recon_core.euclidean.dsm_stage import dsm_roughness
+def test_group_noise_splits_the_groups_disagreement():
+    """Three matchings of one surface with noise 0.1, 0.2 and 0.4 m, one of them also offset
+    by a smooth tilt: the three-cornered hat finds each noise within 15 %; two groups share
+    their disagreement equally; a group that overlaps none gets None."""
+    from recon_core.euclidean.dsm_stage import group_noise
 
     rng = np.random.default_rng(0)
-    yy, xx = np.mgrid[0:600, 0:600]
-    relief = 0.01 * xx + 8.0 * (((xx // 40) + (yy // 40)) % 3 == 0)       # slope + blocks
-    quiet = relief + rng.normal(0, 0.05, relief.shape)
-    noisy = relief + rng.normal(0, 0.2, relief.shape)
-    noisy[rng.random(relief.shape) < 0.01] = np.nan
-    rq, rn = dsm_roughness(quiet), dsm_roughness(noisy)
-    assert rq < 0.06 and 3.0 < rn / rq < 5.0
+    yy, xx = np.mgrid[0:300, 0:400].astype(np.float32)
+    truth = 0.01 * xx + 8.0 * (((xx // 40) + (yy // 40)) % 3 == 0)
+    D = {g: (truth + rng.normal(0, s, truth.shape)).astype(np.float32)
+         for g, s in zip((0, 1, 2), (0.1, 0.2, 0.4))}
+    D[2] += (0.002 * xx).astype(np.float32)
+    n = group_noise(D, correct_block=32)
+    for g, s in zip((0, 1, 2), (0.1, 0.2, 0.4)):
+        assert n[g] == pytest.approx(s, rel=0.15), n
+    two = group_noise({0: D[0], 1: D[1]}, correct_block=32)
+    assert two[0] == two[1] == pytest.approx(np.sqrt((0.1 ** 2 + 0.2 ** 2) / 2), rel=0.1)
+    far = np.full(truth.shape, np.nan, np.float32)
+    far[:5, :5] = 1.0
+    assert group_noise({0: D[0], 1: D[1], 5: far}, correct_block=32)[5] is None
 
 
 def test_rank_and_fuse():
     assert rank_groups([0, 1, 2], {0: 0.8, 2: 0.3}, {0: 10, 1: 99, 2: 5}) == [2, 0, 1]
     assert rank_groups([0, 1], {}, {0: 10, 1: 99}) == [1, 0]
-    # one joint upgrade gives every group the same check figure: the rougher DSM goes last
+    # one joint upgrade gives every group the same check figure: the noisier DSM goes last,
+    # and with equal noise (two groups) the one with more precise cells goes first
     assert rank_groups([0, 1], {0: 0.2, 1: 0.2}, {0: 99, 1: 10}, {0: 0.3, 1: 0.1}) == [1, 0]
+    assert rank_groups([0, 1], {0: 0.2, 1: 0.2}, {0: 10, 1: 99}, {0: 0.2, 1: 0.2}) == [1, 0]
     a = np.array([[1.0, np.nan], [np.nan, np.nan]])
     b = np.array([[5.0, 2.0], [np.nan, 3.0]])
     H, src = fuse_groups([a, b])
@@ -146,7 +156,7 @@ def test_two_groups_fused_by_quality_with_their_own_dsms_and_scores(tiny2_run):
     # only touches cells without a value)
     from_best = d["groups"][str(best)]["fused_cells_from_it"]
     assert from_best > 0.3
-    sig = [1.4826 * v["roughness_m"] for v in d["groups"].values()]
+    sig = [v["noise_m"] for v in d["groups"].values()]
     tol = 2.5 * np.sqrt(2) * max(sig) + 1e-4
     with np.errstate(invalid="ignore"):
         near = np.abs(H - Hb) <= tol
