@@ -135,7 +135,8 @@ class DsmConfig:
                                       # noise from the groups' disagreement) take their weighted
                                       # mean (0 = off)
     fuse_weak_pair_cells: bool = False  # the fused DSM also takes cells that only a weak pair's
-                                      # two-view points reach (1.2 m median error on `demo`)
+                                      # two-view points reach (1.2 m median error on `demo`:
+                                      # fused 0.179 m / 73.9 % without, 0.202 m / 76.9 % with)
     icp_max_corr_m: float = 3.0       # ICP correspondence distance when fusing date groups
     icp_voxel_m: float = 1.0          # both clouds are reduced to voxel centroids of this size
     icp_max_iter: int = 60            # ICP iteration cap (it stops earlier when converged)
