@@ -57,29 +57,40 @@ class PairMatches:
         return len(self.idx_i)
 
 
-def _knn_ratio(d1: np.ndarray, d2: np.ndarray, ratio: float) -> np.ndarray:
-    """Indices into d2 of the best match of each row of d1, -1 where the ratio test fails."""
-    out = np.full(len(d1), -1, np.int64)
-    if len(d1) == 0 or len(d2) < 2:
-        return out
-    bf = cv2.BFMatcher(cv2.NORM_L2)
-    # OpenCV's float32 kernel is ~6x faster than its uint8 L2 path; convert the subsets only.
-    for q, m in enumerate(bf.knnMatch(d1.astype(np.float32), d2.astype(np.float32), k=2)):
-        if len(m) == 2 and m[0].distance < ratio * m[1].distance:
-            out[q] = m[0].trainIdx
-    return out
+def _two_nearest(D: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Along `axis` of a squared-distance matrix with >= 2 entries on it: (index of the nearest,
+    its squared distance, the second nearest's). D is restored before returning."""
+    best = D.argmin(axis=axis)
+    other = np.arange(len(best))
+    at = (other, best) if axis == 1 else (best, other)
+    d0 = D[at]
+    D[at] = np.inf
+    d1 = D.min(axis=axis)
+    D[at] = d0
+    return best, d0, d1
 
 
 def match_descriptors(d1: np.ndarray, d2: np.ndarray, ratio: float, mutual: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Ratio-test (and optionally mutual) nearest neighbours: (idx1, idx2)."""
-    fwd = _knn_ratio(d1, d2, ratio)
-    i1 = np.flatnonzero(fwd >= 0)
+    """Ratio-test (and optionally mutual) nearest neighbours: (idx1, idx2). Exact L2 distances
+    from one matrix product (BLAS) that serves both directions."""
+    empty = np.zeros(0, np.int64)
+    if len(d1) == 0 or len(d2) < 2 or (mutual and len(d1) < 2):
+        return empty, empty
+    a, b = np.asarray(d1, np.float32), np.asarray(d2, np.float32)
+    D = a @ b.T
+    D *= -2.0
+    D += np.einsum("ij,ij->i", a, a)[:, None]
+    D += np.einsum("ij,ij->i", b, b)[None, :]
+    np.maximum(D, 0.0, out=D)
+    r2 = np.float32(ratio * ratio)                   # d0 < ratio d1 on squared distances
+    fwd, f0, f1 = _two_nearest(D, 1)
+    i1 = np.flatnonzero(f0 < r2 * f1)
     i2 = fwd[i1]
     if mutual and len(i1):
-        back = _knn_ratio(d2, d1, ratio)
-        keep = back[i2] == i1
+        back, b0, b1 = _two_nearest(D, 0)
+        keep = (back[i2] == i1) & (b0[i2] < r2 * b1[i2])
         i1, i2 = i1[keep], i2[keep]
-    return i1, i2
+    return i1.astype(np.int64), i2.astype(np.int64)
 
 
 def coarse_link(name_i: str, ov_i, name_j: str, ov_j, min_inliers: int = 12) -> CoarseLink | None:
@@ -133,9 +144,11 @@ def guided_matches(fi: ImageFeatures, fj: ImageFeatures, A_ji: np.ndarray, tiles
     order_j = np.argsort(pred[:, 0], kind="stable")
     px_sorted = pred[order_j, 0]
     pairs = []
-    for key in np.unique(key_i):
-        sel_i = np.flatnonzero(key_i == key)
-        r, c = divmod(int(key), ncol)
+    by_key = np.argsort(key_i, kind="stable")
+    cuts = np.flatnonzero(np.r_[True, key_i[by_key][1:] != key_i[by_key][:-1], True])
+    for a0, b0 in zip(cuts[:-1], cuts[1:]):
+        sel_i = by_key[a0:b0]
+        r, c = divmod(int(key_i[sel_i[0]]), ncol)
         x0, y0 = lo[0] + c * cell - margin_px, lo[1] + r * cell - margin_px
         x1, y1 = x0 + cell + 2 * margin_px, y0 + cell + 2 * margin_px
         a, b = np.searchsorted(px_sorted, [x0, x1])

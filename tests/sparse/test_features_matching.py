@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from recon_core.config import FeatureConfig
 from recon_core.io.site import open_image
@@ -90,3 +91,29 @@ def test_a_float32_image_among_uint16_ones_gets_its_own_stretch_and_its_keypoint
     write_tiff(tmp_path / "d.tif", np.clip(counts.astype(np.float64) * 30, 0, 65535).astype(np.uint16))
     curves, warnings = group_tone_curves([a, b, open_image(tmp_path / "d.tif")])
     assert len(warnings) == 1 and warnings[0].startswith("d.tif") and curves[0] is curves[1]
+
+
+@pytest.mark.parametrize("mutual", [False, True])
+def test_match_descriptors_is_opencvs_brute_force_ratio_test(mutual):
+    """The BLAS distance matrix gives the matches OpenCV's exact brute force gives (ratio test on
+    distances, mutual check), on SIFT-like uint8 descriptors with planted near-duplicates."""
+    rng = np.random.default_rng(7)
+    d2 = rng.integers(0, 140, (900, 128)).astype(np.uint8)
+    d1 = rng.integers(0, 140, (300, 128)).astype(np.uint8)
+    d1[:150] = np.clip(d2[rng.choice(900, 150, replace=False)].astype(int)
+                       + rng.integers(-6, 7, (150, 128)), 0, 255).astype(np.uint8)
+
+    def bf(a, b):
+        out = np.full(len(a), -1)
+        for q, m in enumerate(cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.astype(np.float32), b.astype(np.float32), k=2)):
+            if m[0].distance < 0.8 * m[1].distance:
+                out[q] = m[0].trainIdx
+        return out
+    fwd = bf(d1, d2)
+    i1 = np.flatnonzero(fwd >= 0)
+    if mutual:
+        back = bf(d2, d1)
+        i1 = i1[back[fwd[i1]] == i1]
+    a, b = match_descriptors(d1, d2, 0.8, mutual)
+    assert len(i1) >= 140
+    assert np.array_equal(a, i1) and np.array_equal(b, fwd[i1])
