@@ -7,7 +7,6 @@ image into one affine frame (GEOMETRY_NOTES, "Keypoints in overlaps").
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import cv2
@@ -107,45 +106,31 @@ def _blocks(length: int, block: int, margin: int):
         yield max(0, c0 - margin), min(length, c1 + margin), c0, c1
 
 
-def detect_image(image: ImageInfo, cfg: FeatureConfig, tone: ToneCurve | None = None,
-                 threads: int | None = None) -> ImageFeatures:
-    """Detect SIFT on the whole image, read by blocks with a margin, deduplicated by block cores.
-
-    Blocks are detected on `threads` threads (None: one per core; OpenCV and the reads release
-    the GIL) and gathered in block order, so the result does not depend on the thread count.
-    """
-    from concurrent.futures import ThreadPoolExecutor
-
+def detect_image(image: ImageInfo, cfg: FeatureConfig, tone: ToneCurve | None = None) -> ImageFeatures:
+    """Detect SIFT on the whole image, read by blocks with a margin, deduplicated by block cores."""
     tone = tone or tone_curve_for([image], cfg.stretch_percentiles)
     budget = max(500, int(cfg.max_features_per_mpx * image.width * image.height / 1e6))
+    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=cfg.contrast_threshold)
     margin = 48
-    blocks = [(rows, cols) for rows in _blocks(image.height, cfg.detect_block, margin)
-              for cols in _blocks(image.width, cfg.detect_block, margin)]
-
-    def detect(block):
-        (r0, r1, rc0, rc1), (c0, c1, cc0, cc1) = block
-        raw = read_window(image, c0, r0, c1 - c0, r1 - r0)
-        img8 = tone.apply(raw)
-        mask = np.isfinite(raw).astype(np.uint8) * 255
-        sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=cfg.contrast_threshold)
-        kps, desc = sift.detectAndCompute(img8, mask)
-        if desc is None or not kps:
-            return None
-        pts = np.array([k.pt for k in kps], dtype=np.float64) + (c0, r0)
-        core = ((pts[:, 0] >= cc0) & (pts[:, 0] < cc1) & (pts[:, 1] >= rc0) & (pts[:, 1] < rc1))
-        if not core.any():
-            return None
-        idx = np.flatnonzero(core)
-        ij = np.clip(np.round(pts[idx] - (c0, r0)).astype(int), 0, [img8.shape[1] - 1, img8.shape[0] - 1])
-        return (pts[idx], _to_uint8_desc(desc[idx]), np.array([kps[i].size for i in idx], np.float32),
-                np.array([kps[i].response for i in idx], np.float32), img8[ij[:, 1], ij[:, 0]])
-
-    n = max(1, min(len(blocks), threads or os.cpu_count() or 1))
-    ex = ThreadPoolExecutor(max_workers=n)
-    try:
-        parts = [p for p in ex.map(detect, blocks) if p is not None]
-    finally:                                 # an interrupt: no queued block starts
-        ex.shutdown(wait=True, cancel_futures=True)
+    parts = []
+    for r0, r1, rc0, rc1 in _blocks(image.height, cfg.detect_block, margin):
+        for c0, c1, cc0, cc1 in _blocks(image.width, cfg.detect_block, margin):
+            raw = read_window(image, c0, r0, c1 - c0, r1 - r0)
+            img8 = tone.apply(raw)
+            mask = np.isfinite(raw).astype(np.uint8) * 255
+            kps, desc = sift.detectAndCompute(img8, mask)
+            if desc is None or not kps:
+                continue
+            pts = np.array([k.pt for k in kps], dtype=np.float64) + (c0, r0)
+            core = ((pts[:, 0] >= cc0) & (pts[:, 0] < cc1) & (pts[:, 1] >= rc0) & (pts[:, 1] < rc1))
+            if not core.any():
+                continue
+            idx = np.flatnonzero(core)
+            ij = np.clip(np.round(pts[idx] - (c0, r0)).astype(int), 0, [img8.shape[1] - 1, img8.shape[0] - 1])
+            parts.append((pts[idx], _to_uint8_desc(desc[idx]),
+                          np.array([kps[i].size for i in idx], np.float32),
+                          np.array([kps[i].response for i in idx], np.float32),
+                          img8[ij[:, 1], ij[:, 0]]))
     if not parts:
         return ImageFeatures(image.name, np.zeros((0, 2)), np.zeros((0, 128), np.uint8),
                              np.zeros(0, np.float32), np.zeros(0, np.float32), np.zeros(0, np.uint8))
