@@ -87,9 +87,10 @@ class DenseConfig:
     disp_margin_frac: float = 0.25    # ... plus this fraction of the percentile range
     min_pair_matches: int = 20        # a tile pair needs this many sparse matches to be matched
     min_parallax_ratio: float = 3.0   # sigma3/sigma4 of the pair's sparse matches (baseline test)
-    max_two_view_spread: float = 2.0  # a two-view point is kept only if its pair triangulates at
-                                      # most this many times less precisely than the group's best
-                                      # pair (a small-angle pair's 2-view points; 0 = keep all)
+    max_two_view_spread: float = 2.0  # a two-view point whose pair triangulates more than this
+                                      # many times less precisely than the group's best pair is
+                                      # marked weak: a DSM cell uses it only when no other point
+                                      # falls there (0 = mark none)
     core_margin_px: int = 48          # context matched around the part of a tile it owns (px)
     ncc_radius: int = 2               # photometric check patch radius (5 x 5 patches)
     min_ncc: float = 0.3              # links with a lower NCC are dropped

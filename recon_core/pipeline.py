@@ -156,7 +156,7 @@ def check_config(cfg: Config) -> None:
             raise bad(name, v, "must be positive")
     tv = cfg.dense.max_two_view_spread
     if not (np.isfinite(tv) and (tv == 0 or tv >= 1)):
-        raise bad("dense.max_two_view_spread", tv, "must be 0 (keep every two-view point) or at least 1")
+        raise bad("dense.max_two_view_spread", tv, "must be 0 (mark no two-view point weak) or at least 1")
     sb = cfg.sgbm.block_size
     if sb < 1 or sb % 2 == 0:
         raise bad("sgbm.block_size", sb, "must be odd and positive")
