@@ -104,11 +104,11 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
         for acc in accs.values():
             acc.close()
     block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
-    noise = group_noise(precise, block) if len(groups) > 1 else {groups[0]: None}
+    noise = group_noise(precise, block)               # {g: None} for one group
     coverage = {g: int(np.isfinite(precise[g]).sum()) for g in groups}
     order = rank_groups(groups, quality or {}, coverage, noise)
     if len(groups) == 1:
-        H, source = per_group[groups[0]].copy(), np.zeros(grid.shape, np.int16)
+        H, source = per_group[groups[0]], None           # source: only reported for several
     else:
         # every group's precise cells first; a weak pair's cells only where none has any
         fill = [np.where(np.isnan(precise[g]), per_group[g], np.float32(np.nan)) for g in order] \

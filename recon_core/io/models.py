@@ -119,9 +119,9 @@ class PointSource:
     """A group's affine cloud, read by slices: a memory-mapped PLY on disk, or arrays."""
 
     def __init__(self, xyz: np.ndarray | None = None, gray: np.ndarray | None = None,
-                 ply: Path | None = None, weak: np.ndarray | None = None):
+                 ply: Path | None = None):
         self._rec = open_ply(ply) if ply is not None else None
-        self._xyz, self._gray, self._weak = xyz, gray, weak
+        self._xyz, self._gray = xyz, gray
 
     def __len__(self) -> int:
         return len(self._rec) if self._rec is not None else len(self._xyz)
@@ -135,10 +135,9 @@ class PointSource:
 
     def tier(self, a: int, b: int) -> np.ndarray | None:
         """(k,) uint8 DSM tier of points a..b (1: a weak pair's two-view point, a fallback), or
-        None when the cloud has no such marks (every point counts alike)."""
-        if self._rec is None:
-            return None if self._weak is None else np.asarray(self._weak[a:b], np.uint8)
-        if "weak" not in self._rec.dtype.names:
+        None when the cloud has no such marks (arrays, an older dense.ply: every point counts
+        alike)."""
+        if self._rec is None or "weak" not in self._rec.dtype.names:
             return None
         return (np.asarray(self._rec["weak"][a:b]) > 0).astype(np.uint8)
 

@@ -145,7 +145,8 @@ def guided_matches(fi: ImageFeatures, fj: ImageFeatures, A_ji: np.ndarray, tiles
     px_sorted = pred[order_j, 0]
     pairs = []
     by_key = np.argsort(key_i, kind="stable")
-    cuts = np.flatnonzero(np.r_[True, key_i[by_key][1:] != key_i[by_key][:-1], True])
+    sorted_keys = key_i[by_key]
+    cuts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1], True])
     for a0, b0 in zip(cuts[:-1], cuts[1:]):
         sel_i = by_key[a0:b0]
         r, c = divmod(int(key_i[sel_i[0]]), ncol)
