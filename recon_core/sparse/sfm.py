@@ -51,11 +51,10 @@ def point_conditioning(cams: np.ndarray, obs_cam: np.ndarray, obs_pt: np.ndarray
         slot[ids] = np.arange(len(ids))
         k = slot[obs_pt] >= 0
         obs_cam, obs_pt, n = obs_cam[k], slot[obs_pt[k]], len(ids)
-    M = cams[obs_cam, :, :3]
-    MtM = np.einsum("kri,krj->kij", M, M)
+    G = np.einsum("tri,trj->tij", cams[:, :, :3], cams[:, :, :3]).reshape(-1, 9)   # per camera
     A = np.zeros((n, 9))
     for c in range(9):
-        A[:, c] = np.bincount(obs_pt, MtM.reshape(-1, 9)[:, c], minlength=n)
+        A[:, c] = np.bincount(obs_pt, G[obs_cam, c], minlength=n)
     ev = np.linalg.eigvalsh(A.reshape(n, 3, 3))
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.sqrt(np.clip(ev[:, 0], 0, None) / ev[:, 2])
@@ -323,17 +322,22 @@ class IncrementalSfM:
         use = np.flatnonzero(o.valid & m.registered[o.tile] & ~m.has_point[o.track])
         if len(use) == 0:
             return
-        nimg = images_per_track(o.track[use], o.img[use], len(m.X))
-        use = use[nimg[o.track[use]] >= 2]
+        # the candidate tracks numbered 0..n-1: the work follows them, not the whole model
+        cand, slot = np.unique(o.track[use], return_inverse=True)
+        nimg = images_per_track(slot, o.img[use], len(cand))
+        keep = nimg[slot] >= 2
+        use, slot = use[keep], slot[keep]
         if len(use) == 0:
             return
-        X, ok = affine.triangulate_tracks(m.cams, o.tile[use], o.track[use], o.xy[use], len(m.X))
-        new = np.unique(o.track[use])
-        new = new[ok[new]]
-        m.X[new] = X[new]
+        X, ok = affine.triangulate_tracks(m.cams, o.tile[use], slot, o.xy[use], len(cand))
+        made = np.zeros(len(cand), bool)
+        made[slot] = True
+        made &= ok
+        new = cand[made]
+        m.X[new] = X[made]
         m.has_point[new] = True
         # reject new points whose reprojection is poor
-        sel = use[np.isin(o.track[use], new)]
+        sel = use[made[slot]]
         err = affine.reprojection_errors(m.cams, o.tile[sel], o.track[sel], o.xy[sel], m.X)
         bad = np.unique(o.track[sel][err > self.cfg.max_reproj_px])
         m.has_point[bad] = False
@@ -412,12 +416,16 @@ class IncrementalSfM:
             free_cams, free_pts = reg, m.point_ids()
             self._ba_at = int(m.registered.sum())
         else:
-            pts_t = np.unique(o.track[idx][o.tile[idx] == around])
-            shared = np.bincount(o.tile[idx][np.isin(o.track[idx], pts_t)], minlength=len(m.tiles))
+            trk, til = o.track[idx], o.tile[idx]
+            of_t = np.zeros(len(m.X), bool)
+            of_t[trk[til == around]] = True
+            shared = np.bincount(til[of_t[trk]], minlength=len(m.tiles))
             shared[around] = 0
             nb = np.argsort(-shared)[: self.cfg.local_ba_window]
             free_cams = np.unique(np.concatenate([[around], nb[shared[nb] > 0]]))
-            free_pts = np.unique(o.track[idx][np.isin(o.tile[idx], free_cams)])
+            is_free = np.zeros(len(m.tiles), bool)
+            is_free[free_cams] = True
+            free_pts = np.unique(trk[is_free[til]])
         res = bundle_adjust(m.cams, m.X, o.tile[idx], o.track[idx], o.xy[idx], free_cams, free_pts,
                             m.fixed, loss=self.ba_cfg.loss, f_scale=self.ba_cfg.loss_scale_px,
                             max_nfev=self.ba_cfg.max_nfev if scope == "global" else self.ba_cfg.local_max_nfev,
