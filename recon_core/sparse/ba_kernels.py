@@ -7,8 +7,8 @@ point p, weight w) has residual r = M_c X_p + t_c - x and h = [X_p, 1]:
   d r_row / d P_c[row, j] = h_j  (camera entry row * 4 + j),   d r / d X_p = M_c.
 `assemble` builds U (camera x camera, dense), g_c, V (3 x 3 per point) and g_p; `schur` forms
 the damped reduced system S dc = rhs; `back_substitute` gives the point steps. Observations are
-visited point by point through `order` / `start` (a CSR of the observations of each point slot,
-observations of held points last).
+visited point by point through `order` / `start` (a CSR of the observations of each point slot
+that involve a free camera entry: the others add nothing to S, rhs or the point steps).
 """
 
 from __future__ import annotations
@@ -73,10 +73,11 @@ def _inv3(A):
 
 
 @njit(**_JIT)
-def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start):
+def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start, porder):
     """Damped reduced camera system: S = U' - sum_p W_p V_p'^-1 W_p^T, rhs = -(g_c - sum_p
     W_p V_p'^-1 g_p), with U', V' the diagonals scaled by (1 + lam) (+1e-12). Returns
-    (S, rhs, Vinv (npt, 3, 3))."""
+    (S, rhs, Vinv (npt, 3, 3)). Points are visited in the order `porder`: points seen by the
+    same cameras one after another keep the blocks of S they update in the cache."""
     nc = U.shape[0]
     npt = V.shape[0]
     S = U.copy()
@@ -85,59 +86,73 @@ def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start):
     rhs = -g_c.copy()
     Vinv = np.empty((npt, 3, 3))
     Vd = np.empty((3, 3))
+    mmax = 0
     for p in range(npt):
+        mmax = max(mmax, start[p + 1] - start[p])
+    # per observation of the point: G = M V^-1, M, w h and the camera's 8 columns
+    G = np.empty((mmax, 2, 3))
+    Mq = np.empty((mmax, 2, 3))
+    hw = np.empty((mmax, 4))
+    cols = np.empty((mmax, 8), np.int64)
+    A = np.empty((2, 2))
+    for pi in range(npt):
+        p = porder[pi]
         for i in range(3):
             for j in range(3):
                 Vd[i, j] = V[p, i, j]
             Vd[i, i] = V[p, i, i] * (1.0 + lam) + 1e-12
         Vi = _inv3(Vd)
         Vinv[p] = Vi
-        k0, k1 = start[p], start[p + 1]
-        m = k1 - k0
-        # W_k[row*4 + j, i] = w h_j M[row, i], so the (c1, row1, j1) x (c2, row2, j2) entry of
-        # W V^-1 W^T is w1 h1_j1 w2 h2_j2 (M1[row1] V^-1 M2[row2]^T): with G = M V^-1 per
-        # observation, one 2 x 2 matrix of scalars per observation pair, then outer products.
-        G = np.empty((m, 2, 3))
+        k0 = start[p]
+        m = start[p + 1] - k0
         for q in range(m):
             k = order[k0 + q]
+            for e in range(8):
+                cols[q, e] = cam_col[oc[k], e]
+            for j in range(4):
+                hw[q, j] = w[k] * h[k, j]
             for row in range(2):
                 for i in range(3):
+                    Mq[q, row, i] = M[k, row, i]
                     G[q, row, i] = M[k, row, 0] * Vi[0, i] + M[k, row, 1] * Vi[1, i] + M[k, row, 2] * Vi[2, i]
-        # S is symmetric: each unordered pair of observations once (q2 >= q1), its entries
-        # filed in the upper triangle; the lower triangle is copied from it at the end
+        # W_k[row*4 + j, i] = w h_j M[row, i], so the (c1, row1, j1) x (c2, row2, j2) entry of
+        # W V^-1 W^T is w1 h1_j1 w2 h2_j2 (M1[row1] V^-1 M2[row2]^T): one 2 x 2 matrix A of
+        # scalars per pair of observations, then outer products. S is symmetric: each
+        # unordered pair once (q2 >= q1), filed in the upper triangle, mirrored at the end.
         for q1 in range(m):
-            ka = order[k0 + q1]
-            c1 = oc[ka]
             for row1 in range(2):
                 gg = G[q1, row1, 0] * g_p[p, 0] + G[q1, row1, 1] * g_p[p, 1] + G[q1, row1, 2] * g_p[p, 2]
                 for j1 in range(4):
-                    col1 = cam_col[c1, row1 * 4 + j1]
+                    col1 = cols[q1, row1 * 4 + j1]
                     if col1 >= 0:
-                        rhs[col1] += w[ka] * h[ka, j1] * gg
-                for q2 in range(q1, m):
-                    kb = order[k0 + q2]
-                    c2 = oc[kb]
+                        rhs[col1] += hw[q1, j1] * gg
+            for q2 in range(q1, m):
+                same = q1 == q2
+                for row1 in range(2):
                     for row2 in range(2):
-                        a = (G[q1, row1, 0] * M[kb, row2, 0] + G[q1, row1, 1] * M[kb, row2, 1]
-                             + G[q1, row1, 2] * M[kb, row2, 2]) * w[ka] * w[kb]
-                        for j1 in range(4):
-                            col1 = cam_col[c1, row1 * 4 + j1]
-                            if col1 < 0:
-                                continue
-                            ah = a * h[ka, j1]
+                        A[row1, row2] = (G[q1, row1, 0] * Mq[q2, row2, 0] + G[q1, row1, 1] * Mq[q2, row2, 1]
+                                         + G[q1, row1, 2] * Mq[q2, row2, 2])
+                for row1 in range(2):
+                    for j1 in range(4):
+                        col1 = cols[q1, row1 * 4 + j1]
+                        if col1 < 0:
+                            continue
+                        for row2 in range(2):
+                            ah = A[row1, row2] * hw[q1, j1]
                             for j2 in range(4):
-                                col2 = cam_col[c2, row2 * 4 + j2]
+                                col2 = cols[q2, row2 * 4 + j2]
                                 if col2 < 0:
                                     continue
+                                v = ah * hw[q2, j2]
                                 if col1 < col2:
-                                    S[col1, col2] -= ah * h[kb, j2]
+                                    S[col1, col2] -= v
                                 elif col2 < col1:
-                                    if q1 != q2:
-                                        S[col2, col1] -= ah * h[kb, j2]
-                                elif q1 == q2:
-                                    S[col1, col2] -= ah * h[kb, j2]
+                                    if not same:
+                                        S[col2, col1] -= v
+                                elif same:
+                                    S[col1, col2] -= v
                                 else:                # never in practice: one camera twice
-                                    S[col1, col2] -= 2.0 * ah * h[kb, j2]
+                                    S[col1, col2] -= 2.0 * v
     for i in range(nc):
         for j in range(i + 1, nc):
             S[j, i] = S[i, j]

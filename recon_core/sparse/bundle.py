@@ -121,7 +121,19 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
 
         with_p = np.flatnonzero(has_p)
         order = with_p[np.argsort(ps[with_p], kind="stable")]
+        # an observation in a held camera adds nothing to the reduced system (a local
+        # adjustment's points are mostly seen by held cameras): left out of the per-point pass
+        order = order[(cam_col >= 0).any(axis=1)[oc[order]]]
         start = np.searchsorted(ps[order], np.arange(npt + 1)).astype(np.int64)
+        # points ordered by the cameras that see them (first, last), for the cache
+        first = np.full(npt, T, np.int64)
+        last = np.full(npt, T, np.int64)
+        seen = np.flatnonzero(start[:-1] < start[1:])
+        if len(seen):
+            occ = oc[order].astype(np.int64)
+            first[seen] = np.minimum.reduceat(occ, start[seen])
+            last[seen] = np.maximum.reduceat(occ, start[seen])
+        porder = np.lexsort((last, first)).astype(np.int64)
     for it in range(1, max_nfev + 1):
         h = np.concatenate([X[op], np.ones((K, 1))], axis=1)        # (K, 4)
         M = np.ascontiguousarray(cams[oc, :, :3])                     # (K, 2, 3)
@@ -130,7 +142,7 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
             add_ties(U, g_c, cams)
 
             def step(lam):
-                S, rhs, Vinv = kern.schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start)
+                S, rhs, Vinv = kern.schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start, porder)
                 dc = _cholesky_solve(S, rhs)
                 return dc, kern.back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start)
         else:
