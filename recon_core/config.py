@@ -75,6 +75,11 @@ class BundleConfig:
     loss_scale_px: float = 1.0        # f_scale of the robust loss, pixels
     max_nfev: int = 50                # LM iteration cap of a global adjustment
     local_max_nfev: int = 10          # LM iteration cap of a local adjustment (after each tile)
+    rel_tol: float = 1e-6             # an adjustment stops when an iteration lowers the robust
+                                      # cost by less than this fraction of it ...
+    growing_rel_tol: float = 1e-5     # ... and this one while the model grows (local and
+                                      # intermediate global adjustments): the final global
+                                      # adjustments converge to rel_tol from there
     smoothness_weight: float = 0.0    # prior tying adjacent tile cameras of one image (0 = off)
 
 

@@ -143,7 +143,8 @@ def check_config(cfg: Config) -> None:
     if cfg.dense.step < 1:
         raise bad("dense.step", cfg.dense.step, "must be at least 1")
     positive = {"bundle.loss_scale_px": cfg.bundle.loss_scale_px, "bundle.max_nfev": cfg.bundle.max_nfev,
-                "bundle.local_max_nfev": cfg.bundle.local_max_nfev,
+                "bundle.local_max_nfev": cfg.bundle.local_max_nfev, "bundle.rel_tol": cfg.bundle.rel_tol,
+                "bundle.growing_rel_tol": cfg.bundle.growing_rel_tol,
                 "sfm.resect_thresh_px": cfg.sfm.resect_thresh_px, "sfm.max_reproj_px": cfg.sfm.max_reproj_px,
                 "matching.fa_thresh_px": cfg.matching.fa_thresh_px,
                 "upgrade.ransac_thresh_m": cfg.upgrade.ransac_thresh_m,

@@ -54,12 +54,14 @@ def _robust(sq: np.ndarray, loss: str, delta: float) -> tuple[np.ndarray, np.nda
 def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: np.ndarray,
                   obs_xy: np.ndarray, free_cams: np.ndarray, free_pts: np.ndarray,
                   fixed: np.ndarray | None = None, *, loss: str = "huber", f_scale: float = 1.0,
-                  max_nfev: int = 50, compiled: bool = True, ties: list | None = None) -> BAResult:
+                  max_nfev: int = 50, rel_tol: float = 1e-6, compiled: bool = True,
+                  ties: list | None = None) -> BAResult:
     """Refine the cameras `free_cams` and points `free_pts` (index arrays).
 
     cams (T, 2, 4), X (N, 3), observations (K,) camera and point indices with (K, 2) pixels;
     `fixed` (T, 2, 4) bool marks camera entries held constant (the gauge). Observations whose
-    camera and point are both held constant are left out. `max_nfev` caps the LM iterations.
+    camera and point are both held constant are left out. `max_nfev` caps the LM iterations;
+    they stop when an iteration lowers the robust cost by less than `rel_tol` of it.
     `compiled`: assemble the normal equations with the compiled per-point kernels
     (recon_core.sparse.ba_kernels); False takes the scipy.sparse path (same steps, slower).
     `ties`: quadratic penalties on camera entries (recon_core.sparse.image_model.Tie), added to
@@ -165,7 +167,7 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
                 improved = True
                 break
             lam *= 4.0
-        if not improved or rel < 1e-6:      # relative decrease of the robust cost
+        if not improved or rel < rel_tol:   # relative decrease of the robust cost
             break
     rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
     return BAResult(cams, X, cost0, cost, rms, K, time.time() - t0, it)

@@ -103,6 +103,15 @@ class IncrementalSfM:
                              (gray / np.maximum(cnt, 1)).astype(np.uint8))
         self._ba_at = 0
         self._sent_points = np.zeros(tracks.n_tracks, bool)
+        # tracks to triangulate: after a tile registers, only those it sees (a new view); after
+        # a global adjustment (cameras moved, outliers dropped), every pending track again
+        o = self.m.obs
+        self._by_track = np.argsort(o.track, kind="stable")        # observations of each track
+        self._track_start = np.searchsorted(o.track[self._by_track], np.arange(tracks.n_tracks + 1))
+        self._pending = np.zeros(tracks.n_tracks, bool)
+        self._retry_all = True
+        self._cond_ref: float | None = None    # the model's 90th-percentile conditioning at its
+        #                                         last outlier filter (before each global adjustment)
         self._regularised = {"toward_a_tile_of_its_image": 0, "toward_its_image_camera": 0}
 
     # -- initial pair -------------------------------------------------------------------------
@@ -190,9 +199,9 @@ class IncrementalSfM:
                 break
             self._attempt(cand[best], why, tried, counts, img_reg)
         self._filter_outliers()
-        self._bundle("global", tied=True)
+        self._bundle("global", final=True)
         self._filter_outliers()
-        self._bundle("global", tied=True)
+        self._bundle("global", final=True)
         self._emit_model()
         counts = self._correspondence_counts()
         reasons = {}
@@ -261,6 +270,7 @@ class IncrementalSfM:
             self._regularised[how] += 1
         m.cams[t] = P
         m.registered[t] = True
+        self._pending[o.track[o.tile == t]] = True
         m.register_order.append(t)
         o.valid[sel[~inl]] = False
         self._triangulate_new()
@@ -317,9 +327,19 @@ class IncrementalSfM:
 
     # -- points ------------------------------------------------------------------------------
     def _triangulate_new(self) -> None:
-        """Triangulate tracks seen in >= 2 distinct images among registered tiles."""
+        """Triangulate tracks seen in >= 2 distinct images among registered tiles: the tracks
+        of the tiles registered since the last call, or all of them after a global adjustment."""
         m, o = self.m, self.m.obs
-        use = np.flatnonzero(o.valid & m.registered[o.tile] & ~m.has_point[o.track])
+        if self._retry_all:
+            use = np.flatnonzero(o.valid & m.registered[o.tile] & ~m.has_point[o.track])
+        else:
+            tr = np.flatnonzero(self._pending & ~m.has_point)
+            a, b = self._track_start[tr], self._track_start[tr + 1]
+            n = b - a
+            use = self._by_track[np.repeat(a - np.cumsum(n) + n, n) + np.arange(n.sum())]
+            use = np.sort(use[o.valid[use] & m.registered[o.tile[use]]])
+        self._pending[:] = False
+        self._retry_all = False
         if len(use) == 0:
             return
         # the candidate tracks numbered 0..n-1: the work follows them, not the whole model
@@ -345,6 +365,10 @@ class IncrementalSfM:
         # being dropped at the next global adjustment)
         if self.cfg.min_triangulation_ratio > 0:
             new = new[m.has_point[new]]
+            if self._cond_ref is not None:
+                cond = self._conditioning(new)
+                m.has_point[new[cond < self.cfg.min_triangulation_ratio * self._cond_ref]] = False
+                return
             old = m.has_point.copy()
             old[new] = False
             old = np.flatnonzero(old)
@@ -379,6 +403,7 @@ class IncrementalSfM:
             if len(ids):
                 ref = np.percentile(cond[ids], 90)
                 m.has_point[ids] &= cond[ids] >= self.cfg.min_triangulation_ratio * ref
+                self._cond_ref = float(ref)
 
     # -- bundle adjustment --------------------------------------------------------------------
     def _image_ties(self, idx: np.ndarray) -> list:
@@ -406,7 +431,10 @@ class IncrementalSfM:
             ties.append(image_tie(m.cams[tids], samples, tids, w))
         return ties
 
-    def _bundle(self, scope: str, around: int | None = None, tied: bool = False) -> None:
+    def _bundle(self, scope: str, around: int | None = None, final: bool = False) -> None:
+        """A local adjustment around tile `around` or a global one; `final`: the closing global
+        adjustments, with the per-image ties, converged to BundleConfig.rel_tol (the others stop
+        at growing_rel_tol)."""
         m, o = self.m, self.m.obs
         idx = m.active_obs()
         if len(idx) == 0:
@@ -415,6 +443,7 @@ class IncrementalSfM:
         if scope == "global":
             free_cams, free_pts = reg, m.point_ids()
             self._ba_at = int(m.registered.sum())
+            self._retry_all = True          # cameras moved, outliers dropped: every track again
         else:
             trk, til = o.track[idx], o.tile[idx]
             of_t = np.zeros(len(m.X), bool)
@@ -429,7 +458,8 @@ class IncrementalSfM:
         res = bundle_adjust(m.cams, m.X, o.tile[idx], o.track[idx], o.xy[idx], free_cams, free_pts,
                             m.fixed, loss=self.ba_cfg.loss, f_scale=self.ba_cfg.loss_scale_px,
                             max_nfev=self.ba_cfg.max_nfev if scope == "global" else self.ba_cfg.local_max_nfev,
-                            ties=self._image_ties(idx) if tied else None)
+                            rel_tol=self.ba_cfg.rel_tol if final else self.ba_cfg.growing_rel_tol,
+                            ties=self._image_ties(idx) if final else None)
         m.cams, m.X = res.cams, res.X
         self.bus.emit(BundleAdjusted(m.group, scope, res.cost_before, res.cost_after, res.rms_px,
                                      len(free_cams), len(free_pts), res.seconds))

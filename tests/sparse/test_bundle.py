@@ -74,6 +74,45 @@ def test_compiled_assembly_takes_the_same_steps_as_the_sparse_path():
     assert np.array_equal(a.X[1::2], X0[1::2]) and np.array_equal(a.cams[0], start[0])
 
 
+def test_a_local_adjustment_compiled_takes_the_sparse_paths_steps():
+    """A local adjustment: 2 of 10 cameras free with the points they see, most of those
+    points' observations in held cameras (the compiled Schur pass leaves those out)."""
+    rng = np.random.default_rng(8)
+    n, T = 500, 10
+    X = rng.uniform([-500, -500, 0], [500, 500, 40], (n, 3))
+    cams = np.stack([np.hstack([rng.normal(0, 1, (2, 3)) + [[1, 0, 0], [0, 1, 0.3 * k]], [[500], [500]]])
+                     for k in range(T)])
+    cam_idx, pt_idx = np.nonzero(rng.uniform(size=(T, n)) < 0.6)
+    xy, fixed, start, X0 = _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, 2.0)
+    free_cams = np.array([4, 7])
+    free_pts = np.unique(pt_idx[np.isin(cam_idx, free_cams)])
+    a = bundle_adjust(start, X0, cam_idx, pt_idx, xy, free_cams, free_pts, fixed, compiled=True)
+    b = bundle_adjust(start, X0, cam_idx, pt_idx, xy, free_cams, free_pts, fixed, compiled=False)
+    assert a.iterations == b.iterations > 2
+    assert abs(a.cost_after - b.cost_after) <= 1e-12 * b.cost_after
+    assert np.abs(a.cams - b.cams).max() < 1e-7 and np.abs(a.X - b.X).max() < 1e-7
+    held = np.setdiff1d(np.arange(T), free_cams)
+    assert np.array_equal(a.cams[held], start[held])
+
+
+def test_a_looser_tolerance_stops_earlier_near_the_same_cost():
+    """rel_tol: the adjustment stops once an iteration gains less than that fraction of the
+    cost; a growing model's adjustments use 1e-5, the final ones 1e-6."""
+    rng = np.random.default_rng(4)
+    n, T = 600, 8
+    X = rng.uniform([-500, -500, 0], [500, 500, 40], (n, 3))
+    cams = np.stack([np.hstack([rng.normal(0, 1, (2, 3)) + [[1, 0, 0], [0, 1, 0.3 * k]], [[500], [500]]])
+                     for k in range(T)])
+    cam_idx, pt_idx = np.nonzero(rng.uniform(size=(T, n)) < 0.5)
+    xy, fixed, start, X0 = _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, 2.0)
+    xy[::40] += 6.0                                                   # Huber: slower convergence
+    args = (start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(n), fixed)
+    tight = bundle_adjust(*args, rel_tol=1e-6)
+    loose = bundle_adjust(*args, rel_tol=1e-2)
+    assert loose.iterations < tight.iterations
+    assert tight.cost_after <= loose.cost_after <= 1.02 * tight.cost_after
+
+
 def _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, point_noise, pixel_noise=0.3):
     """Noisy observations of (cams, X) and a start away from them with the pipeline's gauge
     (camera 0 and row 0 of camera 1 held): (xy, fixed, start cameras, start points)."""
