@@ -148,7 +148,8 @@ def main(argv=None) -> int:
         b = f["bend"]
         print(f"group {g} vertical residual over the site: RMS {b['rms_u_m']:.3f} m, of which a quadratic "
               f"surface (dome/saddle) {b['quadratic_rms_m']:.3f} m RMS ({b['quadratic_range_m']:.2f} m "
-              f"peak to peak), the rest {b['rest_rms_m']:.3f} m; map: {f['map']}")
+              f"peak to peak), the rest {b['rest_rms_m']:.3f} m; local (minus the mean of its 150 m "
+              f"cell: point noise) {b['local_rms_m']:.3f} m; map: {f['map']}")
     if "dense" in st:
         for g, d in st["dense"]["groups"].items():
             print(f"group {g} dense: {d['pairs_matched']}/{d['tile_pairs']} tile pairs matched "

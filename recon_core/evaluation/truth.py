@@ -79,18 +79,23 @@ def affine_fit_report(X: np.ndarray, Xt: np.ndarray) -> dict:
             "truth": Xt[ok], "bend": bend_report(Xt[ok], r[:, 2])}
 
 
-def bend_report(Xt: np.ndarray, du: np.ndarray) -> dict:
+def bend_report(Xt: np.ndarray, du: np.ndarray, cell_m: float = 150.0) -> dict:
     """How much of the vertical residual a smooth surface over the site explains: RMS of the
-    residual, of a fitted quadratic in (E, N) (a dome or a saddle), and what remains."""
+    residual, of a fitted quadratic in (E, N) (a dome or a saddle), and what remains; and its
+    local part, each point's residual minus the mean of its cell of cell_m (point noise, not a
+    bend: a weak pair's points show there)."""
     e, n = Xt[:, 0] - Xt[:, 0].mean(), Xt[:, 1] - Xt[:, 1].mean()
     s = max(np.ptp(e), np.ptp(n), 1e-9)
     e, n = e / s, n / s
     A = np.column_stack([np.ones_like(e), e, n, e * e, e * n, n * n])
     coef = np.linalg.lstsq(A, du, rcond=None)[0]
     fit = A @ coef
+    _, cell = np.unique(np.floor(Xt[:, :2] / cell_m).astype(np.int64), axis=0, return_inverse=True)
+    cell = cell.ravel()
+    local = du - (np.bincount(cell, du) / np.bincount(cell))[cell]
     return {"rms_u_m": float(np.sqrt(np.mean(du ** 2))), "quadratic_rms_m": float(np.sqrt(np.mean(fit ** 2))),
             "rest_rms_m": float(np.sqrt(np.mean((du - fit) ** 2))),
-            "quadratic_range_m": float(np.ptp(fit))}
+            "quadratic_range_m": float(np.ptp(fit)), "local_rms_m": float(np.sqrt(np.mean(local ** 2)))}
 
 
 def residual_map(Xt: np.ndarray, du: np.ndarray, cell_m: float = 50.0, clip_m: float = 1.0) -> np.ndarray:

@@ -161,3 +161,20 @@ def test_reduce_for_display_is_a_nan_aware_block_mean():
     assert r[2, 1] == np.mean(v[6:, 3:])                                # partial edge block
     allnan = np.full((9, 9), np.nan, np.float32)
     assert np.isnan(reduce_for_display(allnan, max_side=3)[0]).all()
+
+
+def test_bend_report_separates_a_dome_from_point_noise():
+    """A quadratic dome of 1.2 m plus 0.2 m of point noise over a 3 km site: the quadratic part
+    carries the dome, the local part (each point minus its 150 m cell's mean) the noise."""
+    from recon_core.evaluation.truth import bend_report
+
+    rng = np.random.default_rng(2)
+    Xt = np.column_stack([rng.uniform(-1500, 1500, (60000, 2)), rng.uniform(0, 40, 60000)])
+    dome = 1.2 * (1.0 - (Xt[:, 0] ** 2 + Xt[:, 1] ** 2) / 1500.0 ** 2)
+    noise = rng.normal(0, 0.2, len(Xt))
+    b = bend_report(Xt, dome + noise)
+    assert abs(b["local_rms_m"] - 0.2) < 0.02
+    assert b["quadratic_range_m"] > 2.0                  # 1.2 m at the centre, -1.2 m at corners
+    assert abs(b["rest_rms_m"] - 0.2) < 0.02
+    smooth = bend_report(Xt, dome)
+    assert smooth["local_rms_m"] < 0.08                  # only the dome's slope across a cell
