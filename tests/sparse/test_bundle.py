@@ -59,10 +59,7 @@ def test_compiled_assembly_takes_the_same_steps_as_the_sparse_path():
     cost to 1e-12, same parameters to 1e-7 (a gauge-fixed problem with a Huber loss)."""
     rng = np.random.default_rng(3)
     n, T = 600, 8
-    X = rng.uniform([-500, -500, 0], [500, 500, 40], (n, 3))
-    cams = np.stack([np.hstack([rng.normal(0, 1, (2, 3)) + [[1, 0, 0], [0, 1, 0.3 * k]], [[500], [500]]])
-                     for k in range(T)])
-    cam_idx, pt_idx = np.nonzero(rng.uniform(size=(T, n)) < 0.5)
+    X, cams, cam_idx, pt_idx = _random_scene(rng, n, T, 0.5)
     xy, fixed, start, X0 = _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, 2.0)
     xy[::50] += 8.0                                                   # outliers: Huber weights
     free_pts = np.arange(0, n, 2)                                      # some points held
@@ -79,10 +76,7 @@ def test_a_local_adjustment_compiled_takes_the_sparse_paths_steps():
     points' observations in held cameras (the compiled Schur pass leaves those out)."""
     rng = np.random.default_rng(8)
     n, T = 500, 10
-    X = rng.uniform([-500, -500, 0], [500, 500, 40], (n, 3))
-    cams = np.stack([np.hstack([rng.normal(0, 1, (2, 3)) + [[1, 0, 0], [0, 1, 0.3 * k]], [[500], [500]]])
-                     for k in range(T)])
-    cam_idx, pt_idx = np.nonzero(rng.uniform(size=(T, n)) < 0.6)
+    X, cams, cam_idx, pt_idx = _random_scene(rng, n, T, 0.6)
     xy, fixed, start, X0 = _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, 2.0)
     free_cams = np.array([4, 7])
     free_pts = np.unique(pt_idx[np.isin(cam_idx, free_cams)])
@@ -100,10 +94,7 @@ def test_a_looser_tolerance_stops_earlier_near_the_same_cost():
     cost; a growing model's adjustments use 1e-5, the final ones 1e-6."""
     rng = np.random.default_rng(4)
     n, T = 600, 8
-    X = rng.uniform([-500, -500, 0], [500, 500, 40], (n, 3))
-    cams = np.stack([np.hstack([rng.normal(0, 1, (2, 3)) + [[1, 0, 0], [0, 1, 0.3 * k]], [[500], [500]]])
-                     for k in range(T)])
-    cam_idx, pt_idx = np.nonzero(rng.uniform(size=(T, n)) < 0.5)
+    X, cams, cam_idx, pt_idx = _random_scene(rng, n, T, 0.5)
     xy, fixed, start, X0 = _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, 2.0)
     xy[::40] += 6.0                                                   # Huber: slower convergence
     args = (start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(n), fixed)
@@ -111,6 +102,16 @@ def test_a_looser_tolerance_stops_earlier_near_the_same_cost():
     loose = bundle_adjust(*args, rel_tol=1e-2)
     assert loose.iterations < tight.iterations
     assert tight.cost_after <= loose.cost_after <= 1.02 * tight.cost_after
+
+
+def _random_scene(rng, n, T, seen):
+    """n points over 1 km x 1 km x 40 m, T affine cameras, each point seen by each camera with
+    probability `seen`: (X, cams, cam_idx, pt_idx)."""
+    X = rng.uniform([-500, -500, 0], [500, 500, 40], (n, 3))
+    cams = np.stack([np.hstack([rng.normal(0, 1, (2, 3)) + [[1, 0, 0], [0, 1, 0.3 * k]], [[500], [500]]])
+                     for k in range(T)])
+    cam_idx, pt_idx = np.nonzero(rng.uniform(size=(T, n)) < seen)
+    return X, cams, cam_idx, pt_idx
 
 
 def _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, point_noise, pixel_noise=0.3):
@@ -132,10 +133,7 @@ def test_compiled_schur_with_a_point_seen_twice_by_one_camera():
     path's equations."""
     rng = np.random.default_rng(5)
     n, T = 300, 5
-    X = rng.uniform([-500, -500, 0], [500, 500, 40], (n, 3))
-    cams = np.stack([np.hstack([rng.normal(0, 1, (2, 3)) + [[1, 0, 0], [0, 1, 0.3 * k]], [[500], [500]]])
-                     for k in range(T)])
-    cam_idx, pt_idx = np.nonzero(rng.uniform(size=(T, n)) < 0.6)
+    X, cams, cam_idx, pt_idx = _random_scene(rng, n, T, 0.6)
     dup = np.flatnonzero(cam_idx >= 2)[::7]
     cam_idx, pt_idx = np.r_[cam_idx, cam_idx[dup]], np.r_[pt_idx, pt_idx[dup]]
     xy, fixed, start, X0 = _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, 2.0)
