@@ -41,9 +41,13 @@ def point_conditioning(cams: np.ndarray, obs_cam: np.ndarray, obs_pt: np.ndarray
     `ids`, (len(ids),) for those points only, from their observations only).
 
     The affine counterpart of a triangulation angle: for two orthographic views it is
-    sin(angle / 2), about B/H / 2 (0 for identical views); repeated views do not change it. The affine frame distorts it by one global
-    factor, so it is compared with the model's own best points (90th percentile), never with an
-    absolute threshold; not with the median either, which a weak pair's many matches can own.
+    sin(angle / 2), about B/H / 2 (0 for identical views); repeated views do not change it. The
+    affine frame distorts it, and not by one global factor: differently for baselines in
+    different directions (on `large`, a pair of true B/H 0.23 scores above one of B/H 0.49;
+    README, "Why group 1 stays at 0.42 m"). So it is compared with the model's own best points
+    (90th percentile), never with an absolute threshold, and it catches near-identical views,
+    not the weaker of two reasonable pairs; not with the median either, which a weak pair's
+    many matches can own.
     """
     if ids is not None:
         ids = np.asarray(ids, dtype=np.int64)
