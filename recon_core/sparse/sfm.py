@@ -32,8 +32,6 @@ from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.matching import PairMatches
 from recon_core.sparse.tracks import Tracks
 
-REF_SAMPLE = 20_000      # old points a new point's conditioning is compared with (at most ~2x this)
-
 
 def point_conditioning(cams: np.ndarray, obs_cam: np.ndarray, obs_pt: np.ndarray, n: int,
                        ids: np.ndarray | None = None) -> np.ndarray:
@@ -249,7 +247,8 @@ class IncrementalSfM:
     def _register(self, t: int) -> str | None:
         """Register tile t; None when done, else why it could not be (it may be retried)."""
         m, o = self.m, self.m.obs
-        sel = np.flatnonzero((o.tile == t) & o.valid & m.has_point[o.track])
+        in_t = o.tile == t
+        sel = np.flatnonzero(in_t & o.valid & m.has_point[o.track])
         if len(sel) < self.cfg.resect_min_inliers:
             return f"{len(sel)} 2D-3D correspondences (< {self.cfg.resect_min_inliers})"
         X, x = m.X[o.track[sel]], o.xy[sel]
@@ -274,7 +273,7 @@ class IncrementalSfM:
             self._regularised[how] += 1
         m.cams[t] = P
         m.registered[t] = True
-        self._pending[o.track[o.tile == t]] = True
+        self._pending[o.track[in_t]] = True
         m.register_order.append(t)
         o.valid[sel[~inl]] = False
         self._triangulate_new()
@@ -369,22 +368,17 @@ class IncrementalSfM:
         # being dropped at the next global adjustment)
         if self.cfg.min_triangulation_ratio > 0:
             new = new[m.has_point[new]]
-            if self._cond_ref is not None:
+            ref = self._cond_ref
+            if ref is None:           # before the first outlier filter: the initial pair's points
+                old = m.has_point.copy()
+                old[new] = False
+                old = np.flatnonzero(old)
+                if len(old) < 50:
+                    old = m.point_ids()
+                ref = np.percentile(self._conditioning(old), 90) if len(old) else None
+            if ref is not None:
                 cond = self._conditioning(new)
-                m.has_point[new[cond < self.cfg.min_triangulation_ratio * self._cond_ref]] = False
-                return
-            old = m.has_point.copy()
-            old[new] = False
-            old = np.flatnonzero(old)
-            if len(old) < 50:
-                old = m.point_ids()                  # the model's points so far
-            # the reference from an even subsample of the old points: its 90th percentile is
-            # the same to a fraction of a percent, and the cost no longer grows with the model
-            old = old[:: max(1, len(old) // REF_SAMPLE)]
-            cond = self._conditioning(np.concatenate([new, old]))
-            if len(old):
-                thresh = self.cfg.min_triangulation_ratio * np.percentile(cond[len(new):], 90)
-                m.has_point[new[cond[:len(new)] < thresh]] = False
+                m.has_point[new[cond < self.cfg.min_triangulation_ratio * ref]] = False
 
     def _conditioning(self, ids: np.ndarray | None = None) -> np.ndarray:
         """point_conditioning over the active observations: of every track, or of `ids`."""
