@@ -158,6 +158,10 @@ def check_config(cfg: Config) -> None:
     tv = cfg.dense.max_two_view_spread
     if not (np.isfinite(tv) and (tv == 0 or tv >= 1)):
         raise bad("dense.max_two_view_spread", tv, "must be 0 (mark no two-view point weak) or at least 1")
+    if cfg.features.refine_half_px < 0:
+        raise bad("features.refine_half_px", cfg.features.refine_half_px, "must be >= 0 (0 = no refinement)")
+    if not -1 <= cfg.features.refine_min_ncc <= 1:
+        raise bad("features.refine_min_ncc", cfg.features.refine_min_ncc, "a correlation: must be in [-1, 1]")
     sb = cfg.sgbm.block_size
     if sb < 1 or sb % 2 == 0:
         raise bad("sgbm.block_size", sb, "must be odd and positive")

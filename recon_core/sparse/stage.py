@@ -28,6 +28,7 @@ from recon_core.model.tiling import Tile, tile_image
 from recon_core.sparse.features import ImageFeatures, detect_image, detect_overview, group_tone_curves
 from recon_core.sparse.matching import CoarseLink, PairMatches, coarse_link, match_pair
 from recon_core.sparse.sfm import IncrementalSfM
+from recon_core.sparse.refine import refine_tracks
 from recon_core.sparse.tracks import build_tracks
 
 
@@ -119,17 +120,28 @@ def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None,
 
     t0 = time.time()
     tracks = build_tracks([len(f) for f in feats], [(a, b, pm) for (a, b), pm in pairs.items()])
+    refinement = None
+    if cfg.features.refine_half_px > 0:
+        bus.progress("refining", 0, 1, f"{len(tracks.track)} track observations", group=g)
+        t1 = time.time()
+        feats, refinement = refine_tracks(group.images, feats, tracks, half=cfg.features.refine_half_px,
+                                          min_ncc=cfg.features.refine_min_ncc, block=cfg.features.detect_block)
+        timings["refine"] = time.time() - t1
+        bus.progress("refining", 1, 1, f"{refinement.refined} of {refinement.candidates} tie points "
+                     f"refined (median shift {refinement.median_shift_px:.2f} px)", group=g)
     all_tiles = [t for name in names for t in tiles[name]]
     sfm = IncrementalSfM(g, names, all_tiles, feats, pairs, tracks, cfg.sfm, cfg.bundle, bus, cfg.seed)
     if isinstance(bus, GroupRouter):
         bus.attach(sfm.m)
     model = sfm.run()
-    timings["sfm"] = time.time() - t0
+    timings["sfm"] = time.time() - t0 - timings.get("refine", 0.0)
     summary = dict(model.stats)
     summary.update({"timings_s": timings, "keypoints": [len(f) for f in feats],
                     "pairs": {f"{names[a]}|{names[b]}": pm.n for (a, b), pm in pairs.items()},
                     "coarse_links": {f"{names[a]}|{names[b]}": l.n_inliers for (a, b), l in links.items()},
                     "tracks": tracks.n_tracks})
+    if refinement is not None:
+        summary["tie_point_refinement"] = refinement.summary()
     bus.emit(StageDone("sparse", sum(timings.values()), summary, g))
     return model, summary
 
