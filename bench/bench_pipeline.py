@@ -78,6 +78,7 @@ def main(argv=None) -> int:
     ap.add_argument("--until", default=None)
     ap.add_argument("--tile-size", type=int, default=None)
     ap.add_argument("--config-preset", default="default")
+    ap.add_argument("--config", type=Path, default=None, help="a TOML configuration (as `aerec config` writes)")
     ap.add_argument("--reference", type=Path, default=None, help="reference DSM to compare with (aerec eval)")
     ap.add_argument("--root", type=Path, default=Path("/tmp/aerec_bench"))
     ap.add_argument("--log", action="store_true", help="print progress lines with timestamps as it runs")
@@ -88,6 +89,9 @@ def main(argv=None) -> int:
     site = args.site or ensure_site(args.preset or "demo", args.seed, args.root)
     out = args.out or args.root / f"out_{site.name}"
     cfg = make_preset(args.config_preset)
+    if args.config:
+        from recon_core.config import config_from_toml
+        cfg = config_from_toml(args.config)
     if args.tile_size:
         cfg = cfg.with_overrides({"tiling.tile_size": args.tile_size})
     ba = {"seconds": 0.0, "runs": 0}
