@@ -139,8 +139,11 @@ def main(argv=None) -> int:
             print(f"group {g}: {s['error']}")
             continue
         t = s["timings_s"]
+        rf = s.get("tie_point_refinement")
+        refined = (f"tie points refined {t.get('refine', 0.0):.1f} s ({rf['refined']} of {rf['candidates']}, "
+                   f"median move {rf['median_shift_px']:.2f} px), " if rf else "")
         print(f"group {g} sparse: features {t['features']:.1f} s, matching {t['matching']:.1f} s, "
-              f"SfM {t['sfm']:.1f} s; tiles {s['tiles_registered']}/{s['tiles_total']}, "
+              f"{refined}SfM {t['sfm']:.1f} s; tiles {s['tiles_registered']}/{s['tiles_total']}, "
               f"points {s['points']}, mean reprojection {s['mean_reproj_px']:.3f} px "
               f"(RMS {s['rms_reproj_px']:.3f})")
     print(f"bundle adjustment: {ba['seconds']:.1f} s in {ba['runs']} runs (inside SfM; global "

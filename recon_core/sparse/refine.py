@@ -172,48 +172,80 @@ def _linear_map(P: np.ndarray, Q: np.ndarray) -> np.ndarray | None:
     return C[:2].T
 
 
-def refine_tracks(images, feats, tracks, *, half: int = 7, min_ncc: float = 0.7,
-                  sigma: float = 0.7, block: int = 2048, max_shift: float = 1.5):
-    """Refine the keypoints of every track against one reference observation per track (its
-    first image's), by refine_points; images are read by window, one block of each target
-    image at a time. Returns (new features, TrackRefinement); a feature belongs to at most one
-    track, so each refined keypoint is moved in its own image's features."""
-    from recon_core.io.site import read_window
-    from recon_core.sparse.features import ImageFeatures
+def _first_of(key: np.ndarray, img: np.ndarray) -> np.ndarray:
+    """For every node, the node of the same key (track, or track and date group) in the
+    lowest-numbered image."""
+    order = np.lexsort((img, key))
+    first = np.ones(len(order), bool)
+    first[1:] = key[order][1:] != key[order][:-1]
+    ref = np.empty(len(key), np.int64)
+    ref[order] = order[np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))]
+    return ref
 
+
+def refine_tracks(images, feats, tracks, *, image_groups=None, half: int = 7, min_ncc: float = 0.7,
+                  sigma: float = 0.7, block: int = 2048, max_shift: float = 1.5):
+    """Refine the keypoints of every track by refine_points, each against a view of the same
+    date (same radiometry, shadows and vegetation): within a date group, every observation
+    against the group's first view of the track; the first view of each other group against
+    the track's first view (before the others, so that they follow it). `image_groups`: the
+    date group of each image (None: one group). Images are read by window, one block of each
+    target image at a time. Returns (new features, TrackRefinement); a feature belongs to at
+    most one track, so each refined keypoint is moved in its own image's features."""
     img, feat, trk = tracks.img, tracks.feat, tracks.track
     stats = TrackRefinement(pairs={})
     if not len(trk):
         return feats, stats
-    order = np.lexsort((img, trk))
-    first = np.ones(len(order), bool)
-    first[1:] = trk[order][1:] != trk[order][:-1]
-    ref = np.empty(len(trk), np.int64)
-    ref[order] = order[np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))]
+    grp = np.zeros(len(img), np.int64) if image_groups is None else np.asarray(image_groups)[img]
+    track_first = _first_of(trk, img)
+    group_first = _first_of(trk * (int(grp.max()) + 1) + grp, img)
     xy = np.zeros((len(trk), 2))
     for k, f in enumerate(feats):
         s = img == k
         xy[s] = f.xy[feat[s]]
-    new = xy.copy()
-    cand = ref != np.arange(len(trk))
+    pos = xy.copy()
+    nodes = np.arange(len(trk))
+    across = (group_first == nodes) & (track_first != nodes)
+    within = group_first != nodes
+    shifts = []
+    for sel, ref in ((across, track_first), (within, group_first)):
+        shifts += _refine_pass(images, pos, np.flatnonzero(sel), ref, img, stats,
+                               half=half, min_ncc=min_ncc, sigma=sigma, block=block, max_shift=max_shift)
+    stats.candidates = int((across | within).sum())
+    if shifts and sum(len(s) for s in shifts):
+        stats.median_shift_px = float(np.median(np.concatenate(shifts)))
+    from recon_core.sparse.features import ImageFeatures
+    out = []
+    for k, f in enumerate(feats):
+        s = img == k
+        fx = f.xy.copy()
+        fx[feat[s]] = pos[s]
+        out.append(ImageFeatures(f.image, fx, f.desc, f.scale, f.response, f.gray))
+    return out, stats
+
+
+def _refine_pass(images, pos, todo, ref, img, stats, *, half, min_ncc, sigma, block, max_shift) -> list:
+    """Refine nodes `todo` against nodes ref[todo] in place in `pos`; returns the moves kept."""
+    from recon_core.io.site import read_window
+
     shifts = []
     for b, imb in enumerate(images):
-        nb = np.flatnonzero(cand & (img == b))
+        nb = todo[img[todo] == b]
         if not len(nb):
             continue
         maps = {}
         for a in np.unique(img[ref[nb]]):
             s = nb[img[ref[nb]] == a]
-            maps[int(a)] = _linear_map(xy[ref[s]], xy[s])
-            stats.pairs[f"{images[a].name}|{imb.name}"] = [int(len(s)), 0]
+            maps[int(a)] = _linear_map(pos[ref[s]], pos[s])
+            stats.pairs.setdefault(f"{images[a].name}|{imb.name}", [0, 0])[0] += int(len(s))
         for r0 in range(0, imb.height, block):
             for c0 in range(0, imb.width, block):
-                s_blk = nb[(xy[nb, 1] >= r0 - 0.5) & (xy[nb, 1] < r0 + block - 0.5)
-                           & (xy[nb, 0] >= c0 - 0.5) & (xy[nb, 0] < c0 + block - 0.5)]
+                s_blk = nb[(pos[nb, 1] >= r0 - 0.5) & (pos[nb, 1] < r0 + block - 0.5)
+                           & (pos[nb, 0] >= c0 - 0.5) & (pos[nb, 0] < c0 + block - 0.5)]
                 if not len(s_blk):
                     continue
-                groups = {a: s_blk[img[ref[s_blk]] == a] for a in np.unique(img[ref[s_blk]])}
-                groups = {int(a): s for a, s in groups.items() if maps[int(a)] is not None}
+                groups = {int(a): s_blk[img[ref[s_blk]] == a] for a in np.unique(img[ref[s_blk]])}
+                groups = {a: s for a, s in groups.items() if maps[a] is not None}
                 if not groups:
                     continue
                 reach = max(np.abs(maps[a]).sum(1).max() for a in groups)
@@ -223,27 +255,17 @@ def refine_tracks(images, feats, tracks, *, half: int = 7, min_ncc: float = 0.7,
                 tgt = smooth(read_window(imb, tc0, tr0, tc1 - tc0, tr1 - tr0), sigma)
                 for a, s in groups.items():
                     ima = images[a]
-                    P = xy[ref[s]]
+                    P = pos[ref[s]]
                     ma = half + 2 + int(np.ceil(4 * sigma)) + 2
                     rc0 = max(0, int(np.floor(P[:, 0].min())) - ma)
                     rr0 = max(0, int(np.floor(P[:, 1].min())) - ma)
                     rc1 = min(ima.width, int(np.ceil(P[:, 0].max())) + ma + 1)
                     rr1 = min(ima.height, int(np.ceil(P[:, 1].max())) + ma + 1)
                     refw = smooth(read_window(ima, rc0, rr0, rc1 - rc0, rr1 - rr0), sigma)
-                    res = refine_points(refw, P - (rc0, rr0), tgt, xy[s] - (tc0, tr0), maps[a],
+                    res = refine_points(refw, P - (rc0, rr0), tgt, pos[s] - (tc0, tr0), maps[a],
                                         half=half, min_ncc=min_ncc, max_shift=max_shift)
-                    new[s] = res.xy + (tc0, tr0)
+                    pos[s] = res.xy + (tc0, tr0)
                     stats.pairs[f"{ima.name}|{imb.name}"][1] += int(res.ok.sum())
-                    stats.candidates += len(s)
                     stats.refined += int(res.ok.sum())
                     shifts.append(res.shift[res.ok])
-    stats.candidates = int(cand.sum())
-    if shifts and sum(len(s) for s in shifts):
-        stats.median_shift_px = float(np.median(np.concatenate(shifts)))
-    out = []
-    for k, f in enumerate(feats):
-        s = img == k
-        fx = f.xy.copy()
-        fx[feat[s]] = new[s]
-        out.append(ImageFeatures(f.image, fx, f.desc, f.scale, f.response, f.gray))
-    return out, stats
+    return shifts

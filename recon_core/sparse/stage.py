@@ -124,7 +124,8 @@ def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None,
     if cfg.features.refine_half_px > 0:
         bus.progress("refining", 0, 1, f"{len(tracks.track)} track observations", group=g)
         t1 = time.time()
-        feats, refinement = refine_tracks(group.images, feats, tracks, half=cfg.features.refine_half_px,
+        feats, refinement = refine_tracks(group.images, feats, tracks, image_groups=image_groups,
+                                          half=cfg.features.refine_half_px,
                                           min_ncc=cfg.features.refine_min_ncc, block=cfg.features.detect_block)
         timings["refine"] = time.time() - t1
         bus.progress("refining", 1, 1, f"{refinement.refined} of {refinement.candidates} tie points "
