@@ -70,7 +70,8 @@ class SfmConfig:
     joint_partners: int = 2           # images of other groups each image is matched with
     tie_sigma_px: float = 0.01        # the per-image pushbroom tie (recon_core.sparse.image_model)
                                       # in the final global adjustments: the model's error against
-                                      # a pushbroom, px (0 = off)
+                                      # a pushbroom, px, for a model of 3 images; n > 3 images
+                                      # scale it by 3 / n (more views check the tie) (0 = off)
 
 
 @dataclass
