@@ -98,7 +98,6 @@ def refine_points(ref: np.ndarray, ref_xy: np.ndarray, tgt: np.ndarray, tgt_xy: 
     p = np.asarray(tgt_xy, np.float64).copy()
     step = np.full(n, np.inf)
     lam_min = np.zeros(n)
-    ncc = np.full(n, -1.0)
     live = np.isfinite(Rn).all(1)
     for _ in range(iters):
         k = np.flatnonzero(live)
@@ -120,7 +119,6 @@ def refine_points(ref: np.ndarray, ref_xy: np.ndarray, tgt: np.ndarray, tgt_xy: 
         det = a * c - b * b
         tr = a + c
         lam_min[k] = 0.5 * (tr - np.sqrt(np.maximum(tr * tr - 4 * det, 0.0)))
-        ncc[k] = 1.0 - 0.5 * (r * r) @ w
         good = det > 1e-12
         dx = np.where(good, -(c * bx - b * by) / np.where(good, det, 1.0), 0.0)
         dy = np.where(good, -(a * by - b * bx) / np.where(good, det, 1.0), 0.0)
@@ -224,6 +222,9 @@ def refine_tracks(images, feats, tracks, *, image_groups=None, half: int = 7, mi
     return out, stats
 
 
+CHUNK = 20000       # points per refine_points call: its patch arrays stay ~100 MB
+
+
 def _refine_pass(images, pos, todo, ref, img, stats, *, half, min_ncc, sigma, block, max_shift) -> list:
     """Refine nodes `todo` against nodes ref[todo] in place in `pos`; returns the moves kept."""
     from recon_core.io.site import read_window
@@ -262,10 +263,12 @@ def _refine_pass(images, pos, todo, ref, img, stats, *, half, min_ncc, sigma, bl
                     rc1 = min(ima.width, int(np.ceil(P[:, 0].max())) + ma + 1)
                     rr1 = min(ima.height, int(np.ceil(P[:, 1].max())) + ma + 1)
                     refw = smooth(read_window(ima, rc0, rr0, rc1 - rc0, rr1 - rr0), sigma)
-                    res = refine_points(refw, P - (rc0, rr0), tgt, pos[s] - (tc0, tr0), maps[a],
-                                        half=half, min_ncc=min_ncc, max_shift=max_shift)
-                    pos[s] = res.xy + (tc0, tr0)
-                    stats.pairs[f"{ima.name}|{imb.name}"][1] += int(res.ok.sum())
-                    stats.refined += int(res.ok.sum())
-                    shifts.append(res.shift[res.ok])
+                    for c in range(0, len(s), CHUNK):          # bounded patch arrays
+                        sc = s[c:c + CHUNK]
+                        res = refine_points(refw, pos[ref[sc]] - (rc0, rr0), tgt, pos[sc] - (tc0, tr0),
+                                            maps[a], half=half, min_ncc=min_ncc, max_shift=max_shift)
+                        pos[sc] = res.xy + (tc0, tr0)
+                        stats.pairs[f"{ima.name}|{imb.name}"][1] += int(res.ok.sum())
+                        stats.refined += int(res.ok.sum())
+                        shifts.append(res.shift[res.ok])
     return shifts

@@ -62,7 +62,7 @@ def test_refinement_refuses_flat_or_unrelated_patches_and_keeps_their_positions(
     assert not r.ok[0]
 
 
-def test_refine_tracks_reads_by_block_and_moves_only_non_reference_observations(tmp_path):
+def test_refine_tracks_reads_by_block_and_moves_only_non_reference_observations(tmp_path, monkeypatch):
     import rasterio
 
     from recon_core.io.site import open_image
@@ -98,3 +98,49 @@ def test_refine_tracks_reads_by_block_and_moves_only_non_reference_observations(
     before = np.sqrt(np.mean((start - x2) ** 2))
     after = np.sqrt(np.mean((moved - x2) ** 2))
     assert after < 0.2 * before, (before, after)
+    # patches are refined in chunks of bounded size: the same positions
+    import recon_core.sparse.refine as refine_mod
+    monkeypatch.setattr(refine_mod, "CHUNK", 37)
+    again, _ = refine_tracks(infos, [f1, f2], tracks, block=128)
+    np.testing.assert_array_equal(again[1].xy, out[1].xy)
+
+
+def test_across_dates_only_the_first_view_of_each_other_group_is_matched_to_the_track(tmp_path):
+    """Three views, the second and third of a later date: the second is refined against the
+    first, the third against the second (same date), and all land on the truth."""
+    import rasterio
+
+    from recon_core.io.site import open_image
+    from recon_core.sparse.features import ImageFeatures
+    from recon_core.sparse.refine import refine_tracks
+    from recon_core.sparse.tracks import Tracks
+
+    rng = np.random.default_rng(5)
+    base = _texture(rng)
+    shape = (500, 500)
+    views = []
+    for k, (th, sx, sy, tx, ty) in enumerate([(0, 1, 1, 100, 100), (20, 1.05, 0.95, 160, 60),
+                                               (-15, 0.96, 1.04, 60, 180)]):
+        t = np.deg2rad(th)
+        L = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]) @ np.diag([sx, sy])
+        M = np.c_[L, [tx, ty]]
+        a = _view(base, M, shape) + rng.normal(0, 4, shape).astype(np.float32)
+        p = tmp_path / f"im{k}.tif"
+        with rasterio.open(p, "w", driver="GTiff", width=500, height=500, count=1, dtype="uint16") as ds:
+            ds.write(np.clip(np.round(a), 0, 65535).astype(np.uint16), 1)
+        views.append((open_image(p), M))
+    b = rng.uniform(250, 450, (300, 2))                      # base points seen by all three
+    truth = [np.linalg.solve(M[:, :2], (b - M[:, 2]).T).T for _, M in views]
+    n = len(b)
+    z = np.zeros(n, np.float32)
+    start = [truth[0]] + [t + rng.normal(0, 0.4, t.shape) for t in truth[1:]]
+    feats = [ImageFeatures("x", s.copy(), np.zeros((n, 128), np.uint8), z, z, z.astype(np.uint8))
+             for s in start]
+    tracks = Tracks(np.repeat(np.arange(3), n), np.tile(np.arange(n), 3), np.tile(np.arange(n), 3), n)
+    out, st = refine_tracks([v[0] for v in views], feats, tracks, image_groups=[0, 1, 1])
+    assert set(st.pairs) == {"im0.tif|im1.tif", "im1.tif|im2.tif"}     # im2 never against im0
+    assert np.array_equal(out[0].xy, truth[0])
+    for k in (1, 2):
+        before = np.sqrt(np.mean((start[k] - truth[k]) ** 2))
+        after = np.sqrt(np.mean((out[k].xy - truth[k]) ** 2))
+        assert after < 0.25 * before, (k, before, after)
