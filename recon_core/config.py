@@ -27,7 +27,8 @@ class FeatureConfig:
     detect_block: int = 2048          # images are read by window of this many pixels
     stretch_percentiles: tuple[float, float] = (0.5, 99.5)  # uint16 -> 8-bit robust stretch
     refine_half_px: int = 7           # tie points refined by least-squares patch matching on
-                                      # (2 h + 1)^2 px patches against one view of their track
+                                      # (2 h + 1)^2 px patches against a view of their track
+                                      # of the same date
                                       # (SIFT's own positions are off by ~0.35 px); 0 = off
     refine_min_ncc: float = 0.7       # a refined position needs this patch correlation
 

@@ -4,10 +4,10 @@ SIFT places a keypoint at a scale-space extremum: on this project's images its p
 by ~0.35-0.4 px per axis (measured against the true cameras on `large`). The depth of a point
 seen from two views with base-to-height ratio b/h is off by that error times GSD / (b/h): the
 sparse structure's noise is the keypoints' noise. Photogrammetric tie points are refined by
-least-squares matching (LSM) instead: one observation of a track is the reference, and every
-other observation is moved to where a small patch around it, warped by the local affine map
-between the two images, best agrees (zero-mean normalised) with the reference's patch. The
-reference's own offset only chooses which ground point the track follows, so it needs no
+least-squares matching (LSM) instead: an observation is moved to where a small patch around
+it, warped by the local affine map between the two images, best agrees (zero-mean normalised)
+with the patch of a reference view of the same track (refine_tracks says which). The first
+view's own offset only chooses which ground point the track follows, so it needs no
 refinement.
 
 The kernel is vectorised over patches: every Gauss-Newton iteration samples all patches with
@@ -20,6 +20,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from recon_core.io.site import read_window
+from recon_core.sparse.features import ImageFeatures
 
 
 @dataclass
@@ -71,9 +74,21 @@ def smooth(img: np.ndarray, sigma: float) -> np.ndarray:
     return b
 
 
+def gradients(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Central differences along columns and rows (NaN on the border)."""
+    gx = np.empty_like(img)
+    gy = np.empty_like(img)
+    gx[:, 1:-1] = 0.5 * (img[:, 2:] - img[:, :-2])
+    gx[:, [0, -1]] = np.nan
+    gy[1:-1] = 0.5 * (img[2:] - img[:-2])
+    gy[[0, -1]] = np.nan
+    return gx, gy
+
+
 def refine_points(ref: np.ndarray, ref_xy: np.ndarray, tgt: np.ndarray, tgt_xy: np.ndarray,
                   A: np.ndarray, half: int = 7, iters: int = 8, min_ncc: float = 0.7,
-                  max_shift: float = 1.5, min_texture: float = 1e-3) -> RefineResult:
+                  max_shift: float = 1.5, min_texture: float = 1e-3,
+                  tgt_grad: tuple[np.ndarray, np.ndarray] | None = None) -> RefineResult:
     """Move each tgt_xy to where the patch of `tgt` around it best matches the patch of `ref`
     around ref_xy, the target patch's grid being the reference grid mapped by A (2 x 2, or
     (n, 2, 2): d(target) = A d(reference)).
@@ -81,18 +96,14 @@ def refine_points(ref: np.ndarray, ref_xy: np.ndarray, tgt: np.ndarray, tgt_xy: 
     Gauss-Newton on the two translation parameters of the zero-mean normalised difference, with
     a Gaussian window. A position is accepted only when the final correlation is >= min_ncc, it
     moved at most max_shift px, the last step was below 0.02 px and the patch has texture in
-    both directions (smallest eigenvalue of the normal matrix, normalised, >= min_texture)."""
+    both directions (smallest eigenvalue of the normal matrix, normalised, >= min_texture).
+    `tgt_grad`: gradients(tgt), when the caller refines several sets against one target."""
     n = len(ref_xy)
     g, w = _grid(half)
     A = np.broadcast_to(np.asarray(A, np.float64), (n, 2, 2)) if np.ndim(A) == 2 else np.asarray(A)
     ref = np.asarray(ref, np.float32)
     tgt = np.asarray(tgt, np.float32)
-    gx = np.empty_like(tgt)
-    gy = np.empty_like(tgt)
-    gx[:, 1:-1] = 0.5 * (tgt[:, 2:] - tgt[:, :-2])
-    gx[:, [0, -1]] = np.nan
-    gy[1:-1] = 0.5 * (tgt[2:] - tgt[:-2])
-    gy[[0, -1]] = np.nan
+    gx, gy = gradients(tgt) if tgt_grad is None else tgt_grad
     Rn, _, _ = _normalise(_sample(ref, ref_xy[:, None, :] + g[None]), w)
     gt = np.einsum("nij,gj->ngi", A, g)                    # target grid offsets (n, G, 2)
     p = np.asarray(tgt_xy, np.float64).copy()
@@ -197,11 +208,10 @@ def refine_tracks(images, feats, tracks, *, image_groups=None, half: int = 7, mi
     grp = np.zeros(len(img), np.int64) if image_groups is None else np.asarray(image_groups)[img]
     track_first = _first_of(trk, img)
     group_first = _first_of(trk * (int(grp.max()) + 1) + grp, img)
-    xy = np.zeros((len(trk), 2))
+    pos = np.zeros((len(trk), 2))          # the nodes' positions, refined in place
     for k, f in enumerate(feats):
         s = img == k
-        xy[s] = f.xy[feat[s]]
-    pos = xy.copy()
+        pos[s] = f.xy[feat[s]]
     nodes = np.arange(len(trk))
     across = (group_first == nodes) & (track_first != nodes)
     within = group_first != nodes
@@ -212,7 +222,6 @@ def refine_tracks(images, feats, tracks, *, image_groups=None, half: int = 7, mi
     stats.candidates = int((across | within).sum())
     if shifts and sum(len(s) for s in shifts):
         stats.median_shift_px = float(np.median(np.concatenate(shifts)))
-    from recon_core.sparse.features import ImageFeatures
     out = []
     for k, f in enumerate(feats):
         s = img == k
@@ -227,8 +236,6 @@ CHUNK = 20000       # points per refine_points call: its patch arrays stay ~100 
 
 def _refine_pass(images, pos, todo, ref, img, stats, *, half, min_ncc, sigma, block, max_shift) -> list:
     """Refine nodes `todo` against nodes ref[todo] in place in `pos`; returns the moves kept."""
-    from recon_core.io.site import read_window
-
     shifts = []
     for b, imb in enumerate(images):
         nb = todo[img[todo] == b]
@@ -254,6 +261,7 @@ def _refine_pass(images, pos, todo, ref, img, stats, *, half, min_ncc, sigma, bl
                 tc0, tr0 = max(0, c0 - m), max(0, r0 - m)
                 tc1, tr1 = min(imb.width, c0 + block + m), min(imb.height, r0 + block + m)
                 tgt = smooth(read_window(imb, tc0, tr0, tc1 - tc0, tr1 - tr0), sigma)
+                grad = gradients(tgt)                  # once per window, for every reference
                 for a, s in groups.items():
                     ima = images[a]
                     P = pos[ref[s]]
@@ -266,7 +274,8 @@ def _refine_pass(images, pos, todo, ref, img, stats, *, half, min_ncc, sigma, bl
                     for c in range(0, len(s), CHUNK):          # bounded patch arrays
                         sc = s[c:c + CHUNK]
                         res = refine_points(refw, pos[ref[sc]] - (rc0, rr0), tgt, pos[sc] - (tc0, tr0),
-                                            maps[a], half=half, min_ncc=min_ncc, max_shift=max_shift)
+                                            maps[a], half=half, min_ncc=min_ncc, max_shift=max_shift,
+                                            tgt_grad=grad)
                         pos[sc] = res.xy + (tc0, tr0)
                         stats.pairs[f"{ima.name}|{imb.name}"][1] += int(res.ok.sum())
                         stats.refined += int(res.ok.sum())
