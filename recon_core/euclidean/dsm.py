@@ -15,6 +15,7 @@ import math
 import os
 import tempfile
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -159,26 +160,39 @@ class DsmAccumulator:
         return (np.fromfile(f"{base}.idx", dtype=self._idx_dtype).astype(np.int64),
                 np.fromfile(f"{base}.h", dtype="<f8"))
 
+    def blocks(self) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
+        """Reduce one block of grid rows at a time: yields (r0, r1, H, count, fallback) for rows
+        r0:r1 (H float32 NaN-empty, count int32, fallback bool: the cells whose value came from
+        tier 1), every block in order, then removes the spilled files. Memory: one block."""
+        try:
+            for b in range(self.n_blocks):
+                r0 = b * self.block_rows
+                r1 = min(r0 + self.block_rows, self.grid.height)
+                shape = (r1 - r0, self.grid.width)
+                H = np.full(shape, np.nan, dtype=np.float32)
+                count = np.zeros(shape, dtype=np.int32)
+                fallback = np.zeros(shape, dtype=bool)
+                data = self._load(b)
+                if data is not None:
+                    slots, vals, counts = _reduce_sorted(data[0], data[1], self.stat)
+                    cells = slots >> 1
+                    first = np.r_[True, cells[1:] != cells[:-1]]     # tier 0 where a cell has both
+                    cells, vals, counts, tier1 = cells[first], vals[first], counts[first], (slots[first] & 1) > 0
+                    fallback.flat[cells[tier1]] = True
+                    H.flat[cells] = vals
+                    count.flat[cells] = counts
+                yield r0, r1, H, count, fallback
+        finally:
+            self.close()
+
     def finish(self) -> tuple[np.ndarray, np.ndarray]:
         """Reduce every block. Returns H (height, width) float32 NaN-empty, count int32;
         `fallback` (height, width) bool then marks the cells whose value came from tier 1."""
         self.fallback = np.zeros(self.grid.shape, bool)
         H = np.full(self.grid.shape, np.nan, dtype=np.float32)
         count = np.zeros(self.grid.shape, dtype=np.int32)
-        for b in range(self.n_blocks):
-            data = self._load(b)
-            if data is None:
-                continue
-            slots, vals, counts = _reduce_sorted(data[0], data[1], self.stat)
-            cells = slots >> 1
-            first = np.r_[True, cells[1:] != cells[:-1]]     # tier 0 where a cell has both
-            cells, vals, counts, tier1 = cells[first], vals[first], counts[first], (slots[first] & 1) > 0
-            r0 = b * self.block_rows
-            r1 = min(r0 + self.block_rows, self.grid.height)
-            self.fallback[r0:r1].flat[cells[tier1]] = True
-            H[r0:r1].flat[cells] = vals
-            count[r0:r1].flat[cells] = counts
-        self.close()
+        for r0, r1, Hb, cb, fb in self.blocks():
+            H[r0:r1], count[r0:r1], self.fallback[r0:r1] = Hb, cb, fb
         return H, count
 
     def close(self) -> None:
@@ -193,7 +207,8 @@ class DsmAccumulator:
 # Hole filling
 # --------------------------------------------------------------------------------------------
 def fill_small_holes(H: np.ndarray, max_hole_px: int = 3, min_support: float = 0.5,
-                     window: int = 5) -> np.ndarray:
+                     window: int = 5, out: np.ndarray | None = None,
+                     block_rows: int = 1024) -> np.ndarray:
     """Fill only small NaN holes; big voids stay NaN.
 
     A NaN cell is a candidate when its connected NaN region (4-connectivity) has at most
@@ -201,32 +216,52 @@ def fill_small_holes(H: np.ndarray, max_hole_px: int = 3, min_support: float = 0
     `window` x `window` neighbourhood when at least `min_support` of that window is valid. This
     is iterated at most `max_hole_px` times (holes close from their rim inwards).
 
+    Works by blocks of `block_rows` rows, each with a margin of rows above and below wide enough
+    that the result does not depend on the blocks (a small region never reaches past it; a
+    region cut by it is larger than a small one), so H and `out` may be disk-backed arrays
+    (np.memmap) of any size: memory holds one block.
+
     Args:
         H: (height, width) float array, NaN = empty.
+        out: where to write the result (same shape, float32); None: a new array.
     Returns:
-        A filled float32 copy.
+        The filled float32 array (`out` when given).
     """
     from scipy import ndimage
 
-    out = np.array(H, dtype=np.float32, copy=True)
-    nan = np.isnan(out)
-    if not nan.any() or nan.all():
-        return out
-    lab, n = ndimage.label(nan)
-    sizes = np.bincount(lab.ravel(), minlength=n + 1)
-    small = (sizes <= (2 * max_hole_px + 1) ** 2)
-    small[0] = False
-    cand = small[lab]
+    if out is None:
+        out = np.empty(H.shape, np.float32)
+    h = H.shape[0]
+    limit = (2 * max_hole_px + 1) ** 2
     r = window // 2
+    iters = max(1, int(max_hole_px))
+    margin = limit + 2 * r * iters + 1
     offs = np.array([(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)])
-    for _ in range(max(1, int(max_hole_px))):
-        rows, cols = np.nonzero(cand & np.isnan(out))
-        if not len(rows):
-            break
-        pad = np.pad(out, r, constant_values=np.nan)
-        vals = pad[rows[:, None] + r + offs[:, 0], cols[:, None] + r + offs[:, 1]]   # (k, w*w)
-        ok = np.isfinite(vals).sum(axis=1) >= min_support * len(offs)
-        if not ok.any():
-            break
-        out[rows[ok], cols[ok]] = np.nanmedian(vals[ok], axis=1)
+    for r0 in range(0, h, max(1, int(block_rows))):
+        r1 = min(r0 + block_rows, h)
+        a, b = max(0, r0 - margin), min(h, r1 + margin)
+        win = np.array(H[a:b], dtype=np.float32, copy=True)
+        nan = np.isnan(win)
+        if nan.any() and not nan.all():
+            lab, n = ndimage.label(nan)
+            sizes = np.bincount(lab.ravel(), minlength=n + 1)
+            small = sizes <= limit
+            small[0] = False
+            # a region touching a cut edge of the window may go on beyond it: not small
+            if a > 0:
+                small[lab[0]] = False
+            if b < h:
+                small[lab[-1]] = False
+            cand = small[lab]
+            for _ in range(iters):
+                rows, cols = np.nonzero(cand & np.isnan(win))
+                if not len(rows):
+                    break
+                pad = np.pad(win, r, constant_values=np.nan)
+                vals = pad[rows[:, None] + r + offs[:, 0], cols[:, None] + r + offs[:, 1]]   # (k, w*w)
+                ok = np.isfinite(vals).sum(axis=1) >= min_support * len(offs)
+                if not ok.any():
+                    break
+                win[rows[ok], cols[ok]] = np.nanmedian(vals[ok], axis=1)
+        out[r0:r1] = win[r0 - a:r1 - a]
     return out

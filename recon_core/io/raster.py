@@ -16,7 +16,9 @@ import numpy as np
 import rasterio
 from rasterio.crs import CRS
 from rasterio.enums import Resampling
+from rasterio.shutil import copy as rio_copy
 from rasterio.transform import Affine
+from rasterio.windows import Window
 
 from recon_core.errors import InputError
 from recon_core.io.files import atomic_path
@@ -126,30 +128,40 @@ def _has_cog_driver() -> bool:
         return "COG" in env.drivers()
 
 
+GDAL_CACHE_MB = 256        # GDAL's block cache while writing (its default: 5 % of the RAM)
+
+
 def write_geotiff(path: str | Path, arr: np.ndarray, transform: Affine, crs: Any,
                   *, resampling: str = "average", tags: dict[str, str] | None = None,
-                  description: str | None = None, units: str | None = None) -> Path:
+                  description: str | None = None, units: str | None = None,
+                  block_rows: int = 1024) -> Path:
     """Write a single-band float32 raster (NaN nodata) as a Cloud-Optimized GeoTIFF, atomically.
 
-    256 x 256 tiles, DEFLATE with the floating-point predictor, internal overviews. Uses GDAL's
-    COG driver when present; otherwise a tiled GTiff with overviews built after writing.
+    256 x 256 tiles, DEFLATE with the floating-point predictor, internal overviews. `arr` may be
+    disk-backed (np.memmap): it is read `block_rows` rows at a time into a tiled GTiff, which
+    GDAL's COG driver then copies with its overviews (GDAL's cache capped at GDAL_CACHE_MB), so
+    memory does not grow with the raster.
+    Without the COG driver the tiled GTiff gets overviews built after writing and is the result.
     `tags` (dataset metadata), `description` and `units` (of the band) are written when given.
     """
     path = Path(path)
-    arr = np.asarray(arr, dtype=np.float32)
     if arr.ndim != 2:
         raise ValueError(f"expected a 2D array, got shape {arr.shape}")
-    profile = dict(count=1, dtype="float32", width=arr.shape[1], height=arr.shape[0],
-                   crs=crs, transform=transform, nodata=np.nan)
-    with atomic_path(path) as tmp:
-        if _has_cog_driver():
-            with rasterio.open(tmp, "w", driver="COG", BLOCKSIZE=256, COMPRESS="DEFLATE",
-                               PREDICTOR="FLOATING_POINT", OVERVIEWS="AUTO",
-                               OVERVIEW_RESAMPLING=resampling.upper(), **profile) as dst:
-                dst.write(arr, 1)
-                _describe(dst, tags, description, units)
-        else:
-            _write_gtiff_tiled(tmp, arr, profile, resampling, tags, description, units)
+    cog = _has_cog_driver()
+    with atomic_path(path) as tmp, rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
+        plain = tmp.with_name(tmp.name + ".tiles.tif") if cog else tmp
+        try:
+            _write_gtiff_tiled(plain, arr, dict(count=1, dtype="float32", width=arr.shape[1],
+                                                height=arr.shape[0], crs=crs, transform=transform,
+                                                nodata=np.nan),
+                               None if cog else resampling, tags, description, units, block_rows)
+            if cog:
+                rio_copy(plain, tmp, driver="COG", BLOCKSIZE=256, COMPRESS="DEFLATE",
+                         PREDICTOR="FLOATING_POINT", OVERVIEWS="AUTO", BIGTIFF="IF_SAFER",
+                         OVERVIEW_RESAMPLING=resampling.upper())
+        finally:
+            if cog and plain.exists():
+                plain.unlink()
     return path
 
 
@@ -162,15 +174,19 @@ def _describe(dst, tags, description, units) -> None:
         dst.units = (units,)
 
 
-def _write_gtiff_tiled(tmp: Path, arr: np.ndarray, profile: dict, resampling: str,
-                       tags=None, description=None, units=None) -> None:
-    """Fallback: tiled DEFLATE GTiff plus internal overviews."""
+def _write_gtiff_tiled(tmp: Path, arr: np.ndarray, profile: dict, resampling: str | None,
+                       tags=None, description=None, units=None, block_rows: int = 1024) -> None:
+    """A tiled DEFLATE GTiff written by strips of rows; internal overviews when `resampling`."""
+    step = max(256, block_rows // 256 * 256)
     with rasterio.open(tmp, "w", driver="GTiff", tiled=True, blockxsize=256, blockysize=256,
                        compress="deflate", predictor=3, BIGTIFF="IF_SAFER", **profile) as dst:
-        dst.write(arr, 1)
+        for r0 in range(0, arr.shape[0], step):
+            r1 = min(r0 + step, arr.shape[0])
+            dst.write(np.asarray(arr[r0:r1], dtype=np.float32), 1,
+                      window=Window(0, r0, arr.shape[1], r1 - r0))
         _describe(dst, tags, description, units)
         factors, f = [], 2
-        while max(arr.shape) / f >= 256:
+        while resampling and max(arr.shape) / f >= 256:
             factors.append(f)
             f *= 2
         if factors:

@@ -153,6 +153,28 @@ def test_fill_small_holes_but_not_voids():
     assert np.array_equal(out[valid], H[valid])               # valid cells untouched
 
 
+def test_fill_small_holes_by_blocks_is_the_same(tmp_path):
+    """Blocks of a few rows (disk-backed in and out) give the same DSM as one block: holes and
+    voids of every size, some cut by many block edges."""
+    rng = np.random.default_rng(8)
+    H = (100 + rng.normal(0, 0.5, (300, 120))).astype(np.float32)
+    H[rng.random(H.shape) < 0.08] = np.nan                     # single cells and small clusters
+    for _ in range(40):
+        r, c = rng.integers(0, 290), rng.integers(0, 110)
+        H[r:r + rng.integers(1, 9), c:c + rng.integers(1, 9)] = np.nan
+    H[100:103, 30] = np.nan
+    H[40:70, 60] = np.nan                                       # a thin line of 30 cells: a void
+    one = fill_small_holes(H, max_hole_px=2, block_rows=10_000)
+    src = np.lib.format.open_memmap(tmp_path / "h.npy", "w+", np.float32, H.shape)
+    src[:] = H
+    dst = np.lib.format.open_memmap(tmp_path / "o.npy", "w+", np.float32, H.shape)
+    for rows in (1, 7, 64):
+        out = fill_small_holes(src, max_hole_px=2, block_rows=rows, out=dst)
+        assert out is dst and np.array_equal(np.asarray(dst), one, equal_nan=True), rows
+    assert np.isnan(one[40:70, 60]).all() and np.isfinite(one[100:103, 30]).all()
+    assert np.isnan(one).sum() < np.isnan(H).sum()
+
+
 def test_geotiff_round_trip(tmp_path, grid):
     H = np.random.default_rng(5).normal(100, 5, grid.shape).astype(np.float32)
     H[3:6, 4:9] = np.nan
