@@ -9,6 +9,7 @@ conversion of ENU, not ENU up.
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +48,9 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     Streams: ICP and the grid extent use evenly spread samples; then each group's cloud is read
     by chunks (upgrade, ICP refinement, conversion to the output CRS), appended to cloud.ply and
     filed into that group's DSM accumulator, which reduces one block of grid rows at a time;
-    memory does not grow with the number of points.
+    memory does not grow with the number of points. Nor with the grid: each group's DSM, the
+    fused one and their filled copies are memory-mapped files in a work folder of OUT (removed
+    at the end), fused, filled and written to GeoTIFF by strips of rows.
 
     Fusion of several groups (`fuse_groups`): each group's DSM without the cells only a weak
     pair's two-view points reach (dense `weak` marks); groups ranked by `quality` (their check
@@ -79,72 +82,97 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     spill = out.root if total > c.spill_above_points else None
     accs = {g: DsmAccumulator(grid, stat=c.stat, spill_dir=spill) for g in groups}
     done = 0
+    # every full-grid array lives on disk (np.memmap in a work folder of OUT, removed at the
+    # end) and is read by strips: memory holds strips, whatever the site's size
+    work = tempfile.TemporaryDirectory(prefix=".dsm_work_", dir=out.root)
+    strip = max(256, min(1024, STRIP_CELLS // grid.width))     # rows per strip
     try:
-        with PlyWriter(out.cloud, comments=(f"frame EPSG:{epsg} x y in metres, z height above the "
-                                            "WGS84 ellipsoid in metres; date groups fused",)) as w:
+        def grid_file(name: str, dtype) -> np.ndarray:
+            return np.lib.format.open_memmap(Path(work.name) / f"{name}.npy", mode="w+",
+                                             dtype=dtype, shape=grid.shape)
+
+        try:
+            with PlyWriter(out.cloud, comments=(f"frame EPSG:{epsg} x y in metres, z height above "
+                                                "the WGS84 ellipsoid in metres; date groups fused",)) as w:
+                for g in groups:
+                    src = sources[g]
+                    for a in range(0, len(src), c.chunk_points):
+                        b = min(a + c.chunk_points, len(src))
+                        xyz, gray = src.read(a, b)
+                        xyh = enu_to_output(apply_affine_3d(Ts[g], apply_affine_3d(Hs[g], xyz)), frame, epsg)
+                        accs[g].add(xyh, src.tier(a, b))
+                        w.append(xyh, gray[:, None])
+                        done += len(xyz)
+                        if bus is not None:
+                            bus.progress("dsm", done, total, f"group {g}")
+            in_grid = sum(a.n_points for a in accs.values())
+            raw, weak = {}, {}
             for g in groups:
-                src = sources[g]
-                for a in range(0, len(src), c.chunk_points):
-                    b = min(a + c.chunk_points, len(src))
-                    xyz, gray = src.read(a, b)
-                    xyh = enu_to_output(apply_affine_3d(Ts[g], apply_affine_3d(Hs[g], xyz)), frame, epsg)
-                    accs[g].add(xyh, src.tier(a, b))
-                    w.append(xyh, gray[:, None])
-                    done += len(xyz)
-                    if bus is not None:
-                        bus.progress("dsm", done, total, f"group {g}")
-        in_grid = sum(a.n_points for a in accs.values())
-        per_group, precise = {}, {}
-        for g in groups:
-            per_group[g] = accs[g].finish()[0]
-            # without the cells only a weak pair's two-view points reach
-            precise[g] = np.where(accs[g].fallback, np.float32(np.nan), per_group[g])
-            accs[g].fallback = None
+                raw[g], weak[g] = grid_file(f"raw_{g}", np.float32), grid_file(f"weak_{g}", bool)
+                for r0, r1, Hb, _, fb in accs[g].blocks():
+                    raw[g][r0:r1], weak[g][r0:r1] = Hb, fb
+        finally:
+            for acc in accs.values():
+                acc.close()
+
+        def precise_rows(g):     # without the cells only a weak pair's two-view points reach
+            return lambda r0, r1: np.where(weak[g][r0:r1], np.float32(np.nan), raw[g][r0:r1])
+
+        def weak_rows(g):
+            return lambda r0, r1: np.where(weak[g][r0:r1], raw[g][r0:r1], np.float32(np.nan))
+
+        precise = {g: RowView(grid.shape, precise_rows(g)) for g in groups}
+        block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
+        noise = group_noise(precise, block)               # {g: None} for one group
+        coverage = {g: count_rows(precise[g], np.isfinite) for g in groups}
+        order = rank_groups(groups, quality or {}, coverage, noise)
+        if len(groups) == 1:
+            H, source = raw[groups[0]], None              # source: only reported for several
+        else:
+            # every group's precise cells first; a weak pair's cells only where none has any
+            fill = [RowView(grid.shape, weak_rows(g)) for g in order] if c.fuse_weak_pair_cells else []
+            H, source = fuse_groups([precise[g] for g in order] + fill, correct_block=block,
+                                    sigmas=[noise[g] for g in order] + [None] * len(fill),
+                                    agree_sigmas=c.fusion_agree_sigmas,
+                                    out=grid_file("fused", np.float32),
+                                    source_out=grid_file("source", np.int16), block_rows=strip)
+        raw_valid = count_rows(H, np.isfinite) / H.size
+        filled_buf = grid_file("filled", np.float32)
+
+        def filled(D: np.ndarray) -> np.ndarray:
+            return fill_small_holes(D, max_hole_px=c.fill_holes_px, out=filled_buf, block_rows=strip) \
+                if c.fill_holes_px > 0 else D
+
+        H = filled(H)
+        valid = count_rows(H, np.isfinite) / H.size
+        write_dsm(out.dsm, H, grid)
+        if c.laz:
+            write_las(out.cloud, out.cloud_laz, epsg)
+        elif out.cloud_laz.exists():                 # a previous run's: it would not match
+            out.cloud_laz.unlink()
+        groups_report = {}
+        for g in out.group_dsms():                   # a previous run's, of groups not fused now
+            if len(groups) == 1 or g not in groups:
+                out.group_dsm(g).unlink()
+        if len(groups) > 1:
+            for k, g in enumerate(order):
+                write_dsm(out.group_dsm(g), filled(raw[g]), grid)
+                n_cells = grid.width * grid.height
+                groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),
+                                         "noise_m": noise[g],
+                                         "points": int(len(sources[g])),
+                                         "valid_fraction_raw": count_rows(raw[g], np.isfinite) / n_cells,
+                                         "precise_fraction": coverage[g] / n_cells,
+                                         "fused_cells_from_it": count_rows(source, lambda v: v == k) / n_cells,
+                                         "fused_cells_from_its_weak_pair":
+                                             count_rows(source, lambda v: v == k + len(order)) / n_cells}
+        raw.clear(), weak.clear(), precise.clear()     # let go of the memmaps before removing them
+        H = source = filled_buf = None
     finally:
-        for acc in accs.values():
-            acc.close()
-    block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
-    noise = group_noise(precise, block)               # {g: None} for one group
-    coverage = {g: int(np.isfinite(precise[g]).sum()) for g in groups}
-    order = rank_groups(groups, quality or {}, coverage, noise)
-    if len(groups) == 1:
-        H, source = per_group[groups[0]], None           # source: only reported for several
-    else:
-        # every group's precise cells first; a weak pair's cells only where none has any
-        fill = [np.where(np.isnan(precise[g]), per_group[g], np.float32(np.nan)) for g in order] \
-            if c.fuse_weak_pair_cells else []
-        H, source = fuse_groups([precise[g] for g in order] + fill, correct_block=block,
-                                sigmas=[noise[g] for g in order] + [None] * len(fill),
-                                agree_sigmas=c.fusion_agree_sigmas)
-    del precise
-    raw_valid = float(np.isfinite(H).mean())
-
-    def filled(D: np.ndarray) -> np.ndarray:
-        return fill_small_holes(D, max_hole_px=c.fill_holes_px) if c.fill_holes_px > 0 else D
-
-    H = filled(H)
-    write_dsm(out.dsm, H, grid)
-    if c.laz:
-        write_las(out.cloud, out.cloud_laz, epsg)
-    elif out.cloud_laz.exists():                 # a previous run's: it would not match
-        out.cloud_laz.unlink()
-    groups_report = {}
-    for g in out.group_dsms():                   # a previous run's, of groups not fused now
-        if len(groups) == 1 or g not in groups:
-            out.group_dsm(g).unlink()
-    if len(groups) > 1:
-        for k, g in enumerate(order):
-            write_dsm(out.group_dsm(g), filled(per_group[g]), grid)
-            groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),
-                                     "noise_m": noise[g],
-                                     "points": int(len(sources[g])),
-                                     "valid_fraction_raw": float(np.isfinite(per_group[g]).mean()),
-                                     "precise_fraction": coverage[g] / grid.width / grid.height,
-                                     "fused_cells_from_it": float((source == k).mean()),
-                                     "fused_cells_from_its_weak_pair": float((source == k + len(order)).mean())}
+        work.cleanup()
     return {"crs_epsg": epsg, "resolution_m": res, "width": grid.width, "height": grid.height,
             "points": int(total), "points_in_grid": int(in_grid), "valid_fraction_raw": raw_valid,
-            "valid_fraction": float(np.isfinite(H).mean()), "stat": c.stat, "fusion": fusion,
+            "valid_fraction": valid, "stat": c.stat, "fusion": fusion,
             "fusion_rule": ("per cell, the best-ranked group with a precise value (ranked by the "
                             "expected height error: check-point vertical RMSE and the DSM's noise "
                             "from the groups' disagreement; ties: the group with the most precise "
@@ -158,6 +186,15 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
                              "points reach are left out (they stay in each group's own DSM)"))
                            if len(groups) > 1 else "one group",
             "group_order": order, "groups": groups_report, "gsd_m": gsd}
+
+
+STRIP_CELLS = 8_000_000      # cells per strip of rows when fusing and filling grids on disk
+
+
+def count_rows(D, test, block_rows: int = 1024) -> int:
+    """How many cells of a (possibly disk-backed) grid pass `test`, read by strips."""
+    return int(sum(int(np.count_nonzero(test(np.asarray(D[r0:r0 + block_rows]))))
+                   for r0 in range(0, D.shape[0], block_rows)))
 
 
 def rank_groups(groups: list[int], quality: dict[int, float], size: dict[int, int],
@@ -221,9 +258,10 @@ def group_noise(dsms: dict[int, np.ndarray], correct_block: int = 0, min_overlap
     return out
 
 
-def fuse_groups(dsms: list[np.ndarray], correct_block: int = 0, min_overlap: int = 2000,
-                sigmas: list[float | None] | None = None,
-                agree_sigmas: float = 2.5) -> tuple[np.ndarray, np.ndarray]:
+def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
+                sigmas: list[float | None] | None = None, agree_sigmas: float = 2.5,
+                out: np.ndarray | None = None, source_out: np.ndarray | None = None,
+                block_rows: int = 1024) -> tuple[np.ndarray, np.ndarray]:
     """Fuse per-group DSMs given best first. Returns (H, index of the DSM each cell's reference
     value came from, -1 where none has one).
 
@@ -239,71 +277,147 @@ def fuse_groups(dsms: list[np.ndarray], correct_block: int = 0, min_overlap: int
        the cell is their inverse-variance weighted mean: independent matchings of the same
        ground average their noise down; a DSM that disagrees (a shadow, a moved car, a
        mismatch) is left out of that cell.
+
+    Works by strips of about `block_rows` rows (a multiple of correct_block): the DSMs may be
+    disk-backed (np.memmap, or RowView), and so may `out` (float32) and `source_out` (int16);
+    memory holds a few strips and the coarse correction grids, whatever the grid's size.
     """
-    H = np.full(dsms[0].shape, np.nan, np.float32)
-    source = np.full(dsms[0].shape, -1, np.int16)
-    corrected = []
-    for k, D in enumerate(dsms):
+    shape = tuple(dsms[0].shape)
+    h, w = shape
+    step = max(1, int(block_rows))
+    if correct_block > 0:
+        step = max(correct_block, step // correct_block * correct_block)
+    spans = [(r0, min(h, r0 + step)) for r0 in range(0, h, step)]
+    H = out if out is not None else np.empty(shape, np.float32)
+    source = source_out if source_out is not None else np.empty(shape, np.int16)
+    for r0, r1 in spans:
+        H[r0:r1] = np.nan
+        source[r0:r1] = -1
+    coarse: list[np.ndarray | None] = [None] * len(dsms)
+
+    def corrected(k: int, r0: int, r1: int) -> np.ndarray:
+        D = np.asarray(dsms[k][r0:r1], dtype=np.float32)
+        if coarse[k] is not None:
+            D = (D - correction_rows(coarse[k], correct_block, r0, r1, w)).astype(np.float32)
+        return D
+
+    for k in range(len(dsms)):
         if k > 0 and correct_block > 0:
-            D = (D - relative_correction(D, H, correct_block, min_overlap)).astype(np.float32)
-        take = np.isnan(H) & np.isfinite(D)
-        H[take] = D[take]
-        source[take] = k
-        corrected.append(D)
+            coarse[k] = correction_surface(dsms[k], H, correct_block, min_overlap, block_rows=step)
+        for r0, r1 in spans:
+            D, Hb, sb = corrected(k, r0, r1), H[r0:r1], source[r0:r1]
+            take = np.isnan(Hb) & np.isfinite(D)
+            Hb[take] = D[take]
+            sb[take] = k
     sig = [None if s is None or not np.isfinite(s) or s <= 0 else float(s) for s in (sigmas or [])]
     if agree_sigmas <= 0 or len(sig) != len(dsms) or sum(s is not None for s in sig) < 2:
         return H, source
-    # each cell's reference noise: that of the DSM its value came from
-    s_ref = np.full(H.shape, np.nan, np.float32)
-    for k, s in enumerate(sig):
-        s_ref[source == k] = np.nan if s is None else s
-    num = np.zeros(H.shape, np.float32)
-    den = np.zeros(H.shape, np.float32)
-    for k, (D, s) in enumerate(zip(corrected, sig)):
-        if s is None:
-            continue
-        with np.errstate(invalid="ignore"):
-            ok = np.isfinite(D) & (np.abs(D - H) <= agree_sigmas * np.sqrt(s_ref ** 2 + s * s))
-        w = 1.0 / (s * s)
-        num[ok] += w * D[ok]
-        den[ok] += w
-    avg = den > 0
-    H[avg] = num[avg] / den[avg]
+    for r0, r1 in spans:
+        Hb, sb = H[r0:r1], np.asarray(source[r0:r1])
+        # each cell's reference noise: that of the DSM its value came from
+        s_ref = np.full(Hb.shape, np.nan, np.float32)
+        for k, s in enumerate(sig):
+            s_ref[sb == k] = np.nan if s is None else s
+        num = np.zeros(Hb.shape, np.float32)
+        den = np.zeros(Hb.shape, np.float32)
+        for k, s in enumerate(sig):
+            if s is None:
+                continue
+            D = corrected(k, r0, r1)
+            with np.errstate(invalid="ignore"):
+                ok = np.isfinite(D) & (np.abs(D - Hb) <= agree_sigmas * np.sqrt(s_ref ** 2 + s * s))
+            wk = 1.0 / (s * s)
+            num[ok] += wk * D[ok]
+            den[ok] += wk
+        avg = den > 0
+        Hb[avg] = num[avg] / den[avg]
     return H, source
+
+
+def correction_surface(D, ref, block: int, min_overlap: int = 2000,
+                       block_rows: int | None = None) -> np.ndarray | None:
+    """The coarse grid (one value per block x block cells, float32) of the smooth difference
+    D - ref: per-block medians where >= 5 % of the block's cells overlap, nearest-block
+    extrapolation, a Gaussian of one block. None when they share fewer than min_overlap cells.
+    Read by strips of block_rows rows (rounded to whole blocks; None: all at once)."""
+    from scipy import ndimage
+
+    h, w = D.shape
+    nb_r, nb_c = -(-h // block), -(-w // block)
+    step = h if not block_rows else max(block, int(block_rows) // block * block)
+    coarse = np.full(nb_r * nb_c, np.nan)
+    need = max(8, block * block // 20)             # >= 5 % of the block's cells overlap
+    n_both = 0
+    for r0 in range(0, h, step):
+        Db = np.asarray(D[r0:r0 + step])
+        Rb = np.asarray(ref[r0:r0 + step])
+        both = np.isfinite(Db) & np.isfinite(Rb)
+        r, c = np.nonzero(both)
+        n_both += len(r)
+        key = (r0 // block + r // block) * nb_c + (c // block)
+        diff = (Db[r, c] - Rb[r, c]).astype(np.float64)
+        order = np.argsort(key, kind="stable")
+        key, diff = key[order], diff[order]
+        cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            if b - a >= need:
+                coarse[key[a]] = np.median(diff[a:b])
+    if n_both < min_overlap:
+        return None
+    coarse = coarse.reshape(nb_r, nb_c)
+    have = np.isfinite(coarse)
+    if not have.any():
+        return None
+    idx = ndimage.distance_transform_edt(~have, return_distances=False, return_indices=True)
+    coarse = coarse[idx[0], idx[1]]
+    return ndimage.gaussian_filter(coarse, 1.0, mode="nearest").astype(np.float32)
+
+
+def correction_rows(coarse: np.ndarray, block: int, r0: int, r1: int, width: int) -> np.ndarray:
+    """Rows r0:r1 of the bilinear up-sampling (cv2.resize) of a coarse correction grid: the
+    same values as up-sampling the whole grid, from the coarse rows around them only."""
+    import cv2
+
+    nb_r, nb_c = coarse.shape
+    c0 = max(0, r0 // block - 1)
+    c1 = min(nb_r, -(-r1 // block) + 1)
+    up = cv2.resize(np.ascontiguousarray(coarse[c0:c1]), (nb_c * block, (c1 - c0) * block),
+                    interpolation=cv2.INTER_LINEAR)
+    return up[r0 - c0 * block:r1 - c0 * block, :width]
 
 
 def relative_correction(D: np.ndarray, ref: np.ndarray, block: int, min_overlap: int = 2000) -> np.ndarray:
     """A smooth surface of the difference D - ref (full grid, float32; zeros when they share
-    fewer than min_overlap cells): per-block medians, nearest-block extrapolation, a Gaussian of
-    one block, bilinear up-sampling."""
-    import cv2
-    from scipy import ndimage
+    fewer than min_overlap cells): correction_surface up-sampled."""
+    coarse = correction_surface(D, ref, block, min_overlap)
+    if coarse is None:
+        return np.zeros(D.shape, np.float32)
+    return correction_rows(coarse, block, 0, D.shape[0], D.shape[1])
 
-    both = np.isfinite(D) & np.isfinite(ref)
-    if int(both.sum()) < min_overlap:
-        return np.zeros(D.shape, np.float32)
-    h, w = D.shape
-    nb_r, nb_c = -(-h // block), -(-w // block)
-    r, c = np.nonzero(both)
-    key = (r // block) * nb_c + (c // block)
-    diff = (D[r, c] - ref[r, c]).astype(np.float64)
-    order = np.argsort(key, kind="stable")
-    key, diff = key[order], diff[order]
-    cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
-    coarse = np.full(nb_r * nb_c, np.nan)
-    need = max(8, block * block // 20)             # >= 5 % of the block's cells overlap
-    for a, b in zip(cuts[:-1], cuts[1:]):
-        if b - a >= need:
-            coarse[key[a]] = np.median(diff[a:b])
-    coarse = coarse.reshape(nb_r, nb_c)
-    have = np.isfinite(coarse)
-    if not have.any():
-        return np.zeros(D.shape, np.float32)
-    idx = ndimage.distance_transform_edt(~have, return_distances=False, return_indices=True)
-    coarse = coarse[idx[0], idx[1]]
-    coarse = ndimage.gaussian_filter(coarse, 1.0, mode="nearest")
-    up = cv2.resize(coarse.astype(np.float32), (nb_c * block, nb_r * block), interpolation=cv2.INTER_LINEAR)
-    return up[:h, :w]
+
+class RowView:
+    """A (height, width) float32 grid computed strip by strip: `rows(r0, r1)` gives rows r0:r1.
+    Indexing supports row slices and (row slice, column slice), as fuse_groups and group_noise
+    use them, so a masked or combined DSM need not exist in memory as a whole."""
+
+    def __init__(self, shape: tuple[int, int], rows, block_rows: int = 1024):
+        self.shape, self.rows, self.block_rows = tuple(shape), rows, max(1, int(block_rows))
+
+    @property
+    def size(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    def __getitem__(self, key) -> np.ndarray:
+        rs, cs = key if isinstance(key, tuple) else (key, slice(None))
+        start, stop, step = rs.indices(self.shape[0])
+        if step == 1:
+            return self.rows(start, max(start, stop))[:, cs]
+        want = np.arange(start, stop, step)
+        parts = []
+        for a in range(0, len(want), max(1, self.block_rows // step)):
+            sel = want[a:a + max(1, self.block_rows // step)]
+            parts.append(self.rows(int(sel[0]), int(sel[-1]) + 1)[sel - sel[0]][:, cs])
+        return np.concatenate(parts) if parts else np.empty((0, len(range(*cs.indices(self.shape[1])))), np.float32)
 
 
 def point_sources(state, bus: EventBus) -> dict[int, PointSource]:

@@ -258,6 +258,44 @@ def test_groups_that_agree_are_averaged_and_one_that_disagrees_is_left_out():
     assert np.array_equal(fuse_groups(D, sigmas=sig, agree_sigmas=0)[0], plain)
 
 
+def test_fusion_by_strips_on_disk_equals_one_strip(tmp_path):
+    """Fusing by strips of rows from disk-backed DSMs (and masked views of them) into
+    disk-backed outputs gives exactly the DSM and sources of one strip in memory: the smooth
+    correction is the same up-sampled surface, the averaging the same per cell."""
+    from recon_core.euclidean.dsm_stage import RowView, count_rows, group_noise
+
+    rng = np.random.default_rng(6)
+    h, w = 333, 290
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    truth = 100 + 0.01 * xx + 3 * ((xx // 40 + yy // 40) % 2)
+    D = []
+    for k, s in enumerate((0.1, 0.2, 0.3)):
+        d = (truth + k * 0.3 * np.sin(yy / 90.0) + rng.normal(0, s, truth.shape)).astype(np.float32)
+        for _ in range(30):
+            r, c = rng.integers(0, h - 20), rng.integers(0, w - 20)
+            d[r:r + int(rng.integers(3, 20)), c:c + int(rng.integers(3, 20))] = np.nan
+        D.append(d)
+    kw = dict(correct_block=16, sigmas=[0.1, 0.2, 0.3], min_overlap=500)
+    H1, s1 = fuse_groups(D, block_rows=10_000, **kw)
+    disk = []
+    for k, d in enumerate(D):
+        m = np.lib.format.open_memmap(tmp_path / f"d{k}.npy", "w+", np.float32, d.shape)
+        m[:] = d
+        disk.append(m)
+    views = [disk[0]] + [RowView(d.shape, (lambda m: lambda a, b: np.asarray(m[a:b]))(m)) for m in disk[1:]]
+    out = np.lib.format.open_memmap(tmp_path / "H.npy", "w+", np.float32, (h, w))
+    src = np.lib.format.open_memmap(tmp_path / "s.npy", "w+", np.int16, (h, w))
+    for rows in (16, 40, 100):
+        H2, s2 = fuse_groups(views, block_rows=rows, out=out, source_out=src, **kw)
+        assert H2 is out and np.array_equal(np.asarray(H2), H1, equal_nan=True), rows
+        assert np.array_equal(np.asarray(s2), s1), rows
+    assert (s1 == 2).sum() > 0 and count_rows(src, lambda v: v == 1, block_rows=7) == int((s1 == 1).sum())
+    # a strided view reads the same cells as the array
+    assert np.array_equal(views[1][::3, ::2], D[1][::3, ::2], equal_nan=True)
+    assert group_noise(dict(enumerate(views)), 16, max_cells=20_000) == \
+        group_noise(dict(enumerate(D)), 16, max_cells=20_000)
+
+
 def test_the_euclidean_cloud_is_also_a_laz_with_its_crs(tiny2_run):
     """cloud.laz holds cloud.ply's points to the millimetre, in the DSM's CRS, heights said to
     be ellipsoidal (what PDAL and QGIS read: the WKT VLR)."""
