@@ -207,14 +207,23 @@ def find_dsm_products(out: str | Path) -> DsmProducts:
 
 
 def dsm_preview(dsm_path: Path, max_side: int = 640) -> np.ndarray:
-    """Shaded-relief RGB of a DSM with a height colour bar (for the panel)."""
-    from recon_core.evaluation import colormap as cm
-    from recon_core.io.raster import read_dsm
+    """Shaded-relief RGB of a DSM with a height colour bar (for the panel).
 
-    H, grid = read_dsm(dsm_path)
+    Read at about twice the panel's size, from the GeoTIFF's overviews when it has them (this
+    project writes COGs): a DSM of a full scene (40,000 cells a side) is never read whole."""
+    import rasterio
+    from rasterio.enums import Resampling
+
+    from recon_core.evaluation import colormap as cm
+
+    with rasterio.open(dsm_path) as ds:
+        f = max(1, int(np.ceil(max(ds.width, ds.height) / (2 * max_side))))
+        H = ds.read(1, out_shape=(max(1, ds.height // f), max(1, ds.width // f)), masked=True,
+                    resampling=Resampling.average).astype(np.float32).filled(np.nan)
+        res = abs(ds.transform.a) * ds.width / H.shape[1]
     ok = np.isfinite(H)
     lo, hi = (np.percentile(H[ok], [2, 98]) if ok.any() else (0.0, 1.0))
-    rgb = cm.resize_for_display(cm.shaded(H, grid.res, lo, hi),
+    rgb = cm.resize_for_display(cm.shaded(H, res, lo, hi),
                                 200, max_side)
     bar = cm.colorbar(rgb.shape[0], float(lo), float(hi), lambda v: cm.sequential(v, lo, hi))
     return cm.hstack([rgb, bar])

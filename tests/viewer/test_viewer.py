@@ -1366,3 +1366,30 @@ def test_the_viewer_refuses_a_blank_image_before_computing(small_site, tmp_path)
     snap = w.snapshot()
     assert snap.status == "failed" and "b.tif" in snap.error and "is blank" in snap.error, snap.error
     assert not (tmp_path / "out" / "affine").exists()
+
+
+def test_dsm_preview_reads_a_big_dsm_through_its_overviews(tmp_path, monkeypatch):
+    """The panel's preview of a DSM (a COG, as the pipeline writes it) is read near the panel's
+    size, never whole, and its colours still follow the relief (a ramp from west to east)."""
+    import rasterio.io
+
+    from aerec_viewer.results import dsm_preview
+    from recon_core.io.raster import Grid, write_dsm
+
+    g = Grid(32631, 500000.0, 4000000.0, 0.5, 4000, 3000)
+    H = 100.0 + 0.01 * np.arange(g.width, dtype=np.float32)[None, :].repeat(g.height, 0)
+    H[:300, :300] = np.nan
+    p = write_dsm(tmp_path / "dsm.tif", H, g)
+    shapes = []
+    read = rasterio.io.DatasetReader.read
+
+    def spy(self, *a, **k):
+        shapes.append(k.get("out_shape"))
+        return read(self, *a, **k)
+
+    monkeypatch.setattr(rasterio.io.DatasetReader, "read", spy)
+    img = dsm_preview(p, max_side=640)
+    assert shapes and all(s is not None and s[0] * s[1] <= 1280 * 1280 for s in shapes), shapes
+    assert img.ndim == 3 and img.shape[2] == 3 and max(img.shape[:2]) <= 640 + 200
+    row = img[img.shape[0] // 2, 40:440].astype(float).mean(axis=1)
+    assert abs(row[-1] - row[0]) > 5                          # colours follow the height
