@@ -9,6 +9,7 @@ conversion of ENU, not ENU up.
 
 from __future__ import annotations
 
+import os
 import tempfile
 from pathlib import Path
 
@@ -88,8 +89,10 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     strip = max(256, min(1024, STRIP_CELLS // grid.width))     # rows per strip
     try:
         def grid_file(name: str, dtype) -> np.ndarray:
-            return np.lib.format.open_memmap(Path(work.name) / f"{name}.npy", mode="w+",
-                                             dtype=dtype, shape=grid.shape)
+            path = Path(work.name) / f"{name}.npy"
+            arr = np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=grid.shape)
+            reserve_disk(path)
+            return arr
 
         try:
             with PlyWriter(out.cloud, comments=(f"frame EPSG:{epsg} x y in metres, z height above "
@@ -186,6 +189,14 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
                              "points reach are left out (they stay in each group's own DSM)"))
                            if len(groups) > 1 else "one group",
             "group_order": order, "groups": groups_report, "gsd_m": gsd}
+
+
+def reserve_disk(path: Path) -> None:
+    """Allocate a (sparse) file's blocks now: a full disk is then an OSError here, not a SIGBUS
+    when a page of its memory map is first written."""
+    if hasattr(os, "posix_fallocate"):
+        with open(path, "r+b") as f:
+            os.posix_fallocate(f.fileno(), 0, os.fstat(f.fileno()).st_size)
 
 
 STRIP_CELLS = 8_000_000      # cells per strip of rows when fusing and filling grids on disk

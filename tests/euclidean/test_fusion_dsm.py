@@ -332,3 +332,18 @@ def test_groups_reconstructed_apart_are_fused_by_icp(tmp_path):
     fusion = json.loads(state.layout.report.read_text())["stages"]["dsm"]["fusion"]
     other = str(1 - fusion["reference_group"])
     assert "joint" not in fusion and fusion["icp"][other]["fitness"] > 0.3
+
+
+def test_grid_files_are_allocated_up_front(tmp_path):
+    """A memory-mapped grid's file gets its disk blocks when it is made (a full disk is then an
+    error there, not a crash at the first write of a page)."""
+    import os
+
+    from recon_core.euclidean.dsm_stage import reserve_disk
+
+    p = tmp_path / "g.npy"
+    np.lib.format.open_memmap(p, mode="w+", dtype=np.float32, shape=(2000, 1500))
+    size = os.stat(p).st_size
+    assert os.stat(p).st_blocks * 512 < size / 2          # numpy leaves it sparse
+    reserve_disk(p)
+    assert os.stat(p).st_blocks * 512 >= size
