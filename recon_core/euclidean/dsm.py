@@ -231,13 +231,13 @@ def fill_small_holes(H: np.ndarray, max_hole_px: int = 3, min_support: float = 0
 
     if out is None:
         out = np.empty(H.shape, np.float32)
-    h = H.shape[0]
+    h, block_rows = H.shape[0], max(1, int(block_rows))
     limit = (2 * max_hole_px + 1) ** 2
     r = window // 2
     iters = max(1, int(max_hole_px))
     margin = limit + 2 * r * iters + 1
     offs = np.array([(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)])
-    for r0 in range(0, h, max(1, int(block_rows))):
+    for r0 in range(0, h, block_rows):
         r1 = min(r0 + block_rows, h)
         a, b = max(0, r0 - margin), min(h, r1 + margin)
         win = np.array(H[a:b], dtype=np.float32, copy=True)

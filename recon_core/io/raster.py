@@ -8,6 +8,8 @@ y in (ymax - (r+1) res, ymax - r res]. Its centre is at (xmin + (c + 0.5) res, y
 from __future__ import annotations
 
 import math
+import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -149,7 +151,11 @@ def write_geotiff(path: str | Path, arr: np.ndarray, transform: Affine, crs: Any
         raise ValueError(f"expected a 2D array, got shape {arr.shape}")
     cog = _has_cog_driver()
     with atomic_path(path) as tmp, rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB):
-        plain = tmp.with_name(tmp.name + ".tiles.tif") if cog else tmp
+        plain = tmp
+        if cog:             # named like the atomic temporaries: an interrupted run's is swept
+            fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tif", dir=path.parent)
+            os.close(fd)
+            plain = Path(name)
         try:
             _write_gtiff_tiled(plain, arr, dict(count=1, dtype="float32", width=arr.shape[1],
                                                 height=arr.shape[0], crs=crs, transform=transform,
