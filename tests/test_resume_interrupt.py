@@ -74,7 +74,7 @@ def test_a_rerun_sweeps_an_interrupted_runs_scratch(tiny_run, tmp_path):
     state, _ = tiny_run
     site, out = _copy(state, tmp_path)
     lay = OutLayout(out)
-    junk = [out / ".dsm.tif.ab12cd34.tif", out / ".cloud.ply.zz_9yy88.ply",
+    junk = [out / ".dsm.tif.ab12cd34.tif", out / ".cloud.ply.zz_9yy88.ply", out / ".dsm.tif.q9w8e7r6.tif.ovr.tmp",
             lay.group_dir(0) / ".dense.ply.k3j4h5g6.ply"]
     for j in junk:
         j.write_bytes(b"partial")
@@ -82,7 +82,7 @@ def test_a_rerun_sweeps_an_interrupted_runs_scratch(tiny_run, tmp_path):
     (out / "dsm_blocks_q1w2e3r4").mkdir()
     (out / ".dsm_work_a1s2d3f4").mkdir()
     (out / ".keepme").write_text("a user's file")
-    assert len(lay.scratch()) == 6
+    assert len(lay.scratch()) == 7
     run(site, out, preset("tiny"))                            # every stage reloaded
     assert lay.scratch() == [] and (out / ".keepme").exists() and lay.dsm.exists()
 

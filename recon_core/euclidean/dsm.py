@@ -216,10 +216,12 @@ def fill_small_holes(H: np.ndarray, max_hole_px: int = 3, min_support: float = 0
     `window` x `window` neighbourhood when at least `min_support` of that window is valid. This
     is iterated at most `max_hole_px` times (holes close from their rim inwards).
 
-    Works by blocks of `block_rows` rows, each with a margin of rows above and below wide enough
-    that the result does not depend on the blocks (a small region never reaches past it; a
-    region cut by it is larger than a small one), so H and `out` may be disk-backed arrays
-    (np.memmap) of any size: memory holds one block.
+    Works by blocks of `block_rows` rows, each read with a margin of rows above and below, so H
+    and `out` may be disk-backed arrays (np.memmap) of any size: memory holds one block. The
+    result does not depend on the blocks: a small region that meets the block's own rows lies
+    inside the margin; a region cut by the margin's edge is taken as large, which can only be
+    wrong for one lying farther than window // 2 * max_hole_px rows from the block's rows, out
+    of reach of their filling. `out` must not be H (later blocks read rows of H around them).
 
     Args:
         H: (height, width) float array, NaN = empty.
@@ -231,6 +233,8 @@ def fill_small_holes(H: np.ndarray, max_hole_px: int = 3, min_support: float = 0
 
     if out is None:
         out = np.empty(H.shape, np.float32)
+    elif np.shares_memory(out, H):
+        raise ValueError("fill_small_holes: `out` must not share memory with H")
     h, block_rows = H.shape[0], max(1, int(block_rows))
     limit = (2 * max_hole_px + 1) ** 2
     r = window // 2

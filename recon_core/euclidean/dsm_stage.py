@@ -86,7 +86,10 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     # every full-grid array lives on disk (np.memmap in a work folder of OUT, removed at the
     # end) and is read by strips: memory holds strips, whatever the site's size
     work = tempfile.TemporaryDirectory(prefix=".dsm_work_", dir=out.root)
-    strip = max(256, min(1024, STRIP_CELLS // grid.width))     # rows per strip
+    raw: dict[int, np.ndarray] = {}
+    weak: dict[int, np.ndarray] = {}
+    H = source = filled_buf = None
+    strip = max(64, min(1024, STRIP_CELLS // grid.width))      # rows per strip
     try:
         def grid_file(name: str, dtype) -> np.ndarray:
             path = Path(work.name) / f"{name}.npy"
@@ -109,7 +112,6 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
                         if bus is not None:
                             bus.progress("dsm", done, total, f"group {g}")
             in_grid = sum(a.n_points for a in accs.values())
-            raw, weak = {}, {}
             for g in groups:
                 raw[g], weak[g] = grid_file(f"raw_{g}", np.float32), grid_file(f"weak_{g}", bool)
                 for r0, r1, Hb, _, fb in accs[g].blocks():
@@ -124,22 +126,22 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
         def weak_rows(g):
             return lambda r0, r1: np.where(weak[g][r0:r1], raw[g][r0:r1], np.float32(np.nan))
 
-        precise = {g: RowView(grid.shape, precise_rows(g)) for g in groups}
+        precise = {g: RowView(grid.shape, precise_rows(g), strip) for g in groups}
         block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
         noise = group_noise(precise, block)               # {g: None} for one group
-        coverage = {g: count_rows(precise[g], np.isfinite) for g in groups}
+        coverage = {g: count_rows(precise[g], np.isfinite, strip) for g in groups}
         order = rank_groups(groups, quality or {}, coverage, noise)
         if len(groups) == 1:
             H, source = raw[groups[0]], None              # source: only reported for several
         else:
             # every group's precise cells first; a weak pair's cells only where none has any
-            fill = [RowView(grid.shape, weak_rows(g)) for g in order] if c.fuse_weak_pair_cells else []
+            fill = [RowView(grid.shape, weak_rows(g), strip) for g in order] if c.fuse_weak_pair_cells else []
             H, source = fuse_groups([precise[g] for g in order] + fill, correct_block=block,
                                     sigmas=[noise[g] for g in order] + [None] * len(fill),
                                     agree_sigmas=c.fusion_agree_sigmas,
                                     out=grid_file("fused", np.float32),
                                     source_out=grid_file("source", np.int16), block_rows=strip)
-        raw_valid = count_rows(H, np.isfinite) / H.size
+        raw_valid = count_rows(H, np.isfinite, strip) / H.size
         filled_buf = grid_file("filled", np.float32)
 
         def filled(D: np.ndarray) -> np.ndarray:
@@ -147,7 +149,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
                 if c.fill_holes_px > 0 else D
 
         H = filled(H)
-        valid = count_rows(H, np.isfinite) / H.size
+        valid = count_rows(H, np.isfinite, strip) / H.size
         write_dsm(out.dsm, H, grid)
         if c.laz:
             write_las(out.cloud, out.cloud_laz, epsg)
@@ -164,14 +166,15 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
                 groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),
                                          "noise_m": noise[g],
                                          "points": int(len(sources[g])),
-                                         "valid_fraction_raw": count_rows(raw[g], np.isfinite) / n_cells,
+                                         "valid_fraction_raw": count_rows(raw[g], np.isfinite, strip) / n_cells,
                                          "precise_fraction": coverage[g] / n_cells,
-                                         "fused_cells_from_it": count_rows(source, lambda v: v == k) / n_cells,
+                                         "fused_cells_from_it": count_rows(source, lambda v: v == k, strip) / n_cells,
                                          "fused_cells_from_its_weak_pair":
-                                             count_rows(source, lambda v: v == k + len(order)) / n_cells}
-        raw.clear(), weak.clear(), precise.clear()     # let go of the memmaps before removing them
-        H = source = filled_buf = None
+                                             count_rows(source, lambda v: v == k + len(order), strip) / n_cells}
     finally:
+        # let go of the memmaps (also those a traceback would keep) before removing their files
+        raw.clear(), weak.clear()
+        H = source = filled_buf = None
         work.cleanup()
     return {"crs_epsg": epsg, "resolution_m": res, "width": grid.width, "height": grid.height,
             "points": int(total), "points_in_grid": int(in_grid), "valid_fraction_raw": raw_valid,
@@ -289,9 +292,10 @@ def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
        ground average their noise down; a DSM that disagrees (a shadow, a moved car, a
        mismatch) is left out of that cell.
 
-    Works by strips of about `block_rows` rows (a multiple of correct_block): the DSMs may be
-    disk-backed (np.memmap, or RowView), and so may `out` (float32) and `source_out` (int16);
-    memory holds a few strips and the coarse correction grids, whatever the grid's size.
+    Works by strips of about `block_rows` rows (a multiple of correct_block): the DSMs (taken as
+    float32) may be disk-backed (np.memmap, or RowView), and so may `out` (float32) and
+    `source_out` (int16); memory holds a few strips and the coarse correction grids, whatever
+    the grid's size. The result does not depend on the strips.
     """
     shape = tuple(dsms[0].shape)
     h, w = shape
@@ -384,17 +388,29 @@ def correction_surface(D, ref, block: int, min_overlap: int = 2000,
     return ndimage.gaussian_filter(coarse, 1.0, mode="nearest").astype(np.float32)
 
 
-def correction_rows(coarse: np.ndarray, block: int, r0: int, r1: int, width: int) -> np.ndarray:
-    """Rows r0:r1 of the bilinear up-sampling (cv2.resize) of a coarse correction grid: the
-    same values as up-sampling the whole grid, from the coarse rows around them only."""
-    import cv2
+def _bilinear_taps(n_out: int, start: int, stop: int, block: int, n_src: int):
+    """For output cells start:stop of an up-sampling by `block` of n_src coarse cells (cell
+    centres aligned, as cv2.resize's INTER_LINEAR): the two source cells and the weight of the
+    second, computed from each cell's index in the whole grid (not in a piece of it)."""
+    f = (np.arange(start, stop, dtype=np.float64) + 0.5) / block - 0.5
+    i0 = np.floor(f).astype(np.int64)
+    t = f - i0
+    i1 = np.clip(i0 + 1, 0, n_src - 1)
+    t = np.where(i0 < 0, 0.0, np.where(i0 >= n_src - 1, 0.0, t))
+    i0 = np.clip(i0, 0, n_src - 1)
+    return i0, i1, t
 
+
+def correction_rows(coarse: np.ndarray, block: int, r0: int, r1: int, width: int) -> np.ndarray:
+    """Rows r0:r1 (and the first `width` columns) of the bilinear up-sampling by `block` of a
+    coarse correction grid. Each value depends only on its own row and column in the whole
+    grid, so any split into strips gives the same surface bit for bit. float32."""
     nb_r, nb_c = coarse.shape
-    c0 = max(0, r0 // block - 1)
-    c1 = min(nb_r, -(-r1 // block) + 1)
-    up = cv2.resize(np.ascontiguousarray(coarse[c0:c1]), (nb_c * block, (c1 - c0) * block),
-                    interpolation=cv2.INTER_LINEAR)
-    return up[r0 - c0 * block:r1 - c0 * block, :width]
+    ri0, ri1, rt = _bilinear_taps(nb_r * block, r0, r1, block, nb_r)
+    ci0, ci1, ct = _bilinear_taps(nb_c * block, 0, width, block, nb_c)
+    C = coarse.astype(np.float64)
+    rows = C[ri0] * (1.0 - rt)[:, None] + C[ri1] * rt[:, None]            # (r1 - r0, nb_c)
+    return (rows[:, ci0] * (1.0 - ct) + rows[:, ci1] * ct).astype(np.float32)
 
 
 def relative_correction(D: np.ndarray, ref: np.ndarray, block: int, min_overlap: int = 2000) -> np.ndarray:

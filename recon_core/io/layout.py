@@ -134,9 +134,10 @@ class OutLayout:
         return [p for p in found if p.exists()]
 
     def scratch(self) -> list[Path]:
-        """Scratch left by an interrupted run: atomic-write temporaries (.NAME.XXXXXXXX.SUFFIX),
-        dense job parts (.dense_parts_*), spilled DSM blocks (dsm_blocks_*) and the DSM stage's
-        grids on disk (.dsm_work_*), down to the group folders. (One run per output folder at a time.)"""
+        """Scratch left by an interrupted run: atomic-write temporaries (.NAME.XXXXXXXX.SUFFIX, and
+        GDAL's .ovr.tmp of one), dense job parts (.dense_parts_*), spilled DSM blocks
+        (dsm_blocks_*) and the DSM stage's grids on disk (.dsm_work_*), down to the group
+        folders. (One run per output folder at a time.)"""
         found = []
         for d in [self.root, self.root / "stages", self.root / "upgrade", self.root / "eval",
                   self.root / "dsm_groups", self.root / "affine",
@@ -150,7 +151,7 @@ class OutLayout:
         return self.report.exists() or (self.root / "affine").is_dir()
 
 
-_SCRATCH = re.compile(r"\.[^/]+\.[A-Za-z0-9_]{8}\.[A-Za-z0-9]+|\.dense_parts_[A-Za-z0-9_]+|\.dsm_work_[A-Za-z0-9_]+|dsm_blocks_[A-Za-z0-9_]+")
+_SCRATCH = re.compile(r"\.[^/]+\.[A-Za-z0-9_]{8}\.[A-Za-z0-9]+(\.ovr\.tmp)?|\.dense_parts_[A-Za-z0-9_]+|\.dsm_work_[A-Za-z0-9_]+|dsm_blocks_[A-Za-z0-9_]+")
 
 
 def _indices(folder: Path, pattern: str, keep) -> list[int]:

@@ -147,6 +147,8 @@ def write_geotiff(path: str | Path, arr: np.ndarray, transform: Affine, crs: Any
     `tags` (dataset metadata), `description` and `units` (of the band) are written when given.
     """
     path = Path(path)
+    if not isinstance(arr, np.ndarray):
+        arr = np.asarray(arr, dtype=np.float32)
     if arr.ndim != 2:
         raise ValueError(f"expected a 2D array, got shape {arr.shape}")
     cog = _has_cog_driver()

@@ -172,6 +172,8 @@ def test_fill_small_holes_by_blocks_is_the_same(tmp_path):
         out = fill_small_holes(src, max_hole_px=2, block_rows=rows, out=dst)
         assert out is dst and np.array_equal(np.asarray(dst), one, equal_nan=True), rows
     assert np.isnan(one[40:70, 60]).all() and np.isfinite(one[100:103, 30]).all()
+    with pytest.raises(ValueError):
+        fill_small_holes(src, out=src)
     assert np.isnan(one).sum() < np.isnan(H).sum()
 
 

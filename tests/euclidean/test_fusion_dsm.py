@@ -260,8 +260,9 @@ def test_groups_that_agree_are_averaged_and_one_that_disagrees_is_left_out():
 
 def test_fusion_by_strips_on_disk_equals_one_strip(tmp_path):
     """Fusing by strips of rows from disk-backed DSMs (and masked views of them) into
-    disk-backed outputs gives exactly the DSM and sources of one strip in memory: the smooth
-    correction is the same up-sampled surface, the averaging the same per cell."""
+    disk-backed outputs gives exactly the DSM and sources of one strip in memory, for even and
+    odd correction blocks and a grid narrower than one block: the smooth correction is the same
+    up-sampled surface, the averaging the same per cell."""
     from recon_core.euclidean.dsm_stage import RowView, count_rows, group_noise
 
     rng = np.random.default_rng(6)
@@ -275,6 +276,14 @@ def test_fusion_by_strips_on_disk_equals_one_strip(tmp_path):
             r, c = rng.integers(0, h - 20), rng.integers(0, w - 20)
             d[r:r + int(rng.integers(3, 20)), c:c + int(rng.integers(3, 20))] = np.nan
         D.append(d)
+    for block, cols in ((13, slice(None)), (49, slice(0, 30))):    # odd blocks; a narrow grid
+        narrow = [np.ascontiguousarray(d[:, cols]) for d in D]
+        one = fuse_groups(narrow, correct_block=block, sigmas=[0.1, 0.2, 0.3], min_overlap=200,
+                          block_rows=10_000)
+        for rows in (1, 50, 98):
+            H3, s3 = fuse_groups(narrow, correct_block=block, sigmas=[0.1, 0.2, 0.3],
+                                 min_overlap=200, block_rows=rows)
+            assert np.array_equal(H3, one[0], equal_nan=True) and np.array_equal(s3, one[1]), (block, rows)
     kw = dict(correct_block=16, sigmas=[0.1, 0.2, 0.3], min_overlap=500)
     H1, s1 = fuse_groups(D, block_rows=10_000, **kw)
     disk = []
@@ -347,3 +356,24 @@ def test_grid_files_are_allocated_up_front(tmp_path):
     assert os.stat(p).st_blocks * 512 < size / 2          # numpy leaves it sparse
     reserve_disk(p)
     assert os.stat(p).st_blocks * 512 >= size
+
+
+def test_the_correction_surface_is_the_same_strip_by_strip():
+    """The up-sampled correction of any strip equals that strip of the whole surface, bit for
+    bit, for odd and even blocks and tall grids (each value from its row and column in the
+    whole grid), and it is bilinear up-sampling with cell centres aligned (cv2.resize's)."""
+    import cv2
+
+    from recon_core.euclidean.dsm_stage import correction_rows
+
+    rng = np.random.default_rng(2)
+    for block, nb_r, nb_c in ((49, 123, 3), (107, 40, 2), (64, 30, 4), (13, 300, 1)):
+        coarse = rng.normal(0, 1, (nb_r, nb_c)).astype(np.float32)
+        h, w = nb_r * block - 7, nb_c * block - 3
+        whole = correction_rows(coarse, block, 0, h, w)
+        step = 1024 // block * block
+        strips = np.vstack([correction_rows(coarse, block, r0, min(h, r0 + step), w)
+                            for r0 in range(0, h, step)])
+        assert np.array_equal(strips, whole), block
+        ref = cv2.resize(coarse, (nb_c * block, nb_r * block), interpolation=cv2.INTER_LINEAR)
+        assert np.abs(whole - ref[:h, :w]).max() < 1e-4      # cv2 weights in float32
