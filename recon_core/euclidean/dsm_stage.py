@@ -440,11 +440,14 @@ class RowView:
         if step == 1:
             return self.rows(start, max(start, stop))[:, cs]
         want = np.arange(start, stop, step)
+        if not len(want):
+            return self.rows(0, 0)[:, cs]
+        per = max(1, self.block_rows // step)             # wanted rows per strip read
         parts = []
-        for a in range(0, len(want), max(1, self.block_rows // step)):
-            sel = want[a:a + max(1, self.block_rows // step)]
+        for a in range(0, len(want), per):
+            sel = want[a:a + per]
             parts.append(self.rows(int(sel[0]), int(sel[-1]) + 1)[sel - sel[0]][:, cs])
-        return np.concatenate(parts) if parts else np.empty((0, len(range(*cs.indices(self.shape[1])))), np.float32)
+        return np.concatenate(parts)
 
 
 def point_sources(state, bus: EventBus) -> dict[int, PointSource]:
