@@ -178,3 +178,22 @@ def test_bend_report_separates_a_dome_from_point_noise():
     assert abs(b["rest_rms_m"] - 0.2) < 0.02
     smooth = bend_report(Xt, dome)
     assert smooth["local_rms_m"] < 0.08                  # only the dome's slope across a cell
+
+
+def test_height_metrics_are_the_plain_formulas():
+    """The figures, computed with one reused scratch array, equal the textbook formulas on the
+    compared cells (missing DSM cells fail completeness, invalid GT cells are left out)."""
+    from recon_core.evaluation.evaluate import NMAD_K, height_metrics
+
+    rng = np.random.default_rng(3)
+    err = (rng.standard_t(3, (300, 200)) * 0.4 + 0.1).astype(np.float32)
+    err[rng.random(err.shape) < 0.2] = np.nan
+    gt_valid = rng.random(err.shape) > 0.1
+    r = height_metrics(err, gt_valid, 1.0)
+    e = err[gt_valid & np.isfinite(err)].astype(np.float64)
+    med = np.median(e)
+    assert r["n_gt_cells"] == gt_valid.sum() and r["n_compared"] == e.size
+    assert r["completeness_pct"] == 100.0 * np.sum(np.abs(e) < 1.0) / gt_valid.sum()
+    assert r["median_abs_err_m"] == np.median(np.abs(e))
+    assert r["rmse_m"] == np.sqrt(np.mean(e ** 2)) and r["mean_err_m"] == e.mean()
+    assert r["nmad_m"] == NMAD_K * np.median(np.abs(e - med))
