@@ -206,6 +206,15 @@ def find_dsm_products(out: str | Path) -> DsmProducts:
                        have(lay.dsm_vs_gt_png), have(lay.height_error_tif))
 
 
+def _read_reduced(ds, max_side: int, resampling=None) -> np.ndarray:
+    """Band 1 of an open raster reduced by the smallest integer factor that brings its longer
+    side to <= max_side (GDAL reads it from the overviews when there are any), NaN nodata."""
+    f = max(1, int(np.ceil(max(ds.width, ds.height) / max_side)))
+    kw = {} if resampling is None else {"resampling": resampling}
+    return ds.read(1, out_shape=(max(1, ds.height // f), max(1, ds.width // f)), masked=True,
+                   **kw).astype(np.float32).filled(np.nan)
+
+
 def dsm_preview(dsm_path: Path, max_side: int = 640) -> np.ndarray:
     """Shaded-relief RGB of a DSM with a height colour bar (for the panel).
 
@@ -217,9 +226,7 @@ def dsm_preview(dsm_path: Path, max_side: int = 640) -> np.ndarray:
     from recon_core.evaluation import colormap as cm
 
     with rasterio.open(dsm_path) as ds:
-        f = max(1, int(np.ceil(max(ds.width, ds.height) / (2 * max_side))))
-        H = ds.read(1, out_shape=(max(1, ds.height // f), max(1, ds.width // f)), masked=True,
-                    resampling=Resampling.average).astype(np.float32).filled(np.nan)
+        H = _read_reduced(ds, 2 * max_side, Resampling.average)
         res = abs(ds.transform.a) * ds.width / H.shape[1]
     ok = np.isfinite(H)
     lo, hi = (np.percentile(H[ok], [2, 98]) if ok.any() else (0.0, 1.0))
@@ -291,9 +298,7 @@ def error_map_drape(error_tif: Path, frame, clip_m: float = 3.0,
     from recon_core.geometry.geodesy import projected_to_geodetic
 
     with rasterio.open(error_tif) as ds:
-        f = max(1, int(np.ceil(max(ds.width, ds.height) / max_side)))
-        err = ds.read(1, out_shape=(max(1, ds.height // f), max(1, ds.width // f)),
-                      masked=True).astype(np.float32).filled(np.nan)
+        err = _read_reduced(ds, max_side)
         t, epsg = ds.transform, ds.crs.to_epsg()
         W, H = ds.width, ds.height
     rgba = np.dstack([cm.diverging(err, clip_m), np.where(np.isfinite(err), 235, 0).astype(np.uint8)])

@@ -237,6 +237,7 @@ CHUNK = 20000       # points per refine_points call: its patch arrays stay ~100 
 def _refine_pass(images, pos, todo, ref, img, stats, *, half, min_ncc, sigma, block, max_shift) -> list:
     """Refine nodes `todo` against nodes ref[todo] in place in `pos`; returns the moves kept."""
     shifts = []
+    ma = half + 2 + int(np.ceil(4 * sigma)) + 2          # reference window margin (px)
     for b, imb in enumerate(images):
         nb = todo[img[todo] == b]
         if not len(nb):
@@ -265,7 +266,6 @@ def _refine_pass(images, pos, todo, ref, img, stats, *, half, min_ncc, sigma, bl
                 for a, s in groups.items():
                     ima = images[a]
                     P = pos[ref[s]]
-                    ma = half + 2 + int(np.ceil(4 * sigma)) + 2
                     rc0 = max(0, int(np.floor(P[:, 0].min())) - ma)
                     rr0 = max(0, int(np.floor(P[:, 1].min())) - ma)
                     rc1 = min(ima.width, int(np.ceil(P[:, 0].max())) + ma + 1)
