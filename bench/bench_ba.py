@@ -8,6 +8,9 @@ time, iterations and final robust cost for each solver; Ceres' time is also spli
 own solver time and the evaluation of the residuals and Jacobians (done here by a Python cost
 function, which no C++ user of Ceres would pay).
 
+Our solver runs twice: with the reduced camera system dense (Cholesky) and block-sparse (the
+`solver="sparse"` path large sites take).
+
     python bench/bench_ba.py OUT [--group 0] [--noise 1.0] [--repeat 3]
     (OUT: e.g. /tmp/aerec_bench/out_demo_s0 after bench_pipeline.py --preset demo)
 """
@@ -55,11 +58,11 @@ def robust_cost(pr, cams, X) -> float:
     return 0.5 * float(_robust(np.sum(r * r, axis=1), "huber", 1.0)[0].sum())
 
 
-def run_ours(pr, compiled: bool):
+def run_ours(pr, compiled: bool, solver: str = "dense"):
     t0 = time.perf_counter()
     res = bundle_adjust(pr["cams"], pr["X"], pr["oc"], pr["op"], pr["xy"], pr["free_cams"],
                         pr["free_pts"], pr["fixed"], loss="huber", f_scale=1.0, max_nfev=50,
-                        compiled=compiled)
+                        compiled=compiled, solver=solver)
     return time.perf_counter() - t0, res.iterations, robust_cost(pr, res.cams, res.X)
 
 
@@ -137,9 +140,11 @@ def main() -> None:
     print(f"global problem of {a.out} group {a.group}: {n_cam} tile cameras, {len(pr['free_pts'])} points, "
           f"{len(pr['oc'])} observations; start cost {robust_cost(pr, pr['cams'], pr['X']):.1f}")
     run_ours(pr, True)                                        # compile (cached on disk after)
-    for name, compiled in (("aerec, compiled assembly", True), ("aerec, scipy.sparse assembly", False))[
-            :1 if a.only_compiled else 2]:
-        runs = [run_ours(pr, compiled) for _ in range(a.repeat)]
+    run_ours(pr, True, "sparse")
+    for name, compiled, solver in (("aerec, compiled, dense S", True, "dense"),
+                                   ("aerec, compiled, block-sparse S", True, "sparse"),
+                                   ("aerec, scipy.sparse assembly", False, "dense"))[:2 if a.only_compiled else 3]:
+        runs = [run_ours(pr, compiled, solver) for _ in range(a.repeat)]
         t = sorted(r[0] for r in runs)
         print(f"{name:30s} time min/median {t[0]:7.3f} / {t[len(t) // 2]:7.3f} s, "
               f"{runs[0][1]} iterations, final cost {runs[0][2]:.4f}")

@@ -87,6 +87,9 @@ class BundleConfig:
                                       # intermediate global adjustments): the final global
                                       # adjustments converge to rel_tol from there
     smoothness_weight: float = 0.0    # prior tying adjacent tile cameras of one image (0 = off)
+    solver: str = "auto"              # reduced camera system: dense (Cholesky), sparse (8 x 8
+                                      # blocks, SuperLU: 10-20 km sites) or auto (sparse from
+                                      # 6,000 camera unknowns)
 
 
 @dataclass
@@ -198,7 +201,9 @@ class Config:
 LEGACY_KEYS = {f"dense.{k}": f"sgbm.{k}" for k in ("block_size", "p1", "p2", "uniqueness",
                                                    "speckle_window", "speckle_range", "lr_max_diff_px")}
 # parameters that change how a stage runs, not what it computes: not part of a stage's hash
-NOT_IN_STAGE_HASH = {"dense.workers", "dense.scheduler", "dsm.chunk_points", "dsm.spill_above_points"}
+# (bundle.solver: the dense and block-sparse reduced systems take the same steps to rounding)
+NOT_IN_STAGE_HASH = {"dense.workers", "dense.scheduler", "dsm.chunk_points", "dsm.spill_above_points",
+                     "bundle.solver"}
 
 
 def config_from_dict(d: dict, *, unknown: list[str] | None = None) -> Config:

@@ -116,7 +116,7 @@ def check_config(cfg: Config) -> None:
     (without a file: the caller names where the value came from)."""
     from recon_core.dense.matchers import MATCHERS
     from recon_core.euclidean.dsm import STATS
-    from recon_core.sparse.bundle import LOSSES
+    from recon_core.sparse.bundle import LOSSES, SOLVERS
 
     def bad(field: str, value, need: str) -> InputError:
         return InputError(None, f"{field} = {value!r}: {need}")
@@ -130,6 +130,8 @@ def check_config(cfg: Config) -> None:
         raise bad("seed", cfg.seed, "must be >= 0")
     if cfg.bundle.loss not in LOSSES:
         raise bad("bundle.loss", cfg.bundle.loss, f"choose one of {', '.join(LOSSES)}")
+    if cfg.bundle.solver not in SOLVERS:
+        raise bad("bundle.solver", cfg.bundle.solver, f"choose one of {', '.join(SOLVERS)}")
     if cfg.dense.matcher not in MATCHERS:
         raise bad("dense.matcher", cfg.dense.matcher, f"choose one of {', '.join(sorted(MATCHERS))}")
     if cfg.dsm.stat not in STATS:

@@ -266,6 +266,7 @@ def test_gcps_seen_across_date_groups_count_when_the_groups_are_reconstructed_jo
     ("[tiling]\noverlap = 5000\n", "tiling.overlap = 5000"),
     ("seed = -3\n", "seed = -3: must be >= 0"),
     ("[bundle]\nloss = 'bogus'\n", "bundle.loss = 'bogus': choose one of linear, huber, cauchy"),
+    ("[bundle]\nsolver = 'cholmod'\n", "bundle.solver = 'cholmod': choose one of auto, dense, sparse"),
     ("[dense]\nworkers = -1\n", "dense.workers = -1"),
     ("[dense]\nmatcher = 'nope'\n", "dense.matcher = 'nope': choose one of sgbm"),
     ("[dsm]\nstat = 'foo'\n", "dsm.stat = 'foo'"),

@@ -182,3 +182,192 @@ def back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start):
         for i in range(3):
             dp[p, i] = -(Vinv[p, i, 0] * b[0] + Vinv[p, i, 1] * b[1] + Vinv[p, i, 2] * b[2])
     return dp
+
+
+# -- block-sparse reduced system (large sites) --------------------------------------------------
+# The dense S above is nc^2 numbers: 3.7 GB for a 10 x 10 km site's ~2,700 tiles. Two tile
+# cameras are coupled in S only when they see a common point, so S is stored as 8 x 8 blocks
+# over the pairs of cameras that do (upper triangle, a camera with itself included), indexed
+# by compact camera numbers `cc` (cameras with a free entry; -1 otherwise). Entries of held
+# camera parameters stay 0 in the blocks and are dropped when the matrix is built.
+
+
+@njit(**_JIT)
+def assemble_blocks(h, M, r, w, oc, ps, cam_col, cc, ncc, nc, npt):
+    """As `assemble`, with U as one 8 x 8 block per compact camera (Ub (ncc, 8, 8))."""
+    K = h.shape[0]
+    Ub = np.zeros((ncc, 8, 8))
+    g_c = np.zeros(nc)
+    V = np.zeros((npt, 3, 3))
+    g_p = np.zeros((npt, 3))
+    for k in range(K):
+        c = oc[k]
+        wk = w[k]
+        a_ = cc[c]
+        for row in range(2):
+            for a in range(4):
+                ca = cam_col[c, row * 4 + a]
+                if ca < 0:
+                    continue
+                wha = wk * h[k, a]
+                g_c[ca] += wha * r[k, row]
+                for b in range(4):
+                    if cam_col[c, row * 4 + b] >= 0:
+                        Ub[a_, row * 4 + a, row * 4 + b] += wha * h[k, b]
+        p = ps[k]
+        if p >= 0:
+            for i in range(3):
+                g_p[p, i] += wk * (M[k, 0, i] * r[k, 0] + M[k, 1, i] * r[k, 1])
+                for j in range(3):
+                    V[p, i, j] += wk * (M[k, 0, i] * M[k, 0, j] + M[k, 1, i] * M[k, 1, j])
+    return Ub, g_c, V, g_p
+
+
+@njit(**_JIT)
+def block_pattern(oc, cc, ncc, order, start):
+    """The block pairs (a <= b) of compact cameras that share a point among the observations
+    `order` / `start`, every (a, a) included: CSR (bptr (ncc + 1), bcol) with sorted rows."""
+    npt = start.shape[0] - 1
+    # observations by camera: the points each compact camera sees
+    cnt = np.zeros(ncc + 1, np.int64)
+    for q in range(start[npt]):
+        cnt[cc[oc[order[q]]] + 1] += 1
+    cptr = np.cumsum(cnt)
+    fill = cptr[:-1].copy()
+    cpts = np.empty(start[npt], np.int64)
+    for p in range(npt):
+        for q in range(start[p], start[p + 1]):
+            a = cc[oc[order[q]]]
+            cpts[fill[a]] = p
+            fill[a] += 1
+    mark = np.full(ncc, -1, np.int64)
+    # two passes: count, then fill
+    bptr = np.zeros(ncc + 1, np.int64)
+    for a in range(ncc):
+        n = 1
+        mark[a] = a
+        for i in range(cptr[a], cptr[a + 1]):
+            p = cpts[i]
+            for q in range(start[p], start[p + 1]):
+                b = cc[oc[order[q]]]
+                if b > a and mark[b] != a:
+                    mark[b] = a
+                    n += 1
+        bptr[a + 1] = bptr[a] + n
+    bcol = np.empty(bptr[ncc], np.int64)
+    mark[:] = -1
+    for a in range(ncc):
+        f = bptr[a]
+        bcol[f] = a
+        f += 1
+        mark[a] = a
+        for i in range(cptr[a], cptr[a + 1]):
+            p = cpts[i]
+            for q in range(start[p], start[p + 1]):
+                b = cc[oc[order[q]]]
+                if b > a and mark[b] != a:
+                    mark[b] = a
+                    bcol[f] = b
+                    f += 1
+        bcol[bptr[a]:bptr[a + 1]].sort()
+    return bptr, bcol
+
+
+@njit(**_JIT)
+def _block_of(bptr, bcol, a, b):
+    """Index of block (a, b), a <= b (binary search in row a)."""
+    lo = bptr[a]
+    hi = bptr[a + 1] - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if bcol[mid] < b:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(**_JIT)
+def schur_blocks(Ub, g_c, V, g_p, lam, diag, h, M, w, oc, cam_col, cc, order, start, porder, bptr, bcol):
+    """As `schur`, into blocks: S (nb, 8, 8) with block (a, b) a <= b holding S[a entries, b
+    entries]; Ub the undamped camera blocks, `diag` (ncc, 8) the diagonal the damping scales
+    (Ub's plus any penalty's), so S_ii = Ub_ii + lam * diag_i + 1e-12 before the points."""
+    ncc = Ub.shape[0]
+    npt = V.shape[0]
+    S = np.zeros((bcol.shape[0], 8, 8))
+    for a in range(ncc):
+        d = bptr[a]
+        for i in range(8):
+            for j in range(8):
+                S[d, i, j] = Ub[a, i, j]
+            S[d, i, i] += lam * diag[a, i] + 1e-12
+    rhs = -g_c.copy()
+    Vinv = np.empty((npt, 3, 3))
+    Vd = np.empty((3, 3))
+    mmax = 0
+    for p in range(npt):
+        mmax = max(mmax, start[p + 1] - start[p])
+    G = np.empty((mmax, 2, 3))
+    Mq = np.empty((mmax, 2, 3))
+    hw = np.empty((mmax, 4))
+    cols = np.empty((mmax, 8), np.int64)
+    cam = np.empty(mmax, np.int64)
+    A = np.empty((2, 2))
+    for pi in range(npt):
+        p = porder[pi]
+        for i in range(3):
+            for j in range(3):
+                Vd[i, j] = V[p, i, j]
+            Vd[i, i] = V[p, i, i] * (1.0 + lam) + 1e-12
+        Vi = _inv3(Vd)
+        Vinv[p] = Vi
+        k0 = start[p]
+        m = start[p + 1] - k0
+        for q in range(m):
+            k = order[k0 + q]
+            cam[q] = cc[oc[k]]
+            for e in range(8):
+                cols[q, e] = cam_col[oc[k], e]
+            for j in range(4):
+                hw[q, j] = w[k] * h[k, j]
+            for row in range(2):
+                for i in range(3):
+                    Mq[q, row, i] = M[k, row, i]
+                    G[q, row, i] = M[k, row, 0] * Vi[0, i] + M[k, row, 1] * Vi[1, i] + M[k, row, 2] * Vi[2, i]
+        for q1 in range(m):
+            for row1 in range(2):
+                gg = G[q1, row1, 0] * g_p[p, 0] + G[q1, row1, 1] * g_p[p, 1] + G[q1, row1, 2] * g_p[p, 2]
+                for j1 in range(4):
+                    col1 = cols[q1, row1 * 4 + j1]
+                    if col1 >= 0:
+                        rhs[col1] += hw[q1, j1] * gg
+            for q2 in range(q1, m):
+                a, b = cam[q1], cam[q2]
+                swap = b < a
+                blk = _block_of(bptr, bcol, b, a) if swap else _block_of(bptr, bcol, a, b)
+                # the same camera twice through two observations (never in practice): both
+                # orders of the pair land in the one diagonal block
+                twice = a == b and q1 != q2
+                for row1 in range(2):
+                    for row2 in range(2):
+                        A[row1, row2] = (G[q1, row1, 0] * Mq[q2, row2, 0] + G[q1, row1, 1] * Mq[q2, row2, 1]
+                                         + G[q1, row1, 2] * Mq[q2, row2, 2])
+                for row1 in range(2):
+                    for j1 in range(4):
+                        e1 = row1 * 4 + j1
+                        if cols[q1, e1] < 0:
+                            continue
+                        for row2 in range(2):
+                            ah = A[row1, row2] * hw[q1, j1]
+                            for j2 in range(4):
+                                e2 = row2 * 4 + j2
+                                if cols[q2, e2] < 0:
+                                    continue
+                                v = ah * hw[q2, j2]
+                                if swap:
+                                    S[blk, e2, e1] -= v
+                                else:
+                                    S[blk, e1, e2] -= v
+                                    if twice:
+                                        S[blk, e2, e1] -= v
+    return S, rhs, Vinv

@@ -34,6 +34,7 @@ class BAResult:
 
 
 LOSSES = ("linear", "huber", "cauchy")     # BundleConfig.loss
+SOLVERS = ("auto", "dense", "sparse")      # BundleConfig.solver
 
 
 def _robust(sq: np.ndarray, loss: str, delta: float) -> tuple[np.ndarray, np.ndarray]:
@@ -55,7 +56,7 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
                   obs_xy: np.ndarray, free_cams: np.ndarray, free_pts: np.ndarray,
                   fixed: np.ndarray | None = None, *, loss: str = "huber", f_scale: float = 1.0,
                   max_nfev: int = 50, rel_tol: float = 1e-6, compiled: bool = True,
-                  ties: list | None = None) -> BAResult:
+                  ties: list | None = None, solver: str = "auto") -> BAResult:
     """Refine the cameras `free_cams` and points `free_pts` (index arrays).
 
     cams (T, 2, 4), X (N, 3), observations (K,) camera and point indices with (K, 2) pixels;
@@ -66,7 +67,12 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
     (recon_core.sparse.ba_kernels); False takes the scipy.sparse path (same steps, slower).
     `ties`: quadratic penalties on camera entries (recon_core.sparse.image_model.Tie), added to
     the cost and to the camera normal equations.
+    `solver`: "dense" (the reduced camera system as one dense matrix, Cholesky), "sparse" (as
+    8 x 8 blocks over the pairs of cameras that share points, sparse LU; the ties as a low-rank
+    term; needs `compiled`) or "auto" (sparse from SPARSE_SOLVE_MIN camera unknowns).
     """
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r} (auto, dense, sparse)")
     t0 = time.time()
     cams, X = cams.astype(np.float64).copy(), X.astype(np.float64).copy()
     T, N = len(cams), len(X)
@@ -105,13 +111,16 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
         flat = c.reshape(-1)
         return 0.5 * float(rho.sum()) + sum(t.cost(flat) for t in ties), w
 
+    use_blocks = compiled and (solver == "sparse" or (solver == "auto" and nc >= SPARSE_SOLVE_MIN))
+    tie_q = [] if use_blocks else [t.dense_q() for t in ties]
+
     def add_ties(U, g_c, c):
         flat = c.reshape(-1)
-        for t, cc in zip(ties, tie_cols):
+        for t, q, cc in zip(ties, tie_q, tie_cols):
             m = cc >= 0
             if m.any():
-                U[np.ix_(cc[m], cc[m])] += t.Q[np.ix_(m, m)]
-                g_c[cc[m]] += (t.Q @ flat[t.idx])[m]
+                U[np.ix_(cc[m], cc[m])] += q[np.ix_(m, m)]
+                g_c[cc[m]] += t.grad(flat)[m]
 
     r = residuals(cams, X)
     cost, w = cost_of(r, cams)
@@ -136,10 +145,14 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
             first[seen] = np.minimum.reduceat(occ, start[seen])
             last[seen] = np.maximum.reduceat(occ, start[seen])
         porder = np.lexsort((last, first)).astype(np.int64)
+        if use_blocks:
+            blocks = _BlockSystem(cam_col, oc, order, start, ties, tie_cols)
     for it in range(1, max_nfev + 1):
         h = np.concatenate([X[op], np.ones((K, 1))], axis=1)        # (K, 4)
         M = np.ascontiguousarray(cams[oc, :, :3])                     # (K, 2, 3)
-        if compiled:
+        if use_blocks:
+            step = blocks.stepper(cams, h, M, r, w, oc, ps, cam_col, nc, npt, order, start, porder)
+        elif compiled:
             U, g_c, V, g_p = kern.assemble(h, M, r, w, oc, ps, cam_col, nc, npt)
             add_ties(U, g_c, cams)
 
@@ -189,36 +202,159 @@ def warm_compiled_kernels() -> None:
     bundle_adjust(cams, X, obs_cam, obs_pt, xy, np.arange(2), np.arange(8), fixed, max_nfev=1)
 
 
-SPARSE_SOLVE_MIN = 10000     # camera unknowns from which a sparse factorisation is tried
-SPARSE_SOLVE_DENSITY = 0.25  # ... when at most this fraction of the reduced system is non-zero
+SPARSE_SOLVE_MIN = 6000      # camera unknowns from which "auto" takes the block-sparse system
+DENSE_FILL = 0.4             # ... whose factorisation turns dense when SuperLU fills more than this
+DENSE_FACTOR_MAX = 16000     # ... and the dense matrix (8 bytes x this^2: 2 GB) is affordable
 
 
 def _cholesky_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve the reduced camera system S dc = rhs (S symmetric positive definite).
-
-    S is already dense in memory, and LAPACK's dense Cholesky (one BLAS thread, as the core
-    runs) beats SuperLU's sparse LU at the sizes met so far: `large`'s joint model, 617 tiles,
-    4,924 unknowns, 10.5 % non-zero (two tile cameras are coupled only where they overlap),
-    1.2 s against 1.9 s; with the per-image ties of the final adjustments (15.7 % non-zero,
-    each image's tiles coupled together) 1.2 s against 5.2 s. The dense cost grows as n^3
-    (~10 s at 10,000 unknowns) and the sparse one more slowly on a site's grid of tiles, so
-    systems above SPARSE_SOLVE_MIN unknowns that are sparse enough go to SuperLU (COLAMD)."""
+    """Solve the dense reduced camera system S dc = rhs (S symmetric positive definite)."""
     if len(rhs) == 0:
         return np.zeros(0)
-    if len(rhs) >= SPARSE_SOLVE_MIN and np.count_nonzero(S) <= SPARSE_SOLVE_DENSITY * S.size:
-        from scipy.sparse import csc_matrix
-        from scipy.sparse.linalg import splu
-
-        try:
-            dc = splu(csc_matrix(S), permc_spec="COLAMD", options={"SymmetricMode": True}).solve(rhs)
-            if np.all(np.isfinite(dc)):
-                return dc
-        except RuntimeError:                  # singular: the dense path below decides
-            pass
     try:
         return scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), rhs)
     except np.linalg.LinAlgError:
         return np.linalg.lstsq(S, rhs, rcond=None)[0]
+
+
+class _BlockSystem:
+    """The reduced camera system of a large site, block-sparse (the "sparse" solver).
+
+    Memory and time. The dense S is nc^2 numbers and its Cholesky nc^3 / 3 flops: `large`'s
+    4,924 unknowns are 194 MB and ~1.2 s, a 10 x 10 km site's ~21,600 are 3.7 GB and ~75 s, a
+    20 x 20 km site's ~86,000 are 60 GB. Two tile cameras are coupled only when they share
+    points (a tile, its neighbours in its image, and the tiles of the other images over the same
+    ground), so S is kept as 8 x 8 blocks over those pairs, assembled by the compiled per-point
+    pass (ba_kernels.schur_blocks) and factored by SuperLU with a minimum-degree ordering of
+    S + S^T (measured on such a pattern, 3 images: 21,600 unknowns 1.2 s; 86,400 unknowns 14 s
+    and 3.4 GB; COLAMD's ordering fills twice as much).
+
+    The per-image ties. Their Q = blockdiag(DtD) - L L^T (image_model.Tie) would couple all
+    tiles of an image: a dense block of (8 x tiles)^2. Its block-diagonal part goes into S's
+    diagonal blocks; the low-rank part (the image model's eliminated parameters, <= 17 per
+    image) is solved by the Woodbury identity: with A the sparse part,
+    (A - L L^T)^-1 b = A^-1 b + A^-1 L (I - L^T A^-1 L)^-1 L^T A^-1 b, one factorisation of A and
+    as many extra solves as model parameters. The steps are those of the dense system (a test
+    checks both paths agree)."""
+
+    def __init__(self, cam_col, oc, order, start, ties, tie_cols):
+        from recon_core.sparse import ba_kernels as kern
+
+        self.kern = kern
+        T = len(cam_col)
+        has = (cam_col >= 0).any(axis=1)
+        self.cc = np.full(T, -1, np.int64)
+        self.cc[has] = np.arange(int(has.sum()))
+        self.cams_cc = np.flatnonzero(has)
+        ncc = len(self.cams_cc)
+        self.bptr, self.bcol = kern.block_pattern(oc, self.cc, ncc, order, start)
+        nb = len(self.bcol)
+        brow = np.repeat(np.arange(ncc), np.diff(self.bptr))
+        # every entry of every block with both parameters free, and the mirror of the
+        # off-diagonal blocks' entries: a symmetric CSC built by one gather per iteration
+        ca = cam_col[self.cams_cc[brow]]                       # (nb, 8) rows' columns
+        cb = cam_col[self.cams_cc[self.bcol]]                  # (nb, 8)
+        R = np.broadcast_to(ca[:, :, None], (nb, 8, 8))
+        C = np.broadcast_to(cb[:, None, :], (nb, 8, 8))
+        src = np.arange(nb * 64, dtype=np.int64).reshape(nb, 8, 8)
+        ok = (R >= 0) & (C >= 0)
+        off = (brow != self.bcol)[:, None, None] & ok
+        rows = np.concatenate([R[ok], C[off]])
+        cols = np.concatenate([C[ok], R[off]])
+        srcs = np.concatenate([src[ok], src[off]])
+        nc = int(cam_col.max()) + 1
+        perm = np.lexsort((rows, cols))
+        self.src = srcs[perm]
+        self.indices = rows[perm].astype(np.int32)
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(cols, minlength=nc))]).astype(np.int32)
+        self.nc = nc
+        # ties: block-diagonal part per compact camera, its diagonal, and the low-rank columns
+        self.tie_blocks = np.zeros((ncc, 8, 8))
+        self.tie_diag = np.zeros(nc)
+        Ls = []
+        for t, tc in zip(ties, tie_cols):
+            tiles = t.idx[::8] // 8
+            a = self.cc[tiles]
+            free = tc.reshape(-1, 8) >= 0
+            for coord in range(2):
+                sl = slice(4 * coord, 4 * coord + 4)
+                blk = t.DtD * (free[:, sl, None] & free[:, None, sl])
+                for k in np.flatnonzero(a >= 0):
+                    self.tie_blocks[a[k], sl, sl] += blk[k]
+                L = t.L[coord]                                      # (n, 4, k)
+                if L.shape[2] == 0:
+                    continue
+                Lc = np.zeros((nc, L.shape[2]))
+                rr = tc.reshape(-1, 8)[:, sl]                        # (n, 4) columns or -1
+                m = rr >= 0
+                Lc[rr[m]] = L[m]
+                Ls.append(Lc)
+            m = tc >= 0
+            self.tie_diag[tc[m]] += t.diag()[m]
+        self.L = np.hstack(Ls) if Ls else np.zeros((nc, 0))
+        self.ties = list(zip(ties, tie_cols))
+        self.dense_factor: bool | None = None       # decided by the first factorisation
+
+    def _factor(self, A):
+        """A solve function for A (symmetric positive definite, CSC). SuperLU first; when its
+        factors come out nearly dense (many images over the same ground: `large`'s 9-image joint
+        model, 4,924 unknowns, fills 81 % and takes 4.5 s against LAPACK's dense Cholesky's
+        1.1 s) and the dense matrix is affordable, this adjustment's later factorisations are
+        dense. The choice depends on the pattern only: runs stay deterministic."""
+        from scipy.sparse.linalg import splu
+
+        n = A.shape[0]
+        if self.dense_factor:
+            cf = scipy.linalg.cho_factor(A.toarray())
+            return lambda b: scipy.linalg.cho_solve(cf, b)
+        lu = splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+        if self.dense_factor is None:
+            self.dense_factor = n <= DENSE_FACTOR_MAX and lu.L.nnz + lu.U.nnz > DENSE_FILL * n * n
+        return lu.solve
+
+    def stepper(self, cams, h, M, r, w, oc, ps, cam_col, nc, npt, order, start, porder):
+        """step(lam) -> (dc, dp) for the current linearisation."""
+        from scipy.sparse import csc_matrix
+
+        kern = self.kern
+        ncc = len(self.cams_cc)
+        Ub, g_c, V, g_p = kern.assemble_blocks(h, M, r, w, oc, ps, cam_col, self.cc, ncc, nc, npt)
+        flat = cams.reshape(-1)
+        for t, tc in self.ties:
+            m = tc >= 0
+            g_c[tc[m]] += t.grad(flat)[m]
+        # the damping scales the diagonal of the whole camera system, ties included (as the
+        # dense path, where Q is added to U before the Schur complement)
+        cols = cam_col[self.cams_cc]                                    # (ncc, 8)
+        diag = np.einsum("aii->ai", Ub).copy()
+        diag[cols >= 0] += self.tie_diag[cols[cols >= 0]]
+        Ub += self.tie_blocks
+        L = self.L
+
+        def step(lam):
+            S, rhs, Vinv = kern.schur_blocks(Ub, g_c, V, g_p, lam, diag, h, M, w, oc, cam_col, self.cc,
+                                             order, start, porder, self.bptr, self.bcol)
+            A = csc_matrix((S.reshape(-1)[self.src], self.indices, self.indptr), shape=(nc, nc))
+            try:
+                solve = self._factor(A)
+                dc = solve(rhs)
+                if L.shape[1]:
+                    Y = solve(L)
+                    cf = scipy.linalg.lu_factor(np.eye(L.shape[1]) - L.T @ Y)
+
+                    def full_solve(b):
+                        x = solve(b)
+                        return x + Y @ scipy.linalg.lu_solve(cf, L.T @ x)
+                    dc = full_solve(rhs)
+                    # one step of iterative refinement: the image models' weakly determined
+                    # modes make the system ill-conditioned, and Woodbury's sum loses digits
+                    dc += full_solve(rhs - (A @ dc - L @ (L.T @ dc)))
+            except (RuntimeError, np.linalg.LinAlgError):    # singular: LM damps harder
+                dc = np.full(nc, np.nan)
+            if not np.all(np.isfinite(dc)):
+                return np.full(nc, np.nan), np.full((npt, 3), np.nan)
+            return dc, kern.back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start)
+        return step
 
 
 def _sparse_normal_equations(h, M, r, w, oc, cam_col, ps, has_p, nc, npt, K, extra=None):

@@ -473,7 +473,7 @@ class IncrementalSfM:
                             m.fixed, loss=self.ba_cfg.loss, f_scale=self.ba_cfg.loss_scale_px,
                             max_nfev=self.ba_cfg.max_nfev if scope == "global" else self.ba_cfg.local_max_nfev,
                             rel_tol=self.ba_cfg.rel_tol if final else self.ba_cfg.growing_rel_tol,
-                            ties=self._image_ties(idx) if final else None)
+                            ties=self._image_ties(idx) if final else None, solver=self.ba_cfg.solver)
         m.cams, m.X = res.cams, res.X
         self.bus.emit(BundleAdjusted(m.group, scope, res.cost_before, res.cost_after, res.rms_px,
                                      len(free_cams), len(free_pts), res.seconds))

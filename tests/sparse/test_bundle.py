@@ -139,43 +139,102 @@ def test_compiled_schur_with_a_point_seen_twice_by_one_camera():
     xy, fixed, start, X0 = _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, 2.0)
     a = bundle_adjust(start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(n), fixed, compiled=True)
     b = bundle_adjust(start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(n), fixed, compiled=False)
+    c = bundle_adjust(start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(n), fixed, solver="sparse")
+    assert abs(c.cost_after - b.cost_after) <= 1e-9 * b.cost_after and c.iterations == b.iterations
     assert a.iterations == b.iterations > 2
     assert abs(a.cost_after - b.cost_after) <= 1e-12 * b.cost_after
     assert np.abs(a.cams - b.cams).max() < 1e-7 and np.abs(a.X - b.X).max() < 1e-7
 
 
-def test_the_sparse_factorisation_takes_the_same_steps_as_the_dense_one(monkeypatch):
-    """Large reduced systems are solved by a sparse LU (bundle.SPARSE_SOLVE_MIN): forced on a
-    small problem whose cameras are coupled only to their neighbours (a strip of tiles), it
-    takes the dense Cholesky's steps."""
-    import recon_core.sparse.bundle as bundle
-
-    rng = np.random.default_rng(11)
-    T, per = 24, 120
+def _strip_problem(rng, T=24, per=120):
+    """Tiles along a strip: point block k is seen by cameras k - 1, k, k + 1 (S block
+    tridiagonal), gauge held as the SfM holds it."""
     cams = np.stack([np.hstack([rng.normal(0, 0.05, (2, 3)) + [[1, 0, 0], [0, 1, 0.2 * (k % 3)]],
                                 [[500.0], [500.0]]]) for k in range(T)])
     X = np.concatenate([rng.uniform([60 * k, 0, 0], [60 * k + 100, 100, 30], (per, 3)) for k in range(T)])
-    # point block k is seen by cameras k - 1, k, k + 1: S is block tridiagonal
     cam_idx = np.concatenate([np.repeat(c, per) for k in range(T) for c in range(max(0, k - 1), min(T, k + 2))])
     pt_idx = np.concatenate([np.arange(per) + per * k for k in range(T) for c in range(max(0, k - 1), min(T, k + 2))])
     xy, fixed, start, X0 = _gauge_fixed_start(rng, cams, X, cam_idx, pt_idx, 1.0, pixel_noise=0.2)
-    args = (start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(len(X)), fixed)
-    dense = bundle_adjust(*args)
-    import scipy.sparse.linalg as spl
+    return start, X0, cam_idx, pt_idx, xy, fixed
 
-    calls, orig = [], spl.splu
 
-    def counting(*a, **k):
-        calls.append(1)
-        return orig(*a, **k)
+def test_the_block_sparse_system_takes_the_same_steps_as_the_dense_one(monkeypatch):
+    """Large sites take the block-sparse reduced system (solver="sparse", SuperLU): on a strip
+    of tiles, with held gauge entries, it takes the dense Cholesky's steps; "auto" takes it from
+    bundle.SPARSE_SOLVE_MIN unknowns."""
+    import recon_core.sparse.ba_kernels as kern
+    import recon_core.sparse.bundle as bundle
 
-    monkeypatch.setattr(spl, "splu", counting)
-    monkeypatch.setattr(bundle, "SPARSE_SOLVE_MIN", 1)
-    sparse = bundle_adjust(*args)
-    assert calls
+    rng = np.random.default_rng(11)
+    start, X0, cam_idx, pt_idx, xy, fixed = _strip_problem(rng)
+    T = len(start)
+    args = (start, X0, cam_idx, pt_idx, xy, np.arange(1, T), np.arange(len(X0)), fixed)
+    dense = bundle_adjust(*args, solver="dense")
+    sparse = bundle_adjust(*args, solver="sparse")
     assert sparse.iterations == dense.iterations > 2
     assert abs(sparse.cost_after - dense.cost_after) <= 1e-9 * dense.cost_after
     assert np.abs(sparse.cams - dense.cams).max() < 1e-6 and np.abs(sparse.X - dense.X).max() < 1e-5
+    assert np.array_equal(sparse.cams[fixed], start[fixed])
+
+    calls, orig = [], kern.schur_blocks
+
+    def counting(*a):
+        calls.append(1)
+        return orig(*a)
+
+    monkeypatch.setattr(kern, "schur_blocks", counting)
+    bundle_adjust(*args, max_nfev=1)
+    assert not calls                                   # 180 unknowns: dense
+    monkeypatch.setattr(bundle, "SPARSE_SOLVE_MIN", 100)
+    auto = bundle_adjust(*args)
+    assert calls and auto.cost_after == sparse.cost_after
+
+
+def test_a_local_adjustment_on_the_block_sparse_system(monkeypatch):
+    """Held cameras (a local adjustment) and a factorisation that turns dense when SuperLU fills
+    (bundle.DENSE_FILL): the same steps as the dense system."""
+    import recon_core.sparse.bundle as bundle
+
+    rng = np.random.default_rng(12)
+    start, X0, cam_idx, pt_idx, xy, fixed = _strip_problem(rng, T=16)
+    free_cams = np.arange(5, 12)
+    free_pts = np.unique(pt_idx[np.isin(cam_idx, free_cams)])
+    args = (start, X0, cam_idx, pt_idx, xy, free_cams, free_pts, fixed)
+    dense = bundle_adjust(*args, solver="dense")
+    for fill in (0.4, 0.0):                            # SuperLU throughout; dense after the first
+        monkeypatch.setattr(bundle, "DENSE_FILL", fill)
+        sparse = bundle_adjust(*args, solver="sparse")
+        assert sparse.iterations == dense.iterations > 2
+        assert abs(sparse.cost_after - dense.cost_after) <= 1e-9 * dense.cost_after
+        assert np.abs(sparse.cams - dense.cams).max() < 1e-6
+        held = np.setdiff1d(np.arange(len(start)), free_cams)
+        assert np.array_equal(sparse.cams[held], start[held])
+
+
+def test_block_pattern_is_the_set_of_cameras_sharing_a_point():
+    """The symbolic pass against brute force: block (a, b), a <= b, exists iff some point is
+    seen by both compact cameras (or a == b)."""
+    from recon_core.sparse.ba_kernels import block_pattern
+
+    rng = np.random.default_rng(4)
+    T, npt = 30, 200
+    obs = [(c, p) for p in range(npt) for c in rng.choice(T, rng.integers(1, 5), replace=False)]
+    oc = np.array([o[0] for o in obs], np.int64)
+    op = np.array([o[1] for o in obs], np.int64)
+    cc = np.arange(T, dtype=np.int64)
+    cc[[3, 17]] = -1                                   # held cameras: not in the system
+    cc[cc >= 0] = np.arange(T - 2)
+    keep = cc[oc] >= 0
+    order = np.flatnonzero(keep)[np.argsort(op[keep], kind="stable")]
+    start = np.searchsorted(op[order], np.arange(npt + 1)).astype(np.int64)
+    bptr, bcol = block_pattern(oc, cc, T - 2, order, start)
+    got = {(a, int(b)) for a in range(T - 2) for b in bcol[bptr[a]:bptr[a + 1]]}
+    want = {(a, a) for a in range(T - 2)}
+    for p in range(npt):
+        cs = sorted({int(cc[c]) for c in oc[op == p] if cc[c] >= 0})
+        want |= {(x, y) for i, x in enumerate(cs) for y in cs[i:]}
+    assert got == want
+    assert all(np.all(np.diff(bcol[bptr[a]:bptr[a + 1]]) > 0) for a in range(T - 2))
 
 
 def test_the_kernel_warmup_compiles_the_signatures_the_sfm_uses(tiny_run):

@@ -113,10 +113,55 @@ def test_bundle_adjustment_honours_the_tie():
     tie = image_tie(start, samples, np.arange(len(samples)), 100.0)
     held = np.arange(0)                                        # points held: the frame is fixed
     runs = [bundle_adjust(start, X, oc, op, xy, np.arange(len(samples)), held, None, loss="linear",
-                          ties=[tie], compiled=c) for c in (True, False)]
+                          ties=[tie], compiled=c, solver=sv) for c, sv in ((True, "dense"), (False, "dense"),
+                                                                         (True, "sparse"))]
     for res in runs:
         assert res.cost_after < res.cost_before
         assert _tie_rms(res.cams, samples) < 0.5 * _tie_rms(start, samples)
     assert np.allclose(runs[0].cams, runs[1].cams, atol=1e-8)
+    # the block-sparse system: the tie's low-rank part by Woodbury, the same steps
+    assert runs[2].iterations == runs[0].iterations
+    assert np.allclose(runs[2].cams, runs[0].cams, atol=1e-7)
     r = np.einsum("kij,kj->ki", runs[0].cams[oc, :, :3], X) + runs[0].cams[oc, :, 3] - xy
     assert runs[0].cost_after >= 0.5 * float((r ** 2).sum()) + tie.cost(runs[0].cams.reshape(-1)) - 1e-9
+
+
+def test_the_factored_tie_is_the_projection_penalty():
+    """Tie keeps Q = w D^T (I - Pi) D in factors (block-diagonal minus low rank); against Q built
+    the plain way, with D and the projector on the model's columns as dense matrices."""
+    rng = np.random.default_rng(6)
+    samples = _tiles(rng, n_side=3, pts=30)
+    cams = _affine_fits(lambda S: np.hstack([S, np.ones((len(S), 1))]) @ _linear_camera().T, samples)
+    cams = cams + rng.normal(0, 1e-3, cams.shape)
+    w = 3.0
+    tie = image_tie(cams, samples, np.arange(len(cams)) + 2, w)
+    n = len(cams)
+    mean_cam, x0, xs, p0, ps = image_frame(cams, samples)
+    Q = np.zeros((8 * n, 8 * n))
+    for coord in range(2):
+        Ds, Gs = [], []
+        for S in samples:
+            Sh = np.hstack([S, np.ones((len(S), 1))])
+            uv = Sh @ mean_cam.T
+            r, c = (uv[:, 1] - p0[1]) / ps, (uv[:, 0] - p0[0]) / ps
+            B = col_basis((S - x0) / xs, r, c) if coord == 0 else row_basis((S - x0) / xs, r)
+            E = Sh * np.sqrt(8.0 / len(S))
+            Ds.append(E)
+            Gs.append(E @ np.linalg.pinv(Sh) @ B)
+        D = np.zeros((sum(len(E) for E in Ds), 4 * n))
+        r0 = 0
+        for t, E in enumerate(Ds):
+            D[r0:r0 + len(E), 4 * t:4 * t + 4] = E
+            r0 += len(E)
+        G = np.vstack(Gs)
+        Pi = G @ np.linalg.pinv(G)
+        sel = (8 * np.arange(n)[:, None] + 4 * coord + np.arange(4)[None, :]).ravel()
+        Q[np.ix_(sel, sel)] = w * D.T @ (np.eye(len(D)) - Pi) @ D
+    scale = np.abs(Q).max()
+    assert np.abs(tie.dense_q() - Q).max() < 1e-9 * scale
+    assert np.array_equal(tie.idx, np.arange(16, 16 + 8 * n))
+    flat = rng.normal(size=8 * (n + 2))
+    p = flat[tie.idx]
+    assert np.allclose(tie.grad(flat), Q @ p, rtol=0, atol=1e-9 * scale * np.abs(p).sum())
+    assert np.allclose(tie.diag(), np.diag(Q), rtol=0, atol=1e-9 * scale)
+    assert abs(tie.cost(flat) - 0.5 * p @ Q @ p) < 1e-9 * scale * (p ** 2).sum()
