@@ -89,7 +89,7 @@ class BundleConfig:
     smoothness_weight: float = 0.0    # prior tying adjacent tile cameras of one image (0 = off)
     solver: str = "auto"              # reduced camera system: dense (Cholesky), sparse (8 x 8
                                       # blocks, SuperLU: 10-20 km sites) or auto (sparse from
-                                      # 6,000 camera unknowns)
+                                      # 1,500 camera unknowns)
 
 
 @dataclass

@@ -146,7 +146,7 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
             last[seen] = np.maximum.reduceat(occ, start[seen])
         porder = np.lexsort((last, first)).astype(np.int64)
         if use_blocks:
-            blocks = _BlockSystem(cam_col, oc, order, start, ties, tie_cols)
+            blocks = _BlockSystem(cam_col, oc, op, X, order, start, ties, tie_cols)
     for it in range(1, max_nfev + 1):
         h = np.concatenate([X[op], np.ones((K, 1))], axis=1)        # (K, 4)
         M = np.ascontiguousarray(cams[oc, :, :3])                     # (K, 2, 3)
@@ -188,8 +188,9 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
 
 def warm_compiled_kernels() -> None:
     """Compile the kernels of recon_core.sparse.ba_kernels into numba's cache (one LM iteration
-    on 2 cameras x 8 points, with the argument types the SfM passes): a first `aerec view`
-    does this in a second process while the demo renders."""
+    on 2 cameras x 8 points, with the argument types the SfM passes, by the dense and the
+    block-sparse system): a first `aerec view` does this in a second process while the demo
+    renders."""
     rng = np.random.default_rng(0)
     X = rng.uniform(-1.0, 1.0, (8, 3))
     cams = np.stack([np.hstack([np.eye(2, 3) + rng.normal(0, 0.1, (2, 3)), [[5.0], [5.0]]])
@@ -200,9 +201,14 @@ def warm_compiled_kernels() -> None:
     fixed = np.zeros((2, 2, 4), bool)
     fixed[0] = True
     bundle_adjust(cams, X, obs_cam, obs_pt, xy, np.arange(2), np.arange(8), fixed, max_nfev=1)
+    bundle_adjust(cams, X, obs_cam, obs_pt, xy, np.arange(2), np.arange(8), fixed, max_nfev=1, solver="sparse")
 
 
-SPARSE_SOLVE_MIN = 6000      # camera unknowns from which "auto" takes the block-sparse system
+# camera unknowns from which "auto" takes the block-sparse system. Measured (one thread): 588
+# unknowns the same time; `large`'s group 0, 1,992 unknowns, 0.32 s against 0.37 s per
+# iteration; its 9-image joint model, 4,924, 2.5 s against 2.7 s; a 5 x 5 km site, 4,044,
+# 0.62 s against 1.47 s; 10 x 10 km, 16,212, 3.7 s against 59 s (bench/bench_ba_scale.py)
+SPARSE_SOLVE_MIN = 1500
 DENSE_FILL = 0.4             # ... whose factorisation turns dense when SuperLU fills more than this
 DENSE_FACTOR_MAX = 16000     # ... and the dense matrix (8 bytes x this^2: 2 GB) is affordable
 
@@ -221,13 +227,13 @@ class _BlockSystem:
     """The reduced camera system of a large site, block-sparse (the "sparse" solver).
 
     Memory and time. The dense S is nc^2 numbers and its Cholesky nc^3 / 3 flops: `large`'s
-    4,924 unknowns are 194 MB and ~1.2 s, a 10 x 10 km site's ~21,600 are 3.7 GB and ~75 s, a
-    20 x 20 km site's ~86,000 are 60 GB. Two tile cameras are coupled only when they share
-    points (a tile, its neighbours in its image, and the tiles of the other images over the same
-    ground), so S is kept as 8 x 8 blocks over those pairs, assembled by the compiled per-point
-    pass (ba_kernels.schur_blocks) and factored by SuperLU with a minimum-degree ordering of
-    S + S^T (measured on such a pattern, 3 images: 21,600 unknowns 1.2 s; 86,400 unknowns 14 s
-    and 3.4 GB; COLAMD's ordering fills twice as much).
+    joint model (4,924 unknowns) is 194 MB and ~1.1 s, a 10 x 10 km site's ~16,000 unknowns
+    2.1 GB and ~40 s, a 20 x 20 km site's ~65,000 34 GB. Two tile cameras are coupled only when
+    they share points (a tile, its neighbours in its image, and the tiles of the other images
+    over the same ground: ~25 others), so S is kept as 8 x 8 blocks over those pairs, assembled
+    by the compiled per-point pass (ba_kernels.schur_blocks), put in a nested-dissection order
+    of the cameras by their ground position (`_dissection_order`) and factored by SuperLU on
+    its diagonal pivots. Figures: bench/bench_ba_scale.py, README "Toward a full scene".
 
     The per-image ties. Their Q = blockdiag(DtD) - L L^T (image_model.Tie) would couple all
     tiles of an image: a dense block of (8 x tiles)^2. Its block-diagonal part goes into S's
@@ -237,7 +243,7 @@ class _BlockSystem:
     as many extra solves as model parameters. The steps are those of the dense system (a test
     checks both paths agree)."""
 
-    def __init__(self, cam_col, oc, order, start, ties, tie_cols):
+    def __init__(self, cam_col, oc, op, X, order, start, ties, tie_cols):
         from recon_core.sparse import ba_kernels as kern
 
         self.kern = kern
@@ -263,6 +269,15 @@ class _BlockSystem:
         cols = np.concatenate([C[ok], R[off]])
         srcs = np.concatenate([src[ok], src[off]])
         nc = int(cam_col.max()) + 1
+        # the factorisation's order: nested dissection of the cameras by their ground position
+        # (the matrix is built in that order; solves permute in and out)
+        obs = np.flatnonzero(self.cc[oc] >= 0)
+        corder = _dissection_order(self.bptr, self.bcol, _camera_positions(self.cc[oc[obs]], X[op[obs]], ncc))
+        cols_cc = cam_col[self.cams_cc[corder]]
+        self.perm = cols_cc[cols_cc >= 0]                      # new scalar index -> old
+        inv = np.empty(nc, np.int64)
+        inv[self.perm] = np.arange(nc)
+        rows, cols = inv[rows], inv[cols]
         perm = np.lexsort((rows, cols))
         self.src = srcs[perm]
         self.indices = rows[perm].astype(np.int32)
@@ -292,22 +307,25 @@ class _BlockSystem:
             m = tc >= 0
             self.tie_diag[tc[m]] += t.diag()[m]
         self.L = np.hstack(Ls) if Ls else np.zeros((nc, 0))
+        self.L = self.L[self.perm]                             # in the factorisation's order
         self.ties = list(zip(ties, tie_cols))
         self.dense_factor: bool | None = None       # decided by the first factorisation
 
     def _factor(self, A):
         """A solve function for A (symmetric positive definite, CSC). SuperLU first; when its
-        factors come out nearly dense (many images over the same ground: `large`'s 9-image joint
-        model, 4,924 unknowns, fills 81 % and takes 4.5 s against LAPACK's dense Cholesky's
-        1.1 s) and the dense matrix is affordable, this adjustment's later factorisations are
-        dense. The choice depends on the pattern only: runs stay deterministic."""
+        factors come out nearly dense (more than DENSE_FILL of n^2: many images over a small
+        site) and the dense matrix is affordable, this adjustment's later factorisations are
+        LAPACK's dense Cholesky, faster on a dense matrix. The choice depends on the pattern
+        only: runs stay deterministic."""
         from scipy.sparse.linalg import splu
 
         n = A.shape[0]
         if self.dense_factor:
             cf = scipy.linalg.cho_factor(A.toarray())
             return lambda b: scipy.linalg.cho_solve(cf, b)
-        lu = splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+        # the matrix is already in nested-dissection order; symmetric positive definite, so the
+        # diagonal pivots are stable (partial pivoting away from them fills ~2x more)
+        lu = splu(A, permc_spec="NATURAL", options={"SymmetricMode": True, "DiagPivotThresh": 0.0})
         if self.dense_factor is None:
             self.dense_factor = n <= DENSE_FACTOR_MAX and lu.L.nnz + lu.U.nnz > DENSE_FILL * n * n
         return lu.solve
@@ -335,26 +353,79 @@ class _BlockSystem:
             S, rhs, Vinv = kern.schur_blocks(Ub, g_c, V, g_p, lam, diag, h, M, w, oc, cam_col, self.cc,
                                              order, start, porder, self.bptr, self.bcol)
             A = csc_matrix((S.reshape(-1)[self.src], self.indices, self.indptr), shape=(nc, nc))
+            b = rhs[self.perm]
             try:
                 solve = self._factor(A)
-                dc = solve(rhs)
+                y = solve(b)
                 if L.shape[1]:
                     Y = solve(L)
                     cf = scipy.linalg.lu_factor(np.eye(L.shape[1]) - L.T @ Y)
 
-                    def full_solve(b):
-                        x = solve(b)
+                    def full_solve(v):
+                        x = solve(v)
                         return x + Y @ scipy.linalg.lu_solve(cf, L.T @ x)
-                    dc = full_solve(rhs)
+                    y = full_solve(b)
                     # one step of iterative refinement: the image models' weakly determined
                     # modes make the system ill-conditioned, and Woodbury's sum loses digits
-                    dc += full_solve(rhs - (A @ dc - L @ (L.T @ dc)))
+                    y += full_solve(b - (A @ y - L @ (L.T @ y)))
+                dc = np.empty(nc)
+                dc[self.perm] = y
             except (RuntimeError, np.linalg.LinAlgError):    # singular: LM damps harder
                 dc = np.full(nc, np.nan)
             if not np.all(np.isfinite(dc)):
                 return np.full(nc, np.nan), np.full((npt, 3), np.nan)
             return dc, kern.back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start)
         return step
+
+
+def _camera_positions(cam: np.ndarray, Xo: np.ndarray, ncc: int) -> np.ndarray:
+    """(ncc, 2) position of each compact camera: the mean of its observed points on the two
+    principal axes of all of them (the affine frame's ground plane, whatever its gauge)."""
+    if len(Xo) < 3:
+        return np.zeros((ncc, 2))
+    sub = Xo[:: max(1, len(Xo) // 200000)]
+    c = sub.mean(0)
+    axes = np.linalg.svd(sub - c, full_matrices=False)[2][:2]
+    n = np.maximum(np.bincount(cam, minlength=ncc), 1)
+    P = (Xo - c) @ axes.T
+    return np.column_stack([np.bincount(cam, P[:, 0], minlength=ncc), np.bincount(cam, P[:, 1], minlength=ncc)]) / n[:, None]
+
+
+def _dissection_order(bptr: np.ndarray, bcol: np.ndarray, pos: np.ndarray, leaf: int = 16) -> np.ndarray:
+    """A nested-dissection order of the cameras of a block pattern (CSR of pairs a <= b): split
+    by the median of the longer extent of their positions, the cameras of one side coupled to
+    the other side (the separator) last, each side recursively, down to `leaf` cameras. On a
+    10 x 10 km site (bench/bench_ba_scale.py: 2,028 tiles, 16,212 unknowns) SuperLU then fills
+    7 % and factors in 1.3 s (leaves of 256: 15 %, 4.6 s); with its own minimum-degree
+    ordering of S + S^T 48 % and 61 s, more than the dense Cholesky (a tile is coupled to ~25
+    others: its neighbours and the tiles of the other images over the same ground)."""
+    from scipy.sparse import coo_matrix
+
+    n = len(pos)
+    brow = np.repeat(np.arange(n), np.diff(bptr))
+    G = coo_matrix((np.ones(len(brow)), (brow, bcol)), shape=(n, n)).tocsr()
+    G = (G + G.T).tocsr()
+    out: list[np.ndarray] = []
+    stack = [(np.arange(n), False)]
+    while stack:                                   # (nodes, emit): emit a separator as is
+        nodes, emit = stack.pop()
+        if emit or len(nodes) <= leaf:
+            out.append(nodes)
+            continue
+        p = pos[nodes]
+        ax = int(np.argmax(p.max(0) - p.min(0)))
+        left = p[:, ax] < np.median(p[:, ax])
+        if left.all() or not left.any():
+            out.append(nodes)
+            continue
+        in_right = np.zeros(n)
+        in_right[nodes[~left]] = 1.0
+        touches = (G[nodes[left]] @ in_right) > 0
+        # pushed in reverse: the left part first, then the right, then the separator
+        stack.append((nodes[left][touches], True))
+        stack.append((nodes[~left], False))
+        stack.append((nodes[left][~touches], False))
+    return np.concatenate(out) if out else np.zeros(0, np.int64)
 
 
 def _sparse_normal_equations(h, M, r, w, oc, cam_col, ps, has_p, nc, npt, K, extra=None):

@@ -248,3 +248,49 @@ def test_the_kernel_warmup_compiles_the_signatures_the_sfm_uses(tiny_run):
     assert all(used.values()), used
     warm_compiled_kernels()
     assert {f: set(getattr(kern, f).signatures) for f in used} == used
+    # the block-sparse system's kernels take the same arrays (built by bundle_adjust): one
+    # signature each
+    assert all(len(getattr(kern, f).signatures) == 1
+               for f in ("assemble_blocks", "block_pattern", "schur_blocks")), \
+        {f: getattr(kern, f).signatures for f in ("assemble_blocks", "block_pattern", "schur_blocks")}
+
+
+def test_dissection_orders_a_grid_of_tiles_separators_last():
+    """The factorisation's order (bundle._dissection_order) on a 24 x 24 grid of tiles, each
+    coupled to its 8 neighbours: a permutation of all cameras, whose last cameras (the first
+    separator) split the rest into two sides with no coupling between them, and whose fill in
+    SuperLU is far below the natural order's."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import splu
+
+    from recon_core.sparse.bundle import _dissection_order
+
+    g = 24
+    ij = np.array([(i, j) for i in range(g) for j in range(g)])
+    pairs = {(a, b) for a in range(g * g) for b in range(g * g)
+             if a <= b and np.abs(ij[a] - ij[b]).max() <= 1}
+    rows = sorted(pairs)
+    bptr = np.searchsorted([r[0] for r in rows], np.arange(g * g + 1)).astype(np.int64)
+    bcol = np.array([r[1] for r in rows], np.int64)
+    order = _dissection_order(bptr, bcol, ij.astype(float), leaf=4)
+    assert sorted(order.tolist()) == list(range(g * g))
+    # the top separator: the cameras emitted last that touch both remaining sides
+    sep = set(order[-g:].tolist())
+    rest = [a for a in order[:-g]]
+    side = {a: ij[a][0] < g / 2 for a in rest}
+    for a, b in pairs:
+        if a in side and b in side:
+            assert side[a] == side[b]             # no coupling across the separator
+    A = coo_matrix((np.ones(len(rows)), (bptr.searchsorted(np.arange(len(rows)), "right") - 1, bcol)),
+                   shape=(g * g, g * g)).toarray()
+    A = A + A.T + 20 * np.eye(g * g)
+    inv = np.empty_like(order)
+    inv[order] = np.arange(len(order))
+
+    def fill(P):
+        from scipy.sparse import csc_matrix
+        lu = splu(csc_matrix(A[np.ix_(P, P)]), permc_spec="NATURAL",
+                  options={"SymmetricMode": True, "DiagPivotThresh": 0.0})
+        return lu.L.nnz + lu.U.nnz
+    assert len(sep) == g
+    assert fill(order) < 0.8 * fill(np.arange(g * g))
