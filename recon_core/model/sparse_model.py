@@ -67,10 +67,13 @@ class SparseModel:
                 "mean_reproj_px": float(err.mean()) if len(err) else float("nan"),
                 "rms_reproj_px": float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan")}
 
-    def point_stats(self, ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def point_stats(self, ids: np.ndarray | None = None,
+                    obs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(point ids, number of distinct images, RMS reprojection px) per triangulated point:
-        every one, or those of `ids` that are triangulated (from their observations only)."""
-        idx = self.active_obs()
+        every one, or those of `ids` that are triangulated (from their observations only).
+        `obs`: sorted active observation indices that include every active one of `ids` (a
+        caller that indexes observations by track), instead of a pass over all of them."""
+        idx = self.active_obs() if obs is None else obs
         n = len(self.X)
         if ids is None:
             ids = self.point_ids()
@@ -98,10 +101,14 @@ class SparseModel:
         """The affine camera of tile t."""
         return AffineCamera.from_array(self.cams[t])
 
-    def footprint(self, t: int) -> np.ndarray:
-        """(4, 3) tile corners back-projected onto the best plane of the tile's points."""
+    def footprint(self, t: int, obs: np.ndarray | None = None) -> np.ndarray:
+        """(4, 3) tile corners back-projected onto the best plane of the tile's points. `obs`:
+        the indices of tile t's observations, if the caller has them."""
         o = self.obs
-        return self._footprint(t, np.unique(o.track[(o.tile == t) & o.valid & self.has_point[o.track]]))
+        if obs is None:
+            return self._footprint(t, np.unique(o.track[(o.tile == t) & o.valid & self.has_point[o.track]]))
+        obs = obs[o.valid[obs] & self.has_point[o.track[obs]]]
+        return self._footprint(t, np.unique(o.track[obs]))
 
     def footprints(self, tiles) -> dict[int, np.ndarray]:
         """footprint(t) of every tile in `tiles`, from one sort of the observations (not one

@@ -35,16 +35,19 @@ points is linear in the model parameters theta: L_t theta. The tie residual is t
 between the tile camera and that approximation, evaluated at the tile's points:
 e_t = [S_t, 1] (P_t - L_t theta). theta is eliminated in closed form (least squares), leaving a
 quadratic penalty 1/2 w p^T Q p on the stacked tile parameters p of the image, with
-Q = D^T (I - Pi) D: a dense block per image that the bundle adjustment adds to its camera normal
-equations. Its weight w = (sigma_obs / sigma_tie)^2: sigma_obs the observations' noise (measured
-from the reprojection error), sigma_tie the model's error against a true pushbroom
-(a caller's choice; bench/bench_bend.py tries 0.05 and 0.01 px). Each tile counts as 8 points (the corners of its volume),
-whatever its number of observations.
+Q = D^T (I - Pi) D. Q couples every tile of the image with every other (a dense block of
+(8 x tiles)^2, 415 MB for 900 tiles), so it is kept in factors: a block per tile minus a term of
+rank <= 17 (the eliminated theta), which the dense bundle adjustment expands and the
+block-sparse one solves by the Woodbury identity (`Tie`). Its weight w = (sigma_obs /
+sigma_tie)^2: sigma_obs the observations' noise (measured from the reprojection error),
+sigma_tie the model's error against a true pushbroom (SfmConfig.tie_sigma_px and the number of
+views: sfm.tie_sigma; bench/bench_bend.py tries others). Each tile counts as 8 points (the
+corners of its volume), whatever its number of observations.
 
-Status: measured, not used by the pipeline. It discriminates (the truth costs 0.01 px against
-the model, a bent solution 0.03-0.12 px) and holds a joint adjustment of 9 views (`large`: bend
-4.6 -> 1.1 m peak to peak), but on a group of 3 views the bend moves inside the model's family
-(README, "What was tried against the bend"; `bench/bench_bend.py`).
+Status: used by the two closing global adjustments of the SfM. It discriminates (the truth
+costs 0.01 px against the model, a bent solution 0.03-0.12 px) and holds a joint adjustment of
+9 views (`large`: bend 4.6 -> 1.1 m peak to peak), but on a group of 3 views the bend moves
+inside the model's family (README, "What was tried against the bend"; `bench/bench_bend.py`).
 """
 
 from __future__ import annotations

@@ -124,6 +124,8 @@ class IncrementalSfM:
         o = self.m.obs
         self._by_track = np.argsort(o.track, kind="stable")        # observations of each track
         self._track_start = np.searchsorted(o.track[self._by_track], np.arange(tracks.n_tracks + 1))
+        self._by_tile = np.argsort(o.tile, kind="stable")          # ... and of each tile
+        self._tile_start = np.searchsorted(o.tile[self._by_tile], np.arange(T + 1))
         self._pending = np.zeros(tracks.n_tracks, bool)
         self._retry_all = True
         self._cond_ref: float | None = None    # the model's 90th-percentile conditioning at its
@@ -240,6 +242,21 @@ class IncrementalSfM:
         o = self.m.obs
         return np.bincount(o.tile[o.valid & self.m.has_point[o.track]], minlength=len(self.m.tiles))
 
+    # Observations by track and by tile: the work after each registration follows the tile
+    # and its neighbourhood, not every observation of the model (which grows as the site).
+    # Each helper returns indices sorted as in the observation arrays, so what is computed from
+    # them is what a mask over all of them gave, in the same order.
+    def _obs_of_tracks(self, tracks: np.ndarray) -> np.ndarray:
+        return _gather(self._by_track, self._track_start, tracks)
+
+    def _obs_of_tiles(self, tiles: np.ndarray) -> np.ndarray:
+        return _gather(self._by_tile, self._tile_start, tiles)
+
+    def _active(self, idx: np.ndarray) -> np.ndarray:
+        """The active ones among observation indices idx (SparseModel.active_obs)."""
+        m, o = self.m, self.m.obs
+        return idx[o.valid[idx] & m.registered[o.tile[idx]] & m.has_point[o.track[idx]]]
+
     def _attempt(self, t: int, why: dict[int, str], tried: dict[int, tuple[int, int]],
                  counts: np.ndarray, img_reg: dict[str, int]) -> None:
         """Try to register t; remember the state it was tried in (its correspondences, the
@@ -261,8 +278,8 @@ class IncrementalSfM:
     def _register(self, t: int) -> str | None:
         """Register tile t; None when done, else why it could not be (it may be retried)."""
         m, o = self.m, self.m.obs
-        in_t = o.tile == t
-        sel = np.flatnonzero(in_t & o.valid & m.has_point[o.track])
+        in_t = self._obs_of_tiles(np.array([t]))
+        sel = in_t[o.valid[in_t] & m.has_point[o.track[in_t]]]
         if len(sel) < self.cfg.resect_min_inliers:
             return f"{len(sel)} 2D-3D correspondences (< {self.cfg.resect_min_inliers})"
         X, x = m.X[o.track[sel]], o.xy[sel]
@@ -296,7 +313,7 @@ class IncrementalSfM:
         if n_reg >= max((1.0 + self.cfg.global_ba_growth) * self._ba_at, self._ba_at + 4):
             self._filter_outliers()
             self._bundle("global")
-        self._emit_tile(t, int(inl.sum()))
+        self._emit_tile(t, int(inl.sum()), obs=in_t)
         self._emit_points()
         return None
 
@@ -350,11 +367,8 @@ class IncrementalSfM:
         if self._retry_all:
             use = np.flatnonzero(o.valid & m.registered[o.tile] & ~m.has_point[o.track])
         else:
-            tr = np.flatnonzero(self._pending & ~m.has_point)
-            a, b = self._track_start[tr], self._track_start[tr + 1]
-            n = b - a
-            use = self._by_track[np.repeat(a - np.cumsum(n) + n, n) + np.arange(n.sum())]
-            use = np.sort(use[o.valid[use] & m.registered[o.tile[use]]])
+            use = self._obs_of_tracks(np.flatnonzero(self._pending & ~m.has_point))
+            use = use[o.valid[use] & m.registered[o.tile[use]]]
         self._pending[:] = False
         self._retry_all = False
         if len(use) == 0:
@@ -395,9 +409,10 @@ class IncrementalSfM:
                 m.has_point[new[cond < self.cfg.min_triangulation_ratio * ref]] = False
 
     def _conditioning(self, ids: np.ndarray | None = None) -> np.ndarray:
-        """point_conditioning over the active observations: of every track, or of `ids`."""
+        """point_conditioning over the active observations: of every track, or of `ids`
+        (distinct track ids: from their own observations)."""
         m, o = self.m, self.m.obs
-        idx = m.active_obs()
+        idx = m.active_obs() if ids is None else self._active(self._obs_of_tracks(ids))
         return point_conditioning(m.cams, o.tile[idx], o.track[idx], len(m.X), ids)
 
     def _filter_outliers(self) -> None:
@@ -450,25 +465,26 @@ class IncrementalSfM:
         adjustments, with the per-image ties, converged to BundleConfig.rel_tol (the others stop
         at growing_rel_tol)."""
         m, o = self.m, self.m.obs
-        idx = m.active_obs()
-        if len(idx) == 0:
-            return
-        reg = np.flatnonzero(m.registered)
         if scope == "global":
-            free_cams, free_pts = reg, m.point_ids()
+            idx = m.active_obs()
+            if len(idx) == 0:
+                return
+            free_cams, free_pts = np.flatnonzero(m.registered), m.point_ids()
             self._ba_at = int(m.registered.sum())
             self._retry_all = True          # cameras moved, outliers dropped: every track again
         else:
-            trk, til = o.track[idx], o.tile[idx]
-            of_t = np.zeros(len(m.X), bool)
-            of_t[trk[til == around]] = True
-            shared = np.bincount(til[of_t[trk]], minlength=len(m.tiles))
+            # the tiles sharing the most points with `around`, from the observations of its
+            # tracks only; then the observations of the free points: every one the adjustment
+            # uses (an observation in a free tile is of a free point), in the same order
+            tr = np.unique(o.track[self._active(self._obs_of_tiles(np.array([around])))])
+            shared = np.bincount(o.tile[self._active(self._obs_of_tracks(tr))], minlength=len(m.tiles))
             shared[around] = 0
             nb = np.argsort(-shared)[: self.cfg.local_ba_window]
             free_cams = np.unique(np.concatenate([[around], nb[shared[nb] > 0]]))
-            is_free = np.zeros(len(m.tiles), bool)
-            is_free[free_cams] = True
-            free_pts = np.unique(trk[is_free[til]])
+            free_pts = np.unique(o.track[self._active(self._obs_of_tiles(free_cams))])
+            idx = self._active(self._obs_of_tracks(free_pts))
+            if len(idx) == 0:
+                return
         res = bundle_adjust(m.cams, m.X, o.tile[idx], o.track[idx], o.xy[idx], free_cams, free_pts,
                             m.fixed, loss=self.ba_cfg.loss, f_scale=self.ba_cfg.loss_scale_px,
                             max_nfev=self.ba_cfg.max_nfev if scope == "global" else self.ba_cfg.local_max_nfev,
@@ -481,18 +497,19 @@ class IncrementalSfM:
             self._emit_model()
 
     # -- events ------------------------------------------------------------------------------
-    def _emit_tile(self, t: int, n_inliers: int, order: int | None = None) -> None:
+    def _emit_tile(self, t: int, n_inliers: int, order: int | None = None, obs: np.ndarray | None = None) -> None:
         m = self.m
         order = m.register_order.index(t) if order is None else order
         self.bus.emit(TileRegistered(m.group, m.tiles[t].id, m.tiles[t].image, m.cams[t].copy(),
-                                     m.footprint(t), n_inliers, order, len(m.tiles)))
+                                     m.footprint(t, obs), n_inliers, order, len(m.tiles)))
 
     def _emit_points(self) -> None:
         m = self.m
         new = m.has_point & ~self._sent_points
         if not new.any():
             return
-        ids, nimg, rms = m.point_stats(np.flatnonzero(new))
+        ids = np.flatnonzero(new)
+        ids, nimg, rms = m.point_stats(ids, obs=self._active(self._obs_of_tracks(ids)))
         g = m.gray[ids]
         self.bus.emit(PointsAdded(m.group, ids.copy(), m.X[ids].copy(), np.stack([g, g, g], 1),
                                   nimg, rms))
@@ -507,6 +524,15 @@ class IncrementalSfM:
                                    {m.tiles[t].id: f for t, f in m.footprints(reg).items()}, ids.copy(),
                                    m.X[ids].copy(), np.stack([g, g, g], 1), nimg, rms))
         self._sent_points = m.has_point.copy()
+
+
+def _gather(by: np.ndarray, start: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Sorted indices of the entries of `keys` in a grouping (by: indices sorted by key, start:
+    where each key's run begins)."""
+    keys = np.asarray(keys, dtype=np.int64)
+    a, b = start[keys], start[keys + 1]
+    n = b - a
+    return np.sort(by[np.repeat(a - np.cumsum(n) + n, n) + np.arange(n.sum())])
 
 
 def _obs_xy(o: Observations, mask: np.ndarray, tracks: np.ndarray) -> np.ndarray:

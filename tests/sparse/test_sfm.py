@@ -77,6 +77,23 @@ def test_partial_views_of_the_model_equal_the_full_ones(tiny_run):
     by_sort = np.bincount(np.unique(o.track[idx] * 8 + o.img[idx]) // 8, minlength=len(m.X))
     assert np.array_equal(by_cells, by_sort) and by_cells.max() >= 2
 
+    # the observations gathered by track and by tile (what the loop now uses instead of masks
+    # over all of them) are exactly the masked ones, in the same order
+    from recon_core.sparse.sfm import _gather
+
+    by_track = np.argsort(o.track, kind="stable")
+    t_start = np.searchsorted(o.track[by_track], np.arange(len(m.X) + 1))
+    by_tile = np.argsort(o.tile, kind="stable")
+    c_start = np.searchsorted(o.tile[by_tile], np.arange(len(m.tiles) + 1))
+    assert np.array_equal(_gather(by_track, t_start, some), np.flatnonzero(np.isin(o.track, some)))
+    assert np.array_equal(_gather(by_tile, c_start, reg[::2]), np.flatnonzero(np.isin(o.tile, reg[::2])))
+    assert len(_gather(by_track, t_start, np.zeros(0, np.int64))) == 0
+    active = idx[np.isin(idx, _gather(by_track, t_start, some))]
+    ids_o, nimg_o, rms_o = m.point_stats(some, obs=active)
+    assert np.array_equal(ids_o, ids_s) and np.array_equal(nimg_o, nimg_s) and np.array_equal(rms_o, rms_s)
+    for t in reg:
+        assert np.array_equal(m.footprint(t, _gather(by_tile, c_start, [t])), m.footprint(t))
+
 
 def test_model_round_trip(tiny_run):
     state, _ = tiny_run
