@@ -188,9 +188,11 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
 
 def warm_compiled_kernels() -> None:
     """Compile the kernels of recon_core.sparse.ba_kernels into numba's cache (one LM iteration
-    on 2 cameras x 8 points, with the argument types the SfM passes, by the dense and the
-    block-sparse system): a first `aerec view` does this in a second process while the demo
-    renders."""
+    on 2 cameras x 8 points, with the argument types the SfM passes): a first `aerec view`
+    does this in a second process while the demo renders. Only the dense system's: the demo
+    never reaches the block-sparse one (SPARSE_SOLVE_MIN), and compiling it too would take
+    10 s more of CPU (cold cache) beside the demo's reconstruction on a 2-core machine; a site
+    large enough to need it pays that once in a run of many minutes."""
     rng = np.random.default_rng(0)
     X = rng.uniform(-1.0, 1.0, (8, 3))
     cams = np.stack([np.hstack([np.eye(2, 3) + rng.normal(0, 0.1, (2, 3)), [[5.0], [5.0]]])
@@ -201,7 +203,6 @@ def warm_compiled_kernels() -> None:
     fixed = np.zeros((2, 2, 4), bool)
     fixed[0] = True
     bundle_adjust(cams, X, obs_cam, obs_pt, xy, np.arange(2), np.arange(8), fixed, max_nfev=1)
-    bundle_adjust(cams, X, obs_cam, obs_pt, xy, np.arange(2), np.arange(8), fixed, max_nfev=1, solver="sparse")
 
 
 # camera unknowns from which "auto" takes the block-sparse system. Measured (one thread): 588

@@ -131,6 +131,7 @@ class IncrementalSfM:
         self._cond_ref: float | None = None    # the model's 90th-percentile conditioning at its
         #                                         last outlier filter (before each global adjustment)
         self._regularised = {"toward_a_tile_of_its_image": 0, "toward_its_image_camera": 0}
+        self._counts: np.ndarray | None = None     # _counts_now's
 
     # -- initial pair -------------------------------------------------------------------------
     def choose_initial_pair(self) -> tuple[int, int, dict]:
@@ -197,25 +198,25 @@ class IncrementalSfM:
         ref = {m.tiles[ta].image: m.tiles[ta].centre, m.tiles[tb].image: m.tiles[tb].centre}
         phase1.sort(key=lambda t: np.linalg.norm(m.tiles[t].centre - ref[m.tiles[t].image]))
         why: dict[int, str] = {}        # tile -> why its last attempt failed
-        tried: dict[int, tuple[int, int]] = {}   # tile -> (its correspondences, registered tiles
-        #                                          of its image) at its last attempt
+        # each tile's state at its last attempt: its correspondences and the registered tiles
+        # of its image (-1: never tried)
+        tried = np.full((2, len(m.tiles)), -1, np.int64)
+        img_of = np.array([m.images.index(tl.image) for tl in m.tiles], np.int64)
         for t in phase1:
-            self._attempt(t, why, tried, self._correspondence_counts(), self._registered_per_image())
+            self._attempt(t, why, tried, self._counts_now(), self._registered_per_image(img_of)[img_of])
         # then by number of 2D-3D correspondences; a tile that failed is tried again once it
         # has more correspondences, or once more tiles of its image are registered
         while True:
-            counts = self._correspondence_counts()
-            img_reg = self._registered_per_image()
-            cand = [t for t in range(len(m.tiles)) if not m.registered[t]
-                    and (t not in tried or counts[t] > tried[t][0]
-                         or img_reg[m.tiles[t].image] > tried[t][1])]
-            if not cand:
+            counts = self._counts_now()
+            img_reg = self._registered_per_image(img_of)[img_of]
+            cand = np.flatnonzero(~m.registered & ((counts > tried[0]) | (img_reg > tried[1])))
+            if not len(cand):
                 break
             c = counts[cand]
             best = int(np.argmax(c))
             if c[best] < self.cfg.resect_min_inliers:
                 break
-            self._attempt(cand[best], why, tried, counts, img_reg)
+            self._attempt(int(cand[best]), why, tried, counts, img_reg)
         self._filter_outliers()
         self._bundle("global", final=True)
         self._filter_outliers()
@@ -242,6 +243,19 @@ class IncrementalSfM:
         o = self.m.obs
         return np.bincount(o.tile[o.valid & self.m.has_point[o.track]], minlength=len(self.m.tiles))
 
+    def _counts_now(self) -> np.ndarray:
+        """_correspondence_counts, kept up to date between global events: a registration
+        changes it by the observations it refuses and the points it adds (`_count_delta`); an
+        outlier filter, which may touch any of them, makes it count again."""
+        if self._counts is None:
+            self._counts = self._correspondence_counts()
+        return self._counts
+
+    def _count_delta(self, obs: np.ndarray, sign: int) -> None:
+        """Observations `obs` became (+1) or stopped being (-1) correspondences."""
+        if self._counts is not None and len(obs):
+            self._counts += sign * np.bincount(self.m.obs.tile[obs], minlength=len(self.m.tiles))
+
     # Observations by track and by tile: the work after each registration follows the tile
     # and its neighbourhood, not every observation of the model (which grows as the site).
     # Each helper returns indices sorted as in the observation arrays, so what is computed from
@@ -257,23 +271,20 @@ class IncrementalSfM:
         m, o = self.m, self.m.obs
         return idx[o.valid[idx] & m.registered[o.tile[idx]] & m.has_point[o.track[idx]]]
 
-    def _attempt(self, t: int, why: dict[int, str], tried: dict[int, tuple[int, int]],
-                 counts: np.ndarray, img_reg: dict[str, int]) -> None:
+    def _attempt(self, t: int, why: dict[int, str], tried: np.ndarray, counts: np.ndarray,
+                 img_reg: np.ndarray) -> None:
         """Try to register t; remember the state it was tried in (its correspondences, the
-        registered tiles of its image) and, if it failed, why."""
-        tried[t] = (int(counts[t]), img_reg[self.m.tiles[t].image])
+        registered tiles of its image: tried[:, t]) and, if it failed, why."""
+        tried[:, t] = counts[t], img_reg[t]
         reason = self._register(t)
         if reason is None:
             why.pop(t, None)
         else:
             why[t] = reason
 
-    def _registered_per_image(self) -> dict[str, int]:
-        m = self.m
-        out = {name: 0 for name in m.images}
-        for t in np.flatnonzero(m.registered):
-            out[m.tiles[t].image] += 1
-        return out
+    def _registered_per_image(self, img_of: np.ndarray) -> np.ndarray:
+        """Registered tiles per image (img_of: each tile's image index)."""
+        return np.bincount(img_of[self.m.registered], minlength=len(self.m.images))
 
     def _register(self, t: int) -> str | None:
         """Register tile t; None when done, else why it could not be (it may be retried)."""
@@ -307,6 +318,7 @@ class IncrementalSfM:
         self._pending[o.track[in_t]] = True
         m.register_order.append(t)
         o.valid[sel[~inl]] = False
+        self._count_delta(sel[~inl], -1)
         self._triangulate_new()
         self._bundle("local", around=t)
         n_reg = int(m.registered.sum())
@@ -407,6 +419,8 @@ class IncrementalSfM:
             if ref is not None:
                 cond = self._conditioning(new)
                 m.has_point[new[cond < self.cfg.min_triangulation_ratio * ref]] = False
+        added = self._obs_of_tracks(new[m.has_point[new]])
+        self._count_delta(added[o.valid[added]], +1)
 
     def _conditioning(self, ids: np.ndarray | None = None) -> np.ndarray:
         """point_conditioning over the active observations: of every track, or of `ids`
@@ -419,6 +433,7 @@ class IncrementalSfM:
         """Invalidate observations with large error; drop points left with < 2 images, and
         points triangulated from views too close in angle (`SfmConfig.min_triangulation_ratio`)."""
         m, o = self.m, self.m.obs
+        self._counts = None
         idx, err = m.reprojection()
         o.valid[idx[err > self.cfg.max_reproj_px]] = False
         idx = m.active_obs()

@@ -248,11 +248,6 @@ def test_the_kernel_warmup_compiles_the_signatures_the_sfm_uses(tiny_run):
     assert all(used.values()), used
     warm_compiled_kernels()
     assert {f: set(getattr(kern, f).signatures) for f in used} == used
-    # the block-sparse system's kernels take the same arrays (built by bundle_adjust): one
-    # signature each
-    assert all(len(getattr(kern, f).signatures) == 1
-               for f in ("assemble_blocks", "block_pattern", "schur_blocks")), \
-        {f: getattr(kern, f).signatures for f in ("assemble_blocks", "block_pattern", "schur_blocks")}
 
 
 def test_dissection_orders_a_grid_of_tiles_separators_last():

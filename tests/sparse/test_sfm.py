@@ -181,3 +181,28 @@ def test_point_conditioning_grows_with_the_baseline():
     np.testing.assert_allclose(c, np.sin(np.radians(angles) / 2), atol=1e-9)
     twice = point_conditioning(cams, np.r_[obs_cam, obs_cam], np.r_[obs_pt, obs_pt], len(angles))
     np.testing.assert_allclose(twice, c, rtol=1e-9)
+
+
+def test_correspondence_counts_kept_up_to_date_equal_a_full_count(tiny_site, tmp_path, monkeypatch):
+    """The registration loop keeps every tile's 2D-3D correspondence count up to date instead of
+    counting over all observations at each step: at every use it equals the full count, and the
+    reconstruction is the one the full count gives (same tiles, same points)."""
+    from recon_core.sparse.sfm import IncrementalSfM
+
+    checks = []
+    orig = IncrementalSfM._counts_now
+
+    def checked(self):
+        got = orig(self).copy()
+        checks.append(np.array_equal(got, self._correspondence_counts()))
+        return got
+
+    monkeypatch.setattr(IncrementalSfM, "_counts_now", checked)
+    state = run(tiny_site, tmp_path / "a", preset("tiny"), until="sparse", resume=False)
+    assert len(checks) > 10 and all(checks)
+    monkeypatch.setattr(IncrementalSfM, "_counts_now", lambda self: self._correspondence_counts())
+    ref = run(tiny_site, tmp_path / "b", preset("tiny"), until="sparse", resume=False)
+    assert sorted(state.models) == sorted(ref.models)
+    for g in state.models:
+        a, b = state.models[g], ref.models[g]
+        assert np.array_equal(a.registered, b.registered) and np.array_equal(a.X, b.X)
