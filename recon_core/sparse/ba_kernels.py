@@ -73,6 +73,56 @@ def _inv3(A):
 
 
 @njit(**_JIT)
+def _max_run(start):
+    """The largest number of observations of one point."""
+    mmax = 0
+    for p in range(start.shape[0] - 1):
+        mmax = max(mmax, start[p + 1] - start[p])
+    return mmax
+
+
+@njit(**_JIT)
+def _load_point(p, lam, V, Vinv, h, M, w, oc, cam_col, cc, order, start, G, Mq, hw, cols, cam):
+    """Point p's damped V^-1 (stored in Vinv[p]) and, per observation q of it: G = M V^-1, M,
+    w h, the camera's 8 columns and (when cc is given) its compact camera. Returns their
+    number."""
+    Vd = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            Vd[i, j] = V[p, i, j]
+        Vd[i, i] = V[p, i, i] * (1.0 + lam) + 1e-12
+    Vi = _inv3(Vd)
+    Vinv[p] = Vi
+    k0 = start[p]
+    m = start[p + 1] - k0
+    for q in range(m):
+        k = order[k0 + q]
+        if cc.shape[0]:
+            cam[q] = cc[oc[k]]
+        for e in range(8):
+            cols[q, e] = cam_col[oc[k], e]
+        for j in range(4):
+            hw[q, j] = w[k] * h[k, j]
+        for row in range(2):
+            for i in range(3):
+                Mq[q, row, i] = M[k, row, i]
+                G[q, row, i] = M[k, row, 0] * Vi[0, i] + M[k, row, 1] * Vi[1, i] + M[k, row, 2] * Vi[2, i]
+    return m
+
+
+@njit(**_JIT)
+def _add_point_rhs(rhs, p, m, g_p, G, hw, cols):
+    """rhs += W_p V_p'^-1 g_p for point p's m observations (loaded by _load_point)."""
+    for q1 in range(m):
+        for row1 in range(2):
+            gg = G[q1, row1, 0] * g_p[p, 0] + G[q1, row1, 1] * g_p[p, 1] + G[q1, row1, 2] * g_p[p, 2]
+            for j1 in range(4):
+                col1 = cols[q1, row1 * 4 + j1]
+                if col1 >= 0:
+                    rhs[col1] += hw[q1, j1] * gg
+
+
+@njit(**_JIT)
 def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start, porder):
     """Damped reduced camera system: S = U' - sum_p W_p V_p'^-1 W_p^T, rhs = -(g_c - sum_p
     W_p V_p'^-1 g_p), with U', V' the diagonals scaled by (1 + lam) (+1e-12). Returns
@@ -85,47 +135,23 @@ def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start, porder):
         S[i, i] = S[i, i] * (1.0 + lam) + 1e-12
     rhs = -g_c.copy()
     Vinv = np.empty((npt, 3, 3))
-    Vd = np.empty((3, 3))
-    mmax = 0
-    for p in range(npt):
-        mmax = max(mmax, start[p + 1] - start[p])
+    mmax = _max_run(start)
     # per observation of the point: G = M V^-1, M, w h and the camera's 8 columns
     G = np.empty((mmax, 2, 3))
     Mq = np.empty((mmax, 2, 3))
     hw = np.empty((mmax, 4))
     cols = np.empty((mmax, 8), np.int64)
+    no_cc = np.empty(0, np.int64)
     A = np.empty((2, 2))
     for pi in range(npt):
         p = porder[pi]
-        for i in range(3):
-            for j in range(3):
-                Vd[i, j] = V[p, i, j]
-            Vd[i, i] = V[p, i, i] * (1.0 + lam) + 1e-12
-        Vi = _inv3(Vd)
-        Vinv[p] = Vi
-        k0 = start[p]
-        m = start[p + 1] - k0
-        for q in range(m):
-            k = order[k0 + q]
-            for e in range(8):
-                cols[q, e] = cam_col[oc[k], e]
-            for j in range(4):
-                hw[q, j] = w[k] * h[k, j]
-            for row in range(2):
-                for i in range(3):
-                    Mq[q, row, i] = M[k, row, i]
-                    G[q, row, i] = M[k, row, 0] * Vi[0, i] + M[k, row, 1] * Vi[1, i] + M[k, row, 2] * Vi[2, i]
+        m = _load_point(p, lam, V, Vinv, h, M, w, oc, cam_col, no_cc, order, start, G, Mq, hw, cols, no_cc)
+        _add_point_rhs(rhs, p, m, g_p, G, hw, cols)
         # W_k[row*4 + j, i] = w h_j M[row, i], so the (c1, row1, j1) x (c2, row2, j2) entry of
         # W V^-1 W^T is w1 h1_j1 w2 h2_j2 (M1[row1] V^-1 M2[row2]^T): one 2 x 2 matrix A of
         # scalars per pair of observations, then outer products. S is symmetric: each
         # unordered pair once (q2 >= q1), filed in the upper triangle, mirrored at the end.
         for q1 in range(m):
-            for row1 in range(2):
-                gg = G[q1, row1, 0] * g_p[p, 0] + G[q1, row1, 1] * g_p[p, 1] + G[q1, row1, 2] * g_p[p, 2]
-                for j1 in range(4):
-                    col1 = cols[q1, row1 * 4 + j1]
-                    if col1 >= 0:
-                        rhs[col1] += hw[q1, j1] * gg
             for q2 in range(q1, m):
                 same = q1 == q2
                 for row1 in range(2):
@@ -303,10 +329,7 @@ def schur_blocks(Ub, g_c, V, g_p, lam, diag, h, M, w, oc, cam_col, cc, order, st
             S[d, i, i] += lam * diag[a, i] + 1e-12
     rhs = -g_c.copy()
     Vinv = np.empty((npt, 3, 3))
-    Vd = np.empty((3, 3))
-    mmax = 0
-    for p in range(npt):
-        mmax = max(mmax, start[p + 1] - start[p])
+    mmax = _max_run(start)
     G = np.empty((mmax, 2, 3))
     Mq = np.empty((mmax, 2, 3))
     hw = np.empty((mmax, 4))
@@ -315,32 +338,9 @@ def schur_blocks(Ub, g_c, V, g_p, lam, diag, h, M, w, oc, cam_col, cc, order, st
     A = np.empty((2, 2))
     for pi in range(npt):
         p = porder[pi]
-        for i in range(3):
-            for j in range(3):
-                Vd[i, j] = V[p, i, j]
-            Vd[i, i] = V[p, i, i] * (1.0 + lam) + 1e-12
-        Vi = _inv3(Vd)
-        Vinv[p] = Vi
-        k0 = start[p]
-        m = start[p + 1] - k0
-        for q in range(m):
-            k = order[k0 + q]
-            cam[q] = cc[oc[k]]
-            for e in range(8):
-                cols[q, e] = cam_col[oc[k], e]
-            for j in range(4):
-                hw[q, j] = w[k] * h[k, j]
-            for row in range(2):
-                for i in range(3):
-                    Mq[q, row, i] = M[k, row, i]
-                    G[q, row, i] = M[k, row, 0] * Vi[0, i] + M[k, row, 1] * Vi[1, i] + M[k, row, 2] * Vi[2, i]
+        m = _load_point(p, lam, V, Vinv, h, M, w, oc, cam_col, cc, order, start, G, Mq, hw, cols, cam)
+        _add_point_rhs(rhs, p, m, g_p, G, hw, cols)
         for q1 in range(m):
-            for row1 in range(2):
-                gg = G[q1, row1, 0] * g_p[p, 0] + G[q1, row1, 1] * g_p[p, 1] + G[q1, row1, 2] * g_p[p, 2]
-                for j1 in range(4):
-                    col1 = cols[q1, row1 * 4 + j1]
-                    if col1 >= 0:
-                        rhs[col1] += hw[q1, j1] * gg
             for q2 in range(q1, m):
                 a, b = cam[q1], cam[q2]
                 swap = b < a
