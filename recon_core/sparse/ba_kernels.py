@@ -5,8 +5,10 @@ Parameters: the free entries of the free tile cameras (columns `cam_col[c, 0..7]
 entry is held) and the free points (slots `ps`, -1 for a held point). Observation k (camera c,
 point p, weight w) has residual r = M_c X_p + t_c - x and h = [X_p, 1]:
   d r_row / d P_c[row, j] = h_j  (camera entry row * 4 + j),   d r / d X_p = M_c.
-`assemble` builds U (camera x camera, dense), g_c, V (3 x 3 per point) and g_p; `schur` forms
-the damped reduced system S dc = rhs; `back_substitute` gives the point steps. Observations are
+`assemble_blocks` builds U (one 8 x 8 block per camera), g_c, V (3 x 3 per point) and g_p;
+`schur` forms the damped reduced system S dc = rhs as a dense matrix, `schur_blocks` as 8 x 8
+blocks over the camera pairs that share points (`block_pattern`); `back_substitute` gives the
+point steps. Observations are
 visited point by point through `order` / `start` (a CSR of the observations of each point slot
 that involve a free camera entry: the others add nothing to S, rhs or the point steps).
 """
@@ -17,37 +19,6 @@ import numpy as np
 from numba import njit
 
 _JIT = dict(cache=True, nogil=True, fastmath=False)
-
-
-@njit(**_JIT)
-def assemble(h, M, r, w, oc, ps, cam_col, nc, npt):
-    """(U (nc, nc), g_c (nc,), V (npt, 3, 3), g_p (npt, 3)) of J^T W J and J^T W r."""
-    K = h.shape[0]
-    U = np.zeros((nc, nc))
-    g_c = np.zeros(nc)
-    V = np.zeros((npt, 3, 3))
-    g_p = np.zeros((npt, 3))
-    for k in range(K):
-        c = oc[k]
-        wk = w[k]
-        for row in range(2):
-            for a in range(4):
-                ca = cam_col[c, row * 4 + a]
-                if ca < 0:
-                    continue
-                wha = wk * h[k, a]
-                g_c[ca] += wha * r[k, row]
-                for b in range(4):
-                    cb = cam_col[c, row * 4 + b]
-                    if cb >= 0:
-                        U[ca, cb] += wha * h[k, b]
-        p = ps[k]
-        if p >= 0:
-            for i in range(3):
-                g_p[p, i] += wk * (M[k, 0, i] * r[k, 0] + M[k, 1, i] * r[k, 1])
-                for j in range(3):
-                    V[p, i, j] += wk * (M[k, 0, i] * M[k, 0, j] + M[k, 1, i] * M[k, 1, j])
-    return U, g_c, V, g_p
 
 
 @njit(**_JIT)
@@ -211,7 +182,7 @@ def back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start):
 
 
 # -- block-sparse reduced system (large sites) --------------------------------------------------
-# The dense S above is nc^2 numbers: 3.7 GB for a 10 x 10 km site's ~2,700 tiles. Two tile
+# The dense S above is nc^2 numbers: 2.1 GB for a 10 x 10 km site's ~16,000 unknowns. Two tile
 # cameras are coupled in S only when they see a common point, so S is stored as 8 x 8 blocks
 # over the pairs of cameras that do (upper triangle, a camera with itself included), indexed
 # by compact camera numbers `cc` (cameras with a free entry; -1 otherwise). Entries of held
@@ -220,7 +191,9 @@ def back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start):
 
 @njit(**_JIT)
 def assemble_blocks(h, M, r, w, oc, ps, cam_col, cc, ncc, nc, npt):
-    """As `assemble`, with U as one 8 x 8 block per compact camera (Ub (ncc, 8, 8))."""
+    """(Ub (ncc, 8, 8), g_c (nc,), V (npt, 3, 3), g_p (npt, 3)) of J^T W J and J^T W r, U (the
+    camera x camera part) as one 8 x 8 block per compact camera: it couples only the entries of
+    one camera (indexed 0..7 in its block; held entries stay 0)."""
     K = h.shape[0]
     Ub = np.zeros((ncc, 8, 8))
     g_c = np.zeros(nc)

@@ -145,6 +145,7 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
             first[seen] = np.minimum.reduceat(occ, start[seen])
             last[seen] = np.maximum.reduceat(occ, start[seen])
         porder = np.lexsort((last, first)).astype(np.int64)
+        cc, cams_cc = _compact_cameras(cam_col)
         if use_blocks:
             blocks = _BlockSystem(cam_col, oc, op, X, order, start, ties, tie_cols)
     for it in range(1, max_nfev + 1):
@@ -153,7 +154,8 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
         if use_blocks:
             step = blocks.stepper(cams, h, M, r, w, oc, ps, cam_col, nc, npt, order, start, porder)
         elif compiled:
-            U, g_c, V, g_p = kern.assemble(h, M, r, w, oc, ps, cam_col, nc, npt)
+            Ub, g_c, V, g_p = kern.assemble_blocks(h, M, r, w, oc, ps, cam_col, cc, len(cams_cc), nc, npt)
+            U = _dense_from_blocks(Ub, cam_col[cams_cc], nc)
             add_ties(U, g_c, cams)
 
             def step(lam):
@@ -248,11 +250,7 @@ class _BlockSystem:
         from recon_core.sparse import ba_kernels as kern
 
         self.kern = kern
-        T = len(cam_col)
-        has = (cam_col >= 0).any(axis=1)
-        self.cc = np.full(T, -1, np.int64)
-        self.cc[has] = np.arange(int(has.sum()))
-        self.cams_cc = np.flatnonzero(has)
+        self.cc, self.cams_cc = _compact_cameras(cam_col)
         ncc = len(self.cams_cc)
         self.bptr, self.bcol = kern.block_pattern(oc, self.cc, ncc, order, start)
         nb = len(self.bcol)
@@ -377,6 +375,26 @@ class _BlockSystem:
                 return np.full(nc, np.nan), np.full((npt, 3), np.nan)
             return dc, kern.back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start)
         return step
+
+
+def _compact_cameras(cam_col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cc (T,): each camera's number among those with a free entry, -1 for the others; those
+    cameras (ncc,))."""
+    has = (cam_col >= 0).any(axis=1)
+    cc = np.full(len(cam_col), -1, np.int64)
+    cc[has] = np.arange(int(has.sum()))
+    return cc, np.flatnonzero(has)
+
+
+def _dense_from_blocks(Ub: np.ndarray, cols: np.ndarray, nc: int) -> np.ndarray:
+    """The dense (nc, nc) matrix of per-camera 8 x 8 blocks Ub, cols (ncc, 8) their columns (-1:
+    held entry). Each entry belongs to one camera: a scatter, no sums."""
+    U = np.zeros((nc, nc))
+    ok = (cols[:, :, None] >= 0) & (cols[:, None, :] >= 0)
+    R = np.broadcast_to(cols[:, :, None], Ub.shape)
+    C = np.broadcast_to(cols[:, None, :], Ub.shape)
+    U[R[ok], C[ok]] = Ub[ok]
+    return U
 
 
 def _camera_positions(cam: np.ndarray, Xo: np.ndarray, ncc: int) -> np.ndarray:
