@@ -3,8 +3,10 @@
 The residual of observation k (camera c, point p) is r_k = P_c [X_p; 1] - x_k: bilinear, so its
 Jacobian is exact and cheap (d r / d P_c[row] = [X_p, 1] on that row, d r / d X_p = M_c). The
 normal equations [[U, W], [W^T, V]] have a block-diagonal V (one 3 x 3 block per point): points
-are eliminated (Schur complement S = U - W V^-1 W^T, a small dense system over the free camera
-entries), the cameras solved by Cholesky, the points back-substituted. A Huber loss enters as
+are eliminated (Schur complement S = U - W V^-1 W^T, a system over the free camera entries:
+dense and solved by Cholesky for small models, 8 x 8 blocks over the camera pairs that share
+points and solved by SuperLU for large ones, `_BlockSystem`), the points back-substituted. A
+Huber loss enters as
 iteratively reweighted least squares. The 12-dof affine gauge is fixed by the caller through
 `fixed` (GEOMETRY_NOTES, "Gauge").
 """
@@ -73,6 +75,8 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
     """
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r} (auto, dense, sparse)")
+    if solver == "sparse" and not compiled:
+        raise ValueError("the block-sparse system needs the compiled kernels (compiled=True)")
     t0 = time.time()
     cams, X = cams.astype(np.float64).copy(), X.astype(np.float64).copy()
     T, N = len(cams), len(X)
@@ -320,7 +324,8 @@ class _BlockSystem:
 
         n = A.shape[0]
         if self.dense_factor:
-            cf = scipy.linalg.cho_factor(A.toarray())
+            # in Fortran order and factored in place: LAPACK would otherwise copy it (2x memory)
+            cf = scipy.linalg.cho_factor(A.toarray(order="F"), overwrite_a=True, check_finite=False)
             return lambda b: scipy.linalg.cho_solve(cf, b)
         # the matrix is already in nested-dissection order; symmetric positive definite, so the
         # diagonal pivots are stable (partial pivoting away from them fills ~2x more)

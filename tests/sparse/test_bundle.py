@@ -289,3 +289,15 @@ def test_dissection_orders_a_grid_of_tiles_separators_last():
         return lu.L.nnz + lu.U.nnz
     assert len(sep) == g
     assert fill(order) < 0.8 * fill(np.arange(g * g))
+
+
+def test_the_block_system_refuses_the_uncompiled_path():
+    """solver="sparse" needs the compiled kernels: asked for with compiled=False, a clear error,
+    not a silent dense solve."""
+    import pytest
+
+    rng = np.random.default_rng(13)
+    start, X0, cam_idx, pt_idx, xy, fixed = _strip_problem(rng, T=4, per=20)
+    with pytest.raises(ValueError, match="compiled"):
+        bundle_adjust(start, X0, cam_idx, pt_idx, xy, np.arange(1, 4), np.arange(len(X0)), fixed,
+                      solver="sparse", compiled=False)
