@@ -136,9 +136,11 @@ def main() -> None:
           f"{'final cost':>14} {'anon MB':>8}")
     for km in a.km:
         for solver in a.solvers:
-            n_est = 3 * 8 * (km * 2000 / 667) ** 2
+            from recon_core.model.tiling import tile_image
+
+            n_est = 3 * 8 * len(tile_image("x", int(km * 2000), int(km * 2000), 1000))   # unknowns
             if solver == "dense" and 8 * n_est ** 2 / 1e9 > a.dense_max_gb:
-                print(f"{km:4g} {solver:7} skipped: its matrix alone would be {8 * n_est ** 2 / 1e9:.0f} GB")
+                print(f"{km:4g} {solver:7} skipped: its matrix alone would be ~{8 * n_est ** 2 / 1e9:.0f} GB")
                 continue
             cmd = [sys.executable, __file__, "--one", str(km), solver, "--iterations", str(a.iterations),
                    "--points", str(a.points)] + (["--no-ties"] if a.no_ties else [])
