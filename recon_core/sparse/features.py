@@ -30,6 +30,12 @@ class ImageFeatures:
     def __len__(self) -> int:
         return len(self.xy)
 
+    def without_descriptors(self) -> "ImageFeatures":
+        """The same keypoints with an empty (n, 0) descriptor array: what the SfM needs once
+        matching is done (the descriptors are 128 of a keypoint's ~150 bytes)."""
+        return ImageFeatures(self.image, self.xy, np.empty((len(self.xy), 0), np.uint8), self.scale,
+                             self.response, self.gray)
+
     def subset(self, idx: np.ndarray) -> "ImageFeatures":
         return ImageFeatures(self.image, self.xy[idx], self.desc[idx], self.scale[idx],
                              self.response[idx], self.gray[idx])
