@@ -119,12 +119,11 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
     tie_q = [] if use_blocks else [t.dense_q() for t in ties]
 
     def add_ties(U, g_c, c):
-        flat = c.reshape(-1)
-        for t, q, cc in zip(ties, tie_q, tie_cols):
+        for q, cc in zip(tie_q, tie_cols):
             m = cc >= 0
             if m.any():
                 U[np.ix_(cc[m], cc[m])] += q[np.ix_(m, m)]
-                g_c[cc[m]] += t.grad(flat)[m]
+        _add_tie_gradient(g_c, ties, tie_cols, c.reshape(-1))
 
     r = residuals(cams, X)
     cost, w = cost_of(r, cams)
@@ -311,7 +310,7 @@ class _BlockSystem:
             self.tie_diag[tc[m]] += t.diag()[m]
         self.L = np.hstack(Ls) if Ls else np.zeros((nc, 0))
         self.L = self.L[self.perm]                             # in the factorisation's order
-        self.ties = list(zip(ties, tie_cols))
+        self.ties, self.tie_cols = ties, tie_cols
         self.dense_factor: bool | None = None       # decided by the first factorisation
 
     def _factor(self, A):
@@ -341,10 +340,7 @@ class _BlockSystem:
         kern = self.kern
         ncc = len(self.cams_cc)
         Ub, g_c, V, g_p = kern.assemble_blocks(h, M, r, w, oc, ps, cam_col, self.cc, ncc, nc, npt)
-        flat = cams.reshape(-1)
-        for t, tc in self.ties:
-            m = tc >= 0
-            g_c[tc[m]] += t.grad(flat)[m]
+        _add_tie_gradient(g_c, self.ties, self.tie_cols, cams.reshape(-1))
         # the damping scales the diagonal of the whole camera system, ties included (as the
         # dense path, where Q is added to U before the Schur complement)
         cols = cam_col[self.cams_cc]                                    # (ncc, 8)
@@ -380,6 +376,14 @@ class _BlockSystem:
                 return np.full(nc, np.nan), np.full((npt, 3), np.nan)
             return dc, kern.back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start)
         return step
+
+
+def _add_tie_gradient(g_c: np.ndarray, ties: list, tie_cols: list, flat: np.ndarray) -> None:
+    """g_c += each tie's gradient Q p on its free camera entries (tie_cols: their columns)."""
+    for t, cc in zip(ties, tie_cols):
+        m = cc >= 0
+        if m.any():
+            g_c[cc[m]] += t.grad(flat)[m]
 
 
 def _compact_cameras(cam_col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
