@@ -58,7 +58,7 @@ def save_model(model: SparseModel, out: OutLayout | str | Path) -> Path:
     with atomic_path(lay.observations(model.group)) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, tile=o.tile, track=o.track, xy=o.xy, img=o.img, valid=o.valid,
-                                gray=model.gray, point_ids=ids)
+                                corr=o.corr, gray=model.gray, point_ids=ids)
     return d
 
 
@@ -71,7 +71,8 @@ def load_model(out: OutLayout | str | Path, g: int) -> SparseModel:
     fixed = np.array([t["fixed"] for t in doc["tiles"]], dtype=bool).reshape(-1, 2, 4)
     reg = np.array([t["registered"] for t in doc["tiles"]], dtype=bool)
     z = np.load(lay.observations(g))
-    obs = Observations(z["tile"], z["track"], z["xy"], z["img"], z["valid"])
+    obs = Observations(z["tile"], z["track"], z["xy"], z["img"], z["valid"],
+                       z["corr"].astype(np.float64) if "corr" in z.files else None)
     gray = z["gray"]
     xyz, _, _ = read_ply(lay.sparse_ply(g))
     ids = z["point_ids"].astype(np.int64)

@@ -24,6 +24,16 @@ class Observations:
     xy: np.ndarray         # (K, 2) full-image pixels
     img: np.ndarray        # (K,) image index
     valid: np.ndarray      # (K,) bool: False once rejected as an outlier
+    corr: np.ndarray | None = None   # (K, 2) the within-tile correction (px): an affine tile
+    #                                  camera sees xy - corr (recon_core.sparse.image_model)
+
+    def __post_init__(self):
+        if self.corr is None:
+            self.corr = np.zeros((len(self.tile), 2))
+
+    def pixels(self, idx) -> np.ndarray:
+        """The pixels an affine tile camera sees, xy - corr, of observations idx."""
+        return self.xy[idx] - self.corr[idx]
 
 
 @dataclass
@@ -57,7 +67,7 @@ class SparseModel:
         """(observation indices, pixel errors) for the active observations."""
         idx = self.active_obs() if idx is None else idx
         o = self.obs
-        err = affine.reprojection_errors(self.cams, o.tile[idx], o.track[idx], o.xy[idx], self.X)
+        err = affine.reprojection_errors(self.cams, o.tile[idx], o.track[idx], o.pixels(idx), self.X)
         return idx, err
 
     def reprojection_summary(self) -> dict:
@@ -155,12 +165,12 @@ def merge_joint(models: list[SparseModel]) -> SparseModel | None:
     t_off = i_off = 0
     for m in models:
         o = m.obs
-        parts.append((o.tile + t_off, o.track, o.xy, o.img + i_off, o.valid))
+        parts.append((o.tile + t_off, o.track, o.xy, o.img + i_off, o.valid, o.corr))
         images += m.images
         tiles += m.tiles
         t_off += len(m.tiles)
         i_off += len(m.images)
-    tile, track, xy, img, valid = (np.concatenate(p) for p in zip(*parts))
+    tile, track, xy, img, valid, corr = (np.concatenate(p) for p in zip(*parts))
     has = np.zeros(len(models[0].X), bool)
     X = np.zeros_like(models[0].X)
     for m in models:
@@ -170,7 +180,7 @@ def merge_joint(models: list[SparseModel]) -> SparseModel | None:
                          np.concatenate([m.cams for m in models]),
                          np.concatenate([m.registered for m in models]),
                          np.concatenate([m.fixed for m in models]),
-                         Observations(tile, track, xy.reshape(-1, 2), img, valid), X, has,
+                         Observations(tile, track, xy.reshape(-1, 2), img, valid, corr.reshape(-1, 2)), X, has,
                          models[0].gray.copy(), stats={"joint": joints[0]})
     idx = merged.active_obs()
     merged.has_point &= images_per_track(merged.obs.track[idx], merged.obs.img[idx], len(X)) >= 2

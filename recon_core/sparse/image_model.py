@@ -187,3 +187,96 @@ def tie_residual_px(tie_cams: np.ndarray, samples: list[np.ndarray]) -> float:
     t = image_tie(tie_cams, samples, np.arange(len(tie_cams)), 1.0)
     p = tie_cams.reshape(-1)
     return float(np.sqrt(max(2 * t.cost(p), 0.0) / (16 * len(tie_cams))))
+
+
+# -- the within-tile correction ---------------------------------------------------------------
+# What drives the bend is the pushbroom's departure from affine inside each tile: an affine tile
+# camera cannot reproduce it, and a smooth warp of the structure that makes every image's
+# projection a little more affine on every tile lowers the reprojection error (the data prefer
+# the bend: README, "What was tried against the bend"). The tie above only restricts the tile
+# cameras; the observations still carry that departure, and on 3 views a bend inside the model's
+# family still lowers it. The correction removes the departure from the observations instead:
+# each image's model is fitted to its observations, and every observation is moved by the
+# model's own departure from its best affine approximation over the observation's tile,
+#     corr = model(X) - A_t [X, 1],        pixel seen by the affine tile camera = xy - corr,
+# so that an affine camera per tile sees affine data and nothing pushes the structure into a
+# bend. It is a pixel field of a few hundredths of a pixel (0.12 px at most on `flat`), refitted
+# at every global adjustment of the growing model. The bend it cannot see, a warp inside every
+# image's family, is then no longer driven: it stays where the growing model put it, and the
+# growth starts from one tile pair, where there is none.
+
+MIN_TILES_FOR_CORRECTION = 4
+
+
+def image_model_values(X: np.ndarray, xy: np.ndarray, trim: float = 4.0) -> np.ndarray:
+    """(K, 2) the image model (module docstring) fitted by least squares to observations xy
+    (K, 2: col, row) of points X (K, 3) in one image, evaluated at X. One refit without the
+    observations beyond `trim` times the RMS residual (outliers the SfM has not dropped yet).
+    On flat ground the model's basis is rank-deficient (r X and r^2 nearly collinear): the fitted
+    values are still unique (minimum-norm least squares)."""
+    Xh = np.hstack([X, np.ones((len(X), 1))])
+    mean_cam = np.linalg.lstsq(Xh, xy, rcond=None)[0].T
+    x0 = X.mean(0)
+    xs = float(np.sqrt(((X - x0) ** 2).sum(1).mean())) or 1.0
+    uv = Xh @ mean_cam.T
+    p0 = uv.mean(0)
+    ps = float(np.sqrt(((uv - p0) ** 2).sum(1).mean())) or 1.0
+    r, c = (uv[:, 1] - p0[1]) / ps, (uv[:, 0] - p0[0]) / ps
+    Xn = (X - x0) / xs
+    bases = (col_basis(Xn, r, c), row_basis(Xn, r))
+    keep = np.ones(len(X), bool)
+    out = np.empty_like(xy, dtype=np.float64)
+    for _ in range(2):
+        for k, B in enumerate(bases):
+            theta = np.linalg.lstsq(B[keep], xy[keep, k], rcond=None)[0]
+            out[:, k] = B @ theta
+        res = np.sqrt(((out - xy) ** 2).sum(1))
+        rms = float(np.sqrt(np.mean(res[keep] ** 2)))
+        new_keep = res <= max(trim * rms, 1e-9)
+        if new_keep.all() or new_keep.sum() < 0.5 * len(X) or (new_keep == keep).all():
+            break
+        keep = new_keep
+    return out
+
+
+def affine_departure(X: np.ndarray, v: np.ndarray, group: np.ndarray, n_groups: int) -> np.ndarray:
+    """(K, 2) v minus its least-squares affine fit in X within each group (a tile): v (K, 2)
+    values at points X (K, 3), group (K,) in 0..n_groups-1. Nearly coplanar points leave the fit
+    along their normal undetermined; the fitted values are still unique (pseudo-inverse)."""
+    cnt = np.bincount(group, minlength=n_groups).astype(np.float64)
+    w = 1.0 / np.maximum(cnt, 1.0)
+    mu = np.stack([np.bincount(group, X[:, a], minlength=n_groups) for a in range(3)], 1) * w[:, None]
+    vm = np.stack([np.bincount(group, v[:, a], minlength=n_groups) for a in range(2)], 1) * w[:, None]
+    Xc, vc = X - mu[group], v - vm[group]
+    S = np.empty((n_groups, 3, 3))
+    R = np.empty((n_groups, 3, 2))
+    for a in range(3):
+        for b in range(a, 3):
+            S[:, a, b] = S[:, b, a] = np.bincount(group, Xc[:, a] * Xc[:, b], minlength=n_groups)
+        for b in range(2):
+            R[:, a, b] = np.bincount(group, Xc[:, a] * vc[:, b], minlength=n_groups)
+    B = np.linalg.pinv(S, rcond=1e-12, hermitian=True) @ R
+    return vc - np.einsum("ka,kab->kb", Xc, B[group])
+
+
+def tile_corrections(X: np.ndarray, xy: np.ndarray, tile: np.ndarray, img: np.ndarray,
+                     min_tiles: int = MIN_TILES_FOR_CORRECTION) -> tuple[np.ndarray, dict]:
+    """The within-tile correction of observations (see above): X (K, 3) the point of each
+    observation, xy (K, 2) its pixel, tile (K,) and img (K,) its tile and image. Returns corr
+    (K, 2), to be subtracted from xy before an affine tile camera sees it (zero in images with
+    fewer than `min_tiles` tiles among the observations: too small a part of the image to fit its
+    model), and a summary (images corrected, RMS and largest correction in px)."""
+    corr = np.zeros((len(X), 2))
+    done = []
+    for i in np.unique(img):
+        k = np.flatnonzero(img == i)
+        tiles, local = np.unique(tile[k], return_inverse=True)
+        if len(tiles) < min_tiles:
+            continue
+        model = image_model_values(X[k], xy[k])
+        corr[k] = affine_departure(X[k], model, local.ravel(), len(tiles))
+        done.append(int(i))
+    size = np.sqrt((corr ** 2).sum(1))
+    return corr, {"images": done,
+                  "rms_px": float(np.sqrt(np.mean(size ** 2))) if len(size) else 0.0,
+                  "max_px": float(size.max()) if len(size) else 0.0}

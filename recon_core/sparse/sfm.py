@@ -28,7 +28,7 @@ from recon_core.model.sparse_model import Observations, SparseModel, images_per_
 from recon_core.model.tiling import Tile
 from recon_core.sparse.bundle import bundle_adjust
 from recon_core.sparse.features import ImageFeatures
-from recon_core.sparse.image_model import image_tie
+from recon_core.sparse.image_model import image_tie, tile_corrections
 from recon_core.sparse.matching import PairMatches
 from recon_core.sparse.tracks import Tracks
 
@@ -132,6 +132,7 @@ class IncrementalSfM:
         #                                         last outlier filter (before each global adjustment)
         self._regularised = {"toward_a_tile_of_its_image": 0, "toward_its_image_camera": 0}
         self._counts: np.ndarray | None = None     # _counts_now's
+        self._correction_info: dict = {}
 
     # -- initial pair -------------------------------------------------------------------------
     def choose_initial_pair(self) -> tuple[int, int, dict]:
@@ -235,6 +236,9 @@ class IncrementalSfM:
                    "unregistered": [m.tiles[t].id for t in np.flatnonzero(~m.registered)],
                    "unregistered_reasons": reasons,
                    "flat_tiles_regularised": dict(self._regularised),
+                   "within_tile_correction": {"images": [m.images[i] for i in self._correction_info.get("images", [])],
+                                              "rms_px": self._correction_info.get("rms_px", 0.0),
+                                              "max_px": self._correction_info.get("max_px", 0.0)},
                    "seconds": time.time() - t0}
         return m
 
@@ -293,7 +297,7 @@ class IncrementalSfM:
         sel = in_t[o.valid[in_t] & m.has_point[o.track[in_t]]]
         if len(sel) < self.cfg.resect_min_inliers:
             return f"{len(sel)} 2D-3D correspondences (< {self.cfg.resect_min_inliers})"
-        X, x = m.X[o.track[sel]], o.xy[sel]
+        X, x = m.X[o.track[sel]], o.pixels(sel)
         try:
             P, inl = affine.resect_ransac(X, x, thresh_px=self.cfg.resect_thresh_px,
                                           iters=self.cfg.resect_ransac_iters,
@@ -348,7 +352,7 @@ class IncrementalSfM:
         sel = sel[first]
         if len(sel) < 3 * self.cfg.resect_min_inliers:
             return None
-        X, x = m.X[o.track[sel]], o.xy[sel]
+        X, x = m.X[o.track[sel]], o.pixels(sel)
         try:
             # the whole image departs from one affine camera by a few pixels (pushbroom)
             thresh = self.cfg.image_camera_thresh_factor * self.cfg.resect_thresh_px
@@ -392,7 +396,7 @@ class IncrementalSfM:
         use, slot = use[keep], slot[keep]
         if len(use) == 0:
             return
-        X, ok = affine.triangulate_tracks(m.cams, o.tile[use], slot, o.xy[use], len(cand))
+        X, ok = affine.triangulate_tracks(m.cams, o.tile[use], slot, o.pixels(use), len(cand))
         made = np.zeros(len(cand), bool)
         made[slot] = True
         made &= ok
@@ -401,7 +405,7 @@ class IncrementalSfM:
         m.has_point[new] = True
         # reject new points whose reprojection is poor
         sel = use[made[slot]]
-        err = affine.reprojection_errors(m.cams, o.tile[sel], o.track[sel], o.xy[sel], m.X)
+        err = affine.reprojection_errors(m.cams, o.tile[sel], o.track[sel], o.pixels(sel), m.X)
         bad = np.unique(o.track[sel][err > self.cfg.max_reproj_px])
         m.has_point[bad] = False
         # new points from views too close in angle never enter (rather than appearing and
@@ -475,6 +479,19 @@ class IncrementalSfM:
             ties.append(image_tie(m.cams[tids], samples, tids, w))
         return ties
 
+    def _refresh_corrections(self, idx: np.ndarray) -> None:
+        """Refit each image's model and the within-tile correction of the active observations
+        idx (recon_core.sparse.image_model, "the within-tile correction"); the others get none.
+        Run before every global adjustment: the models follow the growing structure, and the
+        observations of a tile registered since keep no correction until the next one."""
+        o = self.m.obs
+        if not self.cfg.within_tile_correction:
+            return
+        corr, info = tile_corrections(self.m.X[o.track[idx]], o.xy[idx], o.tile[idx], o.img[idx])
+        o.corr[:] = 0.0
+        o.corr[idx] = corr
+        self._correction_info = info
+
     def _bundle(self, scope: str, around: int | None = None, final: bool = False) -> None:
         """A local adjustment around tile `around` or a global one; `final`: the closing global
         adjustments, with the per-image ties, converged to BundleConfig.rel_tol (the others stop
@@ -484,6 +501,7 @@ class IncrementalSfM:
             idx = m.active_obs()
             if len(idx) == 0:
                 return
+            self._refresh_corrections(idx)
             free_cams, free_pts = np.flatnonzero(m.registered), m.point_ids()
             self._ba_at = int(m.registered.sum())
             self._retry_all = True          # cameras moved, outliers dropped: every track again
@@ -500,7 +518,7 @@ class IncrementalSfM:
             idx = self._active(self._obs_of_tracks(free_pts))
             if len(idx) == 0:
                 return
-        res = bundle_adjust(m.cams, m.X, o.tile[idx], o.track[idx], o.xy[idx], free_cams, free_pts,
+        res = bundle_adjust(m.cams, m.X, o.tile[idx], o.track[idx], o.pixels(idx), free_cams, free_pts,
                             m.fixed, loss=self.ba_cfg.loss, f_scale=self.ba_cfg.loss_scale_px,
                             max_nfev=self.ba_cfg.max_nfev if scope == "global" else self.ba_cfg.local_max_nfev,
                             rel_tol=self.ba_cfg.rel_tol if final else self.ba_cfg.growing_rel_tol,
@@ -556,7 +574,7 @@ def _obs_xy(o: Observations, mask: np.ndarray, tracks: np.ndarray) -> np.ndarray
     order = np.argsort(o.track[idx], kind="stable")
     tr_sorted = o.track[idx][order]
     pos = np.searchsorted(tr_sorted, tracks)
-    return o.xy[idx][order][pos]
+    return o.pixels(idx)[order][pos]
 
 
 def _resect_regularised(X: np.ndarray, x: np.ndarray, prior: np.ndarray, weight: float) -> np.ndarray:

@@ -231,7 +231,7 @@ def split_model(model: SparseModel, group: int, images: list[str]) -> SparseMode
     o = model.obs
     k = keep_t[o.tile]
     obs = Observations(t_map[o.tile[k]], o.track[k].copy(), o.xy[k].copy(), img_map[o.img[k]],
-                       o.valid[k].copy())
+                       o.valid[k].copy(), o.corr[k].copy())
     mine = {t.id for t, kt in zip(model.tiles, keep_t) if kt}
     part = SparseModel(group, list(images), [t for t, kt in zip(model.tiles, keep_t) if kt],
                        model.cams[keep_t].copy(), model.registered[keep_t].copy(),
