@@ -11,6 +11,8 @@ and its peak-to-peak range.
     python bench/bench_bend.py --preset large --images img_00.tif,img_01.tif,img_02.tif
     python bench/bench_bend.py --preset large                 # all 9 images in one adjustment
     python bench/bench_bend.py --preset flat --sigma-tie 0.05,0.01 --noise 0
+    python bench/bench_bend.py --preset flat --grow --sigma-tie 0.01   # incremental growth,
+                                                                     # the within-tile correction
 """
 
 from __future__ import annotations
@@ -45,6 +47,9 @@ def main(argv=None) -> int:
                     help="comma-separated tie sigmas in px (the model's error against a pushbroom)")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--max-nfev", type=int, default=300)
+    ap.add_argument("--grow", action="store_true",
+                    help="also grow the model in rings from a central patch (as the SfM does), with and "
+                         "without the within-tile correction, then the tied closing adjustments")
     a = ap.parse_args(argv)
     t0 = time.time()
     site = make_wide_site(a.preset, a.seed, images=[s for s in a.images.split(",") if s] or None,
@@ -70,7 +75,48 @@ def main(argv=None) -> int:
             its += res.iterations
         print(line(f"tied, sigma_tie {sig} px", structure_vs_truth(X, site.X_true),
                    f"[{res.rms_px:.4f} px, weight {w:.1f}, {its} it, {secs:.1f} s]"))
+    if a.grow:
+        grow(site, sigma_obs, [float(s) for s in a.sigma_tie.split(",") if s][-1], a.rounds)
     return 0
+
+
+def grow(site, sigma_obs: float, sigma_tie: float, rounds: int) -> None:
+    """The model grown in rings from the truth of a central patch (WideSite.grow: nothing else of
+    the truth), with and without the within-tile correction, then `rounds` closing adjustments
+    with the per-image tie (and the correction refitted before each, when it is on)."""
+    from recon_core.sparse.bundle import bundle_adjust
+    from recon_core.sparse.image_model import image_tie, tile_corrections
+
+    for corrected in (False, True):
+        t0 = time.time()
+        cams, X, on = site.grow(correction=corrected)
+        reg = np.abs(cams).sum(axis=(1, 2)) > 0
+        use = np.flatnonzero(on[site.obs_pt] & reg[site.obs_cam])
+        oc, op = site.obs_cam[use], site.obs_pt[use]
+        tag = "with the correction" if corrected else "no correction"
+        print(line(f"grown, {tag}", structure_vs_truth(X[on], site.X_true[on]),
+                   f"[{int(reg.sum())} tiles, {time.time() - t0:.1f} s]"))
+        rng = np.random.default_rng(0)
+        fixed = np.zeros_like(cams, dtype=bool)
+        first = int(np.flatnonzero(reg)[0])
+        other = int(next(t for t in np.flatnonzero(reg) if site.tile_image[t] != site.tile_image[first]))
+        fixed[first] = True
+        fixed[other, 0] = True
+        for r in range(rounds):
+            corr = tile_corrections(X[op], site.obs_xy[use], oc, site.tile_image[oc])[0] if corrected else 0.0
+            ties = []
+            for i in range(len(site.names)):
+                tids = np.flatnonzero(reg & (site.tile_image == i))
+                samples = []
+                for t in tids:
+                    k = op[oc == t]
+                    samples.append(X[rng.choice(k, 48, replace=False) if len(k) > 48 else k])
+                ties.append(image_tie(cams[tids], samples, tids, (sigma_obs / sigma_tie) ** 2))
+            res = bundle_adjust(cams, X, oc, op, site.obs_xy[use] - corr, np.flatnonzero(reg),
+                                np.flatnonzero(on), fixed, max_nfev=50, ties=ties)
+            cams, X = res.cams, res.X
+            print(line(f"  tied ({sigma_tie} px), round {r + 1}", structure_vs_truth(X[on], site.X_true[on]),
+                       f"[{res.rms_px:.4f} px, {res.iterations} it]"))
 
 
 if __name__ == "__main__":

@@ -91,7 +91,6 @@ class BundleConfig:
     growing_rel_tol: float = 1e-5     # ... and this one while the model grows (local and
                                       # intermediate global adjustments): the final global
                                       # adjustments converge to rel_tol from there
-    smoothness_weight: float = 0.0    # prior tying adjacent tile cameras of one image (0 = off)
     solver: str = "auto"              # reduced camera system: dense (Cholesky), sparse (8 x 8
                                       # blocks, SuperLU: 10-20 km sites) or auto (sparse from
                                       # 1,500 camera unknowns)
@@ -205,6 +204,9 @@ class Config:
 # parameters that moved: old "section.field" -> new "section.field"
 LEGACY_KEYS = {f"dense.{k}": f"sgbm.{k}" for k in ("block_size", "p1", "p2", "uniqueness",
                                                    "speckle_window", "speckle_range", "lr_max_diff_px")}
+# parameters that no longer exist and never changed a result: read from older files and skipped
+# (bundle.smoothness_weight was read by nothing)
+REMOVED_KEYS = {"bundle.smoothness_weight"}
 # parameters that change how a stage runs, not what it computes: not part of a stage's hash
 # (bundle.solver: the dense and block-sparse reduced systems take the same steps to rounding,
 # not bitwise: `demo`'s cameras and points differ by ~5e-10, no decision of the SfM changes)
@@ -225,6 +227,8 @@ def config_from_dict(d: dict, *, unknown: list[str] | None = None) -> Config:
     cfg = Config()
     for key, v in flat.items():
         key = LEGACY_KEYS.get(key, key)
+        if key in REMOVED_KEYS:
+            continue
         if isinstance(v, list):
             v = tuple(v)
         try:

@@ -34,6 +34,7 @@ from recon_core.geometry.camera import AffineCamera
 from recon_core.io.models import dense_writer
 from recon_core.io.site import ImageInfo, read_window
 from recon_core.model.dense_cloud import DenseCloud
+from recon_core.model.sparse_model import CorrectionField
 from recon_core.model.tiling import Tile
 
 
@@ -42,6 +43,8 @@ class TileSpec:
     image: ImageInfo
     tile: Tile
     camera: np.ndarray                 # (2, 4) full-image pixels
+    correction: CorrectionField | None = None   # the SfM's within-tile correction: the camera
+    #                                             sees a pixel minus it
 
 
 @dataclass
@@ -285,6 +288,7 @@ def run_job(job: DenseJob) -> DenseResult:
     # best link per partner image: (q full-image, camera index, centrality)
     images = sorted({p.spec.image.name for p in job.partners})
     cams = [ref.camera]
+    fields = [ref.correction]
     best_q = {im: np.full((n, 2), np.nan) for im in images}
     best_cam = {im: np.full(n, -1, np.int64) for im in images}
     best_c = {im: np.full(n, np.inf) for im in images}
@@ -316,11 +320,12 @@ def run_job(job: DenseJob) -> DenseResult:
         better = centr < best_c[im][idx]
         idx, q, centr = idx[better], q[better], centr[better]
         cams.append(p.spec.camera)
+        fields.append(p.spec.correction)
         best_q[im][idx] = q + (pt.col0, pt.row0)
         best_cam[im][idx] = len(cams) - 1
         best_c[im][idx] = centr
     xyz, nv, err, keep_idx, pair = _triangulate(pix, cams, best_q, best_cam, cfg.max_reproj_px,
-                                                cfg.view_drop_rounds)
+                                                cfg.view_drop_rounds, fields)
     weak = np.zeros(len(xyz), bool)
     if job.sigma_best and cfg.max_two_view_spread > 0 and len(xyz):
         # a two-view point's height is as precise as its pair's geometry: those of a pair far
@@ -347,8 +352,9 @@ def pair_spread(P1: np.ndarray, P2: np.ndarray) -> float:
     return float(1.0 / s[-1]) if s[-1] > 0 else float("inf")
 
 
-def _triangulate(pix, cams, best_q, best_cam, max_err, rounds=3):
-    """Multi-view triangulation of reference pixels with their links.
+def _triangulate(pix, cams, best_q, best_cam, max_err, rounds=3, fields=None):
+    """Multi-view triangulation of reference pixels with their links; `fields`: each camera's
+    within-tile correction (CorrectionField or None), subtracted from its pixels first.
 
     A point whose worst view is off by more than max_err loses that view (if it keeps >= 2)
     and is re-triangulated (`rounds` triangulations at most); points still off are dropped.
@@ -364,6 +370,10 @@ def _triangulate(pix, cams, best_q, best_cam, max_err, rounds=3):
         obs_cam.append(best_cam[im][sel])
         obs_xy.append(best_q[im][sel])
     pt, cam, xy = np.concatenate(obs_pt), np.concatenate(obs_cam), np.concatenate(obs_xy)
+    for c, f in enumerate(fields or []):
+        if f is not None:
+            k = np.flatnonzero(cam == c)
+            xy[k] -= f(xy[k])
     use = np.ones(len(pt), bool)
     for it in range(rounds):
         X, ok = affine.triangulate_tracks(cams, cam[use], pt[use], xy[use], n)
@@ -417,6 +427,7 @@ def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig,
     jobs = []
     reg = np.flatnonzero(model.registered)
     by_tile = {t: (track_of[tile_of == t], xy_of[tile_of == t]) for t in reg}
+    fields = model.correction_fields(reg)
     # Baseline test per IMAGE pair (GEOMETRY_NOTES: drop near-zero-baseline pairs): the best
     # sigma3/sigma4 over its tile pairs. A flat tile pair of a good image pair is still matched:
     # its low ratio says "no relief", not "no baseline".
@@ -455,14 +466,16 @@ def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig,
             common, ia, ib = np.intersect1d(tr_r, tr_t, return_indices=True)
             if len(common) < cfg.min_pair_matches:
                 continue
-            partners.append(PartnerSpec(TileSpec(images[tt.image], tt, model.cams[t].copy()),
+            partners.append(PartnerSpec(TileSpec(images[tt.image], tt, model.cams[t].copy(),
+                                                 fields[t]),
                                         xy_r[ia], xy_t[ib], tile_core(tt, same_of[tt.image])))
         if not partners:
             continue
         partners = [p for p in partners if _image_pair_has_parallax(rt.image, p.spec.image.name)]
         if not partners:
             continue
-        jobs.append(DenseJob(model.group, TileSpec(images[rt.image], rt, model.cams[r].copy()),
+        jobs.append(DenseJob(model.group, TileSpec(images[rt.image], rt, model.cams[r].copy(),
+                                                   fields[r]),
                              tile_core(rt, same_of[rt.image]), partners, cfg, matcher or SgbmMatcher(),
                              sigma_best))
     return jobs

@@ -49,6 +49,8 @@ def triangulate_gcp(model: SparseModel, observations: dict[str, tuple[float, flo
         return GcpAffine("", None, len(imgs), None, why)
     cam_idx = np.array(cam_idx)
     xy = np.array(xy, dtype=np.float64)
+    # seen by each tile camera as its tie points are (the SfM's within-tile correction)
+    xy = xy - np.concatenate([model.correction_at(t, p) for t, p in zip(cam_idx, xy)])
     X, ok = affine.triangulate_tracks(model.cams, cam_idx, np.zeros(len(cam_idx), int), xy, 1)
     if not ok[0]:
         return GcpAffine("", None, len(imgs), None, "ill-conditioned triangulation")

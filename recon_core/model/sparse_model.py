@@ -37,6 +37,23 @@ class Observations:
 
 
 @dataclass
+class CorrectionField:
+    """A tile's within-tile correction as a quadratic in the full-image pixel (SparseModel.
+    correction_field): what to subtract from a pixel before the tile's affine camera sees it."""
+
+    centre: np.ndarray     # (2,) pixel
+    half: float            # pixels per unit of the normalised coordinates
+    coef: np.ndarray       # (6, 2): 1, u, v, u^2, u v, v^2 -> (col, row) correction
+
+    def basis(self, xy: np.ndarray) -> np.ndarray:
+        u, v = ((np.asarray(xy, dtype=np.float64).reshape(-1, 2) - self.centre) / self.half).T
+        return np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
+
+    def __call__(self, xy: np.ndarray) -> np.ndarray:
+        return self.basis(xy) @ self.coef
+
+
+@dataclass
 class SparseModel:
     """The affine reconstruction of one group."""
 
@@ -106,6 +123,37 @@ class SparseModel:
         xy = np.asarray(cr, dtype=np.float64).reshape(1, 2)
         return [t for t, tile in enumerate(self.tiles) if tile.image == image
                 and (self.registered[t] or not registered) and tile.contains(xy)[0]]
+
+    def correction_fields(self, tiles) -> dict[int, "CorrectionField | None"]:
+        """correction_field of every tile in `tiles`, from one sort of the observations."""
+        o = self.obs
+        k = np.flatnonzero(o.valid)
+        k = k[np.argsort(o.tile[k], kind="stable")]
+        bounds = np.searchsorted(o.tile[k], np.arange(len(self.tiles) + 1))
+        return {int(t): self.correction_field(int(t), k[bounds[t]:bounds[t + 1]]) for t in tiles}
+
+    def correction_field(self, t: int, obs: np.ndarray | None = None) -> "CorrectionField | None":
+        """The within-tile correction of tile t as a field over its pixels: a quadratic in the
+        pixel fitted to the correction its observations carry (the model's departure from affine
+        is quadratic inside a tile but for a small cubic and height term, ~0.01 px). None when
+        they carry none. `obs`: the indices of tile t's valid observations, if the caller has them."""
+        o = self.obs
+        k = np.flatnonzero((o.tile == t) & o.valid) if obs is None else obs
+        if len(k) < 12 or not np.any(o.corr[k]):
+            return None
+        tile = self.tiles[t]
+        f = CorrectionField(np.array([tile.col0 + tile.width / 2.0, tile.row0 + tile.height / 2.0]),
+                            max(tile.width, tile.height) / 2.0, np.zeros((6, 2)))
+        f.coef = np.linalg.lstsq(f.basis(o.xy[k]), o.corr[k], rcond=None)[0]
+        return f
+
+    def correction_at(self, t: int, xy) -> np.ndarray:
+        """(n, 2) the within-tile correction of tile t at full-image pixels xy (n, 2), so that a
+        pixel that is not a tie point (a GCP) is seen by the tile camera as the tie points are;
+        zero where the tile has no correction."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        f = self.correction_field(t)
+        return np.zeros_like(xy) if f is None else f(xy)
 
     def camera(self, t: int) -> AffineCamera:
         """The affine camera of tile t."""

@@ -56,6 +56,98 @@ class WideSite:
                              np.arange(len(X)), self.gauge(), max_nfev=max_nfev, ties=ties)
 
 
+    def grow(self, *, correction: bool, r0_m: float = 600.0, step_m: float = 300.0,
+             max_nfev: int = 100) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """An incremental reconstruction in rings, as the SfM grows its model: the tiles within
+        r0_m of the site's centre (ground position of their points) adjusted from the truth of
+        their points, then rings of step_m: new tiles resected on the current points, new
+        points triangulated with the current cameras, a global adjustment of all. With
+        `correction`, the within-tile correction (recon_core.sparse.image_model) is refitted
+        from the current structure before every adjustment after the first, as the SfM does:
+        nothing of the truth but the first patch enters. Returns (cams, X, point_in_model)."""
+        from recon_core.geometry import affine
+        from recon_core.sparse.image_model import tile_corrections
+
+        T, N = len(self.tiles), len(self.X_true)
+        cnt = np.bincount(self.obs_cam, minlength=T)
+        centre = np.zeros((T, 2))
+        for a in range(2):
+            centre[:, a] = np.bincount(self.obs_cam, self.X_true[self.obs_pt, a], minlength=T) / np.maximum(cnt, 1)
+        dist = np.linalg.norm(centre - np.median(self.X_true[:, :2], axis=0), axis=1)
+        dist[cnt < 20] = np.inf
+        last = float(dist[np.isfinite(dist)].max())
+        radii = list(np.arange(r0_m, last, step_m)) + [last]
+        cams = np.zeros((T, 2, 4))
+        X = np.zeros((N, 3))
+        corr = np.zeros_like(self.obs_xy)
+        tile_on = np.zeros(T, bool)
+        point_on = np.zeros(N, bool)
+        img_of_obs = self.tile_image[self.obs_cam]
+        fixed = None
+        for stage, radius in enumerate(radii):
+            new_tiles = (dist <= radius) & ~tile_on
+            if stage > 0:
+                new_tiles = self._resect(new_tiles, tile_on, cams, X, point_on, corr)
+            tile_on |= new_tiles
+            seen = tile_on[self.obs_cam]
+            n_img = np.zeros(N, int)
+            pairs = np.unique(np.stack([self.obs_pt[seen], img_of_obs[seen]], 1), axis=0)
+            np.add.at(n_img, pairs[:, 0], 1)
+            new_pts = (n_img >= 2) & ~point_on
+            if stage == 0:
+                X[new_pts] = self.X_true[new_pts]
+                point_on |= new_pts
+                cams = np.where(tile_on[:, None, None], self.best_tile_cameras(self.X_true), 0.0)
+                first = np.flatnonzero(tile_on)
+                other = next(t for t in first if self.tile_image[t] != self.tile_image[first[0]])
+                fixed = np.zeros((T, 2, 4), bool)
+                fixed[first[0]] = True
+                fixed[other, 0] = True
+            else:
+                k = np.flatnonzero(seen & new_pts[self.obs_pt])
+                ids, slot = np.unique(self.obs_pt[k], return_inverse=True)
+                Xn, ok = affine.triangulate_tracks(cams, self.obs_cam[k], slot.ravel(),
+                                                   self.obs_xy[k] - corr[k], len(ids))
+                X[ids[ok]] = Xn[ok]
+                point_on[ids[ok]] = True
+            use = np.flatnonzero(seen & point_on[self.obs_pt])
+            if correction and stage > 0:
+                corr[:] = 0.0
+                corr[use] = tile_corrections(X[self.obs_pt[use]], self.obs_xy[use], self.obs_cam[use],
+                                             img_of_obs[use])[0]
+            res = bundle_adjust(cams, X, self.obs_cam[use], self.obs_pt[use], self.obs_xy[use] - corr[use],
+                                np.flatnonzero(tile_on), np.flatnonzero(point_on), fixed, max_nfev=max_nfev)
+            cams, X = res.cams, res.X
+        return cams, X, point_on
+
+    def _resect(self, cand: np.ndarray, tile_on: np.ndarray, cams: np.ndarray, X: np.ndarray,
+                point_on: np.ndarray, corr: np.ndarray, min_points: int = 30) -> np.ndarray:
+        """Resect the candidate tiles on the current points, as the SfM registers a tile (a
+        nearly flat set of points regularised toward the nearest tile of its image); returns the
+        tiles resected (the others wait for a later ring)."""
+        from recon_core.geometry import affine
+        from recon_core.sparse.sfm import _resect_regularised
+
+        done = np.zeros_like(cand)
+        for t in np.flatnonzero(cand):
+            k = np.flatnonzero((self.obs_cam == t) & point_on[self.obs_pt])
+            if len(k) < min_points:
+                continue
+            Xt, xt = X[self.obs_pt[k]], self.obs_xy[k] - corr[k]
+            Xh = np.hstack([Xt, np.ones((len(k), 1))])
+            P = np.linalg.lstsq(Xh, xt, rcond=None)[0].T
+            if affine.points_conditioning(Xt) < 0.01:
+                same = np.flatnonzero(tile_on & (self.tile_image == self.tile_image[t]))
+                if not len(same):
+                    continue
+                near = same[np.argmin([np.hypot(self.tiles[s].col0 - self.tiles[t].col0,
+                                                self.tiles[s].row0 - self.tiles[t].row0) for s in same])]
+                P = _resect_regularised(Xt, xt, cams[near], weight=1.0)
+            cams[t] = P
+            done[t] = True
+        return done
+
+
 def make_wide_site(preset: str = "flat", seed: int = 0, *, images: list[str] | None = None,
                    n_points: int = 30000, noise_px: float = 0.1, d: int = 1000,
                    rng_seed: int = 1, min_obs_per_tile: int = 20) -> WideSite:

@@ -227,3 +227,31 @@ def test_weak_pair_points_are_the_imprecise_ones_and_only_fill(tiny_run, tiny_si
     assert np.array_equal(np.isfinite(mixed), np.isfinite(tiered))
     ok = np.isfinite(gt) & np.isfinite(tiered)
     assert np.median(np.abs(tiered - gt)[ok]) < 0.8 * np.median(np.abs(mixed - gt)[ok])
+
+
+def test_triangulation_removes_each_cameras_within_tile_correction():
+    """Dense points are seen by each tile camera as the SfM's tie points are: a pixel minus its
+    tile's correction field (CorrectionField), so that pixels displaced by the field triangulate
+    to the true point, and without the fields they do not."""
+    from recon_core.dense.reconstruct import _triangulate
+    from recon_core.model.sparse_model import CorrectionField
+
+    rng = np.random.default_rng(5)
+    X = rng.uniform(-200, 200, (500, 3)) * [1, 1, 0.1]
+    P0 = np.array([[2.0, 0.0, 0.1, 500.0], [0.0, 2.0, -0.3, 500.0]])
+    P1 = np.array([[1.9, 0.2, 0.8, 480.0], [-0.1, 2.0, 0.2, 510.0]])
+    f0 = CorrectionField(np.array([500.0, 500.0]), 500.0, rng.normal(0, 0.05, (6, 2)))
+    f1 = CorrectionField(np.array([500.0, 500.0]), 500.0, rng.normal(0, 0.05, (6, 2)))
+
+    def seen(P, f):
+        a = X @ P[:, :3].T + P[:, 3]
+        for _ in range(20):                      # pixel x with x - f(x) = P X
+            x = a + f(a if _ == 0 else x)
+        return x
+
+    x0, x1 = seen(P0, f0), seen(P1, f1)
+    args = (x0, [P0, P1], {"b": x1}, {"b": np.ones(len(X), np.int64)}, 10.0)
+    Xc, _, _, idx, _ = _triangulate(*args, fields=[f0, f1])
+    np.testing.assert_allclose(Xc, X[idx], atol=1e-6)
+    Xr, _, _, idx_r, _ = _triangulate(*args)
+    assert np.abs(Xr - X[idx_r]).max() > 0.01

@@ -165,3 +165,31 @@ def test_the_factored_tie_is_the_projection_penalty():
     assert np.allclose(tie.grad(flat), Q @ p, rtol=0, atol=1e-9 * scale * np.abs(p).sum())
     assert np.allclose(tie.diag(), np.diag(Q), rtol=0, atol=1e-9 * scale)
     assert abs(tie.cost(flat) - 0.5 * p @ Q @ p) < 1e-9 * scale * (p ** 2).sum()
+
+
+def test_correction_at_reproduces_the_tile_field():
+    """SparseModel.correction_at: the within-tile correction at any pixel of a tile, from the
+    correction its tie points carry (a quadratic field is reproduced exactly; a tile without a
+    correction gives zero)."""
+    from recon_core.model.sparse_model import Observations, SparseModel
+    from recon_core.model.tiling import tile_image
+
+    tiles = tile_image("a.tif", 1500, 1000, 1000)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 999, (400, 2))
+    inside = np.stack([t.contains(xy) for t in tiles])          # (T, n)
+    tile = np.concatenate([np.full(int(m.sum()), t) for t, m in enumerate(inside)])
+    pix = np.concatenate([xy[m] for m in inside])
+
+    def field(p):
+        u, v = (p[:, 0] - 700.0) / 500.0, (p[:, 1] - 500.0) / 500.0
+        return np.stack([0.05 * u * u - 0.02 * u * v, 0.03 * v * v + 0.01 * u], 1)
+
+    corr = np.where((tile == 0)[:, None], field(pix), 0.0)
+    obs = Observations(tile, np.arange(len(tile)), pix, np.zeros(len(tile), int), np.ones(len(tile), bool), corr)
+    m = SparseModel(0, ["a.tif"], tiles, np.zeros((len(tiles), 2, 4)), np.ones(len(tiles), bool),
+                    np.zeros((len(tiles), 2, 4), bool), obs, np.zeros((len(tile), 3)), np.ones(len(tile), bool),
+                    np.zeros(len(tile), np.uint8))
+    q = np.array([[10.0, 20.0], [512.5, 900.0], [980.0, 3.0]])
+    np.testing.assert_allclose(m.correction_at(0, q), field(q), atol=1e-12)
+    assert not m.correction_at(1, q).any()
