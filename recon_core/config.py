@@ -73,11 +73,11 @@ class SfmConfig:
                                       # in the final global adjustments: the model's error against
                                       # a pushbroom, px, for a model of 3 images; n > 3 images
                                       # scale it by 3 / n (more views check the tie) (0 = off)
-    within_tile_correction: bool = True  # move each observation by its image's pushbroom model's
-                                      # departure from affine inside the tile, refitted before
-                                      # every global adjustment, so that affine tile cameras see
-                                      # affine data (recon_core.sparse.image_model): what otherwise
-                                      # bends a wide site
+    correction_rounds: int = 3        # closing global adjustments after the first tied one, each
+                                      # with the within-tile correction refitted (each image's
+                                      # pushbroom model's departure from affine inside a tile
+                                      # taken out of its observations: what drives the bend;
+                                      # recon_core.sparse.image_model) (0 = none)
 
 
 @dataclass

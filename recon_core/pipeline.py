@@ -160,6 +160,8 @@ def check_config(cfg: Config) -> None:
     tv = cfg.dense.max_two_view_spread
     if not (np.isfinite(tv) and (tv == 0 or tv >= 1)):
         raise bad("dense.max_two_view_spread", tv, "must be 0 (mark no two-view point weak) or at least 1")
+    if cfg.sfm.correction_rounds < 0:
+        raise bad("sfm.correction_rounds", cfg.sfm.correction_rounds, "must be >= 0 (0 = no within-tile correction)")
     if cfg.features.refine_half_px < 0:
         raise bad("features.refine_half_px", cfg.features.refine_half_px, "must be >= 0 (0 = no refinement)")
     if not -1 <= cfg.features.refine_min_ncc <= 1:

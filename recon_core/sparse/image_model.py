@@ -280,3 +280,66 @@ def tile_corrections(X: np.ndarray, xy: np.ndarray, tile: np.ndarray, img: np.nd
     return corr, {"images": done,
                   "rms_px": float(np.sqrt(np.mean(size ** 2))) if len(size) else 0.0,
                   "max_px": float(size.max()) if len(size) else 0.0}
+
+
+# -- what the views can see of a bend ------------------------------------------------------------
+WARP_MONOMIALS = ("e^2", "e n", "n^2")
+
+
+def warp_observability(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
+                       fixed_depth: list[np.ndarray] | None = None) -> dict:
+    """How well a set of images sees each smooth quadratic warp of a structure when every image
+    is a pushbroom of this module's family (its cameras free within the family, as the tie
+    allows): for X (N, 3) metric points of nearly flat ground (e, n horizontal, u up) and, per
+    image, (point indices, pixels (k, 2)), the warps X += q_a m(e, n) (a: e, n or u; m: e^2,
+    e n, n^2, with e and n scaled to +-1 over the points) move each image's pixels by M_i q_a m
+    (its mean affine camera); what the image model can re-fit (least squares over its basis at
+    the points) is invisible. Returns the singular values of the remaining pixel motion per
+    metre of warp (RMS px over all observations, largest first) and the warps (9-vectors over
+    (a, m), a-major) they belong to: a warp with a singular value near zero changes nothing the
+    images record, so no adjustment can find it; 4 GCPs do not either (they fix an affine map).
+
+    fixed_depth: per image, the 1D perspective's coefficient s_c (3,) of `col_basis` known in
+    this frame (c * (s_c . X)), instead of free: the column can then re-fit only what the drift
+    and the along-track range change (c r) allow."""
+    e0, n0 = X[:, 0].mean(), X[:, 1].mean()
+    half = max(np.ptp(X[:, 0]), np.ptp(X[:, 1])) / 2.0 or 1.0
+    e, n = (X[:, 0] - e0) / half, (X[:, 1] - n0) / half
+    mono = np.stack([e * e, e * n, n * n], 1)                 # (N, 3)
+    blocks = []
+    for i, (pts, xy) in enumerate(images):
+        S = X[pts]
+        Sh = np.hstack([S, np.ones((len(S), 1))])
+        P = np.linalg.lstsq(Sh, xy, rcond=None)[0].T           # (2, 4) mean affine camera
+        x0 = S.mean(0)
+        xs = float(np.sqrt(((S - x0) ** 2).sum(1).mean())) or 1.0
+        uv = Sh @ P.T
+        p0 = uv.mean(0)
+        ps = float(np.sqrt(((uv - p0) ** 2).sum(1).mean())) or 1.0
+        r, c = (uv[:, 1] - p0[1]) / ps, (uv[:, 0] - p0[0]) / ps
+        Xn = (S - x0) / xs
+        if fixed_depth is None:
+            Bc = col_basis(Xn, r, c)
+        else:
+            Bc = np.hstack([Xn, np.ones((len(S), 1)), (r * r)[:, None], (r ** 3)[:, None], (c * r)[:, None]])
+        bases = (Bc, row_basis(Xn, r))
+        cols = []
+        for a in range(3):
+            for m in range(3):
+                d = np.zeros_like(S)
+                d[:, a] = mono[pts, m]
+                motion = d @ P[:, :3].T                        # (k, 2) px per metre of warp
+                if fixed_depth is not None:
+                    # the known 1D perspective moves with the points: c * (s_c . d)
+                    motion[:, 0] += (uv[:, 0] - p0[0]) * (d @ fixed_depth[i])
+                res = []
+                for k, B in enumerate(bases):
+                    theta = np.linalg.lstsq(B, motion[:, k], rcond=None)[0]
+                    res.append(motion[:, k] - B @ theta)
+                cols.append(np.concatenate(res))
+        blocks.append(np.stack(cols, 1))
+    Rm = np.vstack(blocks)
+    U, s, Vt = np.linalg.svd(Rm, full_matrices=False)
+    k = Rm.shape[0] / 2.0                                      # observations
+    return {"singular_px_per_m": (s / np.sqrt(k)).tolist(), "warps": Vt, "half_width_m": float(half),
+            "labels": [f"{ax} {m}" for ax in "enu" for m in WARP_MONOMIALS]}

@@ -218,10 +218,13 @@ class IncrementalSfM:
             if c[best] < self.cfg.resect_min_inliers:
                 break
             self._attempt(int(cand[best]), why, tried, counts, img_reg)
-        self._filter_outliers()
-        self._bundle("global", final=True)
-        self._filter_outliers()
-        self._bundle("global", final=True)
+        # the closing adjustments: the per-image ties, then rounds with the within-tile
+        # correction refitted to the tied structure (the last one converged to rel_tol)
+        rounds = self.cfg.correction_rounds
+        for k in range(1 + max(rounds, 1)):
+            self._filter_outliers()
+            self._bundle("global", final=True, correct=k > 0 and rounds > 0,
+                         converge=rounds <= 0 or k == rounds)
         self._emit_model()
         counts = self._correspondence_counts()
         reasons = {}
@@ -482,26 +485,29 @@ class IncrementalSfM:
     def _refresh_corrections(self, idx: np.ndarray) -> None:
         """Refit each image's model and the within-tile correction of the active observations
         idx (recon_core.sparse.image_model, "the within-tile correction"); the others get none.
-        Run before every global adjustment: the models follow the growing structure, and the
-        observations of a tile registered since keep no correction until the next one."""
+        Only in the closing adjustments, after the tie has held the structure once: refitted
+        at every global adjustment of the growing model, the correction leaves the warps no
+        view sees free to wander (README, "The within-tile correction")."""
         o = self.m.obs
-        if not self.cfg.within_tile_correction:
-            return
         corr, info = tile_corrections(self.m.X[o.track[idx]], o.xy[idx], o.tile[idx], o.img[idx])
         o.corr[:] = 0.0
         o.corr[idx] = corr
         self._correction_info = info
 
-    def _bundle(self, scope: str, around: int | None = None, final: bool = False) -> None:
-        """A local adjustment around tile `around` or a global one; `final`: the closing global
-        adjustments, with the per-image ties, converged to BundleConfig.rel_tol (the others stop
-        at growing_rel_tol)."""
+    def _bundle(self, scope: str, around: int | None = None, final: bool = False,
+                correct: bool = False, converge: bool | None = None) -> None:
+        """A local adjustment around tile `around` or a global one; `final`: a closing global
+        adjustment, with the per-image ties; `correct`: the within-tile correction refitted
+        first; `converge`: to BundleConfig.rel_tol (default: when final; the others stop at
+        growing_rel_tol)."""
+        converge = final if converge is None else converge
         m, o = self.m, self.m.obs
         if scope == "global":
             idx = m.active_obs()
             if len(idx) == 0:
                 return
-            self._refresh_corrections(idx)
+            if correct:
+                self._refresh_corrections(idx)
             free_cams, free_pts = np.flatnonzero(m.registered), m.point_ids()
             self._ba_at = int(m.registered.sum())
             self._retry_all = True          # cameras moved, outliers dropped: every track again
@@ -521,7 +527,7 @@ class IncrementalSfM:
         res = bundle_adjust(m.cams, m.X, o.tile[idx], o.track[idx], o.pixels(idx), free_cams, free_pts,
                             m.fixed, loss=self.ba_cfg.loss, f_scale=self.ba_cfg.loss_scale_px,
                             max_nfev=self.ba_cfg.max_nfev if scope == "global" else self.ba_cfg.local_max_nfev,
-                            rel_tol=self.ba_cfg.rel_tol if final else self.ba_cfg.growing_rel_tol,
+                            rel_tol=self.ba_cfg.rel_tol if converge else self.ba_cfg.growing_rel_tol,
                             ties=self._image_ties(idx) if final else None, solver=self.ba_cfg.solver)
         m.cams, m.X = res.cams, res.X
         self.bus.emit(BundleAdjusted(m.group, scope, res.cost_before, res.cost_after, res.rms_px,
