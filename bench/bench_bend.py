@@ -11,6 +11,7 @@ and its peak-to-peak range.
     python bench/bench_bend.py --preset large --images img_00.tif,img_01.tif,img_02.tif
     python bench/bench_bend.py --preset large                 # all 9 images in one adjustment
     python bench/bench_bend.py --preset flat --sigma-tie 0.05,0.01 --noise 0
+    python bench/bench_bend.py --preset flat --observability        # what 3 views can see
     python bench/bench_bend.py --preset flat --grow --sigma-tie 0.01   # incremental growth,
                                                                      # the within-tile correction
 """
@@ -47,6 +48,9 @@ def main(argv=None) -> int:
                     help="comma-separated tie sigmas in px (the model's error against a pushbroom)")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--max-nfev", type=int, default=300)
+    ap.add_argument("--observability", action="store_true",
+                    help="print how well the views see each quadratic warp of the structure "
+                         "(image_model.warp_observability) and stop")
     ap.add_argument("--grow", action="store_true",
                     help="also grow the model in rings from a central patch (as the SfM does), with and "
                          "without the within-tile correction, then the tied closing adjustments")
@@ -59,6 +63,16 @@ def main(argv=None) -> int:
           f"({time.time() - t0:.1f} s)")
     for n, dz in zip(site.names, site.height_px_per_m):
         print(f"  {n}: parallax (col, row) {dz[0]:+.3f} {dz[1]:+.3f} px per m of height")
+    if a.observability:
+        from recon_core.synthetic.wide_site import observability
+
+        o = observability(site)
+        print(f"quadratic warps, 1 m at {o['half_width_m']:.0f} m from the centre: RMS pixel motion "
+              "the image models cannot re-fit (px per m), and the warp's vertical share")
+        for sv, w in zip(o["singular_px_per_m"], o["warps"]):
+            big = ", ".join(f"{o['labels'][j]} {w[j]:+.2f}" for j in np.argsort(-np.abs(w))[:3])
+            print(f"  {sv:9.5f} px/m   vertical {np.linalg.norm(w[6:]):.2f}   ({big})")
+        return 0
     cams0 = site.best_tile_cameras(site.X_true)
     base = site.adjust(cams0, site.X_true, max_nfev=a.max_nfev)
     print(line("independent tile cameras", structure_vs_truth(base.X, site.X_true),

@@ -211,6 +211,26 @@ def structure_vs_truth(X: np.ndarray, X_true: np.ndarray) -> dict:
     return out
 
 
+def observability(site: WideSite, X: np.ndarray | None = None, max_per_image: int = 20000,
+                  seed: int = 0) -> dict:
+    """recon_core.sparse.image_model.warp_observability of the site's images over the points X
+    (default: the truth), each point once per image (at most max_per_image per image)."""
+    from recon_core.sparse.image_model import warp_observability
+
+    X = site.X_true if X is None else X
+    rng = np.random.default_rng(seed)
+    img = site.tile_image[site.obs_cam]
+    images = []
+    for i in range(len(site.names)):
+        k = np.flatnonzero(img == i)
+        _, first = np.unique(site.obs_pt[k], return_index=True)
+        k = k[first]
+        if len(k) > max_per_image:
+            k = np.sort(rng.choice(k, max_per_image, replace=False))
+        images.append((site.obs_pt[k], site.obs_xy[k]))
+    return warp_observability(X, images)
+
+
 def image_ties(site: WideSite, cams: np.ndarray, X: np.ndarray, weight: float,
                max_samples: int = 48, seed: int = 0) -> list:
     """One image-model tie per image (recon_core.sparse.image_model), sampled on each tile's

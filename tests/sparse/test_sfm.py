@@ -28,6 +28,12 @@ def test_sparse_tiny_against_truth(tiny_run, tiny_site):
     r = sparse_vs_truth(tiny_site, m, frame_for(state.gcps))
     assert r["n"] > 300
     assert r["rms_m"] < 0.5, r
+    # the closing adjustments took each image's within-tile correction (a few hundredths of a
+    # pixel on tiles of 300 px) out of its observations; the saved model carries it
+    wc = s["within_tile_correction"]
+    assert len(wc["images"]) == len(m.images) and 0 < wc["rms_px"] < 0.05 and wc["max_px"] < 0.5
+    act = m.active_obs()
+    assert np.count_nonzero(m.obs.corr[act].any(axis=1)) > 0.9 * len(act)
 
 
 def test_initial_pair_follows_the_rule(tiny_run):
