@@ -44,10 +44,12 @@ sigma_tie the model's error against a true pushbroom (SfmConfig.tie_sigma_px and
 views: sfm.tie_sigma; bench/bench_bend.py tries others). Each tile counts as 8 points (the
 corners of its volume), whatever its number of observations.
 
-Status: used by the two closing global adjustments of the SfM. It discriminates (the truth
+Status: the tie holds every closing global adjustment of the SfM. It discriminates (the truth
 costs 0.01 px against the model, a bent solution 0.03-0.12 px) and holds a joint adjustment of
 9 views (`large`: bend 4.6 -> 1.1 m peak to peak), but on a group of 3 views the bend moves
-inside the model's family (README, "What was tried against the bend"; `bench/bench_bend.py`).
+inside the model's family (README, "What was tried against the bend"). What the views can see
+of a bend at all is `warp_observability` below; what drives it is removed by the within-tile
+correction (`tile_corrections`), in the closing adjustments after the first.
 """
 
 from __future__ import annotations
@@ -200,12 +202,28 @@ def tie_residual_px(tie_cams: np.ndarray, samples: list[np.ndarray]) -> float:
 # model's own departure from its best affine approximation over the observation's tile,
 #     corr = model(X) - A_t [X, 1],        pixel seen by the affine tile camera = xy - corr,
 # so that an affine camera per tile sees affine data and nothing pushes the structure into a
-# bend. It is a pixel field of a few hundredths of a pixel (0.12 px at most on `flat`), refitted
-# at every global adjustment of the growing model. The bend it cannot see, a warp inside every
-# image's family, is then no longer driven: it stays where the growing model put it, and the
-# growth starts from one tile pair, where there is none.
+# bend. It is a pixel field of a few hundredths of a pixel (0.12 px at most on `flat`). Where the
+# views see a warp (warp_observability), the adjustment then finds the unbent structure; where
+# they do not (3 views of one kind: the vertical bends), nothing holds it, and a correction
+# refitted again and again lets the structure wander along those warps with the points' noise
+# (each refit takes the last displacement as the new reference). So the SfM refits it only in
+# its closing adjustments, after the tie has held the structure once (SfmConfig.correction_rounds).
 
 MIN_TILES_FOR_CORRECTION = 4
+
+
+def _image_coords(X: np.ndarray, xy: np.ndarray):
+    """An image's observations xy (K, 2) of points X (K, 3) in the model's normalised terms:
+    (mean affine camera (2, 4), X normalised (K, 3), r and c normalised (K,), the mean camera's
+    pixels (K, 2) and their centre (2,))."""
+    Xh = np.hstack([X, np.ones((len(X), 1))])
+    mean_cam = np.linalg.lstsq(Xh, xy, rcond=None)[0].T
+    x0 = X.mean(0)
+    xs = float(np.sqrt(((X - x0) ** 2).sum(1).mean())) or 1.0
+    uv = Xh @ mean_cam.T
+    p0 = uv.mean(0)
+    ps = float(np.sqrt(((uv - p0) ** 2).sum(1).mean())) or 1.0
+    return mean_cam, (X - x0) / xs, (uv[:, 1] - p0[1]) / ps, (uv[:, 0] - p0[0]) / ps, uv, p0
 
 
 def image_model_values(X: np.ndarray, xy: np.ndarray, trim: float = 4.0) -> np.ndarray:
@@ -214,15 +232,7 @@ def image_model_values(X: np.ndarray, xy: np.ndarray, trim: float = 4.0) -> np.n
     observations beyond `trim` times the RMS residual (outliers the SfM has not dropped yet).
     On flat ground the model's basis is rank-deficient (r X and r^2 nearly collinear): the fitted
     values are still unique (minimum-norm least squares)."""
-    Xh = np.hstack([X, np.ones((len(X), 1))])
-    mean_cam = np.linalg.lstsq(Xh, xy, rcond=None)[0].T
-    x0 = X.mean(0)
-    xs = float(np.sqrt(((X - x0) ** 2).sum(1).mean())) or 1.0
-    uv = Xh @ mean_cam.T
-    p0 = uv.mean(0)
-    ps = float(np.sqrt(((uv - p0) ** 2).sum(1).mean())) or 1.0
-    r, c = (uv[:, 1] - p0[1]) / ps, (uv[:, 0] - p0[0]) / ps
-    Xn = (X - x0) / xs
+    _, Xn, r, c, _, _ = _image_coords(X, xy)
     bases = (col_basis(Xn, r, c), row_basis(Xn, r))
     keep = np.ones(len(X), bool)
     out = np.empty_like(xy, dtype=np.float64)
@@ -309,15 +319,7 @@ def warp_observability(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]
     blocks = []
     for i, (pts, xy) in enumerate(images):
         S = X[pts]
-        Sh = np.hstack([S, np.ones((len(S), 1))])
-        P = np.linalg.lstsq(Sh, xy, rcond=None)[0].T           # (2, 4) mean affine camera
-        x0 = S.mean(0)
-        xs = float(np.sqrt(((S - x0) ** 2).sum(1).mean())) or 1.0
-        uv = Sh @ P.T
-        p0 = uv.mean(0)
-        ps = float(np.sqrt(((uv - p0) ** 2).sum(1).mean())) or 1.0
-        r, c = (uv[:, 1] - p0[1]) / ps, (uv[:, 0] - p0[0]) / ps
-        Xn = (S - x0) / xs
+        P, Xn, r, c, uv, p0 = _image_coords(S, xy)            # P: the mean affine camera
         if fixed_depth is None:
             Bc = col_basis(Xn, r, c)
         else:
