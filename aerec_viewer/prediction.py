@@ -50,7 +50,10 @@ def _tile_camera(model, image: str, cr) -> int | None:
 
 
 def _project(model, t: int, X: np.ndarray) -> np.ndarray:
-    return model.camera(t).project(X)
+    """Pixels of points X in tile t as the image sees them: the tile camera's projection plus
+    the SfM's within-tile correction there (what the camera was fitted to is pixel - correction)."""
+    p = model.camera(t).project(X)
+    return p + model.correction_at(t, p)
 
 
 def _near_ray(model, t: int, cr, radius_px: float) -> np.ndarray:
