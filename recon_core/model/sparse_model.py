@@ -127,7 +127,7 @@ class SparseModel:
     def correction_fields(self, tiles) -> dict[int, "CorrectionField | None"]:
         """correction_field of every tile in `tiles`, from one sort of the observations."""
         o = self.obs
-        k = np.flatnonzero(o.valid)
+        k = self.active_obs()                 # the observations the correction was fitted for
         k = k[np.argsort(o.tile[k], kind="stable")]
         bounds = np.searchsorted(o.tile[k], np.arange(len(self.tiles) + 1))
         return {int(t): self.correction_field(int(t), k[bounds[t]:bounds[t + 1]]) for t in tiles}
@@ -136,9 +136,10 @@ class SparseModel:
         """The within-tile correction of tile t as a field over its pixels: a quadratic in the
         pixel fitted to the correction its observations carry (the model's departure from affine
         is quadratic inside a tile but for a small cubic and height term, ~0.01 px). None when
-        they carry none. `obs`: the indices of tile t's valid observations, if the caller has them."""
+        they carry none. `obs`: the indices of tile t's active observations, if the caller has
+        them (the others carry no correction)."""
         o = self.obs
-        k = np.flatnonzero((o.tile == t) & o.valid) if obs is None else obs
+        k = np.flatnonzero((o.tile == t) & o.valid & self.has_point[o.track]) if obs is None else obs
         if len(k) < 12 or not np.any(o.corr[k]):
             return None
         tile = self.tiles[t]
