@@ -186,10 +186,14 @@ def test_correction_at_reproduces_the_tile_field():
         return np.stack([0.05 * u * u - 0.02 * u * v, 0.03 * v * v + 0.01 * u], 1)
 
     corr = np.where((tile == 0)[:, None], field(pix), 0.0)
+    # a third of the observations have no point (never triangulated): they carry no correction
+    has = rng.uniform(size=len(tile)) > 0.33
+    corr[~has] = 0.0
     obs = Observations(tile, np.arange(len(tile)), pix, np.zeros(len(tile), int), np.ones(len(tile), bool), corr)
     m = SparseModel(0, ["a.tif"], tiles, np.zeros((len(tiles), 2, 4)), np.ones(len(tiles), bool),
-                    np.zeros((len(tiles), 2, 4), bool), obs, np.zeros((len(tile), 3)), np.ones(len(tile), bool),
+                    np.zeros((len(tiles), 2, 4), bool), obs, np.zeros((len(tile), 3)), has,
                     np.zeros(len(tile), np.uint8))
     q = np.array([[10.0, 20.0], [512.5, 900.0], [980.0, 3.0]])
     np.testing.assert_allclose(m.correction_at(0, q), field(q), atol=1e-12)
-    assert not m.correction_at(1, q).any()
+    np.testing.assert_allclose(m.correction_fields([0, 1])[0](q), field(q), atol=1e-12)
+    assert not m.correction_at(1, q).any() and m.correction_fields([0, 1])[1] is None
