@@ -99,8 +99,10 @@ class IncrementalSfM:
 
     def __init__(self, group: int, image_names: list[str], tiles: list[Tile], feats: list[ImageFeatures],
                  pairs: dict[tuple[int, int], PairMatches], tracks: Tracks, cfg: SfmConfig,
-                 ba_cfg: BundleConfig, bus: EventBus | None = None, seed: int = 0):
+                 ba_cfg: BundleConfig, bus: EventBus | None = None, seed: int = 0, n_dates: int = 1):
+        """n_dates: how many date groups the images come from (a joint reconstruction: > 1)."""
         self.cfg, self.ba_cfg = cfg, ba_cfg
+        self.n_dates = n_dates
         self.bus = bus or EventBus()
         self.rng = np.random.default_rng(seed)
         self.pairs = pairs
@@ -219,8 +221,11 @@ class IncrementalSfM:
                 break
             self._attempt(int(cand[best]), why, tried, counts, img_reg)
         # the closing adjustments: the per-image ties, then rounds with the within-tile
-        # correction refitted to the tied structure (the last one converged to rel_tol)
-        rounds = self.cfg.correction_rounds
+        # correction refitted to the tied structure (the last one converged to rel_tol). Only
+        # with views of several dates: one pass's views (2-3, scanned alike) leave the vertical
+        # warps invisible, and the correction would only move the structure along them
+        # (README, "What the views can see")
+        rounds = self.cfg.correction_rounds if self.n_dates > 1 else 0
         for k in range(1 + max(rounds, 1)):
             self._filter_outliers()
             self._bundle("global", final=True, correct=k > 0 and rounds > 0,

@@ -135,7 +135,8 @@ def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None,
         bus.progress("refining", 1, 1, f"{refinement.refined} of {refinement.candidates} tie points "
                      f"refined (median shift {refinement.median_shift_px:.2f} px)", group=g)
     all_tiles = [t for name in names for t in tiles[name]]
-    sfm = IncrementalSfM(g, names, all_tiles, feats, pairs, tracks, cfg.sfm, cfg.bundle, bus, cfg.seed)
+    sfm = IncrementalSfM(g, names, all_tiles, feats, pairs, tracks, cfg.sfm, cfg.bundle, bus, cfg.seed,
+                         n_dates=len(set(image_groups)) if image_groups is not None else 1)
     if isinstance(bus, GroupRouter):
         bus.attach(sfm.m)
     model = sfm.run()

@@ -28,12 +28,30 @@ def test_sparse_tiny_against_truth(tiny_run, tiny_site):
     r = sparse_vs_truth(tiny_site, m, frame_for(state.gcps))
     assert r["n"] > 300
     assert r["rms_m"] < 0.5, r
-    # the closing adjustments took each image's within-tile correction (a few hundredths of a
-    # pixel on tiles of 300 px) out of its observations; the saved model carries it
-    wc = s["within_tile_correction"]
+    # one date: no within-tile correction (its views could not hold what it frees)
+    assert s["within_tile_correction"]["images"] == [] and not m.obs.corr.any()
+
+
+def test_within_tile_correction_in_the_closing_adjustments(tiny_site, tmp_path, monkeypatch):
+    """With views of several dates, the closing adjustments take each image's within-tile
+    correction (a few hundredths of a pixel on tiles of 300 px) out of its observations: the
+    model carries it, saves it and reloads it, and the structure still equals the truth up to
+    one affine map (the `tiny` site's one date stands in for several here)."""
+    from recon_core.sparse import stage
+
+    sfm_class = stage.IncrementalSfM
+    monkeypatch.setattr(stage, "IncrementalSfM", lambda *a, **k: sfm_class(*a, **{**k, "n_dates": 2}))
+    state = run(tiny_site, tmp_path / "out", preset("tiny"), until="sparse", resume=False)
+    m = state.models[0]
+    wc = m.stats["within_tile_correction"]
     assert len(wc["images"]) == len(m.images) and 0 < wc["rms_px"] < 0.05 and wc["max_px"] < 0.5
     act = m.active_obs()
     assert np.count_nonzero(m.obs.corr[act].any(axis=1)) > 0.9 * len(act)
+    assert not m.obs.corr[np.setdiff1d(np.arange(len(m.obs.tile)), act)].any()
+    back = load_model(state.out, 0)
+    np.testing.assert_array_equal(back.obs.corr, m.obs.corr)
+    r = sparse_vs_truth(tiny_site, m, frame_for(state.gcps))
+    assert r["rms_m"] < 0.5, r
 
 
 def test_initial_pair_follows_the_rule(tiny_run):
