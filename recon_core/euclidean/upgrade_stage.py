@@ -36,6 +36,71 @@ def estimate_gsd(model, H: np.ndarray) -> float:
     return float(np.median(gsd))
 
 
+# A warp that moves the images by less than this (px RMS per metre at the site's edge) once
+# each image's pushbroom model re-fits is invisible to them (3 views of one date: 1e-5 to 7e-4;
+# `demo`'s 6 views of two dates: >= 0.002; `large`'s 9: >= 0.008 for every vertical warp)
+BEND_INVISIBLE_PX_PER_M = 1e-3
+# ... and worth a warning on sites wider than this: the bend such a warp lets through grows
+# with the site (measured with 3 views: 0.4 m over 1.3 km, 1.5-2.9 m over 2.5 km)
+BEND_WARN_WIDTH_KM = 1.0
+
+
+def bend_observability(model, H: np.ndarray, max_per_image: int = 20000, seed: int = 0) -> dict:
+    """What a model's views can see of a bend of its structure, in the metric frame H_A gives
+    (recon_core.sparse.image_model.warp_observability over its points, each point once per
+    image, at most max_per_image per image): the singular values (px per metre of quadratic
+    warp at the site's edge), each warp's vertical share, the weakest mostly vertical one, how
+    many are invisible (< BEND_INVISIBLE_PX_PER_M) and the site's width. {} for a model of
+    fewer than 2 images with points."""
+    from recon_core.geometry.affine import apply_affine_3d
+    from recon_core.sparse.image_model import warp_observability
+
+    ids = model.point_ids()
+    if len(ids) < 100:
+        return {}
+    X = apply_affine_3d(H, model.X[ids])
+    slot = np.full(len(model.X), -1, np.int64)
+    slot[ids] = np.arange(len(ids))
+    o, idx = model.obs, model.active_obs()
+    rng = np.random.default_rng(seed)
+    images = []
+    for i in range(len(model.images)):
+        k = idx[o.img[idx] == i]
+        _, first = np.unique(o.track[k], return_index=True)
+        k = k[first]
+        if len(k) < 50:
+            continue
+        if len(k) > max_per_image:
+            k = np.sort(rng.choice(k, max_per_image, replace=False))
+        images.append((slot[o.track[k]], o.xy[k]))
+    if len(images) < 2:
+        return {}
+    w = warp_observability(X, images)
+    s = np.asarray(w["singular_px_per_m"])
+    vertical = np.linalg.norm(w["warps"][:, 6:], axis=1)
+    weakest = s[vertical > 0.5]
+    return {"views": len(images), "site_width_km": 2.0 * w["half_width_m"] / 1000.0,
+            "singular_px_per_m": s.tolist(), "vertical_share": vertical.tolist(),
+            "weakest_vertical_px_per_m": float(weakest.min()) if len(weakest) else None,
+            "invisible_warps": int(np.sum(s < BEND_INVISIBLE_PX_PER_M)),
+            "meaning": "pixel motion (RMS, px) that each quadratic warp of the structure, 1 m at "
+                       "the site's edge, leaves once every image's pushbroom model re-fits: a warp "
+                       f"below {BEND_INVISIBLE_PX_PER_M:g} px per m is invisible to the images, and 4 "
+                       "GCPs (an affine map) do not fix it either"}
+
+
+def bend_warning(b: dict) -> str | None:
+    """One line when the views cannot see a vertical bend of a site wider than
+    BEND_WARN_WIDTH_KM; None otherwise."""
+    s = b.get("weakest_vertical_px_per_m")
+    if s is None or s >= BEND_INVISIBLE_PX_PER_M or b["site_width_km"] < BEND_WARN_WIDTH_KM:
+        return None
+    return (f"its {b['views']} views cannot see a bend of the structure (a height warp of 1 m over "
+            f"its {b['site_width_km']:.1f} km moves them by {s:.0e} px): 4 GCPs fix an affine map, not a "
+            "bend, so heights away from the GCPs may be off by a metre or more (3 views of one date "
+            "over 2.5 km: 1.5-2.9 m); views of another date, or more GCPs spread over the site, hold it")
+
+
 @dataclass
 class Upgrade:
     """The Euclidean upgrade of every group.
@@ -54,6 +119,7 @@ class Upgrade:
     gsd_m: dict[int, float] = field(default_factory=dict)
     errors: dict[int, str] = field(default_factory=dict)
     joint: bool = False           # one H_A for all groups of one joint reconstruction
+    bend: dict[int, dict] = field(default_factory=dict)   # group -> bend_observability
 
     @property
     def Hs(self) -> dict[int, np.ndarray]:
@@ -66,6 +132,8 @@ class Upgrade:
                                "reproj_rms_px": a.reproj_rms_px, "source": a.source}
                            for k, a in self.affine[g].items()}
         d["gsd_m"] = self.gsd_m[g]
+        if self.bend.get(g):
+            d["bend_observability"] = self.bend[g]
         return d
 
     def report(self) -> dict:
@@ -113,8 +181,11 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
     if joint is not None:
         try:
             res, aff = _fit(joint, [_picks_joint(g, joint.group) for g in gcps], up.frame, cfg)
+            bend = bend_observability(joint, res.H)
+            _warn_bend(res, bend)
             for g, model in sorted(models.items()):
                 up.results[g], up.affine[g], up.gsd_m[g] = res, aff, estimate_gsd(model, res.H)
+                up.bend[g] = bend
             up.joint = True
             return up
         except ReconstructionError:           # each group on its own, below
@@ -127,9 +198,17 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
             up.errors[g] = f"group {g}: {exc}"
             continue
         up.results[g], up.affine[g], up.gsd_m[g] = res, aff, gsd
+        up.bend[g] = bend_observability(model, res.H)
+        _warn_bend(res, up.bend[g])
     if not up.results:
         raise ReconstructionError("; ".join(up.errors.values()))
     return up
+
+
+def _warn_bend(res: UpgradeResult, bend: dict) -> None:
+    text = bend_warning(bend)
+    if text and text not in res.warnings:
+        res.warnings.append(text)
 
 
 def write(up: Upgrade, out) -> None:

@@ -3,6 +3,8 @@ GCPs built from the tiny model's own points through a chosen H_A must give that 
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -66,3 +68,23 @@ def test_upgrade_models_recovers_a_known_map_from_picked_positions(tiny_run):
         g.affine_picked = {1: g.affine_picked[0]}
     with pytest.raises(ReconstructionError, match="group 0"):
         upgrade_models(gcps, {0: m}, cfg)
+
+
+def test_the_upgrade_says_what_the_views_can_see_of_a_bend(tiny_run):
+    """The report's bend observability: `tiny`'s 3 views of one date cannot see a vertical warp
+    (as the render-free harness finds on `flat`), but a site of a few hundred metres is not
+    warned about; the same figures over a site of kilometres are."""
+    from recon_core.euclidean.upgrade_stage import BEND_INVISIBLE_PX_PER_M, bend_observability, bend_warning
+
+    state, _ = tiny_run
+    rec = json.loads((state.layout.root / "report.json").read_text())["stages"]["upgrade"]["groups"]["0"]
+    b = rec["bend_observability"]
+    assert b == bend_observability(state.models[0], np.array(rec["H"]))
+    assert b["views"] == 3 and b["site_width_km"] < 1.0
+    # its weakest warp is vertical and invisible (its relief, 40 m over 200 m, shows others)
+    assert b["invisible_warps"] >= 1 and b["weakest_vertical_px_per_m"] < BEND_INVISIBLE_PX_PER_M
+    assert b["vertical_share"][-1] > 0.8
+    assert bend_warning(b) is None and not any("cannot see a bend" in w for w in rec["warnings"])
+    wide = dict(b, site_width_km=2.5)
+    assert "cannot see a bend" in bend_warning(wide) and "2.5 km" in bend_warning(wide)
+    assert bend_warning(dict(wide, weakest_vertical_px_per_m=0.006)) is None   # `large`'s 9 views
