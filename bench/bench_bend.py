@@ -50,7 +50,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-nfev", type=int, default=300)
     ap.add_argument("--observability", action="store_true",
                     help="print how well the views see each quadratic warp of the structure "
-                         "(image_model.warp_observability) and stop")
+                         "(geometry.pushbroom.warp_observability) and stop")
     ap.add_argument("--altitude-km", type=float, default=660.0,
                     help="orbit altitude for the physical 1D perspective of --observability")
     ap.add_argument("--grow", action="store_true",
@@ -104,7 +104,8 @@ def grow(site, sigma_obs: float, sigma_tie: float, rounds: int) -> None:
     the truth), with and without the within-tile correction, then `rounds` closing adjustments
     with the per-image tie (and the correction refitted before each, when it is on)."""
     from recon_core.sparse.bundle import bundle_adjust
-    from recon_core.sparse.image_model import image_tie, tile_corrections
+    from recon_core.geometry.pushbroom import tile_corrections
+    from recon_core.sparse.image_model import image_tie
 
     for corrected in (False, True):
         t0 = time.time()

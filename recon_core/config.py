@@ -77,7 +77,7 @@ class SfmConfig:
                                       # with the within-tile correction refitted (each image's
                                       # pushbroom model's departure from affine inside a tile
                                       # taken out of its observations: what drives the bend;
-                                      # recon_core.sparse.image_model), in a joint reconstruction
+                                      # recon_core.geometry.pushbroom), in a joint reconstruction
                                       # of several dates (one pass's views cannot see the vertical
                                       # warps it would free) (0 = none)
 

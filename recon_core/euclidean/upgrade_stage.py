@@ -47,13 +47,13 @@ BEND_WARN_WIDTH_KM = 1.0
 
 def bend_observability(model, H: np.ndarray, max_per_image: int = 20000, seed: int = 0) -> dict:
     """What a model's views can see of a bend of its structure, in the metric frame H_A gives
-    (recon_core.sparse.image_model.warp_observability over its points, each point once per
+    (recon_core.geometry.pushbroom.warp_observability over its points, each point once per
     image, at most max_per_image per image): the singular values (px per metre of quadratic
     warp at the site's edge), each warp's vertical share, the weakest mostly vertical one, how
     many are invisible (< BEND_INVISIBLE_PX_PER_M) and the site's width. {} for a model of
     fewer than 2 images with points."""
     from recon_core.geometry.affine import apply_affine_3d
-    from recon_core.sparse.image_model import warp_observability
+    from recon_core.geometry.pushbroom import warp_observability
 
     ids = model.point_ids()
     if len(ids) < 100:

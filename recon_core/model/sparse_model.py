@@ -25,7 +25,7 @@ class Observations:
     img: np.ndarray        # (K,) image index
     valid: np.ndarray      # (K,) bool: False once rejected as an outlier
     corr: np.ndarray | None = None   # (K, 2) the within-tile correction (px): an affine tile
-    #                                  camera sees xy - corr (recon_core.sparse.image_model)
+    #                                  camera sees xy - corr (recon_core.geometry.pushbroom)
 
     def __post_init__(self):
         if self.corr is None:

@@ -48,8 +48,8 @@ Status: the tie holds every closing global adjustment of the SfM. It discriminat
 costs 0.01 px against the model, a bent solution 0.03-0.12 px) and holds a joint adjustment of
 9 views (`large`: bend 4.6 -> 1.1 m peak to peak), but on a group of 3 views the bend moves
 inside the model's family (README, "What was tried against the bend"). What the views can see
-of a bend at all is `warp_observability` below; what drives it is removed by the within-tile
-correction (`tile_corrections`), in the closing adjustments after the first.
+of a bend at all is `recon_core.geometry.pushbroom.warp_observability`; what drives it is removed by
+the within-tile correction (`pushbroom.tile_corrections`), in the closing adjustments after the first.
 """
 
 from __future__ import annotations
@@ -57,6 +57,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from recon_core.geometry.pushbroom import col_basis, row_basis  # the model's family
 
 
 @dataclass
@@ -125,18 +127,6 @@ class Tie:
         return 0.5 * (Q + Q.T)
 
 
-def row_basis(X: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Basis of the row equation at points X (n, 3, standardised) with normalised rows r (n,)."""
-    one = np.ones((len(X), 1))
-    return np.hstack([X, one, r[:, None] * X, (r ** 3)[:, None]])
-
-
-def col_basis(X: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Basis of the column equation (see the module docstring)."""
-    one = np.ones((len(X), 1))
-    return np.hstack([X, one, c[:, None] * X, (r ** 2)[:, None], (r ** 3)[:, None]])
-
-
 def image_frame(cams: np.ndarray, samples: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, float]:
     """The image's mean affine camera (2, 4) fitted to its tile cameras over their sample points,
     with the normalisation of X (mean, scale) and of pixels (centre, scale)."""
@@ -189,159 +179,3 @@ def tie_residual_px(tie_cams: np.ndarray, samples: list[np.ndarray]) -> float:
     t = image_tie(tie_cams, samples, np.arange(len(tie_cams)), 1.0)
     p = tie_cams.reshape(-1)
     return float(np.sqrt(max(2 * t.cost(p), 0.0) / (16 * len(tie_cams))))
-
-
-# -- the within-tile correction ---------------------------------------------------------------
-# What drives the bend is the pushbroom's departure from affine inside each tile: an affine tile
-# camera cannot reproduce it, and a smooth warp of the structure that makes every image's
-# projection a little more affine on every tile lowers the reprojection error (the data prefer
-# the bend: README, "What was tried against the bend"). The tie above only restricts the tile
-# cameras; the observations still carry that departure, and on 3 views a bend inside the model's
-# family still lowers it. The correction removes the departure from the observations instead:
-# each image's model is fitted to its observations, and every observation is moved by the
-# model's own departure from its best affine approximation over the observation's tile,
-#     corr = model(X) - A_t [X, 1],        pixel seen by the affine tile camera = xy - corr,
-# so that an affine camera per tile sees affine data and nothing pushes the structure into a
-# bend. It is a pixel field of a few hundredths of a pixel (0.12 px at most on `flat`). Where the
-# views see a warp (warp_observability), the adjustment then finds the unbent structure; where
-# they do not (3 views of one kind: the vertical bends), nothing holds it, and a correction
-# refitted again and again lets the structure wander along those warps with the points' noise
-# (each refit takes the last displacement as the new reference). So the SfM refits it only in
-# its closing adjustments, after the tie has held the structure once (SfmConfig.correction_rounds).
-
-MIN_TILES_FOR_CORRECTION = 4
-
-
-def _image_coords(X: np.ndarray, xy: np.ndarray):
-    """An image's observations xy (K, 2) of points X (K, 3) in the model's normalised terms:
-    (mean affine camera (2, 4), X normalised (K, 3), r and c normalised (K,), the mean camera's
-    pixels (K, 2) and their centre (2,))."""
-    Xh = np.hstack([X, np.ones((len(X), 1))])
-    mean_cam = np.linalg.lstsq(Xh, xy, rcond=None)[0].T
-    x0 = X.mean(0)
-    xs = float(np.sqrt(((X - x0) ** 2).sum(1).mean())) or 1.0
-    uv = Xh @ mean_cam.T
-    p0 = uv.mean(0)
-    ps = float(np.sqrt(((uv - p0) ** 2).sum(1).mean())) or 1.0
-    return mean_cam, (X - x0) / xs, (uv[:, 1] - p0[1]) / ps, (uv[:, 0] - p0[0]) / ps, uv, p0
-
-
-def image_model_values(X: np.ndarray, xy: np.ndarray, trim: float = 4.0) -> np.ndarray:
-    """(K, 2) the image model (module docstring) fitted by least squares to observations xy
-    (K, 2: col, row) of points X (K, 3) in one image, evaluated at X. One refit without the
-    observations beyond `trim` times the RMS residual (outliers the SfM has not dropped yet).
-    On flat ground the model's basis is rank-deficient (r X and r^2 nearly collinear): the fitted
-    values are still unique (minimum-norm least squares)."""
-    _, Xn, r, c, _, _ = _image_coords(X, xy)
-    bases = (col_basis(Xn, r, c), row_basis(Xn, r))
-    keep = np.ones(len(X), bool)
-    out = np.empty_like(xy, dtype=np.float64)
-    for _ in range(2):
-        for k, B in enumerate(bases):
-            theta = np.linalg.lstsq(B[keep], xy[keep, k], rcond=None)[0]
-            out[:, k] = B @ theta
-        res = np.sqrt(((out - xy) ** 2).sum(1))
-        rms = float(np.sqrt(np.mean(res[keep] ** 2)))
-        new_keep = res <= max(trim * rms, 1e-9)
-        if new_keep.all() or new_keep.sum() < 0.5 * len(X) or (new_keep == keep).all():
-            break
-        keep = new_keep
-    return out
-
-
-def affine_departure(X: np.ndarray, v: np.ndarray, group: np.ndarray, n_groups: int) -> np.ndarray:
-    """(K, 2) v minus its least-squares affine fit in X within each group (a tile): v (K, 2)
-    values at points X (K, 3), group (K,) in 0..n_groups-1. Nearly coplanar points leave the fit
-    along their normal undetermined; the fitted values are still unique (pseudo-inverse)."""
-    cnt = np.bincount(group, minlength=n_groups).astype(np.float64)
-    w = 1.0 / np.maximum(cnt, 1.0)
-    mu = np.stack([np.bincount(group, X[:, a], minlength=n_groups) for a in range(3)], 1) * w[:, None]
-    vm = np.stack([np.bincount(group, v[:, a], minlength=n_groups) for a in range(2)], 1) * w[:, None]
-    Xc, vc = X - mu[group], v - vm[group]
-    S = np.empty((n_groups, 3, 3))
-    R = np.empty((n_groups, 3, 2))
-    for a in range(3):
-        for b in range(a, 3):
-            S[:, a, b] = S[:, b, a] = np.bincount(group, Xc[:, a] * Xc[:, b], minlength=n_groups)
-        for b in range(2):
-            R[:, a, b] = np.bincount(group, Xc[:, a] * vc[:, b], minlength=n_groups)
-    B = np.linalg.pinv(S, rcond=1e-12, hermitian=True) @ R
-    return vc - np.einsum("ka,kab->kb", Xc, B[group])
-
-
-def tile_corrections(X: np.ndarray, xy: np.ndarray, tile: np.ndarray, img: np.ndarray,
-                     min_tiles: int = MIN_TILES_FOR_CORRECTION) -> tuple[np.ndarray, dict]:
-    """The within-tile correction of observations (see above): X (K, 3) the point of each
-    observation, xy (K, 2) its pixel, tile (K,) and img (K,) its tile and image. Returns corr
-    (K, 2), to be subtracted from xy before an affine tile camera sees it (zero in images with
-    fewer than `min_tiles` tiles among the observations: too small a part of the image to fit its
-    model), and a summary (images corrected, RMS and largest correction in px)."""
-    corr = np.zeros((len(X), 2))
-    done = []
-    for i in np.unique(img):
-        k = np.flatnonzero(img == i)
-        tiles, local = np.unique(tile[k], return_inverse=True)
-        if len(tiles) < min_tiles:
-            continue
-        model = image_model_values(X[k], xy[k])
-        corr[k] = affine_departure(X[k], model, local.ravel(), len(tiles))
-        done.append(int(i))
-    size = np.sqrt((corr ** 2).sum(1))
-    return corr, {"images": done,
-                  "rms_px": float(np.sqrt(np.mean(size ** 2))) if len(size) else 0.0,
-                  "max_px": float(size.max()) if len(size) else 0.0}
-
-
-# -- what the views can see of a bend ------------------------------------------------------------
-WARP_MONOMIALS = ("e^2", "e n", "n^2")
-
-
-def warp_observability(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
-                       fixed_depth: list[np.ndarray] | None = None) -> dict:
-    """How well a set of images sees each smooth quadratic warp of a structure when every image
-    is a pushbroom of this module's family (its cameras free within the family, as the tie
-    allows): for X (N, 3) metric points of nearly flat ground (e, n horizontal, u up) and, per
-    image, (point indices, pixels (k, 2)), the warps X += q_a m(e, n) (a: e, n or u; m: e^2,
-    e n, n^2, with e and n scaled to +-1 over the points) move each image's pixels by M_i q_a m
-    (its mean affine camera); what the image model can re-fit (least squares over its basis at
-    the points) is invisible. Returns the singular values of the remaining pixel motion per
-    metre of warp (RMS px over all observations, largest first) and the warps (9-vectors over
-    (a, m), a-major) they belong to: a warp with a singular value near zero changes nothing the
-    images record, so no adjustment can find it; 4 GCPs do not either (they fix an affine map).
-
-    fixed_depth: per image, the 1D perspective's coefficient s_c (3,) of `col_basis` known in
-    this frame (c * (s_c . X)), instead of free: the column can then re-fit only what the drift
-    and the along-track range change (c r) allow."""
-    e0, n0 = X[:, 0].mean(), X[:, 1].mean()
-    half = max(np.ptp(X[:, 0]), np.ptp(X[:, 1])) / 2.0 or 1.0
-    e, n = (X[:, 0] - e0) / half, (X[:, 1] - n0) / half
-    mono = np.stack([e * e, e * n, n * n], 1)                 # (N, 3)
-    blocks = []
-    for i, (pts, xy) in enumerate(images):
-        S = X[pts]
-        P, Xn, r, c, uv, p0 = _image_coords(S, xy)            # P: the mean affine camera
-        if fixed_depth is None:
-            Bc = col_basis(Xn, r, c)
-        else:
-            Bc = np.hstack([Xn, np.ones((len(S), 1)), (r * r)[:, None], (r ** 3)[:, None], (c * r)[:, None]])
-        bases = (Bc, row_basis(Xn, r))
-        cols = []
-        for a in range(3):
-            for m in range(3):
-                d = np.zeros_like(S)
-                d[:, a] = mono[pts, m]
-                motion = d @ P[:, :3].T                        # (k, 2) px per metre of warp
-                if fixed_depth is not None:
-                    # the known 1D perspective moves with the points: c * (s_c . d)
-                    motion[:, 0] += (uv[:, 0] - p0[0]) * (d @ fixed_depth[i])
-                res = []
-                for k, B in enumerate(bases):
-                    theta = np.linalg.lstsq(B, motion[:, k], rcond=None)[0]
-                    res.append(motion[:, k] - B @ theta)
-                cols.append(np.concatenate(res))
-        blocks.append(np.stack(cols, 1))
-    Rm = np.vstack(blocks)
-    U, s, Vt = np.linalg.svd(Rm, full_matrices=False)
-    k = Rm.shape[0] / 2.0                                      # observations
-    return {"singular_px_per_m": (s / np.sqrt(k)).tolist(), "warps": Vt, "half_width_m": float(half),
-            "labels": [f"{ax} {m}" for ax in "enu" for m in WARP_MONOMIALS]}

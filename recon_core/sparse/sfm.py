@@ -28,7 +28,8 @@ from recon_core.model.sparse_model import Observations, SparseModel, images_per_
 from recon_core.model.tiling import Tile
 from recon_core.sparse.bundle import bundle_adjust
 from recon_core.sparse.features import ImageFeatures
-from recon_core.sparse.image_model import image_tie, tile_corrections
+from recon_core.geometry.pushbroom import tile_corrections
+from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.matching import PairMatches
 from recon_core.sparse.tracks import Tracks
 

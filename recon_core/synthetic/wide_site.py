@@ -66,7 +66,7 @@ class WideSite:
         from the current structure before every adjustment after the first, as the SfM does:
         nothing of the truth but the first patch enters. Returns (cams, X, point_in_model)."""
         from recon_core.geometry import affine
-        from recon_core.sparse.image_model import tile_corrections
+        from recon_core.geometry.pushbroom import tile_corrections
 
         T, N = len(self.tiles), len(self.X_true)
         cnt = np.bincount(self.obs_cam, minlength=T)
@@ -215,7 +215,7 @@ EARTH_RADIUS_M = 6.371e6
 
 
 def physical_depth(P: np.ndarray, altitude_m: float) -> np.ndarray:
-    """The 1D perspective's coefficient s_c (image_model.col_basis: c * (s_c . X)) of a
+    """The 1D perspective's coefficient s_c (pushbroom.col_basis: c * (s_c . X)) of a
     pushbroom whose mean affine camera in a metric ENU frame is P (2, 4): the column scales as
     1 / range, so s_c = -v / R with v the unit viewing direction (down) and R the slant range
     from an orbit of the given altitude at that zenith angle."""
@@ -230,11 +230,11 @@ def physical_depth(P: np.ndarray, altitude_m: float) -> np.ndarray:
 
 def observability(site: WideSite, X: np.ndarray | None = None, max_per_image: int = 20000,
                   seed: int = 0, altitude_m: float | None = None) -> dict:
-    """recon_core.sparse.image_model.warp_observability of the site's images over the points X
+    """recon_core.geometry.pushbroom.warp_observability of the site's images over the points X
     (default: the truth, a metric frame), each point once per image (at most max_per_image per
     image); with `altitude_m`, each image's 1D perspective fixed by physics (physical_depth)
     instead of free."""
-    from recon_core.sparse.image_model import warp_observability
+    from recon_core.geometry.pushbroom import warp_observability
 
     X = site.X_true if X is None else X
     rng = np.random.default_rng(seed)

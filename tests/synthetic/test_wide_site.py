@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon_core.sparse.image_model import tile_corrections
+from recon_core.geometry.pushbroom import tile_corrections
 from recon_core.synthetic.wide_site import image_ties, make_wide_site, observability, structure_vs_truth
 
 
