@@ -245,8 +245,9 @@ def test_triangulation_removes_each_cameras_within_tile_correction():
 
     def seen(P, f):
         a = X @ P[:, :3].T + P[:, 3]
+        x = a.copy()
         for _ in range(20):                      # pixel x with x - f(x) = P X
-            x = a + f(a if _ == 0 else x)
+            x = a + f(x)
         return x
 
     x0, x1 = seen(P0, f0), seen(P1, f1)
