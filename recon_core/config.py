@@ -73,13 +73,14 @@ class SfmConfig:
                                       # in the final global adjustments: the model's error against
                                       # a pushbroom, px, for a model of 3 images; n > 3 images
                                       # scale it by 3 / n (more views check the tie) (0 = off)
-    correction_rounds: int = 3        # closing global adjustments after the first tied one, each
+    correction_rounds: int = 2        # closing global adjustments after the first tied one, each
                                       # with the within-tile correction refitted (each image's
                                       # pushbroom model's departure from affine inside a tile
                                       # taken out of its observations: what drives the bend;
                                       # recon_core.geometry.pushbroom), in a joint reconstruction
                                       # of several dates (one pass's views cannot see the vertical
-                                      # warps it would free) (0 = none)
+                                      # warps it would free) (0 = none; each round more lowers
+                                      # the bend further and costs one global adjustment)
 
 
 @dataclass
