@@ -14,6 +14,8 @@ and its peak-to-peak range.
     python bench/bench_bend.py --preset flat --observability        # what 3 views can see
     python bench/bench_bend.py --preset flat --grow --sigma-tie 0.01   # incremental growth,
                                                                      # the within-tile correction
+    python bench/bench_bend.py --preset large --closing 7 --extrapolation 0,1   # the SfM's closing
+                                                      # rounds, plain and extrapolated (per round)
 """
 
 from __future__ import annotations
@@ -56,6 +58,11 @@ def main(argv=None) -> int:
     ap.add_argument("--grow", action="store_true",
                     help="also grow the model in rings from a central patch (as the SfM does), with and "
                          "without the within-tile correction, then the tied closing adjustments")
+    ap.add_argument("--closing", type=int, default=0,
+                    help="grow the model without the correction, one tied adjustment, then this many "
+                         "closing rounds with the correction refitted, as the SfM does (and stop)")
+    ap.add_argument("--extrapolation", default="0,1",
+                    help="comma-separated sfm.correction_extrapolation values for --closing")
     a = ap.parse_args(argv)
     t0 = time.time()
     site = make_wide_site(a.preset, a.seed, images=[s for s in a.images.split(",") if s] or None,
@@ -77,6 +84,10 @@ def main(argv=None) -> int:
             for sv, w in zip(o["singular_px_per_m"], o["warps"]):
                 big = ", ".join(f"{o['labels'][j]} {w[j]:+.2f}" for j in np.argsort(-np.abs(w))[:3])
                 print(f"  {sv:9.5f} px/m   vertical {np.linalg.norm(w[6:]):.2f}   ({big})")
+        return 0
+    if a.closing:
+        closing(site, a.closing, [float(w) for w in a.extrapolation.split(",") if w],
+                [float(s) for s in a.sigma_tie.split(",") if s][-1], a.noise)
         return 0
     cams0 = site.best_tile_cameras(site.X_true)
     base = site.adjust(cams0, site.X_true, max_nfev=a.max_nfev)
@@ -137,6 +148,68 @@ def grow(site, sigma_obs: float, sigma_tie: float, rounds: int) -> None:
             cams, X = res.cams, res.X
             print(line(f"  tied ({sigma_tie} px), round {r + 1}", structure_vs_truth(X[on], site.X_true[on]),
                        f"[{res.rms_px:.4f} px, {res.iterations} it]"))
+
+
+def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: float) -> None:
+    """The SfM's closing adjustments on a model grown without the correction (WideSite.grow):
+    one tied adjustment, then `rounds` with the within-tile correction refitted, each round's
+    correction extrapolated by w (sfm.correction_extrapolation) along its change since the
+    round before. Per round: the structure against the truth, and the quadratic coefficients
+    (e^2, e n, n^2 over the site scaled to a unit square) of its vertical and east residuals."""
+    from recon_core.geometry.pushbroom import tile_corrections
+    from recon_core.sparse.bundle import bundle_adjust
+    from recon_core.sparse.image_model import image_tie
+
+    t0 = time.time()
+    cams0, X0, on = site.grow(correction=False)
+    reg = np.abs(cams0).sum(axis=(1, 2)) > 0
+    use = np.flatnonzero(on[site.obs_pt] & reg[site.obs_cam])
+    oc, op = site.obs_cam[use], site.obs_pt[use]
+    fixed = np.zeros_like(cams0, dtype=bool)
+    first = int(np.flatnonzero(reg)[0])
+    other = int(next(t for t in np.flatnonzero(reg) if site.tile_image[t] != site.tile_image[first]))
+    fixed[first] = True
+    fixed[other, 0] = True
+    weight = (max(noise_px, 0.02) / np.sqrt(2.0) / sigma_tie) ** 2
+
+    def adjust(cams, X, corr):
+        rng = np.random.default_rng(0)
+        ties = []
+        for i in range(len(site.names)):
+            tids = np.flatnonzero(reg & (site.tile_image == i))
+            samples = []
+            for t in tids:
+                k = op[oc == t]
+                samples.append(X[rng.choice(k, 48, replace=False) if len(k) > 48 else k])
+            ties.append(image_tie(cams[tids], samples, tids, weight))
+        res = bundle_adjust(cams, X, oc, op, site.obs_xy[use] - corr, np.flatnonzero(reg),
+                            np.flatnonzero(on), fixed, max_nfev=50, ties=ties)
+        return res.cams, res.X
+
+    Xt = site.X_true[on]
+    e, n = Xt[:, 0] - Xt[:, 0].mean(), Xt[:, 1] - Xt[:, 1].mean()
+    scale = max(np.ptp(e), np.ptp(n))
+    B = np.column_stack([np.ones_like(e), e / scale, n / scale, (e / scale) ** 2, e * n / scale ** 2,
+                         (n / scale) ** 2])
+
+    def report(tag, X):
+        A = np.hstack([X[on], np.ones((int(on.sum()), 1))])
+        r = A @ np.linalg.lstsq(A, Xt, rcond=None)[0] - Xt
+        q = [np.linalg.lstsq(B, r[:, a], rcond=None)[0][3:] for a in (2, 0)]
+        print(line(tag, structure_vs_truth(X[on], Xt),
+                   "U quad " + " ".join(f"{v:+.2f}" for v in q[0]) + "  E quad "
+                   + " ".join(f"{v:+.2f}" for v in q[1]) + f"  [{time.time() - t0:.0f} s]"), flush=True)
+
+    cams1, X1 = adjust(cams0, X0, 0.0)
+    report("grown, tied", X1)
+    for w in ws:
+        cams, X, prev = cams1, X1, None
+        for r in range(rounds):
+            g = tile_corrections(X[op], site.obs_xy[use], oc, site.tile_image[oc])[0]
+            u = g if prev is None else g + w * (g - prev)
+            prev = g
+            cams, X = adjust(cams, X, u)
+            report(f"  w {w:g}, round {r + 1}", X)
 
 
 if __name__ == "__main__":

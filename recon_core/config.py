@@ -81,6 +81,11 @@ class SfmConfig:
                                       # of several dates (one pass's views cannot see the vertical
                                       # warps it would free) (0 = none; each round more lowers
                                       # the bend further and costs one global adjustment)
+    correction_extrapolation: float = 1.0  # from the second round on, each round's correction is
+                                      # pushed this many times its change since the round before,
+                                      # g + w (g - g_prev): plain rounds converge slowly, each
+                                      # removing less of the bend (0 = plain rounds; at most 1:
+                                      # 2 diverged; README, "Extrapolated rounds")
 
 
 @dataclass

@@ -162,6 +162,9 @@ def check_config(cfg: Config) -> None:
         raise bad("dense.max_two_view_spread", tv, "must be 0 (mark no two-view point weak) or at least 1")
     if cfg.sfm.correction_rounds < 0:
         raise bad("sfm.correction_rounds", cfg.sfm.correction_rounds, "must be >= 0 (0 = no within-tile correction)")
+    ce = cfg.sfm.correction_extrapolation
+    if not (np.isfinite(ce) and 0 <= ce <= 1):
+        raise bad("sfm.correction_extrapolation", ce, "must be in [0, 1] (0 = plain rounds; 2 diverged)")
     if cfg.features.refine_half_px < 0:
         raise bad("features.refine_half_px", cfg.features.refine_half_px, "must be >= 0 (0 = no refinement)")
     if not -1 <= cfg.features.refine_min_ncc <= 1:

@@ -136,6 +136,8 @@ class IncrementalSfM:
         self._regularised = {"toward_a_tile_of_its_image": 0, "toward_its_image_camera": 0}
         self._counts: np.ndarray | None = None     # _counts_now's
         self._correction_info: dict = {}
+        self._corr_prev: np.ndarray | None = None  # the last round's fitted correction (all obs)
+        self._corr_prev_on: np.ndarray | None = None  # ... and which observations it was fitted on
 
     # -- initial pair -------------------------------------------------------------------------
     def choose_initial_pair(self) -> tuple[int, int, dict]:
@@ -496,6 +498,20 @@ class IncrementalSfM:
         view sees free to wander (README, "The within-tile correction")."""
         o = self.m.obs
         corr, info = tile_corrections(self.m.X[o.track[idx]], o.xy[idx], o.tile[idx], o.img[idx])
+        fitted = corr.copy()
+        w = self.cfg.correction_extrapolation
+        if w and self._corr_prev is not None and len(self._corr_prev) == len(o.xy):
+            # one step further along the change since the last round, for the observations
+            # fitted both times (README, "Extrapolated rounds")
+            both = self._corr_prev_on[idx]
+            corr[both] += w * (fitted[both] - self._corr_prev[idx[both]])
+            size = np.sqrt((corr ** 2).sum(1))
+            info = {**info, "rms_px": float(np.sqrt(np.mean(size ** 2))) if len(size) else 0.0,
+                    "max_px": float(size.max()) if len(size) else 0.0}
+        self._corr_prev = np.zeros_like(o.xy, dtype=np.float64)
+        self._corr_prev[idx] = fitted
+        self._corr_prev_on = np.zeros(len(o.xy), bool)
+        self._corr_prev_on[idx] = True
         o.corr[:] = 0.0
         o.corr[idx] = corr
         self._correction_info = info
