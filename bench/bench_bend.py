@@ -110,41 +110,56 @@ def main(argv=None) -> int:
     return 0
 
 
+def _gauge_and_obs(site, cams, on):
+    """The registered tiles, the observations the closing adjustments use (registered tile,
+    point in the model), and the gauge: one tile held, one row of a tile of another image."""
+    reg = np.abs(cams).sum(axis=(1, 2)) > 0
+    use = np.flatnonzero(on[site.obs_pt] & reg[site.obs_cam])
+    fixed = np.zeros_like(cams, dtype=bool)
+    first = int(np.flatnonzero(reg)[0])
+    other = int(next(t for t in np.flatnonzero(reg) if site.tile_image[t] != site.tile_image[first]))
+    fixed[first] = True
+    fixed[other, 0] = True
+    return reg, use, fixed
+
+
+def _tied_adjustment(site, cams, X, on, reg, use, fixed, corr, weight, rng):
+    """One global adjustment with the per-image ties (48 points sampled per tile), the
+    observations moved by `corr` (the within-tile correction, or 0)."""
+    from recon_core.sparse.bundle import bundle_adjust
+    from recon_core.sparse.image_model import image_tie
+
+    oc, op = site.obs_cam[use], site.obs_pt[use]
+    ties = []
+    for i in range(len(site.names)):
+        tids = np.flatnonzero(reg & (site.tile_image == i))
+        samples = []
+        for t in tids:
+            k = op[oc == t]
+            samples.append(X[rng.choice(k, 48, replace=False) if len(k) > 48 else k])
+        ties.append(image_tie(cams[tids], samples, tids, weight))
+    return bundle_adjust(cams, X, oc, op, site.obs_xy[use] - corr, np.flatnonzero(reg),
+                         np.flatnonzero(on), fixed, max_nfev=50, ties=ties)
+
+
 def grow(site, sigma_obs: float, sigma_tie: float, rounds: int) -> None:
     """The model grown in rings from the truth of a central patch (WideSite.grow: nothing else of
     the truth), with and without the within-tile correction, then `rounds` closing adjustments
     with the per-image tie (and the correction refitted before each, when it is on)."""
-    from recon_core.sparse.bundle import bundle_adjust
     from recon_core.geometry.pushbroom import tile_corrections
-    from recon_core.sparse.image_model import image_tie
 
     for corrected in (False, True):
         t0 = time.time()
         cams, X, on = site.grow(correction=corrected)
-        reg = np.abs(cams).sum(axis=(1, 2)) > 0
-        use = np.flatnonzero(on[site.obs_pt] & reg[site.obs_cam])
+        reg, use, fixed = _gauge_and_obs(site, cams, on)
         oc, op = site.obs_cam[use], site.obs_pt[use]
         tag = "with the correction" if corrected else "no correction"
         print(line(f"grown, {tag}", structure_vs_truth(X[on], site.X_true[on]),
                    f"[{int(reg.sum())} tiles, {time.time() - t0:.1f} s]"))
         rng = np.random.default_rng(0)
-        fixed = np.zeros_like(cams, dtype=bool)
-        first = int(np.flatnonzero(reg)[0])
-        other = int(next(t for t in np.flatnonzero(reg) if site.tile_image[t] != site.tile_image[first]))
-        fixed[first] = True
-        fixed[other, 0] = True
         for r in range(rounds):
             corr = tile_corrections(X[op], site.obs_xy[use], oc, site.tile_image[oc])[0] if corrected else 0.0
-            ties = []
-            for i in range(len(site.names)):
-                tids = np.flatnonzero(reg & (site.tile_image == i))
-                samples = []
-                for t in tids:
-                    k = op[oc == t]
-                    samples.append(X[rng.choice(k, 48, replace=False) if len(k) > 48 else k])
-                ties.append(image_tie(cams[tids], samples, tids, (sigma_obs / sigma_tie) ** 2))
-            res = bundle_adjust(cams, X, oc, op, site.obs_xy[use] - corr, np.flatnonzero(reg),
-                                np.flatnonzero(on), fixed, max_nfev=50, ties=ties)
+            res = _tied_adjustment(site, cams, X, on, reg, use, fixed, corr, (sigma_obs / sigma_tie) ** 2, rng)
             cams, X = res.cams, res.X
             print(line(f"  tied ({sigma_tie} px), round {r + 1}", structure_vs_truth(X[on], site.X_true[on]),
                        f"[{res.rms_px:.4f} px, {res.iterations} it]"))
@@ -157,33 +172,15 @@ def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: floa
     round before. Per round: the structure against the truth, and the quadratic coefficients
     (e^2, e n, n^2 over the site scaled to a unit square) of its vertical and east residuals."""
     from recon_core.geometry.pushbroom import tile_corrections
-    from recon_core.sparse.bundle import bundle_adjust
-    from recon_core.sparse.image_model import image_tie
 
     t0 = time.time()
     cams0, X0, on = site.grow(correction=False)
-    reg = np.abs(cams0).sum(axis=(1, 2)) > 0
-    use = np.flatnonzero(on[site.obs_pt] & reg[site.obs_cam])
+    reg, use, fixed = _gauge_and_obs(site, cams0, on)
     oc, op = site.obs_cam[use], site.obs_pt[use]
-    fixed = np.zeros_like(cams0, dtype=bool)
-    first = int(np.flatnonzero(reg)[0])
-    other = int(next(t for t in np.flatnonzero(reg) if site.tile_image[t] != site.tile_image[first]))
-    fixed[first] = True
-    fixed[other, 0] = True
     weight = (max(noise_px, 0.02) / np.sqrt(2.0) / sigma_tie) ** 2
 
     def adjust(cams, X, corr):
-        rng = np.random.default_rng(0)
-        ties = []
-        for i in range(len(site.names)):
-            tids = np.flatnonzero(reg & (site.tile_image == i))
-            samples = []
-            for t in tids:
-                k = op[oc == t]
-                samples.append(X[rng.choice(k, 48, replace=False) if len(k) > 48 else k])
-            ties.append(image_tie(cams[tids], samples, tids, weight))
-        res = bundle_adjust(cams, X, oc, op, site.obs_xy[use] - corr, np.flatnonzero(reg),
-                            np.flatnonzero(on), fixed, max_nfev=50, ties=ties)
+        res = _tied_adjustment(site, cams, X, on, reg, use, fixed, corr, weight, np.random.default_rng(0))
         return res.cams, res.X
 
     Xt = site.X_true[on]
