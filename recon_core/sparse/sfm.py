@@ -82,6 +82,13 @@ def build_observations(tiles: list[Tile], image_names: list[str], feats: list[Im
 
 
 TIE_REFERENCE_VIEWS = 3
+# a tile with fewer 2D-3D correspondences than sfm.resect_min_inliers (a corner of the images'
+# overlap) is registered from its image's camera as a prior when at least this many of them
+# agree with it: 8 unknowns, 2 conditions per point, and the prior (README, "Every tile registered")
+MIN_WITH_PRIOR = 6
+# ... and the prior weighs a hundredth of the points in what they fix (the 2D part), while it
+# still sets what a flat set of points cannot (the response to height)
+FEW_PRIOR_WEIGHT = 0.1
 
 
 def tie_sigma(sigma_px: float, n_views: int) -> float:
@@ -134,6 +141,7 @@ class IncrementalSfM:
         self._cond_ref: float | None = None    # the model's 90th-percentile conditioning at its
         #                                         last outlier filter (before each global adjustment)
         self._regularised = {"toward_a_tile_of_its_image": 0, "toward_its_image_camera": 0}
+        self._few_points: dict[str, int] = {}    # tile id -> correspondences it was registered from
         self._counts: np.ndarray | None = None     # _counts_now's
         self._correction_info: dict = {}
         self._corr_prev: np.ndarray | None = None  # the last round's fitted correction (all obs)
@@ -212,17 +220,24 @@ class IncrementalSfM:
             self._attempt(t, why, tried, self._counts_now(), self._registered_per_image(img_of)[img_of])
         # then by number of 2D-3D correspondences; a tile that failed is tried again once it
         # has more correspondences, or once more tiles of its image are registered
+        tried_few = np.full_like(tried, -1)   # the same, for attempts from the image's camera
         while True:
             counts = self._counts_now()
             img_reg = self._registered_per_image(img_of)[img_of]
-            cand = np.flatnonzero(~m.registered & ((counts > tried[0]) | (img_reg > tried[1])))
+            cand = np.flatnonzero(~m.registered & ((counts > tried[0]) | (img_reg > tried[1]))
+                                  & (counts >= self.cfg.resect_min_inliers))
+            if len(cand):
+                best = int(cand[np.argmax(counts[cand])])
+                self._attempt(best, why, tried, counts, img_reg)
+                continue
+            # no tile has enough correspondences for a resection of its own: the one with the
+            # most is registered from its image's camera (and its points may lift others)
+            cand = np.flatnonzero(~m.registered & ((counts > tried_few[0]) | (img_reg > tried_few[1]))
+                                  & (counts >= MIN_WITH_PRIOR))
             if not len(cand):
                 break
-            c = counts[cand]
-            best = int(np.argmax(c))
-            if c[best] < self.cfg.resect_min_inliers:
-                break
-            self._attempt(int(cand[best]), why, tried, counts, img_reg)
+            best = int(cand[np.argmax(counts[cand])])
+            self._attempt(best, why, tried_few, counts, img_reg, few=True)
         # the closing adjustments: the per-image ties, then rounds with the within-tile
         # correction refitted to the tied structure (the last one converged to rel_tol). Only
         # with views of several dates: one pass's views (2-3, scanned alike) leave the vertical
@@ -247,6 +262,7 @@ class IncrementalSfM:
                    "unregistered": [m.tiles[t].id for t in np.flatnonzero(~m.registered)],
                    "unregistered_reasons": reasons,
                    "flat_tiles_regularised": dict(self._regularised),
+                   "few_point_tiles": dict(self._few_points),
                    "within_tile_correction": {"images": [m.images[i] for i in self._correction_info.get("images", [])],
                                               "rms_px": self._correction_info.get("rms_px", 0.0),
                                               "max_px": self._correction_info.get("max_px", 0.0)},
@@ -287,11 +303,12 @@ class IncrementalSfM:
         return idx[o.valid[idx] & m.registered[o.tile[idx]] & m.has_point[o.track[idx]]]
 
     def _attempt(self, t: int, why: dict[int, str], tried: np.ndarray, counts: np.ndarray,
-                 img_reg: np.ndarray) -> None:
-        """Try to register t; remember the state it was tried in (its correspondences, the
-        registered tiles of its image: tried[:, t]) and, if it failed, why."""
+                 img_reg: np.ndarray, few: bool = False) -> None:
+        """Try to register t (`few`: from fewer correspondences than a resection of its own
+        needs, with its image's camera as a prior); remember the state it was tried in (its
+        correspondences, the registered tiles of its image: tried[:, t]) and, if it failed, why."""
         tried[:, t] = counts[t], img_reg[t]
-        reason = self._register(t)
+        reason = self._register(t, few)
         if reason is None:
             why.pop(t, None)
         else:
@@ -301,14 +318,22 @@ class IncrementalSfM:
         """Registered tiles per image (img_of: each tile's image index)."""
         return np.bincount(img_of[self.m.registered], minlength=len(self.m.images))
 
-    def _register(self, t: int) -> str | None:
-        """Register tile t; None when done, else why it could not be (it may be retried)."""
+    def _register(self, t: int, few: bool = False) -> str | None:
+        """Register tile t; None when done, else why it could not be (it may be retried).
+        `few`: with fewer correspondences than sfm.resect_min_inliers, from its image's camera."""
         m, o = self.m, self.m.obs
         in_t = self._obs_of_tiles(np.array([t]))
         sel = in_t[o.valid[in_t] & m.has_point[o.track[in_t]]]
-        if len(sel) < self.cfg.resect_min_inliers:
-            return f"{len(sel)} 2D-3D correspondences (< {self.cfg.resect_min_inliers})"
         X, x = m.X[o.track[sel]], o.pixels(sel)
+        if len(sel) < self.cfg.resect_min_inliers:
+            if not few:
+                return f"{len(sel)} 2D-3D correspondences (< {self.cfg.resect_min_inliers})"
+            few = self._resect_few(t, X, x)
+            if isinstance(few, str):
+                return f"{len(sel)} 2D-3D correspondences (< {self.cfg.resect_min_inliers}): {few}"
+            P, inl = few
+            self._few_points[m.tiles[t].id] = int(inl.sum())
+            return self._add_tile(t, P, inl, sel, in_t)
         try:
             P, inl = affine.resect_ransac(X, x, thresh_px=self.cfg.resect_thresh_px,
                                           iters=self.cfg.resect_ransac_iters,
@@ -328,6 +353,32 @@ class IncrementalSfM:
                         "and too flat a set of correspondences to lean on yet")
             P = _resect_regularised(X[inl], x[inl], prior, weight=1.0)
             self._regularised[how] += 1
+        return self._add_tile(t, P, inl, sel, in_t)
+
+    def _resect_few(self, t: int, X: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | str:
+        """A camera for tile t from too few correspondences for a resection of its own: pulled
+        toward its image's camera (the nearest registered tile of its image, else one camera
+        fitted to all the image's correspondences), from the correspondences that agree with the
+        result within sfm.resect_thresh_px (at least MIN_WITH_PRIOR of them). The closing
+        adjustments then hold it in its image's pushbroom model with the others. Returns
+        (P, inliers), or why not."""
+        if len(X) < MIN_WITH_PRIOR:
+            return "too little overlap with the registered tiles, or too little texture"
+        prior = self._neighbour_camera(t)
+        if prior is None:
+            prior = self._image_camera(self.m.tiles[t].image)
+        if prior is None:
+            return "no registered tile of its image and no camera of the whole image to lean on yet"
+        P, inl = resect_with_prior(X, x, prior, self.cfg.resect_thresh_px, MIN_WITH_PRIOR)
+        if P is None:
+            return (f"fewer than {MIN_WITH_PRIOR} of them agree with its image's camera within "
+                    f"{self.cfg.resect_thresh_px} px")
+        return P, inl
+
+    def _add_tile(self, t: int, P: np.ndarray, inl: np.ndarray, sel: np.ndarray, in_t: np.ndarray) -> None:
+        """Tile t registered with camera P (inl: which of its correspondences sel it agrees
+        with): its new points, a local adjustment, a global one when the model has grown enough."""
+        m, o = self.m, self.m.obs
         m.cams[t] = P
         m.registered[t] = True
         self._pending[o.track[in_t]] = True
@@ -603,6 +654,27 @@ def _obs_xy(o: Observations, mask: np.ndarray, tracks: np.ndarray) -> np.ndarray
     tr_sorted = o.track[idx][order]
     pos = np.searchsorted(tr_sorted, tracks)
     return o.pixels(idx)[order][pos]
+
+
+def resect_with_prior(X: np.ndarray, x: np.ndarray, prior: np.ndarray, thresh_px: float,
+                      min_inliers: int) -> tuple[np.ndarray | None, np.ndarray]:
+    """A camera from few 2D-3D correspondences (X (k, 3), x (k, 2)) pulled toward a prior
+    camera (2, 4): fitted to all, then to those within thresh_px of the fit, until the set no
+    longer changes (at most 5 times). Returns (P, inliers), or (None, inliers) when fewer than
+    min_inliers agree."""
+    inl = np.ones(len(X), bool)
+    Xh = np.hstack([X, np.ones((len(X), 1))])
+    for _ in range(5):
+        if inl.sum() < min_inliers:
+            return None, inl
+        P = _resect_regularised(X[inl], x[inl], prior, weight=FEW_PRIOR_WEIGHT)
+        new = np.linalg.norm(Xh @ P.T - x, axis=1) < thresh_px
+        if (new == inl).all():
+            return P, inl
+        inl = new
+    if inl.sum() < min_inliers:
+        return None, inl
+    return _resect_regularised(X[inl], x[inl], prior, weight=FEW_PRIOR_WEIGHT), inl
 
 
 def _resect_regularised(X: np.ndarray, x: np.ndarray, prior: np.ndarray, weight: float) -> np.ndarray:

@@ -96,6 +96,56 @@ def test_extrapolated_correction_rounds(tiny_site, tmp_path, monkeypatch):
     assert r["rms_m"] < 0.5, r
 
 
+def test_resect_with_prior_few_points():
+    """Few correspondences and a prior camera: the camera agrees with the truth within the
+    points' noise, an outlier is dropped, and a set that disagrees with the prior is refused."""
+    from recon_core.sparse.sfm import resect_with_prior
+
+    rng = np.random.default_rng(3)
+    P_true = np.array([[1.0, 0.02, 0.31, 512.0], [-0.01, 0.98, -0.12, 300.0]])
+    X = np.column_stack([rng.uniform(-400, 400, 9), rng.uniform(-400, 400, 9), rng.uniform(0, 3, 9)])
+    x = np.hstack([X, np.ones((9, 1))]) @ P_true.T + rng.normal(0, 0.1, (9, 2))
+    x[4] += [6.0, -5.0]                                   # one outlier
+    prior = P_true + np.array([[0, 0, 0.05, 1.0], [0, 0, -0.04, -0.8]])   # a neighbour's camera
+    P, inl = resect_with_prior(X, x, prior, 2.0, 6)
+    assert P is not None and not inl[4] and inl.sum() == 8
+    grid = np.column_stack([rng.uniform(-400, 400, 50), rng.uniform(-400, 400, 50), rng.uniform(0, 3, 50)])
+    gh = np.hstack([grid, np.ones((50, 1))])
+    assert np.abs(gh @ P.T - gh @ P_true.T).max() < 0.5  # the prior's 1 px offset is gone
+    # three of six points moved by 8 px: no camera agrees with 6 of them within 2 px
+    bad = x[[0, 1, 2, 3, 5, 6]].copy()
+    bad[:3] += [8.0, 0.0]
+    P2, inl2 = resect_with_prior(X[[0, 1, 2, 3, 5, 6]], bad, prior, 2.0, 6)
+    assert P2 is None and inl2.sum() < 6
+
+
+def test_tiles_with_few_correspondences_lean_on_their_image(tiny_site, tmp_path, monkeypatch):
+    """With sfm.resect_min_inliers above what every tile of `tiny` has but the initial pair's,
+    a tile of an image with a registered tile is registered from that camera and its
+    correspondences (they are fewer than a resection of its own needs): without that, only the
+    initial pair is registered; with it, the initial images are whole, the report names the
+    tiles registered so and says why the others are not, and the structure equals the truth up
+    to one affine map."""
+    from recon_core.sparse import sfm as sfm_mod
+
+    cfg = preset("tiny")
+    cfg.sfm.resect_min_inliers = 200
+    state = run(tiny_site, tmp_path / "with", cfg, until="sparse", resume=False)
+    m = state.models[0]
+    few = m.stats["few_point_tiles"]
+    init_images = {m.tiles[t].image for t in m.init_tiles}
+    assert len(few) >= 3 and all(6 <= n < 200 for n in few.values())
+    assert all(m.registered[t] for t in range(len(m.tiles)) if m.tiles[t].image in init_images)
+    for tid, reason in m.stats["unregistered_reasons"].items():
+        assert "(< 200)" in reason and tid not in few
+    r = sparse_vs_truth(tiny_site, m, frame_for(state.gcps))
+    assert r["rms_m"] < 0.1, r
+    monkeypatch.setattr(sfm_mod, "MIN_WITH_PRIOR", 10 ** 9)
+    without = run(tiny_site, tmp_path / "without", cfg, until="sparse", resume=False).models[0]
+    assert without.stats["few_point_tiles"] == {}
+    assert without.stats["tiles_registered"] < m.stats["tiles_registered"]
+
+
 def test_initial_pair_follows_the_rule(tiny_run):
     init = tiny_run[0].models[0].stats["init"]
     counts = {tuple(c["pair"]): c["matches"] for c in init["candidates"]}
