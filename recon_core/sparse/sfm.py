@@ -84,7 +84,7 @@ def build_observations(tiles: list[Tile], image_names: list[str], feats: list[Im
 TIE_REFERENCE_VIEWS = 3
 # a tile with fewer 2D-3D correspondences than sfm.resect_min_inliers (a corner of the images'
 # overlap) is registered from its image's camera as a prior when at least this many of them
-# agree with it: 8 unknowns, 2 conditions per point, and the prior (README, "Every tile registered")
+# agree with it: 8 unknowns, 2 conditions per point, and the prior (README, "How it works")
 MIN_WITH_PRIOR = 6
 # ... and the prior weighs a hundredth of the points in what they fix (the 2D part), while it
 # still sets what a flat set of points cannot (the response to height)
