@@ -407,12 +407,13 @@ def _stdout_reader_gone() -> bool:
 
 def _disk_full(exc: BaseException) -> bool:
     """The machine, not the input: a full disk, a quota, a file system gone read-only, also as
-    numpy's short write ("N requested and M written") or GDAL's "Write error"."""
+    numpy's short write ("N requested and M written"), numpy's failed allocation of a file's
+    space ("Not enough free space to write N bytes", no errno) or GDAL's "Write error"."""
     if isinstance(exc, OSError) and exc.errno in _MACHINE_ERRNOS:
         return True
     text = str(exc)
     return ("requested and" in text and "written" in text) or "Write error" in text \
-        or "No space left" in text
+        or "No space left" in text or "Not enough free space" in text
 
 
 def main(argv: list[str] | None = None) -> int:
