@@ -328,10 +328,10 @@ class IncrementalSfM:
         if len(sel) < self.cfg.resect_min_inliers:
             if not few:
                 return f"{len(sel)} 2D-3D correspondences (< {self.cfg.resect_min_inliers})"
-            few = self._resect_few(t, X, x)
-            if isinstance(few, str):
-                return f"{len(sel)} 2D-3D correspondences (< {self.cfg.resect_min_inliers}): {few}"
-            P, inl = few
+            got = self._resect_few(t, X, x)
+            if isinstance(got, str):
+                return f"{len(sel)} 2D-3D correspondences (< {self.cfg.resect_min_inliers}): {got}"
+            P, inl = got
             self._few_points[m.tiles[t].id] = int(inl.sum())
             return self._add_tile(t, P, inl, sel, in_t)
         try:
