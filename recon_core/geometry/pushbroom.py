@@ -121,10 +121,14 @@ def tile_corrections(X: np.ndarray, xy: np.ndarray, tile: np.ndarray, img: np.nd
         model = image_model_values(X[k], xy[k])
         corr[k] = affine_departure(X[k], model, local.ravel(), len(tiles))
         done.append(int(i))
+    return corr, {"images": done, **correction_size(corr)}
+
+
+def correction_size(corr: np.ndarray) -> dict:
+    """RMS and largest length (px) of corrections corr (K, 2); 0 for none."""
     size = np.sqrt((corr ** 2).sum(1))
-    return corr, {"images": done,
-                  "rms_px": float(np.sqrt(np.mean(size ** 2))) if len(size) else 0.0,
-                  "max_px": float(size.max()) if len(size) else 0.0}
+    return {"rms_px": float(np.sqrt(np.mean(size ** 2))) if len(size) else 0.0,
+            "max_px": float(size.max()) if len(size) else 0.0}
 
 
 # -- what the views can see of a bend ------------------------------------------------------------
@@ -160,21 +164,18 @@ def warp_observability(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]
         else:
             Bc = np.hstack([Xn, np.ones((len(S), 1)), (r * r)[:, None], (r ** 3)[:, None], (c * r)[:, None]])
         bases = (Bc, row_basis(Xn, r))
-        cols = []
+        motion = np.empty((len(S), 2, 9))                      # px per metre of each warp (a, m)
         for a in range(3):
             for m in range(3):
                 d = np.zeros_like(S)
                 d[:, a] = mono[pts, m]
-                motion = d @ P[:, :3].T                        # (k, 2) px per metre of warp
+                motion[:, :, 3 * a + m] = d @ P[:, :3].T
                 if fixed_depth is not None:
                     # the known 1D perspective moves with the points: c * (s_c . d)
-                    motion[:, 0] += (uv[:, 0] - p0[0]) * (d @ fixed_depth[i])
-                res = []
-                for k, B in enumerate(bases):
-                    theta = np.linalg.lstsq(B, motion[:, k], rcond=None)[0]
-                    res.append(motion[:, k] - B @ theta)
-                cols.append(np.concatenate(res))
-        blocks.append(np.stack(cols, 1))
+                    motion[:, 0, 3 * a + m] += (uv[:, 0] - p0[0]) * (d @ fixed_depth[i])
+        # what each image's model cannot re-fit, column then row
+        blocks.append(np.vstack([motion[:, k] - B @ np.linalg.lstsq(B, motion[:, k], rcond=None)[0]
+                                 for k, B in enumerate(bases)]))
     Rm = np.vstack(blocks)
     U, s, Vt = np.linalg.svd(Rm, full_matrices=False)
     k = Rm.shape[0] / 2.0                                      # observations

@@ -28,7 +28,7 @@ from recon_core.model.sparse_model import Observations, SparseModel, images_per_
 from recon_core.model.tiling import Tile
 from recon_core.sparse.bundle import bundle_adjust
 from recon_core.sparse.features import ImageFeatures
-from recon_core.geometry.pushbroom import tile_corrections
+from recon_core.geometry.pushbroom import correction_size, tile_corrections
 from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.matching import PairMatches
 from recon_core.sparse.tracks import Tracks
@@ -144,8 +144,8 @@ class IncrementalSfM:
         self._few_points: dict[str, int] = {}    # tile id -> correspondences it was registered from
         self._counts: np.ndarray | None = None     # _counts_now's
         self._correction_info: dict = {}
-        self._corr_prev: np.ndarray | None = None  # the last round's fitted correction (all obs)
-        self._corr_prev_on: np.ndarray | None = None  # ... and which observations it was fitted on
+        self._corr_prev: np.ndarray | None = None  # the last round's fitted correction (all obs;
+        #                                            NaN where it was not fitted)
 
     # -- initial pair -------------------------------------------------------------------------
     def choose_initial_pair(self) -> tuple[int, int, dict]:
@@ -344,9 +344,7 @@ class IncrementalSfM:
         if cond < self.cfg.min_points_conditioning:
             # nearly coplanar points fix 6 of the 8 parameters: the response to height comes
             # from the image's other tiles, or from all of the image's correspondences
-            prior, how = self._neighbour_camera(t), "toward_a_tile_of_its_image"
-            if prior is None:
-                prior, how = self._image_camera(m.tiles[t].image), "toward_its_image_camera"
+            prior, how = self._image_prior(t)
             if prior is None:
                 return (f"its points are nearly coplanar (conditioning {cond:.4f} < "
                         f"{self.cfg.min_points_conditioning}) and its image has no registered tile "
@@ -364,9 +362,7 @@ class IncrementalSfM:
         (P, inliers), or why not."""
         if len(X) < MIN_WITH_PRIOR:
             return "too little overlap with the registered tiles, or too little texture"
-        prior = self._neighbour_camera(t)
-        if prior is None:
-            prior = self._image_camera(self.m.tiles[t].image)
+        prior, _ = self._image_prior(t)
         if prior is None:
             return "no registered tile of its image and no camera of the whole image to lean on yet"
         P, inl = resect_with_prior(X, x, prior, self.cfg.resect_thresh_px, MIN_WITH_PRIOR)
@@ -394,6 +390,14 @@ class IncrementalSfM:
         self._emit_tile(t, int(inl.sum()), obs=in_t)
         self._emit_points()
         return None
+
+    def _image_prior(self, t: int) -> tuple[np.ndarray | None, str]:
+        """The camera tile t leans on: the nearest registered tile of its image, else one camera
+        of its whole image (None when neither exists yet), and which it is."""
+        prior = self._neighbour_camera(t)
+        if prior is not None:
+            return prior, "toward_a_tile_of_its_image"
+        return self._image_camera(self.m.tiles[t].image), "toward_its_image_camera"
 
     def _neighbour_camera(self, t: int) -> np.ndarray | None:
         m = self.m
@@ -543,7 +547,7 @@ class IncrementalSfM:
 
     def _refresh_corrections(self, idx: np.ndarray) -> None:
         """Refit each image's model and the within-tile correction of the active observations
-        idx (recon_core.sparse.image_model, "the within-tile correction"); the others get none.
+        idx (recon_core.geometry.pushbroom, "the within-tile correction"); the others get none.
         Only in the closing adjustments, after the tie has held the structure once: refitted
         at every global adjustment of the growing model, the correction leaves the warps no
         view sees free to wander (README, "The within-tile correction")."""
@@ -551,18 +555,15 @@ class IncrementalSfM:
         corr, info = tile_corrections(self.m.X[o.track[idx]], o.xy[idx], o.tile[idx], o.img[idx])
         fitted = corr.copy()
         w = self.cfg.correction_extrapolation
-        if w and self._corr_prev is not None and len(self._corr_prev) == len(o.xy):
+        if w and self._corr_prev is not None:
             # one step further along the change since the last round, for the observations
             # fitted both times (README, "Extrapolated rounds")
-            both = self._corr_prev_on[idx]
-            corr[both] += w * (fitted[both] - self._corr_prev[idx[both]])
-            size = np.sqrt((corr ** 2).sum(1))
-            info = {**info, "rms_px": float(np.sqrt(np.mean(size ** 2))) if len(size) else 0.0,
-                    "max_px": float(size.max()) if len(size) else 0.0}
-        self._corr_prev = np.zeros_like(o.xy, dtype=np.float64)
+            prev = self._corr_prev[idx]
+            both = ~np.isnan(prev[:, 0])
+            corr[both] += w * (fitted[both] - prev[both])
+            info = {**info, **correction_size(corr)}
+        self._corr_prev = np.full(o.xy.shape, np.nan)
         self._corr_prev[idx] = fitted
-        self._corr_prev_on = np.zeros(len(o.xy), bool)
-        self._corr_prev_on[idx] = True
         o.corr[:] = 0.0
         o.corr[idx] = corr
         self._correction_info = info
