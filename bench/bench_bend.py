@@ -16,6 +16,8 @@ and its peak-to-peak range.
                                                                      # the within-tile correction
     python bench/bench_bend.py --preset large --closing 7 --extrapolation 0,1   # the SfM's closing
                                                       # rounds, plain and extrapolated (per round)
+    python bench/bench_bend.py --preset large --closing 2 --bend-step   # ... each round starting
+                                                      # with the bend step (the SfM's default)
 """
 
 from __future__ import annotations
@@ -63,6 +65,9 @@ def main(argv=None) -> int:
                          "closing rounds with the correction refitted, as the SfM does (and stop)")
     ap.add_argument("--extrapolation", default="0,1",
                     help="comma-separated sfm.correction_extrapolation values for --closing")
+    ap.add_argument("--bend-step", action="store_true",
+                    help="--closing with the bend step at the start of each round (sfm.bend_step; "
+                         "no extrapolation), after the rounds without it")
     a = ap.parse_args(argv)
     t0 = time.time()
     site = make_wide_site(a.preset, a.seed, images=[s for s in a.images.split(",") if s] or None,
@@ -87,7 +92,7 @@ def main(argv=None) -> int:
         return 0
     if a.closing:
         closing(site, a.closing, [float(w) for w in a.extrapolation.split(",") if w],
-                [float(s) for s in a.sigma_tie.split(",") if s][-1], a.noise)
+                [float(s) for s in a.sigma_tie.split(",") if s][-1], a.noise, a.bend_step)
         return 0
     cams0 = site.best_tile_cameras(site.X_true)
     base = site.adjust(cams0, site.X_true, max_nfev=a.max_nfev)
@@ -165,13 +170,16 @@ def grow(site, sigma_obs: float, sigma_tie: float, rounds: int) -> None:
                        f"[{res.rms_px:.4f} px, {res.iterations} it]"))
 
 
-def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: float) -> None:
+def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: float,
+            bend: bool = False) -> None:
     """The SfM's closing adjustments on a model grown without the correction (WideSite.grow):
     one tied adjustment, then `rounds` with the within-tile correction refitted, each round's
     correction extrapolated by w (sfm.correction_extrapolation) along its change since the
-    round before. Per round: the structure against the truth, and the quadratic coefficients
-    (e^2, e n, n^2 over the site scaled to a unit square) of its vertical and east residuals."""
-    from recon_core.geometry.pushbroom import tile_corrections
+    round before; with `bend`, then the same rounds each started by the bend step
+    (pushbroom.estimate_bend: the structure unbent, the tile cameras following). Per round: the
+    structure against the truth, and the quadratic coefficients (e^2, e n, n^2 over the site
+    scaled to a unit square) of its vertical and east residuals."""
+    from recon_core.geometry.pushbroom import estimate_bend, tile_corrections
 
     t0 = time.time()
     cams0, X0, on = site.grow(correction=False)
@@ -207,6 +215,28 @@ def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: floa
             prev = g
             cams, X = adjust(cams, X, u)
             report(f"  w {w:g}, round {r + 1}", X)
+    if not bend:
+        return
+    ids = np.flatnonzero(on)
+    local = np.full(len(on), -1)
+    local[ids] = np.arange(len(ids))
+    img = site.tile_image[oc]
+    images = []
+    for i in range(len(site.names)):
+        k = np.flatnonzero(img == i)
+        _, first = np.unique(op[k], return_index=True)
+        images.append((local[op[k[first]]], site.obs_xy[use][k[first]]))
+    cnt = np.maximum(np.bincount(oc, minlength=len(cams1)), 1)[:, None]
+    cams, X = cams1.copy(), X1.copy()
+    for r in range(rounds):
+        warp, info = estimate_bend(X[ids], images)
+        cen = np.stack([np.bincount(oc, X[op, a], minlength=len(cams)) for a in range(3)], 1) / cnt
+        cams[reg] = warp.follow(cams[reg], cen[reg])
+        X[ids] += warp(X[ids])
+        report(f"  bend step {r + 1} ({info['warps_seen']} warps)", X)
+        g = tile_corrections(X[op], site.obs_xy[use], oc, site.tile_image[oc])[0]
+        cams, X = adjust(cams, X, g)
+        report(f"  bend step, round {r + 1}", X)
 
 
 if __name__ == "__main__":

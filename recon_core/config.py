@@ -73,7 +73,7 @@ class SfmConfig:
                                       # in the final global adjustments: the model's error against
                                       # a pushbroom, px, for a model of 3 images; n > 3 images
                                       # scale it by 3 / n (more views check the tie) (0 = off)
-    correction_rounds: int = 2        # closing global adjustments after the first tied one, each
+    correction_rounds: int = 1        # closing global adjustments after the first tied one, each
                                       # with the within-tile correction refitted (each image's
                                       # pushbroom model's departure from affine inside a tile
                                       # taken out of its observations: what drives the bend;
@@ -81,11 +81,15 @@ class SfmConfig:
                                       # of several dates (one pass's views cannot see the vertical
                                       # warps it would free) (0 = none; each round more lowers
                                       # the bend further and costs one global adjustment)
-    correction_extrapolation: float = 1.0  # from the second round on, each round's correction is
-                                      # pushed this many times its change since the round before,
-                                      # g + w (g - g_prev): plain rounds converge slowly, each
-                                      # removing less of the bend (0 = plain rounds; at most 1:
-                                      # 2 diverged; README, "Extrapolated rounds")
+    correction_extrapolation: float = 1.0  # without the bend step only: from the second round
+                                      # on, each round's correction is pushed this many times its
+                                      # change since the round before, g + w (g - g_prev): plain
+                                      # rounds converge slowly, each removing less of the bend
+                                      # (0 = plain rounds; at most 1: 2 diverged; README,
+                                      # "Extrapolated rounds")
+    bend_step: bool = True            # each correction round starts by estimating the quadratic
+                                      # warp of the structure the views see from every image's
+                                      # model at once and taking it out (README, "The bend step")
 
 
 @dataclass

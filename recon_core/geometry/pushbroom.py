@@ -11,6 +11,8 @@ normalised),
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 
@@ -181,3 +183,132 @@ def warp_observability(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]
     k = Rm.shape[0] / 2.0                                      # observations
     return {"singular_px_per_m": (s / np.sqrt(k)).tolist(), "warps": Vt, "half_width_m": float(half),
             "labels": [f"{ax} {m}" for ax in "enu" for m in WARP_MONOMIALS]}
+
+
+# -- the bend step: the visible quadratic warp of a structure, estimated and removed -----------
+# The closing rounds remove a bend slowly: a correction fitted on a bent structure is the
+# pushbroom's departure from affine *in the bent frame*, so it nearly sustains the bend, and
+# each round frees only what the tile-level residual cannot absorb (README, "The bend step").
+# The images' own models are much stiffer than that: a quadratic warp of the structure moves
+# each image's pixels in a way its model can only partly re-fit (warp_observability). So the
+# warp is estimated directly, by linear least squares over all images at once: the pixels'
+# residual against every image's model fitted to the structure, explained by the motion each
+# warp leaves once every model has re-fitted. Only warps the views see are estimated: a warp
+# whose remaining motion is a small share of all it moves (the horizontal projective pair on
+# many views; the vertical warps on one pass's 3 views) would be found from the models' own
+# error, not from the data.
+#
+# The frame is affine (no metre exists before the upgrade), so the warps are measured in
+# pixels: the frame is whitened by the images' mean cameras (a displacement of 1 unit in any
+# direction moves the images by 1 px RMS), the ground plane's coordinates e, n by their spread,
+# and the 9 warps are X += q_a m with m in (e^2, sqrt(2) e n, n^2): an orthonormal family,
+# whatever the affine frame. Their singular values are then shares (px of motion no model can
+# re-fit per px of motion), the same in every affine frame.
+
+MIN_WARP_SHARE = 0.02   # a warp is estimated when at least this share of the pixel motion it
+                        # causes is beyond what every image's model can re-fit. Measured
+                        # (render-free harness, from the truth without noise: the estimate's
+                        # bias from the models' own error): `large`'s 9 views see 7 warps, the
+                        # weakest at 0.027 (bias 0.1 m), and leave the projective pair at
+                        # 0.002 and 0.001; `demo`'s 6 views see 0.027, 0.014, 0.010, ..., and the
+                        # warps from 0.014 down carry 0.9-1.2 m of the models' error.
+
+
+@dataclass
+class BendWarp:
+    """A quadratic warp X -> X + D(X) of an affine structure (see above): D(X) = T^-1 d,
+    d_a = sum_m coef[3 a + m] mono_m(e, n), (e, n) = S (T (X - x0) - w0)."""
+    x0: np.ndarray        # (3,) the structure's centre
+    T: np.ndarray         # (3, 3) whitening of the frame by the mean cameras
+    S: np.ndarray         # (2, 3) the ground plane's normalised coordinates in the whitened frame
+    w0: np.ndarray        # (3,) the whitened centre
+    coef: np.ndarray      # (9,) the warp, (axis a, monomial m), a-major, in whitened units (px)
+
+    def _plane(self, X: np.ndarray) -> np.ndarray:
+        return ((X - self.x0) @ self.T.T - self.w0) @ self.S.T
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        """(n, 3) the displacement D(X) of points X (n, 3)."""
+        p = self._plane(X)
+        mono = np.stack([p[:, 0] ** 2, np.sqrt(2.0) * p[:, 0] * p[:, 1], p[:, 1] ** 2], 1)
+        return (mono @ self.coef.reshape(3, 3).T) @ np.linalg.inv(self.T).T
+
+    def jacobian(self, X: np.ndarray) -> np.ndarray:
+        """(n, 3, 3) dD/dX at points X (n, 3)."""
+        p = self._plane(X)
+        e, n = p[:, 0], p[:, 1]
+        z = np.zeros_like(e)
+        r2 = np.sqrt(2.0)
+        dmono = np.stack([np.stack([2 * e, z], 1), np.stack([r2 * n, r2 * e], 1),
+                          np.stack([z, 2 * n], 1)], 1)                 # (n, 3 monomials, 2)
+        dd = np.einsum("am,nmk,kj->naj", self.coef.reshape(3, 3), dmono, self.S @ self.T)
+        return np.einsum("ab,nbj->naj", np.linalg.inv(self.T), dd)
+
+
+    def follow(self, cams: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        """(T, 2, 4) affine cameras cams (T, 2, 4) moved with the warp's linear part at their
+        points' centres (T, 3), so that they still see the warped points where they saw them:
+        X' = X + D(X) ~ c + D(c) + (I + G)(X - c) (G = dD/dX at c) gives A' = A (I + G)^-1 and
+        p' = A c + p - A' (c + D(c)). What is left (the warp's curvature over a tile) is far
+        below a pixel, and the next adjustment takes it."""
+        A, p = cams[:, :, :3], cams[:, :, 3]
+        A_new = np.einsum("tij,tjk->tik", A, np.linalg.inv(np.eye(3) + self.jacobian(centres)))
+        p_new = (np.einsum("tij,tj->ti", A, centres) + p
+                 - np.einsum("tij,tj->ti", A_new, centres + self(centres)))
+        return np.concatenate([A_new, p_new[:, :, None]], 2)
+
+
+def _orthonormal(B: np.ndarray) -> np.ndarray:
+    """Orthonormal basis of the columns of B (rank-revealing: on flat ground the model's basis
+    is rank-deficient)."""
+    U, s, _ = np.linalg.svd(B, full_matrices=False)
+    return U[:, s > 1e-9 * s[0]] if len(s) and s[0] > 0 else U[:, :0]
+
+
+def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
+                  min_share: float = MIN_WARP_SHARE, trim: float = 4.0) -> tuple[BendWarp, dict]:
+    """The visible quadratic warp of structure X (N, 3, any affine frame) that removes what the
+    images' models cannot fit (see above), from each image's observations (point indices into
+    X, pixels (k, 2): each point once per image). Add warp(X) to X to unbend it. Observations
+    beyond `trim` times an image equation's RMS residual are left out (outliers). Returns the
+    warp and a summary: the warps' singular values (shares, largest first), how many were
+    estimated, the residual RMS (px), and the warp's size: the RMS over the points of the pixel
+    motion it causes (whitened units)."""
+    cams = [_image_coords(X[p], xy)[0][:, :3] for p, xy in images]
+    M = np.vstack(cams)
+    lam, V = np.linalg.eigh(M.T @ M / len(cams))
+    T = (V * np.sqrt(np.maximum(lam, 1e-300))) @ V.T
+    x0 = X.mean(0)
+    Xw = (X - x0) @ T.T
+    w0 = Xw.mean(0)
+    _, sp, Vp = np.linalg.svd(Xw - w0, full_matrices=False)
+    S = Vp[:2] / (sp[:2, None] / np.sqrt(len(X)))            # unit spread along each plane axis
+    warp = BendWarp(x0, T, S, w0, np.zeros(9))
+    p = warp._plane(X)
+    mono = np.stack([p[:, 0] ** 2, np.sqrt(2.0) * p[:, 0] * p[:, 1], p[:, 1] ** 2], 1)
+    Tinv = np.linalg.inv(T)
+    N, b, K, rss = np.zeros((9, 9)), np.zeros(9), 0, 0.0
+    for (pts, xy), P3 in zip(images, cams):
+        _, Xn, r, c, _, _ = _image_coords(X[pts], xy)
+        # pixel motion of each warp: the whitened displacement q_a m, through the mean camera
+        motion = np.einsum("km,ja->kjam", mono[pts], P3 @ Tinv).reshape(len(pts), 2, 9)
+        for k, B in enumerate((col_basis(Xn, r, c), row_basis(Xn, r))):
+            Q = _orthonormal(B)
+            res = xy[:, k] - Q @ (Q.T @ xy[:, k])
+            keep = np.abs(res) <= trim * max(float(np.sqrt(np.mean(res ** 2))), 1e-12)
+            Q = _orthonormal(B[keep])
+            res = xy[keep, k] - Q @ (Q.T @ xy[keep, k])
+            J = motion[keep, k] - Q @ (Q.T @ motion[keep, k])
+            N += J.T @ J
+            b += J.T @ res
+            rss += float(res @ res)
+            K += int(keep.sum())
+    lam, V = np.linalg.eigh(N)
+    lam, V = lam[::-1], V[:, ::-1]
+    share = np.sqrt(np.maximum(lam, 0.0) / max(K / 2.0, 1.0))  # px per px of motion, per observation
+    seen = share >= min_share
+    coef = V[:, seen] @ ((V[:, seen].T @ b) / lam[seen])
+    warp.coef = coef
+    moved = float(np.sqrt(np.mean(((mono @ coef.reshape(3, 3).T) ** 2).sum(1))))
+    return warp, {"warp_shares": share.tolist(), "warps_seen": int(seen.sum()),
+                  "residual_rms_px": float(np.sqrt(rss / max(K, 1))), "warp_rms_px": moved}

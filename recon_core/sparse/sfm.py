@@ -28,7 +28,8 @@ from recon_core.model.sparse_model import Observations, SparseModel, images_per_
 from recon_core.model.tiling import Tile
 from recon_core.sparse.bundle import bundle_adjust
 from recon_core.sparse.features import ImageFeatures
-from recon_core.geometry.pushbroom import correction_size, tile_corrections
+from recon_core.geometry.pushbroom import (MIN_TILES_FOR_CORRECTION, correction_size, estimate_bend,
+                                          tile_corrections)
 from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.matching import PairMatches
 from recon_core.sparse.tracks import Tracks
@@ -243,11 +244,18 @@ class IncrementalSfM:
         # with views of several dates: one pass's views (2-3, scanned alike) leave the vertical
         # warps invisible, and the correction would only move the structure along them
         # (README, "What the views can see")
+        # Each round starts with the bend step: the quadratic warp the views see, estimated from
+        # every image's model at once and taken out of the structure (README, "The bend step").
         rounds = self.cfg.correction_rounds if self.n_dates > 1 else 0
+        bend = []
         for k in range(1 + max(rounds, 1)):
             self._filter_outliers()
+            if k > 0 and rounds > 0 and self.cfg.bend_step:
+                bend.append(self._bend_step(apply=True))
             self._bundle("global", final=True, correct=k > 0 and rounds > 0,
                          converge=rounds <= 0 or k == rounds)
+        if bend:
+            bend.append(self._bend_step(apply=False))      # what is left after the last round
         self._emit_model()
         counts = self._correspondence_counts()
         reasons = {}
@@ -266,6 +274,7 @@ class IncrementalSfM:
                    "within_tile_correction": {"images": [m.images[i] for i in self._correction_info.get("images", [])],
                                               "rms_px": self._correction_info.get("rms_px", 0.0),
                                               "max_px": self._correction_info.get("max_px", 0.0)},
+                   "bend_steps": bend,
                    "seconds": time.time() - t0}
         return m
 
@@ -554,7 +563,7 @@ class IncrementalSfM:
         o = self.m.obs
         corr, info = tile_corrections(self.m.X[o.track[idx]], o.xy[idx], o.tile[idx], o.img[idx])
         fitted = corr.copy()
-        w = self.cfg.correction_extrapolation
+        w = 0.0 if self.cfg.bend_step else self.cfg.correction_extrapolation
         if w and self._corr_prev is not None:
             # one step further along the change since the last round, for the observations
             # fitted both times (README, "Extrapolated rounds")
@@ -567,6 +576,42 @@ class IncrementalSfM:
         o.corr[:] = 0.0
         o.corr[idx] = corr
         self._correction_info = info
+
+    def _bend_step(self, apply: bool) -> dict:
+        """The bend step (recon_core.geometry.pushbroom, "the bend step"): the visible quadratic
+        warp of the structure, estimated from every image's observations (each point once per
+        image, images with enough tiles to fit their model) and, when `apply`, taken out: the
+        points move by it and each registered tile camera follows its local linear part, so
+        that the cameras still see the points where they did. Returns the estimate's summary."""
+        m, o = self.m, self.m.obs
+        idx = m.active_obs()
+        pts = m.point_ids()
+        local = np.full(len(m.X), -1)
+        local[pts] = np.arange(len(pts))
+        images = []
+        for i in np.unique(o.img[idx]):
+            k = idx[o.img[idx] == i]
+            if len(np.unique(o.tile[k])) < MIN_TILES_FOR_CORRECTION:
+                continue
+            _, first = np.unique(o.track[k], return_index=True)
+            images.append((local[o.track[k[first]]], o.xy[k[first]]))
+        if len(images) < 2:
+            return {"images": len(images), "applied": False}
+        warp, info = estimate_bend(m.X[pts], images)
+        info = {"images": len(images), "applied": bool(apply and info["warps_seen"] > 0), **info}
+        if not info["applied"]:
+            return info
+        # each registered tile camera follows the warp at its points' centre
+        reg = np.flatnonzero(m.registered)
+        cnt = np.bincount(o.tile[idx], minlength=len(m.tiles)).astype(np.float64)
+        cen = np.stack([np.bincount(o.tile[idx], m.X[o.track[idx], a], minlength=len(m.tiles))
+                        for a in range(3)], 1) / np.maximum(cnt, 1.0)[:, None]
+        reg = reg[cnt[reg] > 0]
+        m.cams[reg] = warp.follow(m.cams[reg], cen[reg])
+        m.X[pts] += warp(m.X[pts])
+        self.bus.message(f"group {m.group}: bend step: {info['warps_seen']} of 9 quadratic warps seen, "
+                         f"the structure unbent by {info['warp_rms_px']:.2f} px RMS", "info", m.group)
+        return info
 
     def _bundle(self, scope: str, around: int | None = None, final: bool = False,
                 correct: bool = False, converge: bool | None = None) -> None:
