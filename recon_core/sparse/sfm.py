@@ -244,8 +244,9 @@ class IncrementalSfM:
         # with views of several dates: one pass's views (2-3, scanned alike) leave the vertical
         # warps invisible, and the correction would only move the structure along them
         # (README, "What the views can see")
-        # Each round starts with the bend step: the quadratic warp the views see, estimated from
-        # every image's model at once and taken out of the structure (README, "The bend step").
+        # Each round starts with the bend step, and the last adjustment is followed by one: the
+        # quadratic warp the views see, estimated from every image's model at once and taken out
+        # of the structure (README, "The bend step").
         rounds = self.cfg.correction_rounds if self.n_dates > 1 else 0
         bend = []
         for k in range(1 + max(rounds, 1)):
@@ -255,7 +256,11 @@ class IncrementalSfM:
             self._bundle("global", final=True, correct=k > 0 and rounds > 0,
                          converge=rounds <= 0 or k == rounds)
         if bend:
-            bend.append(self._bend_step(apply=False))      # what is left after the last round
+            # the last adjustment slides back part of the way (its minimum is flat along these
+            # warps: the tile cameras follow them); the step taken once more, after it, costs
+            # nothing in reprojection (the cameras follow: what is left is the warp's curvature
+            # over a tile, far below a pixel)
+            bend.append(self._bend_step(apply=True))
         self._emit_model()
         counts = self._correspondence_counts()
         reasons = {}
