@@ -89,7 +89,9 @@ class SfmConfig:
                                       # "Extrapolated rounds")
     bend_step: bool = True            # each correction round starts by estimating the quadratic
                                       # warp of the structure the views see from every image's
-                                      # model at once and taking it out (README, "The bend step")
+                                      # model at once and taking it out, and the last adjustment
+                                      # is followed by one (README, "The bend step"); false with
+                                      # correction_rounds = 2: the former extrapolated rounds
 
 
 @dataclass

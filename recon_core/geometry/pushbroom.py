@@ -201,10 +201,14 @@ def warp_observability(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]
 # The frame is affine (no metre exists before the upgrade), so the warps are measured in
 # pixels: the frame is whitened by the images' mean cameras (a displacement of 1 unit in any
 # direction moves the images by 1 px RMS), the ground plane's coordinates e, n by their spread,
-# and the 9 warps are X += q_a m with m in (e^2, sqrt(2) e n, n^2): an orthonormal family,
-# whatever the affine frame. Their singular values are then shares (px of motion no model can
-# re-fit per px of motion), the same in every affine frame.
+# and the 9 warps are X += q_a m with m in (e^2, sqrt(2) e n, n^2) (a canonical family whatever
+# the affine frame; not orthonormal over the points: their Gram matrix on `large` has a
+# diagonal of 1.8-1.9). Their singular values are then shares (px of motion no model can re-fit
+# per unit of warp, in px), the same in every affine frame.
 
+MIN_POINTS_PER_IMAGE = 50   # an image with fewer distinct points is left out of the estimate
+                            # (its model and its mean camera, which whitens the frame, would be
+                            # fitted to too little: the model has 11 terms per equation)
 MIN_WARP_SHARE = 0.02   # a warp is estimated when at least this share of the pixel motion it
                         # causes is beyond what every image's model can re-fit. Measured
                         # (render-free harness, from the truth without noise: the estimate's
@@ -269,11 +273,18 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
                   min_share: float = MIN_WARP_SHARE, trim: float = 4.0) -> tuple[BendWarp, dict]:
     """The visible quadratic warp of structure X (N, 3, any affine frame) that removes what the
     images' models cannot fit (see above), from each image's observations (point indices into
-    X, pixels (k, 2): each point once per image). Add warp(X) to X to unbend it. Observations
+    X, pixels (k, 2): each point once per image; images with fewer than MIN_POINTS_PER_IMAGE
+    points are left out, and with fewer than 2 left nothing is estimated). Add warp(X) to X to
+    unbend it. Observations
     beyond `trim` times an image equation's RMS residual are left out (outliers). Returns the
     warp and a summary: the warps' singular values (shares, largest first), how many were
     estimated, the residual RMS (px), and the warp's size: the RMS over the points of the pixel
     motion it causes (whitened units)."""
+    images = [(p, xy) for p, xy in images if len(p) >= MIN_POINTS_PER_IMAGE]
+    if len(images) < 2:
+        return BendWarp(X.mean(0), np.eye(3), np.zeros((2, 3)), np.zeros(3), np.zeros(9)), {
+            "images": len(images), "warp_shares": [], "warps_seen": 0, "residual_rms_px": 0.0,
+            "warp_rms_px": 0.0}
     cams = [_image_coords(X[p], xy)[0][:, :3] for p, xy in images]
     M = np.vstack(cams)
     lam, V = np.linalg.eigh(M.T @ M / len(cams))
@@ -282,7 +293,7 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     Xw = (X - x0) @ T.T
     w0 = Xw.mean(0)
     _, sp, Vp = np.linalg.svd(Xw - w0, full_matrices=False)
-    S = Vp[:2] / (sp[:2, None] / np.sqrt(len(X)))            # unit spread along each plane axis
+    S = Vp[:2] / np.maximum(sp[:2, None] / np.sqrt(len(X)), 1e-12)   # unit spread on each plane axis
     warp = BendWarp(x0, T, S, w0, np.zeros(9))
     p = warp._plane(X)
     mono = np.stack([p[:, 0] ** 2, np.sqrt(2.0) * p[:, 0] * p[:, 1], p[:, 1] ** 2], 1)
@@ -308,7 +319,9 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     share = np.sqrt(np.maximum(lam, 0.0) / max(K / 2.0, 1.0))  # px per px of motion, per observation
     seen = share >= min_share
     coef = V[:, seen] @ ((V[:, seen].T @ b) / lam[seen])
+    if not np.isfinite(coef).all():                 # a degenerate structure: nothing estimated
+        coef, seen = np.zeros(9), np.zeros(9, bool)
     warp.coef = coef
     moved = float(np.sqrt(np.mean(((mono @ coef.reshape(3, 3).T) ** 2).sum(1))))
-    return warp, {"warp_shares": share.tolist(), "warps_seen": int(seen.sum()),
+    return warp, {"images": len(images), "warp_shares": share.tolist(), "warps_seen": int(seen.sum()),
                   "residual_rms_px": float(np.sqrt(rss / max(K, 1))), "warp_rms_px": moved}

@@ -603,20 +603,46 @@ class IncrementalSfM:
         if len(images) < 2:
             return {"images": len(images), "applied": False}
         warp, info = estimate_bend(m.X[pts], images)
-        info = {"images": len(images), "applied": bool(apply and info["warps_seen"] > 0), **info}
+        info = {"applied": bool(apply and info["warps_seen"] > 0), **info}
         if not info["applied"]:
             return info
-        # each registered tile camera follows the warp at its points' centre
+        # each registered tile camera follows the warp at its points' centre (a tile without
+        # active observations: at the structure's centre)
         reg = np.flatnonzero(m.registered)
         cnt = np.bincount(o.tile[idx], minlength=len(m.tiles)).astype(np.float64)
         cen = np.stack([np.bincount(o.tile[idx], m.X[o.track[idx], a], minlength=len(m.tiles))
                         for a in range(3)], 1) / np.maximum(cnt, 1.0)[:, None]
-        reg = reg[cnt[reg] > 0]
+        cen[cnt == 0] = m.X[pts].mean(0)
+        held = m.cams[m.fixed].copy()
         m.cams[reg] = warp.follow(m.cams[reg], cen[reg])
         m.X[pts] += warp(m.X[pts])
+        self._restore_gauge(held)
         self.bus.message(f"group {m.group}: bend step: {info['warps_seen']} of 9 quadratic warps seen, "
                          f"the structure unbent by {info['warp_rms_px']:.2f} px RMS", "info", m.group)
         return info
+
+    def _restore_gauge(self, held: np.ndarray) -> None:
+        """Put the held camera entries (m.fixed: the initial pair's canonical frame) back to their
+        values `held` after the bend step moved them, by one 3D affine change of frame of every
+        camera and point (the structure's shape is unchanged: only its affine frame). The gauge
+        holds whole rows (2 of the first tile, 1 of the second): 12 numbers, one affine map."""
+        m = self.m
+        rows = np.argwhere(m.fixed.all(axis=2))                # (t, row) fully held
+        if len(rows) != 3:
+            return
+        new = m.cams[rows[:, 0], rows[:, 1]]                    # (3, 4)
+        old = held.reshape(-1, 4) if held.size == 12 else None
+        if old is None:
+            return
+        R = new[:, :3]
+        if abs(np.linalg.det(R)) < 1e-12 * max(np.abs(R).max(), 1e-300) ** 3:
+            return
+        # x = row . [X, 1]; with X = M X' + t the rows become [row[:3] M, row[:3] t + row[3]]
+        M = np.linalg.solve(R, old[:, :3])
+        t = np.linalg.solve(R, old[:, 3] - new[:, 3])
+        m.cams[:, :, :3], m.cams[:, :, 3] = m.cams[:, :, :3] @ M, m.cams[:, :, :3] @ t + m.cams[:, :, 3]
+        pts = m.point_ids()
+        m.X[pts] = (m.X[pts] - t) @ np.linalg.inv(M).T
 
     def _bundle(self, scope: str, around: int | None = None, final: bool = False,
                 correct: bool = False, converge: bool | None = None) -> None:

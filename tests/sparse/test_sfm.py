@@ -334,8 +334,18 @@ def test_bend_step_in_the_closing_rounds(tiny_site, tmp_path, monkeypatch):
 
     sfm_class = stage.IncrementalSfM
     monkeypatch.setattr(stage, "IncrementalSfM", lambda *a, **k: sfm_class(*a, **{**k, "n_dates": 2}))
+    held, real_step = [], sfm_class._bend_step
+
+    def spy(self, apply):
+        held.append(self.m.cams[self.m.fixed].copy())
+        return real_step(self, apply)
+
+    monkeypatch.setattr(sfm_class, "_bend_step", spy)
     state = run(tiny_site, tmp_path / "out", preset("tiny"), until="sparse", resume=False)
     m = state.models[0]
+    # the gauge (the initial pair's canonical frame) is where it was before the steps
+    assert len(held) == 2 and m.fixed.sum() == 12
+    np.testing.assert_allclose(m.cams[m.fixed], held[0], atol=1e-9)
     steps = m.stats["bend_steps"]
     assert len(steps) == 2 and all(st["applied"] for st in steps)
     assert steps[0]["images"] == len(m.images) and 0 < steps[0]["warps_seen"] < 9

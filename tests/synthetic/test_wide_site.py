@@ -168,6 +168,13 @@ def test_bend_step_finds_a_dome_in_any_affine_frame(large_views):
         shares.append(info["warp_shares"])
     np.testing.assert_allclose(shares[0], shares[1], rtol=1e-6, atol=1e-9)
     assert shares[0][6] > 0.02 > 5 * shares[0][7]       # the weakest seen, far from the pair
+    # an image with too few points (its model and mean camera underdetermined) is left out,
+    # not allowed to skew the frame's whitening
+    views = _per_image(site)
+    few = (views[0][0][:3], views[0][1][:3] + [5000.0, 0.0])
+    warp, info = estimate_bend(bent, views + [few])
+    assert info["images"] == len(views) and info["warps_seen"] == 7
+    assert structure_vs_truth(bent + warp(bent), Xt)["quadratic_range_m"] < 0.15
     # the truth itself is left nearly alone: what is found there is the models' error and noise
     warp, info = estimate_bend(Xt, _per_image(site))
     assert structure_vs_truth(Xt + warp(Xt), Xt)["quadratic_range_m"] < 0.15
