@@ -61,15 +61,10 @@ def bend_observability(model, H: np.ndarray, max_per_image: int = 20000, seed: i
     X = apply_affine_3d(H, model.X[ids])
     slot = np.full(len(model.X), -1, np.int64)
     slot[ids] = np.arange(len(ids))
-    o, idx = model.obs, model.active_obs()
+    o = model.obs
     rng = np.random.default_rng(seed)
     images = []
-    for i in range(len(model.images)):
-        k = idx[o.img[idx] == i]
-        _, first = np.unique(o.track[k], return_index=True)
-        k = k[first]
-        if len(k) < 50:
-            continue
+    for _, k in model.views_per_image(min_points=50):
         if len(k) > max_per_image:
             k = np.sort(rng.choice(k, max_per_image, replace=False))
         images.append((slot[o.track[k]], o.xy[k]))

@@ -80,6 +80,21 @@ class SparseModel:
     def point_ids(self) -> np.ndarray:
         return np.flatnonzero(self.has_point)
 
+    def views_per_image(self, min_points: int = 0, min_tiles: int = 0) -> list[tuple[int, np.ndarray]]:
+        """Each image's active observations, each point once (the first observation of each
+        track): [(image index, observation indices)] for the images with at least min_points
+        such points in at least min_tiles tiles."""
+        o, idx = self.obs, self.active_obs()
+        out = []
+        for i in np.unique(o.img[idx]):
+            k = idx[o.img[idx] == i]
+            if len(np.unique(o.tile[k])) < min_tiles:
+                continue
+            _, first = np.unique(o.track[k], return_index=True)
+            if len(first) >= min_points:
+                out.append((int(i), k[first]))
+        return out
+
     def reprojection(self, idx: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(observation indices, pixel errors) for the active observations."""
         idx = self.active_obs() if idx is None else idx

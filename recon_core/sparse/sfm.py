@@ -593,13 +593,8 @@ class IncrementalSfM:
         pts = m.point_ids()
         local = np.full(len(m.X), -1)
         local[pts] = np.arange(len(pts))
-        images = []
-        for i in np.unique(o.img[idx]):
-            k = idx[o.img[idx] == i]
-            if len(np.unique(o.tile[k])) < MIN_TILES_FOR_CORRECTION:
-                continue
-            _, first = np.unique(o.track[k], return_index=True)
-            images.append((local[o.track[k[first]]], o.xy[k[first]]))
+        images = [(local[o.track[k]], o.xy[k])
+                  for _, k in m.views_per_image(min_tiles=MIN_TILES_FOR_CORRECTION)]
         if len(images) < 2:
             return {"images": len(images), "applied": False}
         warp, info = estimate_bend(m.X[pts], images)
