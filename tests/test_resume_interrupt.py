@@ -81,8 +81,9 @@ def test_a_rerun_sweeps_an_interrupted_runs_scratch(tiny_run, tmp_path):
     (lay.group_dir(0) / ".dense_parts_x1y2z3w4").mkdir()
     (out / "dsm_blocks_q1w2e3r4").mkdir()
     (out / ".dsm_work_a1s2d3f4").mkdir()
+    (out / ".sparse_desc_z8x7c6v5").mkdir()
     (out / ".keepme").write_text("a user's file")
-    assert len(lay.scratch()) == 7
+    assert len(lay.scratch()) == 8
     run(site, out, preset("tiny"))                            # every stage reloaded
     assert lay.scratch() == [] and (out / ".keepme").exists() and lay.dsm.exists()
 

@@ -136,7 +136,8 @@ class OutLayout:
     def scratch(self) -> list[Path]:
         """Scratch left by an interrupted run: atomic-write temporaries (.NAME.XXXXXXXX.SUFFIX, and
         GDAL's .ovr.tmp of one), dense job parts (.dense_parts_*), spilled DSM blocks
-        (dsm_blocks_*) and the DSM stage's grids on disk (.dsm_work_*), down to the group
+        (dsm_blocks_*), the DSM stage's grids on disk (.dsm_work_*) and the sparse stage's
+        spilled descriptors (.sparse_desc_*), down to the group
         folders. (One run per output folder at a time.)"""
         found = []
         for d in [self.root, self.root / "stages", self.root / "upgrade", self.root / "eval",
@@ -151,7 +152,7 @@ class OutLayout:
         return self.report.exists() or (self.root / "affine").is_dir()
 
 
-_SCRATCH = re.compile(r"\.[^/]+\.[A-Za-z0-9_]{8}\.[A-Za-z0-9]+(\.ovr\.tmp)?|\.dense_parts_[A-Za-z0-9_]+|\.dsm_work_[A-Za-z0-9_]+|dsm_blocks_[A-Za-z0-9_]+")
+_SCRATCH = re.compile(r"\.[^/]+\.[A-Za-z0-9_]{8}\.[A-Za-z0-9]+(\.ovr\.tmp)?|\.dense_parts_[A-Za-z0-9_]+|\.dsm_work_[A-Za-z0-9_]+|\.sparse_desc_[A-Za-z0-9_]+|dsm_blocks_[A-Za-z0-9_]+")
 
 
 def _indices(folder: Path, pattern: str, keep) -> list[int]:

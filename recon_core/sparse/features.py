@@ -8,6 +8,7 @@ image into one affine frame (GEOMETRY_NOTES, "Keypoints in overlaps").
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -34,6 +35,15 @@ class ImageFeatures:
         """The same keypoints with an empty (n, 0) descriptor array: what the SfM needs once
         matching is done (the descriptors are 128 of a keypoint's ~150 bytes)."""
         return ImageFeatures(self.image, self.xy, np.empty((len(self.xy), 0), np.uint8), self.scale,
+                             self.response, self.gray)
+
+    def spilled(self, path: Path) -> "ImageFeatures":
+        """The same keypoints with the descriptors written to `path` (.npy) and read back as a
+        read-only memory map: matching reads each tile's descriptors when it needs them, and
+        the page cache, not the process, holds them (a 20 x 20 km scene: ~72 M keypoints,
+        9 GB of descriptors)."""
+        np.save(path, self.desc)
+        return ImageFeatures(self.image, self.xy, np.load(path, mmap_mode="r"), self.scale,
                              self.response, self.gray)
 
     def subset(self, idx: np.ndarray) -> "ImageFeatures":

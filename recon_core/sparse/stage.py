@@ -4,8 +4,10 @@ the models are saved by recon_core.io.models."""
 from __future__ import annotations
 
 import itertools
+import tempfile
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -53,9 +55,12 @@ def select_pairs(links: dict[tuple[int, int], CoarseLink], n_images: int, k: int
 
 
 def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None,
-                      image_groups: list[int] | None = None) -> tuple[SparseModel, dict]:
+                      image_groups: list[int] | None = None,
+                      scratch_dir: Path | None = None) -> tuple[SparseModel, dict]:
     """Run the sparse affine reconstruction of one date group (or, with image_groups, the date
-    group of each image, of several groups in one frame: see reconstruct_joint)."""
+    group of each image, of several groups in one frame: see reconstruct_joint). The SIFT
+    descriptors are spilled to a scratch folder in scratch_dir while matching reads them
+    (_features_and_matches)."""
     bus = bus or EventBus()
     g = group.index
     names = [im.name for im in group.images]
@@ -67,61 +72,8 @@ def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None,
     rng = np.random.default_rng(cfg.seed)
     tiles = group_tiles(group, cfg)
 
-    t0 = time.time()
-    tones, tone_warnings = group_tone_curves(group.images, cfg.features.stretch_percentiles)
-    for w in tone_warnings:
-        bus.message(f"group {g}: {w}", "warning", g)
-    feats: list[ImageFeatures] = []
-    for k, im in enumerate(group.images):
-        bus.progress("features", k, len(names), im.name, group=g)
-        feats.append(detect_image(im, cfg.features, tones[k]))
-        if len(feats[-1]) < 100:
-            bus.message(f"group {g}: {im.name}: only {len(feats[-1])} keypoints (blank, saturated or "
-                        "very small image?): its tiles will hardly register", "warning", g)
-    bus.progress("features", len(names), len(names), f"{sum(len(f) for f in feats)} keypoints", group=g)
-    timings["features"] = time.time() - t0
-
-    t0 = time.time()
-    factor = cfg.matching.coarse_factor
-    overviews = [detect_overview(im, max(1, min(factor, min(im.width, im.height) // 128)), tones[k])
-                 for k, im in enumerate(group.images)]
-    links: dict[tuple[int, int], CoarseLink] = {}
-    for a, b in itertools.combinations(range(len(names)), 2):
-        link = coarse_link(names[a], overviews[a], names[b], overviews[b])
-        if link is not None:
-            links[(a, b)] = link
-    chosen = select_pairs(links, len(names), cfg.matching.k_partners, image_groups,
-                          cfg.sfm.joint_partners if image_groups else 0)
-    pairs: dict[tuple[int, int], PairMatches] = {}
-    for n, (a, b) in enumerate(chosen):
-        bus.progress("matching", n, len(chosen), f"{names[a]} x {names[b]}", group=g)
-        pm = match_pair(feats[a], feats[b], links[(a, b)], tiles[names[a]], tiles[names[b]],
-                        cfg.matching, rng)
-        if pm.n >= cfg.matching.min_inliers:
-            pairs[(a, b)] = pm
-        else:
-            bus.message(f"group {g}: {names[a]} x {names[b]}: only {pm.n} verified matches, pair dropped",
-                        "warning", g)
-    bus.progress("matching", len(chosen), len(chosen), f"{sum(p.n for p in pairs.values())} matches", group=g)
-    timings["matching"] = time.time() - t0
-    if image_groups is not None:
-        cross = np.zeros(len(names), int)
-        for (a, b), pm in pairs.items():
-            if image_groups[a] != image_groups[b]:
-                cross[[a, b]] += pm.n
-        weak = [f"{names[k]} ({cross[k]})" for k in range(len(names)) if cross[k] < cfg.sfm.joint_min_matches]
-        if weak:
-            raise JointUnavailable(f"too few verified matches with the other date groups' images "
-                                   f"(< {cfg.sfm.joint_min_matches}): {', '.join(weak)}")
-    if not pairs:
-        raise ReconstructionError(f"group {g}: no image pair has enough verified matches "
-                                  f"(>= {cfg.matching.min_inliers}); the images may not overlap "
-                                  f"({', '.join(names)})")
-
-    # matching done: the refinement and the SfM need positions and intensities only; the
-    # descriptors would otherwise stay in memory for the whole SfM (`large`: 5.2 M keypoints,
-    # 670 MB; a 20 x 20 km scene ~72 M, 9 GB)
-    feats = [f.without_descriptors() for f in feats]
+    feats, links, pairs = _features_and_matches(group, cfg, bus, tiles, rng, image_groups, timings,
+                                                scratch_dir)
     t0 = time.time()
     tracks = build_tracks([len(f) for f in feats], [(a, b, pm) for (a, b), pm in pairs.items()])
     refinement = None
@@ -150,6 +102,73 @@ def reconstruct_group(group: Group, cfg: Config, bus: EventBus | None = None,
         summary["tie_point_refinement"] = refinement.summary()
     bus.emit(StageDone("sparse", sum(timings.values()), summary, g))
     return model, summary
+
+
+def _features_and_matches(group: Group, cfg: Config, bus: EventBus, tiles: dict[str, list[Tile]], rng,
+                          image_groups: list[int] | None, timings: dict[str, float],
+                          scratch_dir: Path | None) -> tuple[list[ImageFeatures], dict, dict]:
+    """Each image's SIFT features, the coarse links between images and the verified matches of
+    the chosen pairs. The descriptors live in .npy files of a scratch folder (in scratch_dir:
+    the run's OUT, swept if the run is interrupted; the system's temporary folder when None),
+    memory-mapped while matching reads them, and are gone when it returns: the features come
+    back without them."""
+    g = group.index
+    names = [im.name for im in group.images]
+    with tempfile.TemporaryDirectory(prefix=".sparse_desc_", dir=scratch_dir) as folder:
+        spill = Path(folder)
+        t0 = time.time()
+        tones, tone_warnings = group_tone_curves(group.images, cfg.features.stretch_percentiles)
+        for w in tone_warnings:
+            bus.message(f"group {g}: {w}", "warning", g)
+        feats: list[ImageFeatures] = []
+        for k, im in enumerate(group.images):
+            bus.progress("features", k, len(names), im.name, group=g)
+            feats.append(detect_image(im, cfg.features, tones[k]).spilled(spill / f"{k}.npy"))
+            if len(feats[-1]) < 100:
+                bus.message(f"group {g}: {im.name}: only {len(feats[-1])} keypoints (blank, saturated or "
+                            "very small image?): its tiles will hardly register", "warning", g)
+        bus.progress("features", len(names), len(names), f"{sum(len(f) for f in feats)} keypoints", group=g)
+        timings["features"] = time.time() - t0
+
+        t0 = time.time()
+        factor = cfg.matching.coarse_factor
+        overviews = [detect_overview(im, max(1, min(factor, min(im.width, im.height) // 128)), tones[k])
+                     for k, im in enumerate(group.images)]
+        links: dict[tuple[int, int], CoarseLink] = {}
+        for a, b in itertools.combinations(range(len(names)), 2):
+            link = coarse_link(names[a], overviews[a], names[b], overviews[b])
+            if link is not None:
+                links[(a, b)] = link
+        chosen = select_pairs(links, len(names), cfg.matching.k_partners, image_groups,
+                              cfg.sfm.joint_partners if image_groups else 0)
+        pairs: dict[tuple[int, int], PairMatches] = {}
+        for n, (a, b) in enumerate(chosen):
+            bus.progress("matching", n, len(chosen), f"{names[a]} x {names[b]}", group=g)
+            pm = match_pair(feats[a], feats[b], links[(a, b)], tiles[names[a]], tiles[names[b]],
+                            cfg.matching, rng)
+            if pm.n >= cfg.matching.min_inliers:
+                pairs[(a, b)] = pm
+            else:
+                bus.message(f"group {g}: {names[a]} x {names[b]}: only {pm.n} verified matches, pair dropped",
+                            "warning", g)
+        bus.progress("matching", len(chosen), len(chosen), f"{sum(p.n for p in pairs.values())} matches", group=g)
+        timings["matching"] = time.time() - t0
+        if image_groups is not None:
+            cross = np.zeros(len(names), int)
+            for (a, b), pm in pairs.items():
+                if image_groups[a] != image_groups[b]:
+                    cross[[a, b]] += pm.n
+            weak = [f"{names[k]} ({cross[k]})" for k in range(len(names)) if cross[k] < cfg.sfm.joint_min_matches]
+            if weak:
+                raise JointUnavailable(f"too few verified matches with the other date groups' images "
+                                       f"(< {cfg.sfm.joint_min_matches}): {', '.join(weak)}")
+        if not pairs:
+            raise ReconstructionError(f"group {g}: no image pair has enough verified matches "
+                                      f"(>= {cfg.matching.min_inliers}); the images may not overlap "
+                                      f"({', '.join(names)})")
+
+        # matching done: the refinement and the SfM need positions and intensities only
+        return [f.without_descriptors() for f in feats], links, pairs
 
 
 # -- several date groups in one frame ------------------------------------------------------------
@@ -256,7 +275,8 @@ def split_model(model: SparseModel, group: int, images: list[str]) -> SparseMode
     return part
 
 
-def reconstruct_joint(groups: list[Group], cfg: Config, bus: EventBus) -> dict[int, tuple[SparseModel, dict]] | None:
+def reconstruct_joint(groups: list[Group], cfg: Config, bus: EventBus,
+                      scratch_dir: Path | None = None) -> dict[int, tuple[SparseModel, dict]] | None:
     """All date groups in one affine reconstruction (one frame), split back into one model per
     group; None (with a message) when the groups' images do not match well enough across dates
     or a group would lose its second view."""
@@ -265,7 +285,7 @@ def reconstruct_joint(groups: list[Group], cfg: Config, bus: EventBus) -> dict[i
     router = GroupRouter(bus, image_group)
     try:
         model, summary = reconstruct_group(Group(JOINT, images), cfg, router,
-                                           [image_group[im.name] for im in images])
+                                           [image_group[im.name] for im in images], scratch_dir)
     except (JointUnavailable, ReconstructionError) as exc:
         bus.message(f"date groups reconstructed one by one, not jointly: {exc}", "warning")
         return None
@@ -294,13 +314,13 @@ def run(state, bus: EventBus) -> dict:
     out = {"groups": {}}
     joint = None
     if state.cfg.sfm.joint_groups and len(state.groups) > 1 and all(len(g.images) >= 2 for g in state.groups):
-        joint = reconstruct_joint(state.groups, state.cfg, bus)
+        joint = reconstruct_joint(state.groups, state.cfg, bus, state.layout.root)
     for g in state.groups:
         if joint is not None:
             model, summary = joint[g.index]
         else:
             try:
-                model, summary = reconstruct_group(g, state.cfg, bus)
+                model, summary = reconstruct_group(g, state.cfg, bus, scratch_dir=state.layout.root)
             except ReconstructionError as exc:
                 bus.emit(Message("error", str(exc), g.index))
                 out["groups"][str(g.index)] = {"error": str(exc), "images": [im.name for im in g.images]}

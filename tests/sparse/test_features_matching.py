@@ -117,3 +117,40 @@ def test_match_descriptors_is_opencvs_brute_force_ratio_test(mutual):
     a, b = match_descriptors(d1, d2, 0.8, mutual)
     assert len(i1) >= 140
     assert np.array_equal(a, i1) and np.array_equal(b, fwd[i1])
+
+
+def test_matching_on_spilled_descriptors_equals_matching_in_memory(tmp_path):
+    from recon_core.config import MatchingConfig
+    from recon_core.model.tiling import tile_image
+    from recon_core.sparse.matching import match_pair
+
+    a, b = _pair(tmp_path)
+    tone = tone_curve_for([a, b])
+    fa, fb = detect_image(a, FeatureConfig(), tone), detect_image(b, FeatureConfig(), tone)
+    link = coarse_link("a", detect_overview(a, 2, tone), "b", detect_overview(b, 2, tone))
+    ta, tb = tile_image(a.name, 640, 640, 300), tile_image(b.name, 640, 640, 300)
+    mem = match_pair(fa, fb, link, ta, tb, MatchingConfig(), np.random.default_rng(0))
+    sa, sb = fa.spilled(tmp_path / "a.npy"), fb.spilled(tmp_path / "b.npy")
+    assert isinstance(sa.desc, np.memmap) and not sa.desc.flags.writeable
+    assert np.array_equal(np.asarray(sa.desc), fa.desc) and np.array_equal(sa.xy, fa.xy)
+    disk = match_pair(sa, sb, link, ta, tb, MatchingConfig(), np.random.default_rng(0))
+    assert mem.n > 100
+    assert np.array_equal(mem.idx_i, disk.idx_i) and np.array_equal(mem.idx_j, disk.idx_j)
+
+
+def test_the_sparse_stage_spills_descriptors_to_out_and_removes_them(tiny_site, tmp_path):
+    from recon_core.config import preset
+    from recon_core.events import EventBus, StageProgress
+    from recon_core.pipeline import run
+
+    out = tmp_path / "out"
+    seen = []
+
+    def listen(ev):
+        if isinstance(ev, StageProgress) and ev.stage == "matching":
+            seen.append(sorted(p.name for d in out.glob(".sparse_desc_*") for p in d.iterdir()))
+
+    state = run(tiny_site, out, preset("tiny"), until="sparse", bus=EventBus(listen))
+    n_images = len(state.groups[0].images)
+    assert seen and all(s == [f"{k}.npy" for k in range(n_images)] for s in seen)
+    assert not list(out.glob(".sparse_desc_*")) and state.models
