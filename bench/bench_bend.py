@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 import time
 from pathlib import Path
 
@@ -31,6 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from recon_core.synthetic.generator import PRESETS
 from recon_core.synthetic.wide_site import image_ties, make_wide_site, structure_vs_truth
 
 
@@ -65,14 +67,24 @@ def main(argv=None) -> int:
                          "closing rounds with the correction refitted, as the SfM does (and stop)")
     ap.add_argument("--extrapolation", default="0,1",
                     help="comma-separated sfm.correction_extrapolation values for --closing")
+    ap.add_argument("--image-size", type=int, default=0,
+                    help="every image of the preset this many px a side (e.g. 20000: a 10 km scene; "
+                         "the cameras only: nothing is rendered)")
+    ap.add_argument("--ring-step", type=float, default=300.0,
+                    help="ring width (m) of the incremental growth (--grow, --closing)")
     ap.add_argument("--bend-step", action="store_true",
                     help="--closing with the bend step at the start of each round (sfm.bend_step; "
                          "no extrapolation), after the rounds without it")
     a = ap.parse_args(argv)
     t0 = time.time()
-    site = make_wide_site(a.preset, a.seed, images=[s for s in a.images.split(",") if s] or None,
+    preset = PRESETS[a.preset]
+    if a.image_size:
+        preset = replace(preset, name=f"{preset.name}-{a.image_size}px", image_size=(a.image_size,) * 2,
+                         first_image_size=None)
+    site = make_wide_site(preset, a.seed, images=[s for s in a.images.split(",") if s] or None,
                           n_points=a.points, noise_px=a.noise, d=a.tile_size)
-    print(f"{a.preset} seed {a.seed}: {len(site.names)} images, {len(site.tiles)} tiles of d = {a.tile_size}, "
+    ext = np.ptp(site.X_true[:, :2], axis=0) / 1e3
+    print(f"{preset.name} seed {a.seed} ({ext[0]:.1f} x {ext[1]:.1f} km): {len(site.names)} images, {len(site.tiles)} tiles of d = {a.tile_size}, "
           f"{len(site.X_true)} points, {len(site.obs_cam)} observations, noise {a.noise} px "
           f"({time.time() - t0:.1f} s)")
     for n, dz in zip(site.names, site.height_px_per_m):
@@ -92,7 +104,7 @@ def main(argv=None) -> int:
         return 0
     if a.closing:
         closing(site, a.closing, [float(w) for w in a.extrapolation.split(",") if w],
-                [float(s) for s in a.sigma_tie.split(",") if s][-1], a.noise, a.bend_step)
+                [float(s) for s in a.sigma_tie.split(",") if s][-1], a.noise, a.bend_step, a.ring_step)
         return 0
     cams0 = site.best_tile_cameras(site.X_true)
     base = site.adjust(cams0, site.X_true, max_nfev=a.max_nfev)
@@ -111,7 +123,7 @@ def main(argv=None) -> int:
         print(line(f"tied, sigma_tie {sig} px", structure_vs_truth(X, site.X_true),
                    f"[{res.rms_px:.4f} px, weight {w:.1f}, {its} it, {secs:.1f} s]"))
     if a.grow:
-        grow(site, sigma_obs, [float(s) for s in a.sigma_tie.split(",") if s][-1], a.rounds)
+        grow(site, sigma_obs, [float(s) for s in a.sigma_tie.split(",") if s][-1], a.rounds, a.ring_step)
     return 0
 
 
@@ -147,7 +159,7 @@ def _tied_adjustment(site, cams, X, on, reg, use, fixed, corr, weight, rng):
                          np.flatnonzero(on), fixed, max_nfev=50, ties=ties)
 
 
-def grow(site, sigma_obs: float, sigma_tie: float, rounds: int) -> None:
+def grow(site, sigma_obs: float, sigma_tie: float, rounds: int, ring_step: float = 300.0) -> None:
     """The model grown in rings from the truth of a central patch (WideSite.grow: nothing else of
     the truth), with and without the within-tile correction, then `rounds` closing adjustments
     with the per-image tie (and the correction refitted before each, when it is on)."""
@@ -155,7 +167,7 @@ def grow(site, sigma_obs: float, sigma_tie: float, rounds: int) -> None:
 
     for corrected in (False, True):
         t0 = time.time()
-        cams, X, on = site.grow(correction=corrected)
+        cams, X, on = site.grow(correction=corrected, step_m=ring_step)
         reg, use, fixed = _gauge_and_obs(site, cams, on)
         oc, op = site.obs_cam[use], site.obs_pt[use]
         tag = "with the correction" if corrected else "no correction"
@@ -171,7 +183,7 @@ def grow(site, sigma_obs: float, sigma_tie: float, rounds: int) -> None:
 
 
 def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: float,
-            bend: bool = False) -> None:
+            bend: bool = False, ring_step: float = 300.0) -> None:
     """The SfM's closing adjustments on a model grown without the correction (WideSite.grow):
     one tied adjustment, then `rounds` with the within-tile correction refitted, each round's
     correction extrapolated by w (sfm.correction_extrapolation) along its change since the
@@ -182,7 +194,10 @@ def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: floa
     from recon_core.geometry.pushbroom import estimate_bend, tile_corrections
 
     t0 = time.time()
-    cams0, X0, on = site.grow(correction=False)
+    cams0, X0, on = site.grow(correction=False, step_m=ring_step)
+    print(f"grown in rings of {ring_step:g} m: {int(on.sum())} points, "
+          f"{int((np.abs(cams0).sum(axis=(1, 2)) > 0).sum())} of {len(cams0)} tiles [{time.time() - t0:.0f} s]",
+          flush=True)
     reg, use, fixed = _gauge_and_obs(site, cams0, on)
     oc, op = site.obs_cam[use], site.obs_pt[use]
     weight = (max(noise_px, 0.02) / np.sqrt(2.0) / sigma_tie) ** 2

@@ -14,6 +14,7 @@ Truth for tests and benchmarks only; nothing here is read by the pipeline.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,6 +22,9 @@ from recon_core.evaluation.truth import bend_report
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.model.tiling import Tile, tile_image
 from recon_core.sparse.bundle import BAResult, bundle_adjust
+
+if TYPE_CHECKING:
+    from recon_core.synthetic.generator import SynthPreset
 
 
 @dataclass
@@ -84,10 +88,16 @@ class WideSite:
         point_on = np.zeros(N, bool)
         img_of_obs = self.tile_image[self.obs_cam]
         fixed = None
-        for stage, radius in enumerate(radii):
+        stage = -1
+        while radii:
+            stage += 1
+            radius = radii.pop(0)
             new_tiles = (dist <= radius) & ~tile_on
             if stage > 0:
                 new_tiles = self._resect(new_tiles, tile_on, cams, X, point_on, corr)
+                if not radii and new_tiles.any() and (np.isfinite(dist) & ~tile_on & ~new_tiles).any():
+                    radii.append(radius)    # the last ring again while it registers tiles: a tile
+                                            # waits for enough points (as the SfM retries it)
             tile_on |= new_tiles
             seen = tile_on[self.obs_cam]
             n_img = np.zeros(N, int)
@@ -148,11 +158,12 @@ class WideSite:
         return done
 
 
-def make_wide_site(preset: str = "flat", seed: int = 0, *, images: list[str] | None = None,
+def make_wide_site(preset: str | SynthPreset = "flat", seed: int = 0, *, images: list[str] | None = None,
                    n_points: int = 30000, noise_px: float = 0.1, d: int = 1000,
                    rng_seed: int = 1, min_obs_per_tile: int = 20) -> WideSite:
     """Points over the common footprint of the preset's images (or of `images`), seen by >= 2
-    images. Uses the preset's cameras without rendering (design_cameras)."""
+    images. Uses the preset's cameras without rendering (design_cameras); `preset` is a name or
+    a SynthPreset (e.g. a preset with larger images: a wide site that is never rendered)."""
     from recon_core.synthetic.generator import design_cameras
 
     scene, cams = design_cameras(preset, seed)
