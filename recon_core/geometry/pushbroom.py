@@ -270,7 +270,8 @@ def _orthonormal(B: np.ndarray) -> np.ndarray:
 
 
 def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
-                  min_share: float = MIN_WARP_SHARE, trim: float = 4.0) -> tuple[BendWarp, dict]:
+                  min_share: float = MIN_WARP_SHARE, trim: float = 4.0,
+                  chunk: int = 200_000) -> tuple[BendWarp, dict]:
     """The visible quadratic warp of structure X (N, 3, any affine frame) that removes what the
     images' models cannot fit (see above), from each image's observations (point indices into
     X, pixels (k, 2): each point once per image; images with fewer than MIN_POINTS_PER_IMAGE
@@ -279,7 +280,8 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     beyond `trim` times an image equation's RMS residual are left out (outliers). Returns the
     warp and a summary: the warps' singular values (shares, largest first), how many were
     estimated, the residual RMS (px), and the warp's size: the RMS over the points of the pixel
-    motion it causes (whitened units)."""
+    motion it causes (whitened units). Each image's equations are read `chunk` observations at a
+    time (_unexplained): memory is bounded whatever the image's size."""
     images = [(p, xy) for p, xy in images if len(p) >= MIN_POINTS_PER_IMAGE]
     if len(images) < 2:
         return BendWarp(X.mean(0), np.eye(3), np.zeros((2, 3)), np.zeros(3), np.zeros(9)), {
@@ -301,19 +303,19 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     N, b, K, rss = np.zeros((9, 9)), np.zeros(9), 0, 0.0
     for (pts, xy), P3 in zip(images, cams):
         _, Xn, r, c, _, _ = _image_coords(X[pts], xy)
-        # pixel motion of each warp: the whitened displacement q_a m, through the mean camera
-        motion = np.einsum("km,ja->kjam", mono[pts], P3 @ Tinv).reshape(len(pts), 2, 9)
-        for k, B in enumerate((col_basis(Xn, r, c), row_basis(Xn, r))):
-            Q = _orthonormal(B)
-            res = xy[:, k] - Q @ (Q.T @ xy[:, k])
-            keep = np.abs(res) <= trim * max(float(np.sqrt(np.mean(res ** 2))), 1e-12)
-            Q = _orthonormal(B[keep])
-            res = xy[keep, k] - Q @ (Q.T @ xy[keep, k])
-            J = motion[keep, k] - Q @ (Q.T @ motion[keep, k])
-            N += J.T @ J
-            b += J.T @ res
-            rss += float(res @ res)
-            K += int(keep.sum())
+        M3 = P3 @ Tinv
+        for k in range(2):
+            def rows(sl, k=k):
+                """[model basis | motion of the 9 warps | pixel] of observations sl: the pixel
+                motion of each warp is the whitened displacement q_a m through the mean camera."""
+                B = col_basis(Xn[sl], r[sl], c[sl]) if k == 0 else row_basis(Xn[sl], r[sl])
+                motion = np.einsum("km,a->kam", mono[pts[sl]], M3[k]).reshape(-1, 9)
+                return np.hstack([B, motion, xy[sl, k:k + 1]])
+            Nk, bk, rk, nk = _unexplained(rows, len(pts), trim, chunk)
+            N += Nk
+            b += bk
+            rss += rk
+            K += nk
     lam, V = np.linalg.eigh(N)
     lam, V = lam[::-1], V[:, ::-1]
     share = np.sqrt(np.maximum(lam, 0.0) / max(K / 2.0, 1.0))  # px per px of motion, per observation
@@ -325,3 +327,50 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     moved = float(np.sqrt(np.mean(((mono @ coef.reshape(3, 3).T) ** 2).sum(1))))
     return warp, {"images": len(images), "warp_shares": share.tolist(), "warps_seen": int(seen.sum()),
                   "residual_rms_px": float(np.sqrt(rss / max(K, 1))), "warp_rms_px": moved}
+
+
+def _stacked_r(rows, n: int, chunk: int, keep: np.ndarray | None = None) -> np.ndarray:
+    """R of the QR decomposition of the n x m matrix whose rows rows(sl) gives, read by chunks of
+    `chunk` rows (and only the rows in `keep`): the R of each chunk stacked under the R so far
+    and decomposed again (a tall-skinny QR). R^T R is the whole matrix's Gram matrix, and
+    least-squares projections on its columns are those on the whole matrix's columns."""
+    R = None
+    for s0 in range(0, n, chunk):
+        sl = np.arange(s0, min(s0 + chunk, n))
+        if keep is not None:
+            sl = sl[keep[sl]]
+        if not len(sl):
+            continue
+        A = rows(sl)
+        R = np.linalg.qr(A if R is None else np.vstack([R, A]), mode="r")
+    return R
+
+
+def _unexplained(rows, n: int, trim: float, chunk: int) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """One equation (column or row) of one image in the bend estimate: rows(sl) gives
+    [basis (p) | warp motions (9) | pixel (1)] of observations sl. The model (the basis) is
+    fitted to the pixels; observations beyond `trim` times its RMS residual are left out; of
+    the rest, what the model cannot fit of the warps' motion (J) and of the pixels (res).
+    Returns J^T J, J^T res, res^T res and the number of observations kept. Read by chunks
+    (_stacked_r): the same figures as from the whole matrix, in bounded memory."""
+    R = _stacked_r(rows, n, chunk)
+    p = R.shape[1] - 10
+    theta = _lstsq_r(R[:, :p], R[:, -1:])[:, 0]
+    res2 = np.empty(n)
+    for s0 in range(0, n, chunk):
+        A = rows(np.arange(s0, min(s0 + chunk, n)))
+        res2[s0:s0 + len(A)] = (A[:, -1] - A[:, :p] @ theta) ** 2
+    keep = res2 <= trim ** 2 * max(float(np.mean(res2)), 1e-24)
+    R = _stacked_r(rows, n, chunk, keep)
+    Q = _orthonormal(R[:, :p])
+    rest = R[:, p:] - Q @ (Q.T @ R[:, p:])               # what the model cannot fit: [J | res]
+    G = rest.T @ rest
+    return G[:9, :9], G[:9, 9], float(G[9, 9]), int(keep.sum())
+
+
+def _lstsq_r(Rb: np.ndarray, Ry: np.ndarray) -> np.ndarray:
+    """Least-squares coefficients of columns Ry on the columns of Rb (rank-revealing, as
+    _orthonormal: the minimum-norm solution on flat ground's rank-deficient basis)."""
+    U, s, Vt = np.linalg.svd(Rb, full_matrices=False)
+    on = s > 1e-9 * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
+    return Vt[on].T @ ((U[:, on].T @ Ry) / s[on, None])

@@ -180,6 +180,26 @@ def test_bend_step_finds_a_dome_in_any_affine_frame(large_views):
     assert structure_vs_truth(Xt + warp(Xt), Xt)["quadratic_range_m"] < 0.15
 
 
+def test_bend_step_read_by_chunks_is_the_same_estimate(large_views):
+    """estimate_bend reads each image's equations by chunks (a tall-skinny QR): with chunks of
+    997 observations, on a bent and on a flat (rank-deficient model basis) structure, the warp,
+    the shares, the residual and the observations kept are those of one chunk."""
+    from recon_core.geometry.pushbroom import estimate_bend
+
+    site = large_views
+    views = _per_image(site)
+    assert max(len(p) for p, _ in views) > 5 * 997
+    flat = site.X_true.copy()
+    flat[:, 2] = 0.0
+    for X in (_domed(site.X_true), flat):
+        one, i1 = estimate_bend(X, views, chunk=10 ** 7)
+        many, i2 = estimate_bend(X, views, chunk=997)
+        assert i1["warps_seen"] == i2["warps_seen"] > 0
+        np.testing.assert_allclose(many(X), one(X), atol=1e-9 * np.abs(one(X)).max())
+        np.testing.assert_allclose(i2["warp_shares"], i1["warp_shares"], rtol=1e-6, atol=1e-7)
+        assert abs(i2["residual_rms_px"] - i1["residual_rms_px"]) < 1e-9
+
+
 def test_bend_warp_cameras_follow():
     """BendWarp: its Jacobian is the derivative of its displacement, and an affine camera moved
     with it (`follow`) sees the warped points where it saw the points, up to the warp's
