@@ -188,7 +188,8 @@ def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: floa
     one tied adjustment, then `rounds` with the within-tile correction refitted, each round's
     correction extrapolated by w (sfm.correction_extrapolation) along its change since the
     round before; with `bend`, then the same rounds each started by the bend step
-    (pushbroom.estimate_bend: the structure unbent, the tile cameras following). Per round: the
+    (pushbroom.estimate_bend: the structure unbent, the tile cameras following), and one last
+    step after the last round, as the SfM ends. Per round: the
     structure against the truth, and the quadratic coefficients (e^2, e n, n^2 over the site
     scaled to a unit square) of its vertical and east residuals."""
     from recon_core.geometry.pushbroom import estimate_bend, tile_corrections
@@ -252,6 +253,11 @@ def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: floa
         g = tile_corrections(X[op], site.obs_xy[use], oc, site.tile_image[oc])[0]
         cams, X = adjust(cams, X, g)
         report(f"  bend step, round {r + 1}", X)
+    # the SfM's last step, after its last adjustment (whose minimum is nearly flat along these
+    # warps, so it drifts with the noise)
+    warp, info = estimate_bend(X[ids], images)
+    X[ids] += warp(X[ids])
+    report(f"  final bend step ({info['warps_seen']} warps)", X)
 
 
 if __name__ == "__main__":
