@@ -195,7 +195,8 @@ def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: floa
     from recon_core.geometry.pushbroom import estimate_bend, tile_corrections
 
     t0 = time.time()
-    cams0, X0, on = site.grow(correction=False, step_m=ring_step)
+    cams0, X0, on = site.grow(correction=False, step_m=ring_step,
+                              log=lambda text: print(f"  {text} [{time.time() - t0:.0f} s]", flush=True))
     print(f"grown in rings of {ring_step:g} m: {int(on.sum())} points, "
           f"{int((np.abs(cams0).sum(axis=(1, 2)) > 0).sum())} of {len(cams0)} tiles [{time.time() - t0:.0f} s]",
           flush=True)

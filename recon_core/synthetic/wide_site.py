@@ -61,14 +61,15 @@ class WideSite:
 
 
     def grow(self, *, correction: bool, r0_m: float = 600.0, step_m: float = 300.0,
-             max_nfev: int = 100) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+             max_nfev: int = 100, log=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """An incremental reconstruction in rings, as the SfM grows its model: the tiles within
         r0_m of the site's centre (ground position of their points) adjusted from the truth of
         their points, then rings of step_m: new tiles resected on the current points, new
         points triangulated with the current cameras, a global adjustment of all. With
         `correction`, the within-tile correction (recon_core.sparse.image_model) is refitted
         from the current structure before every adjustment after the first, as the SfM does:
-        nothing of the truth but the first patch enters. Returns (cams, X, point_in_model)."""
+        nothing of the truth but the first patch enters. Returns (cams, X, point_in_model).
+        `log`: called with a line per ring (radius, tiles, points, the adjustment's time)."""
         from recon_core.geometry import affine
         from recon_core.geometry.pushbroom import tile_corrections
 
@@ -128,6 +129,10 @@ class WideSite:
             res = bundle_adjust(cams, X, self.obs_cam[use], self.obs_pt[use], self.obs_xy[use] - corr[use],
                                 np.flatnonzero(tile_on), np.flatnonzero(point_on), fixed, max_nfev=max_nfev)
             cams, X = res.cams, res.X
+            if log is not None:
+                log(f"ring {stage} ({radius:.0f} m): {int(tile_on.sum())} of {T} tiles, "
+                    f"{int(point_on.sum())} points, adjustment {res.iterations} it, {res.seconds:.1f} s, "
+                    f"{res.rms_px:.3f} px")
         return cams, X, point_on
 
     def _resect(self, cand: np.ndarray, tile_on: np.ndarray, cams: np.ndarray, X: np.ndarray,
