@@ -10,7 +10,9 @@ gauge held as the SfM holds it; the per-image ties of the closing adjustments in
 unknowns, the seconds of the whole adjustment and per LM iteration, the final robust cost (both
 solvers must agree), and the peak anonymous memory of that process.
 
-    python bench/bench_ba_scale.py [--km 2 5 10 20] [--solvers dense sparse] [--iterations 3]
+    python bench/bench_ba_scale.py [--km 2 5 10 20] [--solvers dense sparse superlu] [--iterations 3]
+    (sparse: the block system factored by dense fronts, frontal.FrontalCholesky; superlu: the
+    same system factored by SciPy's SuperLU, as before 2026-11-26)
     (the dense solver is skipped where its matrix alone would exceed --dense-max-gb)
 """
 
@@ -92,6 +94,9 @@ def one(km: float, solver: str, iterations: int, points: int, with_ties: bool) -
 
     from recon_core.sparse.bundle import _robust, bundle_adjust, warm_compiled_kernels
 
+    if solver == "superlu":                  # the block system as factored until 2026-11-26
+        _use_superlu()
+        solver = "sparse"
     warm_compiled_kernels()
     bundle_adjust(*_tiny_problem(), solver="sparse", max_nfev=1)
     peak = AnonPeak()
@@ -109,6 +114,26 @@ def one(km: float, solver: str, iterations: int, points: int, with_ties: bool) -
                 observations=len(oc), seconds=sec, iterations=res.iterations, tie_seconds=t_ties,
                 cost=res.cost_after, data_cost=0.5 * float(_robust((r * r).sum(1), "huber", 1.0)[0].sum()),
                 anon_mb=peak.take(), anon_before_mb=base)
+
+
+def _use_superlu() -> None:
+    """The block system factored by SciPy's SuperLU on its diagonal pivots (the solver before
+    frontal.FrontalCholesky), for comparison."""
+    from scipy.sparse.linalg import splu
+
+    from recon_core.sparse import bundle
+
+    def factor(self, A):
+        n = A.shape[0]
+        if self.dense_factor:
+            cf = bundle.scipy.linalg.cho_factor(A.toarray(order="F"), overwrite_a=True, check_finite=False)
+            return lambda b: bundle.scipy.linalg.cho_solve(cf, b)
+        lu = splu(A, permc_spec="NATURAL", options={"SymmetricMode": True, "DiagPivotThresh": 0.0})
+        if self.dense_factor is None:
+            self.dense_factor = n <= bundle.DENSE_FACTOR_MAX and lu.L.nnz + lu.U.nnz > bundle.DENSE_FILL * n * n
+        return lu.solve
+
+    bundle._BlockSystem._factor = factor
 
 
 def _tiny_problem():

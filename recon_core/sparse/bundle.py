@@ -5,7 +5,8 @@ Jacobian is exact and cheap (d r / d P_c[row] = [X_p, 1] on that row, d r / d X_
 normal equations [[U, W], [W^T, V]] have a block-diagonal V (one 3 x 3 block per point): points
 are eliminated (Schur complement S = U - W V^-1 W^T, a system over the free camera entries:
 dense and solved by Cholesky for small models, 8 x 8 blocks over the camera pairs that share
-points and solved by SuperLU for large ones, `_BlockSystem`), the points back-substituted. A
+points and factored by dense fronts on a nested dissection for large ones, `_BlockSystem`,
+`frontal.FrontalCholesky`), the points back-substituted. A
 Huber loss enters as
 iteratively reweighted least squares. The 12-dof affine gauge is fixed by the caller through
 `fixed` (GEOMETRY_NOTES, "Gauge").
@@ -215,7 +216,7 @@ def warm_compiled_kernels() -> None:
 # iteration; its 9-image joint model, 4,924, 2.5 s against 2.7 s; a 5 x 5 km site, 4,044,
 # 0.62 s against 1.47 s; 10 x 10 km, 16,212, 3.7 s against 59 s (bench/bench_ba_scale.py)
 SPARSE_SOLVE_MIN = 1500
-DENSE_FILL = 0.4             # ... whose factorisation turns dense when SuperLU fills more than this
+DENSE_FILL = 0.4             # ... whose factorisation turns dense when its factor fills more than this
 DENSE_FACTOR_MAX = 16000     # ... and the dense matrix (8 bytes x this^2: 2 GB) is affordable
 
 
@@ -238,8 +239,9 @@ class _BlockSystem:
     they share points (a tile, its neighbours in its image, and the tiles of the other images
     over the same ground: ~25 others), so S is kept as 8 x 8 blocks over those pairs, assembled
     by the compiled per-point pass (ba_kernels.schur_blocks), put in a nested-dissection order
-    of the cameras by their ground position (`_dissection_order`) and factored by SuperLU on
-    its diagonal pivots. Figures: bench/bench_ba_scale.py, README "Toward a full scene".
+    of the cameras by their ground position (`_dissection_order`) and factored by one dense
+    front per leaf and separator of that dissection (frontal.FrontalCholesky). Figures:
+    bench/bench_ba_scale.py, README "Toward a full scene".
 
     The per-image ties. Their Q = blockdiag(DtD) - L L^T (image_model.Tie) would couple all
     tiles of an image: a dense block of (8 x tiles)^2. Its block-diagonal part goes into S's
@@ -274,9 +276,13 @@ class _BlockSystem:
         # the factorisation's order: nested dissection of the cameras by their ground position
         # (the matrix is built in that order; solves permute in and out)
         obs = np.flatnonzero(self.cc[oc] >= 0)
-        corder = _dissection_order(self.bptr, self.bcol, _camera_positions(self.cc[oc[obs]], X[op[obs]], ncc))
+        corder, sizes = _dissection_order(self.bptr, self.bcol,
+                                          _camera_positions(self.cc[oc[obs]], X[op[obs]], ncc), chunks=True)
         cols_cc = cam_col[self.cams_cc[corder]]
         self.perm = cols_cc[cols_cc >= 0]                      # new scalar index -> old
+        # the dissection's leaves and separators as ranges of scalar unknowns (the fronts)
+        per_cam = np.cumsum(np.r_[0, (cols_cc >= 0).sum(1)])
+        self.starts = np.unique(per_cam[np.r_[0, np.cumsum(sizes)]])
         inv = np.empty(nc, np.int64)
         inv[self.perm] = np.arange(nc)
         rows, cols = inv[rows], inv[cols]
@@ -314,24 +320,25 @@ class _BlockSystem:
         self.dense_factor: bool | None = None       # decided by the first factorisation
 
     def _factor(self, A):
-        """A solve function for A (symmetric positive definite, CSC). SuperLU first; when its
-        factors come out nearly dense (more than DENSE_FILL of n^2: many images over a small
-        site) and the dense matrix is affordable, this adjustment's later factorisations are
-        LAPACK's dense Cholesky, faster on a dense matrix. The choice depends on the pattern
-        only: runs stay deterministic."""
-        from scipy.sparse.linalg import splu
+        """A solve function for A (symmetric positive definite, CSC, in nested-dissection
+        order). A Cholesky factorisation by dense fronts, one per leaf and separator of the
+        dissection (frontal.FrontalCholesky: LAPACK and BLAS-3 on each front; SciPy's SuperLU,
+        used before, took 1.8x as long on a 9-image 7.5 km system). When the factor comes out
+        nearly dense (more than DENSE_FILL of n^2: many images over a small site) and the dense
+        matrix is affordable, this adjustment's later factorisations are LAPACK's dense
+        Cholesky of the whole matrix. The choice depends on the pattern only: runs stay
+        deterministic."""
+        from recon_core.sparse.frontal import FrontalCholesky
 
         n = A.shape[0]
         if self.dense_factor:
             # in Fortran order and factored in place: LAPACK would otherwise copy it (2x memory)
             cf = scipy.linalg.cho_factor(A.toarray(order="F"), overwrite_a=True, check_finite=False)
             return lambda b: scipy.linalg.cho_solve(cf, b)
-        # the matrix is already in nested-dissection order; symmetric positive definite, so the
-        # diagonal pivots are stable (partial pivoting away from them fills ~2x more)
-        lu = splu(A, permc_spec="NATURAL", options={"SymmetricMode": True, "DiagPivotThresh": 0.0})
+        f = FrontalCholesky(A, self.starts)
         if self.dense_factor is None:
-            self.dense_factor = n <= DENSE_FACTOR_MAX and lu.L.nnz + lu.U.nnz > DENSE_FILL * n * n
-        return lu.solve
+            self.dense_factor = n <= DENSE_FACTOR_MAX and 2 * f.nnz > DENSE_FILL * n * n
+        return f.solve
 
     def stepper(self, cams, h, M, r, w, oc, ps, cam_col, nc, npt, order, start, porder):
         """step(lam) -> (dc, dp) for the current linearisation."""
@@ -419,14 +426,17 @@ def _camera_positions(cam: np.ndarray, Xo: np.ndarray, ncc: int) -> np.ndarray:
     return np.column_stack([np.bincount(cam, P[:, 0], minlength=ncc), np.bincount(cam, P[:, 1], minlength=ncc)]) / n[:, None]
 
 
-def _dissection_order(bptr: np.ndarray, bcol: np.ndarray, pos: np.ndarray, leaf: int = 16) -> np.ndarray:
+def _dissection_order(bptr: np.ndarray, bcol: np.ndarray, pos: np.ndarray, leaf: int = 16,
+                      chunks: bool = False):
     """A nested-dissection order of the cameras of a block pattern (CSR of pairs a <= b): split
     by the median of the longer extent of their positions, the cameras of one side coupled to
     the other side (the separator) last, each side recursively, down to `leaf` cameras. On a
     10 x 10 km site (bench/bench_ba_scale.py: 2,028 tiles, 16,212 unknowns) SuperLU then fills
     7 % and factors in 1.3 s (leaves of 256: 15 %, 4.6 s); with its own minimum-degree
     ordering of S + S^T 48 % and 61 s, more than the dense Cholesky (a tile is coupled to ~25
-    others: its neighbours and the tiles of the other images over the same ground)."""
+    others: its neighbours and the tiles of the other images over the same ground).
+    With `chunks`, also the number of cameras of each leaf and separator, in order (the fronts
+    of frontal.FrontalCholesky)."""
     from scipy.sparse import coo_matrix
 
     n = len(pos)
@@ -453,7 +463,10 @@ def _dissection_order(bptr: np.ndarray, bcol: np.ndarray, pos: np.ndarray, leaf:
         stack.append((nodes[left][touches], True))
         stack.append((nodes[~left], False))
         stack.append((nodes[left][~touches], False))
-    return np.concatenate(out) if out else np.zeros(0, np.int64)
+    order = np.concatenate(out) if out else np.zeros(0, np.int64)
+    if chunks:
+        return order, np.array([len(o) for o in out if len(o)], np.int64)
+    return order
 
 
 def _sparse_normal_equations(h, M, r, w, oc, cam_col, ps, has_p, nc, npt, K, extra=None):
