@@ -7,7 +7,8 @@ unknowns) couples only to a set of later unknowns (its *boundary*). Factoring ch
 each as one dense front [own | boundary] with LAPACK and BLAS-3 (the children's Schur
 complements added in first), costs the dense kernels' speed instead of a general sparse LU's:
 on a 7.5 km site seen by 9 images (23,476 unknowns, 15 % fill) SciPy's SuperLU, whose kernels
-do not use an optimised BLAS, takes 25 s where this takes a few (bench/bench_ba_scale.py).
+use no optimised BLAS, takes 21-24 s where this takes 12.5 s (README, "Toward a full scene";
+bench/bench_ba_scale.py --solvers superlu sparse for 3 images).
 
 Chunks may be any partition of the order into consecutive ranges: a chunk's boundary is the
 union of its own columns' later rows and its children's boundaries (a superset of the exact
@@ -24,9 +25,9 @@ from scipy.sparse import csc_matrix
 
 
 class FrontalCholesky:
-    """L L^T = A for a symmetric positive definite A (CSC, both triangles stored) and chunk
-    starts `starts` (m + 1 offsets, 0 ... n). Only the lower triangle of A is read. Raises numpy.linalg.LinAlgError when a front is
-    not positive definite. `solve(b)` for b of shape (n,) or (n, k); `nnz` counts the factor's
+    """L L^T = A for a symmetric positive definite A (CSC; only its lower triangle is read) and
+    chunk starts `starts` (m + 1 offsets, 0 ... n). Raises numpy.linalg.LinAlgError when a front
+    is not positive definite. `solve(b)` for b of shape (n,) or (n, k); `nnz` counts the factor's
     stored entries (lower triangle, the fronts' padding included)."""
 
     def __init__(self, A: csc_matrix, starts: np.ndarray):
