@@ -49,6 +49,9 @@ def test_fronts_on_the_dissection_solve_as_dense_cholesky():
     b = rng.normal(size=(len(P), 3))
     np.testing.assert_allclose(f.solve(b), np.linalg.solve(Ap, b), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(f.solve(b[:, 0]), np.linalg.solve(Ap, b[:, 0]), rtol=1e-9, atol=1e-12)
+    # only the lower triangle is read
+    low = FrontalCholesky(csc_matrix(np.tril(Ap)), starts)
+    np.testing.assert_allclose(low.solve(b), f.solve(b), rtol=1e-12, atol=1e-14)
     # the dissection keeps the factor sparse: far fewer stored entries than a dense triangle
     n = len(P)
     assert f.nnz < 0.45 * n * (n + 1) / 2
