@@ -323,8 +323,8 @@ class _BlockSystem:
         """A solve function for A (symmetric positive definite, CSC, in nested-dissection
         order). A Cholesky factorisation by dense fronts, one per leaf and separator of the
         dissection (frontal.FrontalCholesky: LAPACK and BLAS-3 on each front; SciPy's SuperLU,
-        used before, took 2.6x as long on a 9-image 7.5 km system, 1.7x per LM iteration at 20 km). When the factor comes out
-        nearly dense (more than DENSE_FILL of n^2: many images over a small site) and the dense
+        used before, took 2.6x as long on a 9-image 7.5 km system, 1.7x per LM iteration at
+        20 km). When the factor comes out nearly dense (more than DENSE_FILL of n^2: many images over a small site) and the dense
         matrix is affordable, this adjustment's later factorisations are LAPACK's dense
         Cholesky of the whole matrix. The choice depends on the pattern only: runs stay
         deterministic."""
