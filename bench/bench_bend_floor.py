@@ -35,7 +35,6 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--site", type=Path, required=True, help="a synthetic site (with truth/)")
     ap.add_argument("--out", type=Path, required=True, help="OUT of a run whose sparse stage is done")
-    ap.add_argument("--seeds", type=int, default=4, help="white-noise draws")
     ap.add_argument("--cell", type=float, default=1000.0, help="cell (px) of the correlated error")
     ap.add_argument("--harness", default="exact,white,measured",
                     help="comma-separated observations for the harness runs: exact, white, measured")
@@ -69,12 +68,10 @@ def main(argv=None) -> int:
     cams = load_truth_cameras(a.site)
     llh = frame.enu_to_geodetic(Xt)
     measured, exact, names = [], [], []
-    for i in np.unique(o.img[idx]):
-        k = idx[o.img[idx] == i]
-        _, first = np.unique(o.track[k], return_index=True)
-        p = remap[o.track[k[first]]]
+    for i, k in m.views_per_image():
+        p = remap[o.track[k]]
         good = ok[p]
-        measured.append((p[good], o.xy[k[first]][good]))
+        measured.append((p[good], o.xy[k][good]))
         exact.append((p[good], cams[m.images[i]].project(llh[p[good]])))
         names.append(m.images[i])
 
@@ -104,33 +101,20 @@ def main(argv=None) -> int:
     if a.harness:
         from bench_bend import closing
 
-        from recon_core.model.tiling import tile_image
-        from recon_core.synthetic.wide_site import WideSite
+        from recon_core.synthetic.wide_site import WideSite, observe_in_tiles
 
         tsize = state.cfg.tiling.tile_size
         variants = {"exact": None, "white": float(np.median(sig)), "measured": "measured"}
         for v in a.harness.split(","):
-            tiles, timg, oc, op, ox = [], [], [], [], []
             rng = np.random.default_rng(0)
-            for i, (n, (p, xy), (_, uv)) in enumerate(zip(names, measured, exact)):
-                noise = variants[v]
-                obs = xy if noise == "measured" else uv + (rng.normal(0.0, noise, uv.shape) if noise else 0.0)
-                cam = cams[n]
-                for t in tile_image(n, cam.width, cam.height, tsize):
-                    k = np.flatnonzero((obs[:, 0] >= t.col0) & (obs[:, 0] <= t.col0 + t.width - 1)
-                                       & (obs[:, 1] >= t.row0) & (obs[:, 1] <= t.row0 + t.height - 1))
-                    if len(k) < 20:
-                        continue
-                    tiles.append(t)
-                    timg.append(i)
-                    oc.append(np.full(len(k), len(tiles) - 1))
-                    op.append(p[k])
-                    ox.append(obs[k])
-            oc, op, ox = np.concatenate(oc), np.concatenate(op), np.concatenate(ox)
+            noise = variants[v]
+            views = [(p, xy if noise == "measured" else uv + (rng.normal(0.0, noise, uv.shape) if noise else 0.0))
+                     for (p, xy), (_, uv) in zip(measured, exact)]
+            tiles, timg, oc, op, ox = observe_in_tiles(names, [cams[n] for n in names], views, tsize)
             used = np.unique(op)
             local = np.full(len(Xt), -1)
             local[used] = np.arange(len(used))
-            site = WideSite(names, tiles, np.array(timg), Xt[used], oc, local[op], ox, np.zeros((len(names), 2)))
+            site = WideSite(names, tiles, timg, Xt[used], oc, local[op], ox, np.zeros((len(names), 2)))
             label = {"exact": "exact projections", "measured": "the pipeline's measured pixels",
                      "white": f"exact projections + white noise {variants['white']:.2f} px"}[v]
             print(f"\nthe render-free harness (bench_bend.py --closing 1 --bend-step) on these points, "

@@ -163,6 +163,27 @@ class WideSite:
         return done
 
 
+def observe_in_tiles(names: list[str], cams: list, views: list[tuple[np.ndarray, np.ndarray]], d: int,
+                     min_obs: int = 20):
+    """Each image's observations (point indices, pixels (k, 2)) in every d x d tile of the image
+    (cut as the pipeline cuts it, cams[i].width x height) that contains them; tiles with fewer
+    than min_obs are left out. Returns (tiles, tile image (T,), tile of each observation, point,
+    pixel)."""
+    tiles, tile_img, oc, op, ox = [], [], [], [], []
+    for i, (n, cam, (p, uv)) in enumerate(zip(names, cams, views)):
+        for t in tile_image(n, cam.width, cam.height, d):
+            k = np.flatnonzero((uv[:, 0] >= t.col0) & (uv[:, 0] <= t.col0 + t.width - 1)
+                               & (uv[:, 1] >= t.row0) & (uv[:, 1] <= t.row0 + t.height - 1))
+            if len(k) < min_obs:
+                continue
+            tiles.append(t)
+            tile_img.append(i)
+            oc.append(np.full(len(k), len(tiles) - 1))
+            op.append(p[k])
+            ox.append(uv[k])
+    return tiles, np.array(tile_img), np.concatenate(oc), np.concatenate(op), np.concatenate(ox)
+
+
 def make_wide_site(preset: str | SynthPreset = "flat", seed: int = 0, *, images: list[str] | None = None,
                    n_points: int = 30000, noise_px: float = 0.1, d: int = 1000,
                    rng_seed: int = 1, min_obs_per_tile: int = 20) -> WideSite:
@@ -188,25 +209,14 @@ def make_wide_site(preset: str | SynthPreset = "flat", seed: int = 0, *, images:
     X = frame.geodetic_to_enu(llh)
     up = frame.enu_to_geodetic(X + [0.0, 0.0, 1.0])
 
-    tiles, tile_img, oc, op, ox, dz = [], [], [], [], [], []
-    for i, n in enumerate(names):
+    views, dz = [], []
+    for n in names:
         cam = cams[n]
         uv_exact = cam.project(llh)
         dz.append(np.median(cam.project(up[:200]) - uv_exact[:200], axis=0))
-        uv = uv_exact + rng.normal(0.0, noise_px, uv_exact.shape)
-        for t in tile_image(n, cam.width, cam.height, d):
-            inside = (uv[:, 0] >= t.col0) & (uv[:, 0] <= t.col0 + t.width - 1) & \
-                     (uv[:, 1] >= t.row0) & (uv[:, 1] <= t.row0 + t.height - 1)
-            k = np.flatnonzero(inside)
-            if len(k) < min_obs_per_tile:
-                continue
-            tiles.append(t)
-            tile_img.append(i)
-            oc.append(np.full(len(k), len(tiles) - 1))
-            op.append(k)
-            ox.append(uv[k])
-    tile_img = np.array(tile_img)
-    oc, op, ox = np.concatenate(oc), np.concatenate(op), np.concatenate(ox)
+        views.append((np.arange(n_points), uv_exact + rng.normal(0.0, noise_px, uv_exact.shape)))
+    tiles, tile_img, oc, op, ox = observe_in_tiles(names, [cams[n] for n in names], views, d,
+                                                   min_obs_per_tile)
     n_img = np.zeros(n_points, int)
     for i in range(len(names)):
         n_img[np.unique(op[tile_img[oc] == i])] += 1
