@@ -75,6 +75,10 @@ def main(argv=None) -> int:
     ap.add_argument("--bend-step", action="store_true",
                     help="--closing with the bend step at the start of each round (sfm.bend_step; "
                          "no extrapolation), after the rounds without it")
+    ap.add_argument("--physics", default="",
+                    help="--bend-step: then the metric bend step, each image's 1D perspective fixed by "
+                         "physics in the frame of an upgrade (the best affine map to the truth): comma-"
+                         "separated orbit altitudes in km, or 'true' for each image's own")
     a = ap.parse_args(argv)
     t0 = time.time()
     preset = PRESETS[a.preset]
@@ -103,8 +107,15 @@ def main(argv=None) -> int:
                 print(f"  {sv:9.5f} px/m   vertical {np.linalg.norm(w[6:]):.2f}   ({big})")
         return 0
     if a.closing:
+        physics = [p for p in a.physics.split(",") if p]
+        if any(p.startswith("true") for p in physics):
+            from recon_core.synthetic.generator import design_cameras
+
+            _, cams = design_cameras(preset, a.seed)
+            site.altitudes_m = [float(cams[n].orbit_radius - np.linalg.norm(cams[n].target0)) for n in site.names]
         closing(site, a.closing, [float(w) for w in a.extrapolation.split(",") if w],
-                [float(s) for s in a.sigma_tie.split(",") if s][-1], a.noise, a.bend_step, a.ring_step)
+                [float(s) for s in a.sigma_tie.split(",") if s][-1], a.noise, a.bend_step, a.ring_step,
+                physics)
         return 0
     cams0 = site.best_tile_cameras(site.X_true)
     base = site.adjust(cams0, site.X_true, max_nfev=a.max_nfev)
@@ -183,7 +194,7 @@ def grow(site, sigma_obs: float, sigma_tie: float, rounds: int, ring_step: float
 
 
 def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: float,
-            bend: bool = False, ring_step: float = 300.0) -> None:
+            bend: bool = False, ring_step: float = 300.0, physics: list[str] = ()) -> None:
     """The SfM's closing adjustments on a model grown without the correction (WideSite.grow):
     one tied adjustment, then `rounds` with the within-tile correction refitted, each round's
     correction extrapolated by w (sfm.correction_extrapolation) along its change since the
@@ -257,8 +268,43 @@ def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: floa
     # the SfM's last step, after its last adjustment (whose minimum is nearly flat along these
     # warps, so it drifts with the noise)
     warp, info = estimate_bend(X[ids], images)
+    cams[reg] = warp.follow(cams[reg], np.stack([np.bincount(oc, X[op, a], minlength=len(cams))
+                                                 for a in range(3)], 1)[reg] / cnt[reg])
     X[ids] += warp(X[ids])
     report(f"  final bend step ({info['warps_seen']} warps)", X)
+    for alt in physics:
+        metric_step(site, X, cams, ids, images, reg, use, oc, op, cnt, on, alt, adjust, report)
+
+
+def metric_step(site, X, cams, ids, images, reg, use, oc, op, cnt, on, alt, adjust, report) -> None:
+    """The bend step once more in the frame of an upgrade (here the best affine map to the truth),
+    each image's 1D perspective fixed by physics (pushbroom.physical_depth at orbit altitude
+    `alt` km, or 'true': each image's own), then a round's adjustment and the step again."""
+    from recon_core.geometry.pushbroom import estimate_bend, physical_depth, tile_corrections
+
+    X, cams = X.copy(), cams.copy()
+    for step in range(2 if "r" in alt else 1):
+        A = np.hstack([X[ids], np.ones((len(ids), 1))])
+        H = np.vstack([np.linalg.lstsq(A, site.X_true[ids], rcond=None)[0].T, [0, 0, 0, 1]])
+        depth = []
+        for i, (pts, xy) in enumerate(images):
+            P = np.linalg.lstsq(np.hstack([X[ids][pts], np.ones((len(pts), 1))]), xy, rcond=None)[0].T
+            base, _, factor = alt.rstrip("ghpr").partition("*")
+            h = (site.altitudes_m[i] if base == "true" else float(base) * 1e3) * float(factor or 1.0)
+            depth.append(H[:3, :3].T @ physical_depth(P @ np.linalg.inv(H), h))
+        warp, info = estimate_bend(X[ids], images, depth=depth, range_free="g" in alt,
+                                   directions=np.linalg.solve(H[:3, :3], np.eye(3)[:, :2]).T if "h" in alt else None,
+                                   pair=H[:2, :3] if "p" in alt else None)
+        shares = " ".join(f"{v:.4f}" for v in info["warp_shares"])
+        cen = np.stack([np.bincount(oc, X[op, a], minlength=len(cams)) for a in range(3)], 1) / cnt
+        cams[reg] = warp.follow(cams[reg], cen[reg])
+        X[ids] += warp(X[ids])
+        report(f"  metric step {step + 1}, {alt} km ({info['warps_seen']} warps)", X)
+        print(f"    shares {shares}  range change {info['range_change']:+.4f}")
+        if step == 0:
+            g = tile_corrections(X[op], site.obs_xy[use], oc, site.tile_image[oc])[0]
+            cams, X = adjust(cams, X, g)
+            report("  metric step, round", X)
 
 
 if __name__ == "__main__":

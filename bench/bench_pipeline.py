@@ -16,6 +16,7 @@ the DSM metrics.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import resource
 import sys
 import time
@@ -94,13 +95,23 @@ def truth_figures(site: Path, state) -> dict:
     # date groups of one joint reconstruction: each point's truth from all its views (a
     # group's weak-baseline points would otherwise get an ill-conditioned truth)
     joint = merge_joint([state.models[g] for g in sorted(state.models)])
+    maps = state.upgrade[0] if state.upgrade else {}
     out = {}
     for g, m in state.models.items():
+        # after the metric bend step when the upgrade applied one (the SfM's structure in brackets)
+        warp = getattr(maps.get(g), "warp", None)
+        before = sparse_vs_truth(site, m, frame, views=joint) if warp is not None else None
+        if warp is not None:
+            ids = m.point_ids()
+            X = m.X.copy()
+            X[ids] += warp(m.X[ids])
+            m = replace(m, X=X)
         r = sparse_vs_truth(site, m, frame, views=joint)
         png = state.layout.root / "bench" / f"sparse_residual_u_g{g}.png"
         save_png(png, residual_map(r["truth"], r["residuals"][:, 2]))
         out[g] = {"sparse_affine_rms_m": r["rms_m"], "sparse_rms_xyz_m": r["rms_xyz_m"],
-                  "sparse_p95_m": r["p95_m"], "n": r["n"], "bend": r["bend"], "map": png}
+                  "sparse_p95_m": r["p95_m"], "n": r["n"], "bend": r["bend"], "map": png,
+                  "before_metric_step": None if before is None else (before["rms_m"], before["rms_xyz_m"])}
     return out
 
 
@@ -190,6 +201,10 @@ def main(argv=None) -> int:
         print(f"group {g} sparse vs truth (one best-fit affine map): RMS {f['sparse_affine_rms_m']:.3f} m "
               f"(E/N/U {', '.join(f'{v:.3f}' for v in f['sparse_rms_xyz_m'])}), p95 {f['sparse_p95_m']:.3f} m, "
               f"{f['n']} points")
+        if f["before_metric_step"]:
+            rms, xyz = f["before_metric_step"]
+            print(f"group {g}   (the SfM's structure, before the metric bend step: RMS {rms:.3f} m, "
+                  f"E/N/U {', '.join(f'{v:.3f}' for v in xyz)})")
         b = f["bend"]
         print(f"group {g} vertical residual over the site: RMS {b['rms_u_m']:.3f} m, of which a quadratic "
               f"surface (dome/saddle) {b['quadratic_rms_m']:.3f} m RMS ({b['quadratic_range_m']:.2f} m "
@@ -208,6 +223,14 @@ def main(argv=None) -> int:
             if "error" in u:
                 print(f"group {g} upgrade: {u['error']}")
                 continue
+            mb = u.get("metric_bend") or {}
+            if mb:
+                shares = ", ".join(f"{v:.3f}" for v in mb.get("warp_shares", []))
+                print(f"group {g} metric bend step: {'applied' if mb['applied'] else 'not applied'}"
+                      + (f" ({mb['reason']})" if mb.get("reason") else "")
+                      + (f"; {mb['warps_seen']} warps seen (shares {shares}), range x{mb.get('implied_range_factor') or float('nan'):.3f} "
+                         f"of an orbit at {mb['altitude_km']:g} km, warp {mb['warp_rms_m']:.3f} m RMS, "
+                         f"{mb['warp_max_m']:.3f} m max" if "warps_seen" in mb else ""))
             c = u["stats"].get("check", {})
             if c.get("n"):
                 print(f"group {g} upgrade: {u['n_control_used']} control GCPs; {c['n']} check points: "

@@ -153,6 +153,12 @@ class UpgradeConfig:
     metric_prior_sigma_cos: float = 2e-3  # the cameras' metric constraint in the fit of H_A: the
                                       # cosine between a tile camera's rows in metres, per image
                                       # (recon_core.euclidean.metric_prior; 0 = GCPs only)
+    metric_bend: bool = True          # the metric bend step (recon_core.euclidean.metric_bend): the
+                                      # horizontal warp no affine frame lets the views see, found once
+                                      # H_A gives metres, each image's 1D perspective from its orbit
+    orbit_altitude_km: float = 694.0  # its start: the orbit's altitude (Pleiades, SPOT 6/7: 694;
+                                      # Pleiades Neo, WorldView-3: ~620); the step then estimates one
+                                      # common change of the ranges from the data (10 % off: harmless)
 
 
 @dataclass

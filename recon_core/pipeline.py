@@ -150,6 +150,7 @@ def check_config(cfg: Config) -> None:
                 "sfm.resect_thresh_px": cfg.sfm.resect_thresh_px, "sfm.max_reproj_px": cfg.sfm.max_reproj_px,
                 "matching.fa_thresh_px": cfg.matching.fa_thresh_px,
                 "upgrade.ransac_thresh_m": cfg.upgrade.ransac_thresh_m,
+                "upgrade.orbit_altitude_km": cfg.upgrade.orbit_altitude_km,
                 "features.max_features_per_mpx": cfg.features.max_features_per_mpx,
                 "features.detect_block": cfg.features.detect_block,
                 "dsm.chunk_points": cfg.dsm.chunk_points, "dsm.icp_voxel_m": cfg.dsm.icp_voxel_m,

@@ -21,6 +21,7 @@ from recon_core.euclidean.dsm import DsmAccumulator, fill_small_holes
 from recon_core.euclidean.fusion import align_groups
 from recon_core.euclidean.georef import enu_to_output, output_epsg
 from recon_core.events import EventBus
+from recon_core.geometry.enu_map import EnuMap
 from recon_core.geometry.affine import apply_affine_3d
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.las import write_las
@@ -40,7 +41,7 @@ def output_grid(site: Site, xyh: np.ndarray, epsg: int, res: float) -> Grid:
     return Grid.from_points(np.stack([lo, hi]), res, epsg, margin=2 * res)
 
 
-def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: LocalFrame, gsd: float,
+def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: LocalFrame, gsd: float,
              cfg: Config, out: OutLayout, bus: EventBus | None = None,
              quality: dict[int, float] | None = None) -> dict:
     """Write cloud.ply (Euclidean, output CRS), dsm.tif and, with several groups, each group's
@@ -62,11 +63,12 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
     (written to dsm_groups/) keeps its weak-pair cells.
     """
     c = cfg.dsm
-    groups = [g for g in sorted(Hs) if g in sources and len(sources[g])]
+    maps = {g: m if isinstance(m, EnuMap) else EnuMap(np.asarray(m, np.float64)) for g, m in maps.items()}
+    groups = [g for g in sorted(maps) if g in sources and len(sources[g])]
     if not groups:
         raise ReconstructionError("no upgraded group has a cloud")
-    samples = {g: apply_affine_3d(Hs[g], sources[g].sample(c.icp_sample_points)) for g in groups}
-    if len(groups) > 1 and all(np.array_equal(Hs[g], Hs[groups[0]]) for g in groups):
+    samples = {g: maps[g](sources[g].sample(c.icp_sample_points)) for g in groups}
+    if len(groups) > 1 and all(maps[g].same(maps[groups[0]]) for g in groups):
         # one joint reconstruction upgraded by one H_A: the groups already share a frame, and
         # ICP between seasons would only move them by what differs (vegetation, shadows)
         Ts = {g: np.eye(4) for g in groups}
@@ -105,7 +107,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], Hs: dict, frame: Local
                     for a in range(0, len(src), c.chunk_points):
                         b = min(a + c.chunk_points, len(src))
                         xyz, gray = src.read(a, b)
-                        xyh = enu_to_output(apply_affine_3d(Ts[g], apply_affine_3d(Hs[g], xyz)), frame, epsg)
+                        xyh = enu_to_output(apply_affine_3d(Ts[g], maps[g](xyz)), frame, epsg)
                         accs[g].add(xyh, src.tier(a, b))
                         w.append(xyh, gray[:, None])
                         done += len(xyz)
@@ -484,11 +486,11 @@ def group_quality(upgrade_report: dict) -> dict[int, float]:
 def run(state, bus: EventBus) -> dict:
     if state.upgrade is None:
         raise ReconstructionError("the DSM needs the upgrade stage")
-    Hs, frame = state.upgrade
+    maps, frame = state.upgrade
     up = state.report.get("stages", {}).get("upgrade", {})
     ups = up.get("groups", {})
     gsd = min((v["gsd_m"] for v in ups.values() if "gsd_m" in v), default=0.5)
-    return make_dsm(state.site, point_sources(state, bus), Hs, frame, gsd, state.cfg, state.layout, bus,
+    return make_dsm(state.site, point_sources(state, bus), maps, frame, gsd, state.cfg, state.layout, bus,
                     quality=group_quality(up))
 
 

@@ -14,8 +14,10 @@ import numpy as np
 from recon_core.config import Config
 from recon_core.errors import ReconstructionError
 from recon_core.euclidean.georef import GcpAffine, frame_for, upgrade_group
+from recon_core.euclidean.metric_bend import metric_bend, warped_model
 from recon_core.euclidean.upgrade import UpgradeResult, flat_gcp_refusal
 from recon_core.events import EventBus
+from recon_core.geometry.enu_map import EnuMap, warp_record
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.gcps import GCP
 from recon_core.io.models import load_upgrade, save_upgrade
@@ -115,10 +117,17 @@ class Upgrade:
     errors: dict[int, str] = field(default_factory=dict)
     joint: bool = False           # one H_A for all groups of one joint reconstruction
     bend: dict[int, dict] = field(default_factory=dict)   # group -> bend_observability
+    warps: dict[int, object] = field(default_factory=dict)  # group -> the metric bend step's BendWarp
+    metric: dict[int, dict] = field(default_factory=dict)   # group -> the metric bend step's summary
 
     @property
     def Hs(self) -> dict[int, np.ndarray]:
         return {g: r.H for g, r in self.results.items()}
+
+    @property
+    def maps(self) -> dict[int, EnuMap]:
+        """Each group's whole upgrade: the metric bend step's warp, then H_A."""
+        return {g: EnuMap(r.H, self.warps.get(g)) for g, r in self.results.items()}
 
     def record(self, g: int) -> dict:
         """What upgrade/group_<g>.json holds: the UpgradeResult, how each GCP was placed, GSD."""
@@ -129,6 +138,10 @@ class Upgrade:
         d["gsd_m"] = self.gsd_m[g]
         if self.bend.get(g):
             d["bend_observability"] = self.bend[g]
+        if self.metric.get(g):
+            d["metric_bend"] = self.metric[g]
+        if self.warps.get(g) is not None:
+            d["metric_warp"] = warp_record(self.warps[g])
         return d
 
     def report(self) -> dict:
@@ -149,6 +162,23 @@ def _fit(model, gcps: list[GCP], frame: LocalFrame, cfg: Config) -> tuple[Upgrad
     if refusal:
         raise ReconstructionError(refusal)
     return res, aff
+
+
+def _fit_metric(model, gcps: list[GCP], frame: LocalFrame, cfg: Config):
+    """_fit, then the metric bend step (recon_core.euclidean.metric_bend) and, when it applies a
+    warp, H_A refitted on the warped model (GCP positions picked on the cloud move with it).
+    Returns (result, GCP placements, warp or None, the step's summary, the model H_A is of)."""
+    res, aff = _fit(model, gcps, frame, cfg)
+    if not cfg.upgrade.metric_bend:
+        return res, aff, None, {}, model
+    warp, info = metric_bend(model, res.H, cfg.upgrade.orbit_altitude_km * 1e3)
+    if warp is None:
+        return res, aff, None, info, model
+    moved = warped_model(model, warp)
+    picks = [replace(g, affine_picked={k: np.asarray(x, np.float64) + warp(np.asarray(x, np.float64)[None])[0]
+                                       for k, x in g.affine_picked.items()}) for g in gcps]
+    res, aff = _fit(moved, picks, frame, cfg)
+    return res, aff, warp, info, moved
 
 
 def _picks_joint(gcp: GCP, group: int) -> GCP:
@@ -175,25 +205,28 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
     joint = merge_joint([models[g] for g in sorted(models)])
     if joint is not None:
         try:
-            res, aff = _fit(joint, [_picks_joint(g, joint.group) for g in gcps], up.frame, cfg)
-            bend = bend_observability(joint, res.H)
+            res, aff, warp, info, moved = _fit_metric(joint, [_picks_joint(g, joint.group) for g in gcps],
+                                                      up.frame, cfg)
+            bend = bend_observability(moved, res.H)
             _warn_bend(res, bend)
             for g, model in sorted(models.items()):
-                up.results[g], up.affine[g], up.gsd_m[g] = res, aff, estimate_gsd(model, res.H)
-                up.bend[g] = bend
+                up.results[g], up.affine[g] = res, aff
+                up.gsd_m[g] = estimate_gsd(model if warp is None else warped_model(model, warp), res.H)
+                up.bend[g], up.warps[g], up.metric[g] = bend, warp, info
             up.joint = True
             return up
         except ReconstructionError:           # each group on its own, below
             up = Upgrade(up.frame)
     for g, model in sorted(models.items()):
         try:
-            res, aff = _fit(model, gcps, up.frame, cfg)
-            gsd = estimate_gsd(model, res.H)
+            res, aff, warp, info, moved = _fit_metric(model, gcps, up.frame, cfg)
+            gsd = estimate_gsd(moved, res.H)
         except ReconstructionError as exc:
             up.errors[g] = f"group {g}: {exc}"
             continue
         up.results[g], up.affine[g], up.gsd_m[g] = res, aff, gsd
-        up.bend[g] = bend_observability(model, res.H)
+        up.warps[g], up.metric[g] = warp, info
+        up.bend[g] = bend_observability(moved, res.H)
         _warn_bend(res, up.bend[g])
     if not up.results:
         raise ReconstructionError("; ".join(up.errors.values()))
@@ -218,7 +251,7 @@ def run(state, bus: EventBus) -> dict:
                                   "observed in >= 2 images of each group")
     up = upgrade_models(state.gcps, state.models, state.cfg)
     write(up, state.layout)
-    state.upgrade = (up.Hs, up.frame)
+    state.upgrade = (up.maps, up.frame)
     report = up.report()
     for g, r in report["groups"].items():
         if "error" in r:

@@ -28,6 +28,14 @@ def col_basis(X: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
     return np.hstack([X, one, c[:, None] * X, (r ** 2)[:, None], (r ** 3)[:, None]])
 
 
+def col_basis_known_depth(X: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Basis of the column equation when the 1D perspective's term is known by physics and
+    taken out of the pixels (estimate_bend's `depth`): what is left free is the affine part, the
+    along-track terms r^2, r^3 and the range's change along the orbit, c r."""
+    one = np.ones((len(X), 1))
+    return np.hstack([X, one, (r ** 2)[:, None], (r ** 3)[:, None], (c * r)[:, None]])
+
+
 # -- the within-tile correction ---------------------------------------------------------------
 # What drives the bend is the pushbroom's departure from affine inside each tile: an affine tile
 # camera cannot reproduce it, and a smooth warp of the structure that makes every image's
@@ -185,6 +193,24 @@ def warp_observability(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]
             "labels": [f"{ax} {m}" for ax in "enu" for m in WARP_MONOMIALS]}
 
 
+EARTH_RADIUS_M = 6.371e6
+
+
+def physical_depth(P: np.ndarray, altitude_m: float) -> np.ndarray:
+    """The 1D perspective's coefficient s (3,) of a pushbroom whose mean affine camera in a
+    metric ENU frame is P (2, 4): the column's offset from its centre scales as 1 / range, so a
+    point dX nearer the satellite moves the column by (u_c - p_c)(s . dX) with s = -v / R, v the
+    unit viewing direction (down) and R the slant range from an orbit of the given altitude
+    (spherical Earth) at that zenith angle. The along-track direction has no perspective."""
+    v = np.cross(P[0, :3], P[1, :3])
+    v = v / np.linalg.norm(v)
+    v = -v if v[2] > 0 else v
+    cz = -v[2]
+    R = -EARTH_RADIUS_M * cz + np.sqrt((EARTH_RADIUS_M * cz) ** 2 + 2 * EARTH_RADIUS_M * altitude_m
+                                       + altitude_m ** 2)
+    return -v / R
+
+
 # -- the bend step: the visible quadratic warp of a structure, estimated and removed -----------
 # The closing rounds remove a bend slowly: a correction fitted on a bent structure is the
 # pushbroom's departure from affine *in the bent frame*, so it nearly sustains the bend, and
@@ -271,7 +297,11 @@ def _orthonormal(B: np.ndarray) -> np.ndarray:
 
 def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
                   min_share: float = MIN_WARP_SHARE, trim: float = 4.0,
-                  chunk: int = 200_000) -> tuple[BendWarp, dict]:
+                  chunk: int = 200_000,
+                  depth: list[np.ndarray | None] | None = None,
+                  range_free: bool = False,
+                  directions: np.ndarray | None = None,
+                  pair: np.ndarray | None = None) -> tuple[BendWarp, dict]:
     """The visible quadratic warp of structure X (N, 3, any affine frame) that removes what the
     images' models cannot fit (see above), from each image's observations (point indices into
     X, pixels (k, 2): each point once per image; images with fewer than MIN_POINTS_PER_IMAGE
@@ -281,8 +311,29 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     warp and a summary: the warps' singular values (shares, largest first), how many were
     estimated, the residual RMS (px), and the warp's size: the RMS over the points of the pixel
     motion it causes (whitened units). Each image's equations are read `chunk` observations at a
-    time (_unexplained): memory is bounded whatever the image's size."""
-    images = [(p, xy) for p, xy in images if len(p) >= MIN_POINTS_PER_IMAGE]
+    time (_unexplained): memory is bounded whatever the image's size.
+
+    depth: per image (aligned with `images`), the 1D perspective's coefficient s (3,) in X's
+    frame when physics knows it (physical_depth, carried into X's frame by the upgrade), else
+    None: the column's model is then col = b . [X, 1] + (u_c - p_c)(s . X) + k_2 r^2 + k_3 r^3
+    + k_4 c r (u_c the mean camera's column, p_c its mean; c r: the range's change along the
+    orbit), the known term taken out of the pixels and moved with the warp. What the free
+    depth term absorbed (the horizontal projective pair) is then seen.
+    range_free: with `depth`, one more unknown, a common relative change of every known depth
+    (the orbit's altitude, assumed, is then only a start: the summary's "range_change" k says
+    the data's depths are (1 + k) times the given ones). A change per image instead would
+    absorb the projective pair again (tried: README).
+    directions: (k, 3) the displacement directions in X's frame the warp may take (e.g. the
+    upgrade's east and north: a horizontal warp only); default any.
+    pair: with two `directions`, (2, 3) the linear functions of X that are the ground
+    coordinates along them (the upgrade's rows for east and north): only the projective pair of
+    that plane is then estimated, D = (g_1, g_2) (a . g) for the two unit vectors a (its
+    quadratic part; g = pair X), the two warps an affine frame's free depths hide."""
+    depth = [None] * len(images) if depth is None else list(depth)
+    if len(depth) != len(images):
+        raise ValueError("depth: one entry per image")
+    kept = [k for k, (p, _) in enumerate(images) if len(p) >= MIN_POINTS_PER_IMAGE]
+    images, depth = [images[k] for k in kept], [depth[k] for k in kept]
     if len(images) < 2:
         return BendWarp(X.mean(0), np.eye(3), np.zeros((2, 3)), np.zeros(3), np.zeros(9)), {
             "images": len(images), "warp_shares": [], "warps_seen": 0, "residual_rms_px": 0.0,
@@ -300,33 +351,84 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     p = warp._plane(X)
     mono = np.stack([p[:, 0] ** 2, np.sqrt(2.0) * p[:, 0] * p[:, 1], p[:, 1] ** 2], 1)
     Tinv = np.linalg.inv(T)
-    N, b, K, rss = np.zeros((9, 9)), np.zeros(9), 0, 0.0
-    for (pts, xy), P3 in zip(images, cams):
-        _, Xn, r, c, _, _ = _image_coords(X[pts], xy)
+    nu = 10 if range_free else 9
+    N, b, K, rss = np.zeros((nu, nu)), np.zeros(nu), 0, 0.0
+    for (pts, xy), P3, s_i in zip(images, cams, depth):
+        _, Xn, r, c, uv, p0 = _image_coords(X[pts], xy)
         M3 = P3 @ Tinv
+        if s_i is not None:
+            s_i = np.asarray(s_i, np.float64)
+            du = uv[:, 0] - p0[0]                          # the column's offset (px)
+            sx = (X[pts] - X[pts].mean(0)) @ s_i           # the known relative depth
+            y = xy.astype(np.float64).copy()
+            y[:, 0] -= du * sx
+            sT = s_i @ Tinv
         for k in range(2):
             def rows(sl, k=k):
                 """[model basis | motion of the 9 warps | pixel] of observations sl: the pixel
-                motion of each warp is the whitened displacement q_a m through the mean camera."""
-                B = col_basis(Xn[sl], r[sl], c[sl]) if k == 0 else row_basis(Xn[sl], r[sl])
+                motion of each warp is the whitened displacement q_a m through the mean camera
+                (and, with a known depth, through the 1D perspective it moves with)."""
+                if k == 1:
+                    B = row_basis(Xn[sl], r[sl])
+                elif s_i is None:
+                    B = col_basis(Xn[sl], r[sl], c[sl])
+                else:
+                    B = col_basis_known_depth(Xn[sl], r[sl], c[sl])
                 motion = np.einsum("km,a->kam", mono[pts[sl]], M3[k]).reshape(-1, 9)
-                return np.hstack([B, motion, xy[sl, k:k + 1]])
-            Nk, bk, rk, nk = _unexplained(rows, len(pts), trim, chunk)
+                if s_i is None:
+                    if nu == 10:
+                        motion = np.hstack([motion, np.zeros((len(sl), 1))])
+                    return np.hstack([B, motion, xy[sl, k:k + 1]])
+                if k == 0:
+                    # d[(u_c - p_c)(s . X)] = (M_c . D)(s . X) + (u_c - p_c)(s . D)
+                    motion = motion * (1.0 + sx[sl, None]) + np.einsum(
+                        "km,a->kam", mono[pts[sl]] * du[sl, None], sT).reshape(-1, 9)
+                if nu == 10:
+                    motion = np.hstack([motion, (du[sl] * sx[sl] if k == 0 else 0.0 * sx[sl])[:, None]])
+                return np.hstack([B, motion, y[sl, k:k + 1]])
+            Nk, bk, rk, nk = _unexplained(rows, len(pts), trim, chunk, nu)
             N += Nk
             b += bk
             rss += rk
             K += nk
-    lam, V = np.linalg.eigh(N)
+    # the unknowns: coef = C q, q per (direction, monomial), each direction of unit whitened length
+    dirs = np.eye(3) if directions is None else np.asarray(directions, np.float64) @ T.T
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    C = np.zeros((nu, 3 * len(dirs) + nu - 9))
+    for j, dj in enumerate(dirs):
+        for m in range(3):
+            C[3 * np.arange(3) + m, 3 * j + m] = dj
+    if nu == 10:
+        C[9, -1] = 1.0
+    if pair is not None:
+        # g = L p + c over the points; the pair's quadratic part in p, per direction, as the
+        # coefficients of (p1^2, sqrt2 p1 p2, p2^2)
+        g = (X - x0) @ np.asarray(pair, np.float64).T
+        L = np.linalg.lstsq(np.hstack([p, np.ones((len(p), 1))]), g, rcond=None)[0][:2].T
+        Q = np.zeros((3 * len(dirs) + nu - 9, 2 + nu - 9))
+        for k in range(2):
+            for j in range(2):
+                F = np.outer(L[j], L[k])                    # g_j g_k as a form in p
+                F = (F + F.T) / 2.0
+                Q[3 * j:3 * j + 3, k] = [F[0, 0], np.sqrt(2.0) * F[0, 1], F[1, 1]]
+        if nu == 10:
+            Q[-1, -1] = 1.0
+        C = C @ Q
+        C[:, :2] /= np.maximum(np.linalg.norm(C[:, :2], axis=0), 1e-300)
+    lam, V = np.linalg.eigh(C.T @ N @ C)
     lam, V = lam[::-1], V[:, ::-1]
     share = np.sqrt(np.maximum(lam, 0.0) / max(K / 2.0, 1.0))  # px per px of motion, per observation
     seen = share >= min_share
-    coef = V[:, seen] @ ((V[:, seen].T @ b) / lam[seen])
+    coef = C @ (V[:, seen] @ ((V[:, seen].T @ (C.T @ b)) / lam[seen]))
     if not np.isfinite(coef).all():                 # a degenerate structure: nothing estimated
-        coef, seen = np.zeros(9), np.zeros(9, bool)
+        coef, seen = np.zeros(nu), np.zeros(nu, bool)
+    range_change = float(coef[9]) if nu == 10 else 0.0
+    coef = coef[:9]
     warp.coef = coef
     moved = float(np.sqrt(np.mean(((mono @ coef.reshape(3, 3).T) ** 2).sum(1))))
     return warp, {"images": len(images), "warp_shares": share.tolist(), "warps_seen": int(seen.sum()),
-                  "residual_rms_px": float(np.sqrt(rss / max(K, 1))), "warp_rms_px": moved}
+                  "residual_rms_px": float(np.sqrt(rss / max(K, 1))), "warp_rms_px": moved,
+                  "range_change": range_change}
 
 
 def _stacked_r(rows, n: int, chunk: int, keep: np.ndarray | None = None) -> np.ndarray:
@@ -346,7 +448,7 @@ def _stacked_r(rows, n: int, chunk: int, keep: np.ndarray | None = None) -> np.n
     return R
 
 
-def _unexplained(rows, n: int, trim: float, chunk: int) -> tuple[np.ndarray, np.ndarray, float, int]:
+def _unexplained(rows, n: int, trim: float, chunk: int, nw: int = 9) -> tuple[np.ndarray, np.ndarray, float, int]:
     """One equation (column or row) of one image in the bend estimate: rows(sl) gives
     [basis (p) | warp motions (9) | pixel (1)] of observations sl. The model (the basis) is
     fitted to the pixels; observations beyond `trim` times its RMS residual are left out; of
@@ -354,7 +456,7 @@ def _unexplained(rows, n: int, trim: float, chunk: int) -> tuple[np.ndarray, np.
     Returns J^T J, J^T res, res^T res and the number of observations kept. Read by chunks
     (_stacked_r): the same figures as from the whole matrix, in bounded memory."""
     R = _stacked_r(rows, n, chunk)
-    p = R.shape[1] - 10
+    p = R.shape[1] - nw - 1
     theta = _lstsq_r(R[:, :p], R[:, -1:])[:, 0]
     res2 = np.empty(n)
     for s0 in range(0, n, chunk):
@@ -365,7 +467,7 @@ def _unexplained(rows, n: int, trim: float, chunk: int) -> tuple[np.ndarray, np.
     Q = _orthonormal(R[:, :p])
     rest = R[:, p:] - Q @ (Q.T @ R[:, p:])               # what the model cannot fit: [J | res]
     G = rest.T @ rest
-    return G[:9, :9], G[:9, 9], float(G[9, 9]), int(keep.sum())
+    return G[:nw, :nw], G[:nw, nw], float(G[nw, nw]), int(keep.sum())
 
 
 def _lstsq_r(Rb: np.ndarray, Ry: np.ndarray) -> np.ndarray:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from recon_core.geometry.enu_map import EnuMap
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.files import atomic_path, write_json
 from recon_core.io.layout import OutLayout
@@ -160,12 +161,14 @@ def save_upgrade(out: OutLayout | str | Path, records: dict[int, dict], frame: L
     write_json(lay.upgrade_frame, frame.to_dict())
 
 
-def load_upgrade(out: OutLayout | str | Path) -> tuple[dict[int, np.ndarray], LocalFrame] | None:
-    """({group: H_A (4, 4)}, frame) as save_upgrade wrote them; None before any upgrade."""
+def load_upgrade(out: OutLayout | str | Path) -> tuple[dict, LocalFrame] | None:
+    """({group: EnuMap (H_A and the metric bend step's warp)}, frame) as save_upgrade wrote
+    them; None before any upgrade."""
+
     lay = as_layout(out)
     if not lay.upgrade_frame.exists():
         return None
     fr = json.loads(lay.upgrade_frame.read_text())
     frame = LocalFrame(fr["lon0"], fr["lat0"], fr["h0"])
-    Hs = {g: np.array(json.loads(lay.upgrade_record(g).read_text())["H"]) for g in lay.upgraded_groups()}
-    return Hs, frame
+    maps = {g: EnuMap.from_record(json.loads(lay.upgrade_record(g).read_text())) for g in lay.upgraded_groups()}
+    return maps, frame

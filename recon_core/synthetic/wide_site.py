@@ -237,30 +237,13 @@ def structure_vs_truth(X: np.ndarray, X_true: np.ndarray) -> dict:
     return out
 
 
-EARTH_RADIUS_M = 6.371e6
-
-
-def physical_depth(P: np.ndarray, altitude_m: float) -> np.ndarray:
-    """The 1D perspective's coefficient s_c (pushbroom.col_basis: c * (s_c . X)) of a
-    pushbroom whose mean affine camera in a metric ENU frame is P (2, 4): the column scales as
-    1 / range, so s_c = -v / R with v the unit viewing direction (down) and R the slant range
-    from an orbit of the given altitude at that zenith angle."""
-    v = np.cross(P[0, :3], P[1, :3])
-    v = v / np.linalg.norm(v)
-    v = -v if v[2] > 0 else v
-    cz = -v[2]
-    R = -EARTH_RADIUS_M * cz + np.sqrt((EARTH_RADIUS_M * cz) ** 2 + 2 * EARTH_RADIUS_M * altitude_m
-                                       + altitude_m ** 2)
-    return -v / R
-
-
 def observability(site: WideSite, X: np.ndarray | None = None, max_per_image: int = 20000,
                   seed: int = 0, altitude_m: float | None = None) -> dict:
     """recon_core.geometry.pushbroom.warp_observability of the site's images over the points X
     (default: the truth, a metric frame), each point once per image (at most max_per_image per
     image); with `altitude_m`, each image's 1D perspective fixed by physics (physical_depth)
     instead of free."""
-    from recon_core.geometry.pushbroom import warp_observability
+    from recon_core.geometry.pushbroom import physical_depth, warp_observability
 
     X = site.X_true if X is None else X
     rng = np.random.default_rng(seed)

@@ -56,8 +56,9 @@ def test_upgrade_models_recovers_a_known_map_from_picked_positions(tiny_run):
     llh = frame.enu_to_geodetic(enu)
     gcps = [GCP(f"P{k}", *llh[k], role="control", affine_picked={0: Xa[k]}) for k in range(6)]
     # the frame is at the control GCPs' centroid: express the truth in that frame. H_TRUE is
-    # not a metric map (the cameras' rows are not orthogonal through it): GCPs only
-    cfg = preset("tiny").with_overrides({"upgrade.metric_prior_sigma_cos": 0.0})
+    # not a metric map (the cameras' rows are not orthogonal through it): GCPs only, and no
+    # metric bend step (its physics needs the metric frame)
+    cfg = preset("tiny").with_overrides({"upgrade.metric_prior_sigma_cos": 0.0, "upgrade.metric_bend": False})
     up = upgrade_models(gcps, {0: m}, cfg)
     Xe = up.frame.geodetic_to_enu(llh)
     np.testing.assert_allclose(up.results[0].apply(Xa), Xe, atol=1e-5)
@@ -74,12 +75,16 @@ def test_the_upgrade_says_what_the_views_can_see_of_a_bend(tiny_run):
     """The report's bend observability: `tiny`'s 3 views of one date cannot see a vertical warp
     (as the render-free harness finds on `flat`), but a site of a few hundred metres is not
     warned about; the same figures over a site of kilometres are."""
+    from recon_core.euclidean.metric_bend import warped_model
     from recon_core.euclidean.upgrade_stage import BEND_INVISIBLE_PX_PER_M, bend_observability, bend_warning
 
     state, _ = tiny_run
     rec = json.loads((state.layout.root / "report.json").read_text())["stages"]["upgrade"]["groups"]["0"]
     b = rec["bend_observability"]
-    assert b == bend_observability(state.models[0], np.array(rec["H"]))
+    # of the structure the upgrade maps: after the metric bend step, when it applied one
+    maps, _ = state.upgrade
+    m = state.models[0] if maps[0].warp is None else warped_model(state.models[0], maps[0].warp)
+    assert b == bend_observability(m, np.array(rec["H"]))
     assert b["views"] == 3 and b["site_width_km"] < 1.0
     # its weakest warp is vertical and invisible (its relief, 40 m over 200 m, shows others)
     assert b["invisible_warps"] >= 1 and b["weakest_vertical_px_per_m"] < BEND_INVISIBLE_PX_PER_M
@@ -88,3 +93,26 @@ def test_the_upgrade_says_what_the_views_can_see_of_a_bend(tiny_run):
     wide = dict(b, site_width_km=2.5)
     assert "cannot see a bend" in bend_warning(wide) and "2.5 km" in bend_warning(wide)
     assert bend_warning(dict(wide, weakest_vertical_px_per_m=0.006)) is None   # `large`'s 9 views
+
+
+def test_the_metric_bend_step_is_recorded_and_applied(tiny_run):
+    """The upgrade record says what the metric bend step did (recon_core.euclidean.metric_bend),
+    and the map the DSM stage applies (read back from the record) is the upgrade's. On `tiny`
+    (0.2 km) the orbit's range is not seen (the perspective moves its pixels by a few
+    thousandths of a pixel), so the step can only move the structure by millimetres; rows
+    across track are told apart on a wide site (tests/geometry/test_metric_bend.py)."""
+    from recon_core.io.models import load_upgrade
+
+    state, _ = tiny_run
+    rec = json.loads((state.layout.root / "report.json").read_text())["stages"]["upgrade"]["groups"]["0"]
+    mb = rec["metric_bend"]
+    assert mb["images"] == 3 and "applied" in mb
+    maps, _ = load_upgrade(state.layout)
+    assert (maps[0].warp is not None) == mb["applied"] == ("metric_warp" in rec)
+    m = state.models[0]
+    X = m.X[m.point_ids()]
+    np.testing.assert_allclose(maps[0](X), state.upgrade[0][0](X))
+    if mb["applied"]:
+        assert mb["warp_max_m"] < 0.05
+        moved = np.linalg.norm(maps[0](X) - (X @ maps[0].H[:3, :3].T + maps[0].H[:3, 3]), axis=1)
+        np.testing.assert_allclose(moved.max(), mb["warp_max_m"], rtol=1e-3)   # (H before its refit)

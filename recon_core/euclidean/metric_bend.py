@@ -1,0 +1,105 @@
+"""The metric bend step: the horizontal warp no affine frame lets the views see, removed once
+the upgrade gives a metric frame.
+
+Every image's pushbroom model (recon_core.geometry.pushbroom) has a 1D perspective across
+track, col = ... + (u_c - p_c)(s . X): the column's offset from its centre scales with 1 / range.
+In an affine frame s is unknown, so it is free, and with it the two warps of a projective map
+of the ground plane, X -> X (1 + a . X), are invisible: each image's free s absorbs them. The SfM's
+bend step cannot see them and they grow with the site (README: ~1 m RMS at 7.5 km).
+
+After the upgrade the frame is metric, and physics knows s: -v / R, v the image's viewing
+direction (its mean camera through H_A) and R the slant range of an orbit at its altitude
+(`physical_depth`). With s known, the images see the pair, and this step estimates it
+(pushbroom.estimate_bend with `depth` and `pair`):
+- only the projective pair of the upgrade's ground plane (east, north): the other warps are
+  the affine bend step's, which needs no assumed altitude. Estimated here too, the vertical
+  ones take up the error of the assumed altitude, and on a two-view crop of 0.5 km the weakly
+  seen horizontal ones took up the images' own departure from the model (a warp of 1.9 m: README
+  "The metric bend step");
+- one common relative change of every depth is estimated with them, so the configured altitude
+  is only a start: the data say how far the orbit is (`range_change`). Where it says the
+  columns' perspective is far from any orbit (|change| > MAX_RANGE_CHANGE: e.g. an image whose
+  rows, not columns, run across track), nothing is applied and the report says why.
+
+The warp is a map of the affine frame (a BendWarp), applied before H_A: the upgrade is then
+X -> H_A (X + D(X)) (recon_core.geometry.enu_map.EnuMap). H_A is refitted on the warped structure.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from recon_core.geometry.pushbroom import (MIN_TILES_FOR_CORRECTION, BendWarp, estimate_bend,
+                                           physical_depth)
+
+MIN_METRIC_SHARE = 0.1      # a warp is estimated when this share of its pixel motion is seen.
+                            # Measured: `large`'s pair and range at 0.28-0.55 (render-free,
+                            # 3.6 km) and 0.32-0.63 (pipeline); La Reunion's two views of 0.5 km see one
+                            # direction of the pair at 0.02-0.1, and with it the step moved a
+                            # check point by 0.5 m (E 0.04 -> 0.29 m): at 0.1 it is left out
+MAX_RANGE_CHANGE = 0.5      # the data's depths more than 50 % off the orbit's: not a pushbroom
+                            # whose columns run across track at that altitude
+
+
+def metric_bend(model, H: np.ndarray, altitude_m: float,
+                min_share: float = MIN_METRIC_SHARE, pair_only: bool = True) -> tuple[BendWarp | None, dict]:
+    """The metric bend step of a sparse model with its upgrade H (4, 4) (see the module
+    docstring), each image's observations once per point, in images of at least
+    MIN_TILES_FOR_CORRECTION tiles. Returns the warp (None when nothing is to be applied) and a
+    summary: the warps' shares, how many were seen, the data's range change and the altitude it
+    implies, and the warp's size on the ground (m)."""
+    m, o = model, model.obs
+    pts = m.point_ids()
+    local = np.full(len(m.X), -1)
+    local[pts] = np.arange(len(pts))
+    views = m.views_per_image(min_tiles=MIN_TILES_FOR_CORRECTION)
+    out = {"applied": False, "images": len(views), "altitude_km": altitude_m / 1e3}
+    if len(views) < 2:
+        return None, {**out, "reason": f"{len(views)} image(s) with >= {MIN_TILES_FOR_CORRECTION} tiles"}
+    X = m.X[pts]
+    A3 = H[:3, :3]
+    Hinv = np.linalg.inv(H)
+    images, depth = [], []
+    for _, k in views:
+        p, xy = local[o.track[k]], o.xy[k]
+        P = np.linalg.lstsq(np.hstack([X[p], np.ones((len(p), 1))]), xy, rcond=None)[0].T
+        images.append((p, xy))
+        depth.append(A3.T @ physical_depth(P @ Hinv, altitude_m))
+    east_north = np.linalg.solve(A3, np.eye(3)[:, :2]).T        # affine displacements of 1 m E, N
+    warp, info = estimate_bend(X, images, min_share=min_share, depth=depth, range_free=True,
+                               directions=east_north, pair=A3[:2] if pair_only else None)
+    k = info["range_change"]
+    moved = np.linalg.norm((warp(X) @ A3.T)[:, :2], axis=1)
+    out.update(images=info["images"], warps_seen=info["warps_seen"], warp_shares=info["warp_shares"],
+               range_change=k, implied_range_factor=1.0 / (1.0 + k) if k > -1 else None,
+               warp_rms_m=float(np.sqrt(np.mean(moved ** 2))) if len(moved) else 0.0,
+               warp_max_m=float(moved.max()) if len(moved) else 0.0)
+    if abs(k) > MAX_RANGE_CHANGE:
+        out["reason"] = (f"the images' column perspective is {1 + k:.2f} times what an orbit at "
+                         f"{altitude_m / 1e3:g} km gives: not applied (are the columns across track?)")
+        return None, out
+    if info["warps_seen"] == 0:
+        out["reason"] = "the views see no horizontal warp"
+        return None, out
+    out["applied"] = True
+    return warp, out
+
+
+def warped_model(model, warp: BendWarp):
+    """A copy of a sparse model with its points moved by the warp and each registered tile
+    camera following its linear part at the tile's points' centre (BendWarp.follow)."""
+    m, o = model, model.obs
+    idx = m.active_obs()
+    pts = m.point_ids()
+    cams, X = m.cams.copy(), m.X.copy()
+    reg = np.flatnonzero(m.registered)
+    cnt = np.bincount(o.tile[idx], minlength=len(m.tiles)).astype(np.float64)
+    cen = np.stack([np.bincount(o.tile[idx], m.X[o.track[idx], a], minlength=len(m.tiles))
+                    for a in range(3)], 1) / np.maximum(cnt, 1.0)[:, None]
+    cen[cnt == 0] = m.X[pts].mean(0) if len(pts) else 0.0
+    if len(reg):
+        cams[reg] = warp.follow(m.cams[reg], cen[reg])
+    X[pts] += warp(m.X[pts])
+    return replace(m, cams=cams, X=X)
