@@ -78,7 +78,8 @@ def main(argv=None) -> int:
     ap.add_argument("--physics", default="",
                     help="--bend-step: then the metric bend step, each image's 1D perspective fixed by "
                          "physics in the frame of an upgrade (the best affine map to the truth): comma-"
-                         "separated orbit altitudes in km, or 'true' for each image's own")
+                         "separated orbit altitudes in km, or 'true' for each image's own, each followed "
+                         "by letters (metric_step): e.g. 660ghpt is the pipeline's step")
     a = ap.parse_args(argv)
     t0 = time.time()
     preset = PRESETS[a.preset]
@@ -279,7 +280,10 @@ def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: floa
 def metric_step(site, X, cams, ids, images, reg, use, oc, op, cnt, on, alt, adjust, report) -> None:
     """The bend step once more in the frame of an upgrade (here the best affine map to the truth),
     each image's 1D perspective fixed by physics (pushbroom.physical_depth at orbit altitude
-    `alt` km, or 'true': each image's own), then a round's adjustment and the step again."""
+    `alt` km, or 'true': each image's own; 'true*1.05': 5 % off). Letters after it: g the common
+    range estimated too, h horizontal displacements only (the upgrade's east and north), p only
+    their projective pair, t the metric step's share threshold (0.1) instead of the bend step's,
+    r then a round's adjustment and the step again."""
     from recon_core.geometry.pushbroom import estimate_bend, physical_depth, tile_corrections
 
     X, cams = X.copy(), cams.copy()
@@ -289,10 +293,11 @@ def metric_step(site, X, cams, ids, images, reg, use, oc, op, cnt, on, alt, adju
         depth = []
         for i, (pts, xy) in enumerate(images):
             P = np.linalg.lstsq(np.hstack([X[ids][pts], np.ones((len(pts), 1))]), xy, rcond=None)[0].T
-            base, _, factor = alt.rstrip("ghpr").partition("*")
+            base, _, factor = alt.rstrip("ghprt").partition("*")
             h = (site.altitudes_m[i] if base == "true" else float(base) * 1e3) * float(factor or 1.0)
             depth.append(H[:3, :3].T @ physical_depth(P @ np.linalg.inv(H), h))
         warp, info = estimate_bend(X[ids], images, depth=depth, range_free="g" in alt,
+                                   min_share=0.1 if "t" in alt else 0.02,
                                    directions=np.linalg.solve(H[:3, :3], np.eye(3)[:, :2]).T if "h" in alt else None,
                                    pair=H[:2, :3] if "p" in alt else None)
         shares = " ".join(f"{v:.4f}" for v in info["warp_shares"])
@@ -301,7 +306,7 @@ def metric_step(site, X, cams, ids, images, reg, use, oc, op, cnt, on, alt, adju
         X[ids] += warp(X[ids])
         report(f"  metric step {step + 1}, {alt} km ({info['warps_seen']} warps)", X)
         print(f"    shares {shares}  range change {info['range_change']:+.4f}")
-        if step == 0:
+        if step == 0 and "r" in alt:
             g = tile_corrections(X[op], site.obs_xy[use], oc, site.tile_image[oc])[0]
             cams, X = adjust(cams, X, g)
             report("  metric step, round", X)
