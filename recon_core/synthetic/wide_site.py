@@ -47,6 +47,22 @@ class WideSite:
             P[t] = np.linalg.lstsq(A, self.obs_xy[k], rcond=None)[0].T
         return P
 
+    def views_per_image(self, max_per_image: int | None = None, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each point once per image, as the SfM passes a model's views on (SparseModel.
+        views_per_image): [(point indices, pixels (k, 2))] per image, at most max_per_image
+        points per image (drawn at random with `seed`)."""
+        rng = np.random.default_rng(seed)
+        img = self.tile_image[self.obs_cam]
+        out = []
+        for i in range(len(self.names)):
+            k = np.flatnonzero(img == i)
+            _, first = np.unique(self.obs_pt[k], return_index=True)
+            k = k[first]
+            if max_per_image is not None and len(k) > max_per_image:
+                k = np.sort(rng.choice(k, max_per_image, replace=False))
+            out.append((self.obs_pt[k], self.obs_xy[k]))
+        return out
+
     def gauge(self) -> np.ndarray:
         """Held camera entries: tile 0 whole and one row of tile 1 (12 numbers, as the SfM)."""
         fixed = np.zeros((len(self.tiles), 2, 4), bool)
@@ -246,16 +262,7 @@ def observability(site: WideSite, X: np.ndarray | None = None, max_per_image: in
     from recon_core.geometry.pushbroom import physical_depth, warp_observability
 
     X = site.X_true if X is None else X
-    rng = np.random.default_rng(seed)
-    img = site.tile_image[site.obs_cam]
-    images = []
-    for i in range(len(site.names)):
-        k = np.flatnonzero(img == i)
-        _, first = np.unique(site.obs_pt[k], return_index=True)
-        k = k[first]
-        if len(k) > max_per_image:
-            k = np.sort(rng.choice(k, max_per_image, replace=False))
-        images.append((site.obs_pt[k], site.obs_xy[k]))
+    images = site.views_per_image(max_per_image, seed)
     depth = None
     if altitude_m is not None:
         depth = []

@@ -20,12 +20,7 @@ from recon_core.synthetic.wide_site import make_wide_site, structure_vs_truth
 def warped_site():
     site = make_wide_site("large", 0, n_points=6000, noise_px=0.1, d=1000)
     X = site.X_true
-    img = site.tile_image[site.obs_cam]
-    images = []
-    for i in range(len(site.names)):
-        k = np.flatnonzero(img == i)
-        _, first = np.unique(site.obs_pt[k], return_index=True)
-        images.append((site.obs_pt[k[first]], site.obs_xy[k[first]]))
+    images = site.views_per_image()
     c = X.mean(0)
     half = np.ptp(X[:, :2], 0).max() / 2
     D = np.zeros_like(X)

@@ -118,17 +118,6 @@ def test_what_three_views_of_one_kind_cannot_see():
     assert s9[-3] > 4e-3 and s9[-3] > 10 * s[-3]
 
 
-def _per_image(site):
-    """Each point once per image: (point indices, pixels) per image, as the SfM passes them."""
-    img = site.tile_image[site.obs_cam]
-    out = []
-    for i in range(len(site.names)):
-        k = np.flatnonzero(img == i)
-        _, first = np.unique(site.obs_pt[k], return_index=True)
-        out.append((site.obs_pt[k[first]], site.obs_xy[k[first]]))
-    return out
-
-
 @pytest.fixture(scope="module")
 def large_views():
     return make_wide_site("large", 0, n_points=6000, noise_px=0.1, d=2000)
@@ -161,7 +150,7 @@ def test_bend_step_finds_a_dome_in_any_affine_frame(large_views):
     shares = []
     for F, shift in ((np.eye(3), 0.0), (A, np.array([40.0, -300.0, 7.0]))):
         Xf = bent @ F.T + shift
-        warp, info = estimate_bend(Xf, _per_image(site))
+        warp, info = estimate_bend(Xf, site.views_per_image())
         s = structure_vs_truth(Xf + warp(Xf), Xt)
         assert s["quadratic_range_m"] < 0.15, s
         assert info["warps_seen"] == 7
@@ -170,13 +159,13 @@ def test_bend_step_finds_a_dome_in_any_affine_frame(large_views):
     assert shares[0][6] > 0.02 > 5 * shares[0][7]       # the weakest seen, far from the pair
     # an image with too few points (its model and mean camera underdetermined) is left out,
     # not allowed to skew the frame's whitening
-    views = _per_image(site)
+    views = site.views_per_image()
     few = (views[0][0][:3], views[0][1][:3] + [5000.0, 0.0])
     warp, info = estimate_bend(bent, views + [few])
     assert info["images"] == len(views) and info["warps_seen"] == 7
     assert structure_vs_truth(bent + warp(bent), Xt)["quadratic_range_m"] < 0.15
     # the truth itself is left nearly alone: what is found there is the models' error and noise
-    warp, info = estimate_bend(Xt, _per_image(site))
+    warp, info = estimate_bend(Xt, site.views_per_image())
     assert structure_vs_truth(Xt + warp(Xt), Xt)["quadratic_range_m"] < 0.15
 
 
@@ -187,7 +176,7 @@ def test_bend_step_read_by_chunks_is_the_same_estimate(large_views):
     from recon_core.geometry.pushbroom import estimate_bend
 
     site = large_views
-    views = _per_image(site)
+    views = site.views_per_image()
     assert max(len(p) for p, _ in views) > 5 * 997
     flat = site.X_true.copy()
     flat[:, 2] = 0.0
