@@ -180,8 +180,8 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
                      f"{r.dof} dof)\n\n" + residual_table_markdown(r.to_dict()))
         mb = outcome.metric.get(g) or {}
         if mb.get("applied"):
-            parts.append(f"Metric bend step: a horizontal warp of {mb['warp_rms_m']:.2f} m RMS "
-                         f"({mb['warp_max_m']:.2f} m at most) taken out before H_A; the 3D view places "
+            parts.append(f"Metric bend step: a horizontal warp of {mb['warp_rms_m']:.3f} m RMS "
+                         f"({mb['warp_max_m']:.3f} m at most) taken out before H_A; the 3D view places "
                          "the clouds by H_A alone, the DSM and cloud.ply include it.")
     for g, e in sorted(outcome.errors.items()):
         parts.append(f"#### Group {g}: not upgraded\n\n{e}")

@@ -566,6 +566,9 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     md = app.g_upgrade_md.content
     assert "| GCP | role | status | dE m | dN m | dU m | reproj px |" in md and "check" in md
     assert "N = 4" in md or "LOO" in md.upper() or "loo" in md
+    # the metric bend step: said when applied (the 3D view places the clouds by H_A alone)
+    applied = outcome.metric[0].get("applied")
+    assert ("Metric bend step: a horizontal warp of" in md) == bool(applied)
     assert not (out / "viewer_upgrade.json").exists()      # one upgrade record: the pipeline's
     assert "stops after the sparse stage" in app.worker.rerun_from("upgrade")   # --until sparse
     app.wait_idle()
