@@ -438,6 +438,12 @@ def live(tmp_path_factory):
     # worker's final state has been applied, not whatever the last sample caught (a race)
     app.wait_idle()
     sample()
+    # the image plane's texture is read on a thread and placed by a later tick: wait for it, or
+    # a test that runs first (alone, with -k) finds no plane
+    t1 = time.time()
+    while app.pick_plane is None and time.time() - t1 < 30:
+        time.sleep(0.05)
+        app.wait_idle()
     app.gcp_panel.zoom_click.value = False      # one click places (the loupe has its own test)
     yield app, events, trace, out, site, cfg
     app.stop()
