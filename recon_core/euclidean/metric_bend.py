@@ -18,14 +18,15 @@ direction (its mean camera through H_A) and R the slant range of an orbit at its
   "The metric bend step");
 - one common relative change of every depth is estimated with them, so the configured altitude
   is only a start: the data say how far the orbit is (`range_change`). Where it says the
-  columns' perspective is far from any orbit (|change| > MAX_RANGE_CHANGE: e.g. an image whose
+  columns' perspective is far from any orbit's (|change| > MAX_RANGE_CHANGE, a range outside
+  0.67-2 times the orbit's: e.g. an image whose
   rows, not columns, run across track), nothing is applied and the report says why;
 - nothing is applied either unless the views see both warps of the pair and the range (share
   >= MIN_METRIC_SHARE): without the range the data cannot confirm the physics, and the warps
   would follow the assumed altitude (the horizontal warps with the altitude fixed at 500 or
   900 km, for orbits at 623-683 km: E 0.10 -> 0.16 / 0.14 m instead of 0.03 m on `large`'s
-  harness). Small sites do not see the range (`demo`'s 1.1 km:
-  share 0.035; the 0.5 km pairs: 0.02); there the pair is small anyway.
+  harness). Small sites do not see all three (`demo`'s 1.1 km: the third at 0.035; the 0.5 km
+  pairs: 0.004-0.023); there the pair is small anyway.
 
 The warp is a map of the affine frame (a BendWarp), applied before H_A: the upgrade is then
 X -> H_A (X + D(X)) (recon_core.geometry.enu_map.EnuMap). H_A is refitted on the warped structure.
@@ -76,6 +77,9 @@ def metric_bend(model, H: np.ndarray, altitude_m: float,
     east_north = np.linalg.solve(A3, np.eye(3)[:, :2]).T        # affine displacements of 1 m E, N
     warp, info = estimate_bend(X, images, min_share=min_share, depth=depth, range_free=True,
                                directions=east_north, pair=A3[:2] if pair_only else None)
+    if info["images"] < 2:
+        return None, {**out, "images": info["images"],
+                      "reason": f"{info['images']} image(s) with enough points for the estimate"}
     k = info["range_change"]
     moved = np.linalg.norm((warp(X) @ A3.T)[:, :2], axis=1)
     out.update(images=info["images"], warps_seen=info["warps_seen"], warp_shares=info["warp_shares"],
@@ -90,8 +94,8 @@ def metric_bend(model, H: np.ndarray, altitude_m: float,
     if info["warps_seen"] < need:
         # what is not seen is mixed with what is: an unseen range leaves the warps to the
         # assumed altitude, and nothing in the data says the columns' perspective is an orbit's
-        out["reason"] = (f"the views see {info['warps_seen']} of the {need - 1} warps and the orbit's "
-                         f"range (share >= {min_share:g}): not applied")
+        out["reason"] = (f"the views see {info['warps_seen']} of the {need} (the {need - 1} warps and "
+                         f"the orbit's range) at a share >= {min_share:g}: not applied")
         return None, out
     out["applied"] = True
     return warp, out

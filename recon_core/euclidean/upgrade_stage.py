@@ -177,8 +177,11 @@ def _fit_metric(model, gcps: list[GCP], frame: LocalFrame, cfg: Config):
     moved = warped_model(model, warp)
     picks = [replace(g, affine_picked={k: np.asarray(x, np.float64) + warp(np.asarray(x, np.float64)[None])[0]
                                        for k, x in g.affine_picked.items()}) for g in gcps]
-    res, aff = _fit(moved, picks, frame, cfg)
-    return res, aff, warp, info, moved
+    try:
+        res_w, aff_w = _fit(moved, picks, frame, cfg)
+    except ReconstructionError as exc:       # e.g. the control GCPs too flat once warped
+        return res, aff, None, {**info, "applied": False, "reason": f"H_A refit on the warped model: {exc}"}, model
+    return res_w, aff_w, warp, info, moved
 
 
 def _picks_joint(gcp: GCP, group: int) -> GCP:

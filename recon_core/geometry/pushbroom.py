@@ -321,7 +321,9 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     depth term absorbed (the horizontal projective pair) is then seen.
     range_free: with `depth`, one more unknown, a common relative change of every known depth
     (the orbit's altitude, assumed, is then only a start: the summary's "range_change" k says
-    the data's depths are (1 + k) times the given ones). A change per image instead would
+    the data's depths are (1 + k) times the given ones). Its "share" is px of motion per unit
+    of relative change, an absolute measure that grows with the site, not a share of its own
+    motion as the warps' are. A change per image instead would
     absorb the projective pair again (tried: README).
     directions: (k, 3) the displacement directions in X's frame the warp may take (e.g. the
     upgrade's east and north: a horizontal warp only); default any.
@@ -337,6 +339,7 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     if len(images) < 2:
         return BendWarp(X.mean(0), np.eye(3), np.zeros((2, 3)), np.zeros(3), np.zeros(9)), {
             "images": len(images), "warp_shares": [], "warps_seen": 0, "residual_rms_px": 0.0,
+            "range_change": 0.0,
             "warp_rms_px": 0.0}
     cams = [_image_coords(X[p], xy)[0][:, :3] for p, xy in images]
     M = np.vstack(cams)
@@ -365,7 +368,7 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
             sT = s_i @ Tinv
         for k in range(2):
             def rows(sl, k=k):
-                """[model basis | motion of the 9 warps | pixel] of observations sl: the pixel
+                """[model basis | motion of the 9 warps (and the range) | pixel] of observations sl: the pixel
                 motion of each warp is the whitened displacement q_a m through the mean camera
                 (and, with a known depth, through the 1D perspective it moves with)."""
                 if k == 1:
@@ -393,7 +396,12 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
             K += nk
     # the unknowns: coef = C q, q per (direction, monomial), each direction of unit whitened length
     dirs = np.eye(3) if directions is None else np.asarray(directions, np.float64) @ T.T
-    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    if pair is not None and len(dirs) != 2:
+        raise ValueError("pair: needs the two directions of its plane")
+    # each direction of unit whitened length; for the pair one common length, so that both
+    # axes keep the pair's common factor (g_j (a . g) on each)
+    norm = np.linalg.norm(dirs, axis=1, keepdims=True)
+    dirs = dirs / (norm.mean() if pair is not None else norm)
     C = np.zeros((nu, 3 * len(dirs) + nu - 9))
     for j, dj in enumerate(dirs):
         for m in range(3):
@@ -450,8 +458,8 @@ def _stacked_r(rows, n: int, chunk: int, keep: np.ndarray | None = None) -> np.n
 
 def _unexplained(rows, n: int, trim: float, chunk: int, nw: int = 9) -> tuple[np.ndarray, np.ndarray, float, int]:
     """One equation (column or row) of one image in the bend estimate: rows(sl) gives
-    [basis (p) | warp motions (9) | pixel (1)] of observations sl. The model (the basis) is
-    fitted to the pixels; observations beyond `trim` times its RMS residual are left out; of
+    [basis (p) | warp motions (nw: 9, or 10 with the range) | pixel (1)] of observations sl.
+    The model (the basis) is fitted to the pixels; observations beyond `trim` times its RMS residual are left out; of
     the rest, what the model cannot fit of the warps' motion (J) and of the pixels (res).
     Returns J^T J, J^T res, res^T res and the number of observations kept. Read by chunks
     (_stacked_r): the same figures as from the whole matrix, in bounded memory."""

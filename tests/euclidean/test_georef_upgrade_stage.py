@@ -116,3 +116,49 @@ def test_the_metric_bend_step_is_recorded_and_applied(tiny_run):
         assert mb["warp_max_m"] < 0.05
         moved = np.linalg.norm(maps[0](X) - (X @ maps[0].H[:3, :3].T + maps[0].H[:3, 3]), axis=1)
         np.testing.assert_allclose(moved.max(), mb["warp_max_m"], rtol=1e-3)   # (H before its refit)
+
+
+def test_a_metric_warp_goes_through_the_upgrade_its_record_and_the_dsm(tiny_run, monkeypatch, tmp_path):
+    """When the metric bend step applies a warp (forced here: `tiny` is too small for the views
+    to see the orbit's range), H_A is refitted on the warped structure, the record holds the warp,
+    the map read back is the same, and the DSM stage puts the points where that map does."""
+    from recon_core.euclidean import upgrade_stage
+    from recon_core.euclidean.dsm_stage import make_dsm
+    from recon_core.euclidean.georef import enu_to_output, output_epsg
+    from recon_core.euclidean.upgrade_stage import upgrade_models
+    from recon_core.geometry.enu_map import EnuMap
+    from recon_core.geometry.pushbroom import BendWarp
+    from recon_core.io.layout import OutLayout
+    from recon_core.io.models import PointSource
+    from recon_core.io.ply import read_ply
+
+    state, _ = tiny_run
+    m = state.models[0]
+    X = m.X[m.point_ids()]
+    c = X.mean(0)
+    half = float(np.ptp(X, 0).max())
+    # a pure quadratic warp in the frame's first axis, 1 % of the site at its edge
+    warp = BendWarp(c, np.eye(3) / half, np.eye(3)[:2], np.zeros(3),
+                    np.array([0.01, 0.0, 0.0, 0, 0, 0, 0, 0, 0]))
+    assert np.abs(warp(X)).max() > 0.001 * half
+    info = {"applied": True, "warps_seen": 3, "warp_rms_m": 0.0, "warp_max_m": 0.0}
+    monkeypatch.setattr(upgrade_stage, "metric_bend", lambda *a, **k: (warp, dict(info)))
+    up = upgrade_models(state.gcps, state.models, state.cfg)
+    monkeypatch.setattr(upgrade_stage, "metric_bend", lambda *a, **k: (None, {"applied": False}))
+    plain = upgrade_models(state.gcps, state.models, state.cfg)
+    assert up.maps[0].warp is warp and plain.maps[0].warp is None
+    assert not np.allclose(up.results[0].H, plain.results[0].H)        # refitted on the warped model
+    rec = up.record(0)
+    back = EnuMap.from_record(rec)
+    np.testing.assert_allclose(back(X), up.maps[0](X), atol=1e-9)
+    H = np.array(rec["H"], dtype=np.float64)
+    np.testing.assert_allclose(back(X), (X + warp(X)) @ H[:3, :3].T + H[:3, 3], atol=1e-9)
+    # the DSM stage applies the whole map: its cloud equals the map's points in the output CRS
+    lay = OutLayout(tmp_path)
+    lay.root.mkdir(parents=True, exist_ok=True)
+    cfg = state.cfg.with_overrides({"dsm.resolution_m": 1.0})
+    pts = X[:500]
+    make_dsm(state.site, {0: PointSource(pts, np.zeros(len(pts), np.uint8))}, {0: back}, up.frame, 0.5, cfg, lay)
+    want = enu_to_output(back(pts), up.frame, output_epsg(state.site.hints, up.frame))
+    got = read_ply(lay.cloud)[0]
+    np.testing.assert_allclose(got, want, atol=1e-3)                # the same order: one group

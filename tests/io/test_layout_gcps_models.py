@@ -74,4 +74,5 @@ def test_model_and_upgrade_files_round_trip(tiny_run, tmp_path):
     save_upgrade(tmp_path, {0: {"H": H.tolist()}}, frame)             # group 3 not upgraded now
     maps, fr = load_upgrade(tmp_path)
     assert list(maps) == [0] and fr.to_dict() == frame.to_dict()
-    np.testing.assert_array_equal(maps[0].H, H) and maps[0].warp is None
+    np.testing.assert_array_equal(maps[0].H, H)
+    assert maps[0].warp is None
