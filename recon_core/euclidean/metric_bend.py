@@ -88,14 +88,14 @@ def metric_bend(model, H: np.ndarray, altitude_m: float,
                warp_max_m=float(moved.max()) if len(moved) else 0.0)
     if abs(k) > MAX_RANGE_CHANGE:
         out["reason"] = (f"the images' column perspective is {1 + k:.2f} times what an orbit at "
-                         f"{altitude_m / 1e3:g} km gives: not applied (are the columns across track?)")
+                         f"{altitude_m / 1e3:g} km gives (are the columns across track?)")
         return None, out
     need = 3 if pair_only else 7                  # the warps and the common range
     if info["warps_seen"] < need:
         # what is not seen is mixed with what is: an unseen range leaves the warps to the
         # assumed altitude, and nothing in the data says the columns' perspective is an orbit's
         out["reason"] = (f"the views see {info['warps_seen']} of the {need} (the {need - 1} warps and "
-                         f"the orbit's range) at a share >= {min_share:g}: not applied")
+                         f"the orbit's range) at a share >= {min_share:g}")
         return None, out
     out["applied"] = True
     return warp, out
