@@ -245,6 +245,12 @@ def main(argv=None) -> int:
             e = st["eval"][k]
             print(f"vs GT ({k}): median |error| {e['median_abs_err_m']:.3f} m, completeness "
                   f"{e['completeness_pct']:.1f} %, RMSE {e['rmse_m']:.3f} m, NMAD {e['nmad_m']:.3f} m")
+        groups = st["eval"].get("groups") or {}
+        if groups:
+            print("each group's DSM alone (aligned; unaligned): " + ", ".join(
+                f"group {g} {v['aligned']['median_abs_err_m']:.3f} m / {v['aligned']['completeness_pct']:.1f} %; "
+                f"{v['unaligned']['median_abs_err_m']:.3f} m" for g, v in sorted(groups.items())
+                if "aligned" in v and "unaligned" in v))
         a = st["eval"]["alignment"]
         print(f"alignment (DSM - GT): dx {a['dx_m']:+.2f} dy {a['dy_m']:+.2f} dz {a['dz_m']:+.2f} m")
     if args.reference and (out / "dsm.tif").exists():
