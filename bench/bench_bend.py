@@ -23,6 +23,7 @@ and its peak-to-peak range.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from dataclasses import replace
 import time
@@ -287,26 +288,26 @@ def metric_step(site, X, cams, ids, images, reg, use, oc, op, cnt, on, alt, adju
     from recon_core.geometry.pushbroom import estimate_bend, physical_depth, tile_corrections
 
     X, cams = X.copy(), cams.copy()
-    for step in range(2 if "r" in alt else 1):
+    base, factor, flags = re.fullmatch(r"(true|[0-9.]+)(?:\*([0-9.]+))?([ghprt]*)", alt).groups()
+    for step in range(2 if "r" in flags else 1):
         A = np.hstack([X[ids], np.ones((len(ids), 1))])
         H = np.vstack([np.linalg.lstsq(A, site.X_true[ids], rcond=None)[0].T, [0, 0, 0, 1]])
         depth = []
         for i, (pts, xy) in enumerate(images):
             P = np.linalg.lstsq(np.hstack([X[ids][pts], np.ones((len(pts), 1))]), xy, rcond=None)[0].T
-            base, _, factor = alt.rstrip("ghprt").partition("*")
             h = (site.altitudes_m[i] if base == "true" else float(base) * 1e3) * float(factor or 1.0)
             depth.append(H[:3, :3].T @ physical_depth(P @ np.linalg.inv(H), h))
-        warp, info = estimate_bend(X[ids], images, depth=depth, range_free="g" in alt,
-                                   min_share=0.1 if "t" in alt else 0.02,
-                                   directions=np.linalg.solve(H[:3, :3], np.eye(3)[:, :2]).T if "h" in alt else None,
-                                   pair=H[:2, :3] if "p" in alt else None)
+        warp, info = estimate_bend(X[ids], images, depth=depth, range_free="g" in flags,
+                                   min_share=0.1 if "t" in flags else 0.02,
+                                   directions=np.linalg.solve(H[:3, :3], np.eye(3)[:, :2]).T if "h" in flags else None,
+                                   pair=H[:2, :3] if "p" in flags else None)
         shares = " ".join(f"{v:.4f}" for v in info["warp_shares"])
         cen = np.stack([np.bincount(oc, X[op, a], minlength=len(cams)) for a in range(3)], 1) / cnt
         cams[reg] = warp.follow(cams[reg], cen[reg])
         X[ids] += warp(X[ids])
         report(f"  metric step {step + 1}, {alt} km ({info['warps_seen']} warps)", X)
         print(f"    shares {shares}  range change {info['range_change']:+.4f}")
-        if step == 0 and "r" in alt:
+        if step == 0 and "r" in flags:
             g = tile_corrections(X[op], site.obs_xy[use], oc, site.tile_image[oc])[0]
             cams, X = adjust(cams, X, g)
             report("  metric step, round", X)
