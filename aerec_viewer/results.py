@@ -38,7 +38,7 @@ class UpgradeOutcome(Upgrade):
 
     def transform(self, g: int) -> DisplayTransform | None:
         r = self.results.get(g)
-        return None if r is None else euclidean_display_transform(r.H, self.frame.origin_llh)
+        return None if r is None else euclidean_display_transform(r.H, self.frame.origin_llh, self.warps.get(g))
 
 
 def usable_observations(model, observations: dict) -> tuple[list[str], list[str]]:
@@ -181,8 +181,8 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
         mb = outcome.metric.get(g) or {}
         if mb.get("applied"):
             parts.append(f"Metric bend step: a horizontal warp of {mb['warp_rms_m']:.3f} m RMS "
-                         f"({mb['warp_max_m']:.3f} m at most) taken out before H_A; the 3D view places "
-                         "the clouds by H_A alone, the DSM and cloud.ply include it.")
+                         f"({mb['warp_max_m']:.3f} m at most) taken out before H_A (in the 3D view, "
+                         "the DSM and cloud.ply alike).")
     for g, e in sorted(outcome.errors.items()):
         parts.append(f"#### Group {g}: not upgraded\n\n{e}")
     return "\n\n".join(parts)

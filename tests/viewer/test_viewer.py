@@ -96,6 +96,27 @@ def test_image_window_pixels_follow_site_format():
     assert np.allclose(win.pixel(*win.fraction(123.25, 77.5)), (123.25, 77.5))
 
 
+def test_the_euclidean_display_is_the_upgrade_map_with_its_metric_warp():
+    """With the metric bend step's warp, the 3D view places points where the DSM stage does
+    (recon_core.geometry.enu_map.EnuMap), and a click's inverse finds the frame point back."""
+    from aerec_viewer.display import euclidean_display_transform
+    from recon_core.geometry.enu_map import EnuMap
+    from recon_core.geometry.pushbroom import BendWarp
+
+    rng = np.random.default_rng(1)
+    X = rng.uniform(-500, 500, size=(200, 3)) * [1, 1, 0.05]
+    warp = BendWarp(np.zeros(3), np.eye(3) / 500.0, np.eye(3)[:2], np.zeros(3),
+                    np.array([0.002, -0.001, 0.001, 0.001, 0.0, -0.002, 0, 0, 0]))
+    assert np.abs(warp(X)).max() > 0.1
+    H = np.vstack([np.hstack([0.5 * np.eye(3) + 0.01 * rng.normal(size=(3, 3)), rng.normal(size=(3, 1))]),
+                   [0, 0, 0, 1]])
+    T = euclidean_display_transform(H, np.array([55.0, -21.0, 10.0]), warp)
+    np.testing.assert_allclose(T.apply(X), EnuMap(H, warp)(X), atol=1e-3)     # float32 display
+    np.testing.assert_allclose(T.inverse(EnuMap(H, warp)(X)), X, atol=1e-9)
+    plain = euclidean_display_transform(H, np.array([55.0, -21.0, 10.0]))
+    assert np.abs(plain.apply(X) - T.apply(X)).max() > 0.05
+
+
 def test_affine_display_transform_is_image_aligned_and_not_mirrored():
     rng = np.random.default_rng(3)
     E = np.column_stack([rng.uniform(-500, 500, 2000), rng.uniform(-500, 500, 2000), np.zeros(2000)])
