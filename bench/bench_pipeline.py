@@ -16,7 +16,6 @@ the DSM metrics.
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 import resource
 import sys
 import time
@@ -82,6 +81,7 @@ def ensure_site(preset: str, seed: int, root: Path) -> Path:
 
 def truth_figures(site: Path, state) -> dict:
     from recon_core.euclidean.georef import frame_for
+    from recon_core.euclidean.metric_bend import warped_model
     from recon_core.evaluation.truth import sparse_vs_truth
 
     if not (site / "truth" / "cameras.json").exists():
@@ -102,10 +102,7 @@ def truth_figures(site: Path, state) -> dict:
         warp = getattr(maps.get(g), "warp", None)
         before = sparse_vs_truth(site, m, frame, views=joint) if warp is not None else None
         if warp is not None:
-            ids = m.point_ids()
-            X = m.X.copy()
-            X[ids] += warp(m.X[ids])
-            m = replace(m, X=X)
+            m = warped_model(m, warp)
         r = sparse_vs_truth(site, m, frame, views=joint)
         png = state.layout.root / "bench" / f"sparse_residual_u_g{g}.png"
         save_png(png, residual_map(r["truth"], r["residuals"][:, 2]))

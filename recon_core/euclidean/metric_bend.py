@@ -57,22 +57,16 @@ def metric_bend(model, H: np.ndarray, altitude_m: float,
     MIN_TILES_FOR_CORRECTION tiles. Returns the warp (None when nothing is to be applied) and a
     summary: the warps' shares, how many were seen, the data's range change and the altitude it
     implies, and the warp's size on the ground (m)."""
-    m, o = model, model.obs
-    pts = m.point_ids()
-    local = np.full(len(m.X), -1)
-    local[pts] = np.arange(len(pts))
-    views = m.views_per_image(min_tiles=MIN_TILES_FOR_CORRECTION)
-    out = {"applied": False, "images": len(views), "altitude_km": altitude_m / 1e3}
-    if len(views) < 2:
-        return None, {**out, "reason": f"{len(views)} image(s) with >= {MIN_TILES_FOR_CORRECTION} tiles"}
-    X = m.X[pts]
+    pts, images = model.point_views(min_tiles=MIN_TILES_FOR_CORRECTION)
+    out = {"applied": False, "images": len(images), "altitude_km": altitude_m / 1e3}
+    if len(images) < 2:
+        return None, {**out, "reason": f"{len(images)} image(s) with >= {MIN_TILES_FOR_CORRECTION} tiles"}
+    X = model.X[pts]
     A3 = H[:3, :3]
     Hinv = np.linalg.inv(H)
-    images, depth = [], []
-    for _, k in views:
-        p, xy = local[o.track[k]], o.xy[k]
+    depth = []
+    for p, xy in images:
         P = np.linalg.lstsq(np.hstack([X[p], np.ones((len(p), 1))]), xy, rcond=None)[0].T
-        images.append((p, xy))
         depth.append(A3.T @ physical_depth(P @ Hinv, altitude_m))
     east_north = np.linalg.solve(A3, np.eye(3)[:, :2]).T        # affine displacements of 1 m E, N
     warp, info = estimate_bend(X, images, min_share=min_share, depth=depth, range_free=True,
@@ -104,16 +98,10 @@ def metric_bend(model, H: np.ndarray, altitude_m: float,
 def warped_model(model, warp: BendWarp):
     """A copy of a sparse model with its points moved by the warp and each registered tile
     camera following its linear part at the tile's points' centre (BendWarp.follow)."""
-    m, o = model, model.obs
-    idx = m.active_obs()
-    pts = m.point_ids()
+    m = model
+    pts, reg = m.point_ids(), np.flatnonzero(m.registered)
     cams, X = m.cams.copy(), m.X.copy()
-    reg = np.flatnonzero(m.registered)
-    cnt = np.bincount(o.tile[idx], minlength=len(m.tiles)).astype(np.float64)
-    cen = np.stack([np.bincount(o.tile[idx], m.X[o.track[idx], a], minlength=len(m.tiles))
-                    for a in range(3)], 1) / np.maximum(cnt, 1.0)[:, None]
-    cen[cnt == 0] = m.X[pts].mean(0) if len(pts) else 0.0
     if len(reg):
-        cams[reg] = warp.follow(m.cams[reg], cen[reg])
+        cams[reg] = warp.follow(m.cams[reg], m.tile_centres()[reg])
     X[pts] += warp(m.X[pts])
     return replace(m, cams=cams, X=X)

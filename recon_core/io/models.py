@@ -164,7 +164,6 @@ def save_upgrade(out: OutLayout | str | Path, records: dict[int, dict], frame: L
 def load_upgrade(out: OutLayout | str | Path) -> tuple[dict, LocalFrame] | None:
     """({group: EnuMap (H_A and the metric bend step's warp)}, frame) as save_upgrade wrote
     them; None before any upgrade."""
-
     lay = as_layout(out)
     if not lay.upgrade_frame.exists():
         return None

@@ -95,6 +95,24 @@ class SparseModel:
                 out.append((int(i), k[first]))
         return out
 
+    def point_views(self, min_tiles: int = 0) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+        """What the bend estimates read (recon_core.geometry.pushbroom.estimate_bend): the point
+        ids, and per image of views_per_image(min_tiles=...) (positions in those ids, pixels)."""
+        o, pts = self.obs, self.point_ids()
+        local = np.full(len(self.X), -1)
+        local[pts] = np.arange(len(pts))
+        return pts, [(local[o.track[k]], o.xy[k]) for _, k in self.views_per_image(min_tiles=min_tiles)]
+
+    def tile_centres(self) -> np.ndarray:
+        """(T, 3) the centre of each tile's active observations' points (a tile without any: the
+        structure's centre), where a warp's linear part is taken for its camera (BendWarp.follow)."""
+        o, idx, pts = self.obs, self.active_obs(), self.point_ids()
+        cnt = np.bincount(o.tile[idx], minlength=len(self.tiles)).astype(np.float64)
+        cen = np.stack([np.bincount(o.tile[idx], self.X[o.track[idx], a], minlength=len(self.tiles))
+                        for a in range(3)], 1) / np.maximum(cnt, 1.0)[:, None]
+        cen[cnt == 0] = self.X[pts].mean(0) if len(pts) else 0.0
+        return cen
+
     def reprojection(self, idx: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(observation indices, pixel errors) for the active observations."""
         idx = self.active_obs() if idx is None else idx

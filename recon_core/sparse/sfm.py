@@ -588,13 +588,8 @@ class IncrementalSfM:
         image, images with enough tiles to fit their model) and, when `apply`, taken out: the
         points move by it and each registered tile camera follows its local linear part, so
         that the cameras still see the points where they did. Returns the estimate's summary."""
-        m, o = self.m, self.m.obs
-        idx = m.active_obs()
-        pts = m.point_ids()
-        local = np.full(len(m.X), -1)
-        local[pts] = np.arange(len(pts))
-        images = [(local[o.track[k]], o.xy[k])
-                  for _, k in m.views_per_image(min_tiles=MIN_TILES_FOR_CORRECTION)]
+        m = self.m
+        pts, images = m.point_views(min_tiles=MIN_TILES_FOR_CORRECTION)
         if len(images) < 2:
             return {"images": len(images), "applied": False}
         warp, info = estimate_bend(m.X[pts], images)
@@ -604,12 +599,8 @@ class IncrementalSfM:
         # each registered tile camera follows the warp at its points' centre (a tile without
         # active observations: at the structure's centre)
         reg = np.flatnonzero(m.registered)
-        cnt = np.bincount(o.tile[idx], minlength=len(m.tiles)).astype(np.float64)
-        cen = np.stack([np.bincount(o.tile[idx], m.X[o.track[idx], a], minlength=len(m.tiles))
-                        for a in range(3)], 1) / np.maximum(cnt, 1.0)[:, None]
-        cen[cnt == 0] = m.X[pts].mean(0)
         held = m.cams[m.fixed].copy()
-        m.cams[reg] = warp.follow(m.cams[reg], cen[reg])
+        m.cams[reg] = warp.follow(m.cams[reg], m.tile_centres()[reg])
         m.X[pts] += warp(m.X[pts])
         self._restore_gauge(held)
         self.bus.message(f"group {m.group}: bend step: {info['warps_seen']} of 9 quadratic warps seen, "
