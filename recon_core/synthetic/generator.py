@@ -137,6 +137,11 @@ PRESETS: dict[str, SynthPreset] = {
                          first_image_size=(8192, 8192), supersample=1, accel_cell=2.0,
                          accel_sample=0.5,
                          n_gcps=20, block_rows=256),
+    # a 10 km site: one date of 3 images of ~10,000 px at 1 m GSD (the extent of a real scene
+    # with a quarter of its pixels at 0.5 m); the scale issue's end-to-end reference
+    "wide": SynthPreset(name="wide", groups=(3,), group_months=(5,), image_size=(10000, 10000),
+                        size_jitter=0.04, gsd=1.0, supersample=1, accel_cell=2.0,
+                        accel_sample=0.5, n_gcps=24, block_rows=256),
 }
 
 # ----------------------------------------------------------------------------------------
@@ -1118,7 +1123,7 @@ def generate_site(out_dir: str | Path, preset: str | SynthPreset = "tiny", seed:
 
     # GT DSM and site.json
     t3 = time.perf_counter()
-    res = 0.5
+    res = max(0.5, P.gsd)    # the GT DSM's cell: 0.5 m, or the GSD of a coarser site
     bounds, valid = _coverage(scene, cams, groups, scene.h0, res)
     _write_gt_dsm(out / "gt_dsm.tif", scene, bounds, valid, res, pr)
     _write_json(out / "site.json", {"name": f"synth-{P.name}-{seed}", "crs_epsg": scene.epsg,
