@@ -28,8 +28,10 @@ COLOR_MODES = ("image colour", "height", "number of views", "reprojection error"
 # -- transforms -----------------------------------------------------------------------------
 @dataclass(frozen=True)
 class DisplayTransform:
-    """x_display = A @ (x + warp(x)) + b, mapping a frame (affine or ENU) to scene coordinates
-    (warp: the upgrade's metric bend step, recon_core.euclidean.metric_bend, or None).
+    """y = A @ (x + warp(x)) + b, x_display = y + post(y), mapping a frame (affine or ENU) to
+    scene coordinates (warp: the upgrade's metric bend step, recon_core.euclidean.metric_bend;
+    post: the bend fitted to control GCPs, recon_core.euclidean.gcp_bend; each None when not
+    applied).
 
     Attributes:
         A: (3, 3) linear part; b: (3,) offset.
@@ -47,18 +49,26 @@ class DisplayTransform:
     z_scale: float = 1.0
     camera: np.ndarray | None = None     # (2, 3) camera rows of the horizontal axes (affine)
     warp: object | None = None           # X -> D(X) (n, 3), applied before A (a BendWarp)
+    post: object | None = None           # Y -> G(Y) (n, 3), applied after A and b (an EnuWarp)
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """(n, 3) frame points -> (n, 3) float32 display points."""
         X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
         if self.warp is not None and len(X):
             X = X + self.warp(X)
-        return (X @ self.A.T + self.b).astype(np.float32)
+        Y = X @ self.A.T + self.b
+        if self.post is not None and len(Y):
+            Y = Y + self.post(Y)
+        return Y.astype(np.float32)
 
     def inverse(self, Y: np.ndarray) -> np.ndarray:
         """(n, 3) display points -> (n, 3) float64 frame points (with a warp, by fixed-point
         iteration: it is smooth and far smaller than the site)."""
         Y = np.asarray(Y, dtype=np.float64).reshape(-1, 3)
+        if self.post is not None and len(Y):
+            Y0 = Y
+            for _ in range(8):
+                Y = Y0 - self.post(Y)
         X0 = np.linalg.solve(self.A, (Y - self.b).T).T
         if self.warp is None or not len(X0):
             return X0
@@ -133,14 +143,17 @@ def _pca_display_transform(X: np.ndarray, c: np.ndarray) -> DisplayTransform:
                             "whitened; relief exaggerated; may be depth-reversed", 1.0)
 
 
-def euclidean_display_transform(H: np.ndarray, origin_llh: np.ndarray, warp=None) -> DisplayTransform:
+def euclidean_display_transform(H: np.ndarray, origin_llh: np.ndarray, warp=None,
+                                post=None) -> DisplayTransform:
     """Display of the Euclidean frame: ENU metres at the local origin, z up (A = H_A[:3, :3],
-    after the metric bend step's warp when there is one: the same map as the DSM's)."""
+    after the metric bend step's warp and before the bend fitted to GCPs when there are: the
+    same map as the DSM's)."""
     H = np.asarray(H, dtype=np.float64)
     lon, lat, h = (float(v) for v in origin_llh)
     label = (f"Euclidean frame: ENU metres, z up, origin lon {lon:.6f} lat {lat:.6f} "
              f"h {h:.1f} m (WGS84)")
-    return DisplayTransform(H[:3, :3].copy(), H[:3, 3].copy(), "euclidean", label, 1.0, warp=warp)
+    return DisplayTransform(H[:3, :3].copy(), H[:3, 3].copy(), "euclidean", label, 1.0, warp=warp,
+                            post=post)
 
 
 def image_footprint(T: DisplayTransform, camera: np.ndarray, width: int, height: int,

@@ -38,7 +38,8 @@ class UpgradeOutcome(Upgrade):
 
     def transform(self, g: int) -> DisplayTransform | None:
         r = self.results.get(g)
-        return None if r is None else euclidean_display_transform(r.H, self.frame.origin_llh, self.warps.get(g))
+        return None if r is None else euclidean_display_transform(r.H, self.frame.origin_llh, self.warps.get(g),
+                                                                  self.enu_warps.get(g))
 
 
 def usable_observations(model, observations: dict) -> tuple[list[str], list[str]]:
@@ -183,6 +184,15 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
             parts.append(f"Metric bend step: a horizontal warp of {mb['warp_rms_m']:.3f} m RMS "
                          f"({mb['warp_max_m']:.3f} m at most) taken out before H_A (in the 3D view, "
                          "the DSM and cloud.ply alike).")
+        gb = outcome.gcp_bend.get(g) or {}
+        if gb.get("applied"):
+            mx = gb["warp_max_m"]
+            parts.append(f"Bend fitted to the control GCPs: {gb['invisible_warps']} warps the views cannot "
+                         f"see, at most {mx[0]:.2f} / {mx[1]:.2f} / {mx[2]:.2f} m (E / N / U) over the site; "
+                         f"leave-one-out {gb['loo_rms_bend_m']:.2f} m RMS against {gb['loo_rms_affine_m']:.2f} m "
+                         "with H_A alone (in the 3D view, the DSM and cloud.ply alike).")
+        elif gb.get("control_gcps_needed") and outcome.bend.get(g, {}).get("site_width_km", 0) >= 1.0:
+            parts.append(f"Bend not fitted to the GCPs: {gb['reason']}.")
     for g, e in sorted(outcome.errors.items()):
         parts.append(f"#### Group {g}: not upgraded\n\n{e}")
     return "\n\n".join(parts)

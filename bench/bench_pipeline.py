@@ -228,6 +228,14 @@ def main(argv=None) -> int:
                       + (f"; {mb['warps_seen']} warps seen (shares {shares}), range x{mb.get('implied_range_factor') or float('nan'):.3f} "
                          f"of an orbit at {mb['altitude_km']:g} km, warp {mb['warp_rms_m']:.3f} m RMS, "
                          f"{mb['warp_max_m']:.3f} m max" if "warps_seen" in mb else ""))
+            gb = u.get("gcp_bend") or {}
+            if gb:
+                print(f"group {g} bend fitted to the GCPs: {'applied' if gb.get('applied') else 'not applied'}"
+                      + (f" ({gb['reason']})" if gb.get("reason") else "")
+                      + (f"; leave-one-out {gb['loo_rms_bend_m']:.3f} m with the {gb['invisible_warps']} invisible "
+                         f"warps, {gb['loo_rms_affine_m']:.3f} m without" if "loo_rms_bend_m" in gb else "")
+                      + (f"; warp at most E/N/U {', '.join(f'{v:.2f}' for v in gb['warp_max_m'])} m"
+                         if gb.get("applied") else ""))
             c = u["stats"].get("check", {})
             if c.get("n"):
                 print(f"group {g} upgrade: {u['n_control_used']} control GCPs; {c['n']} check points: "

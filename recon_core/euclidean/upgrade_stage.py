@@ -13,11 +13,12 @@ import numpy as np
 
 from recon_core.config import Config
 from recon_core.errors import ReconstructionError
+from recon_core.euclidean.gcp_bend import fit_gcp_bend, rescore
 from recon_core.euclidean.georef import GcpAffine, frame_for, upgrade_group
 from recon_core.euclidean.metric_bend import metric_bend, warped_model
 from recon_core.euclidean.upgrade import UpgradeResult, flat_gcp_refusal
 from recon_core.events import EventBus
-from recon_core.geometry.enu_map import EnuMap, warp_record
+from recon_core.geometry.enu_map import EnuMap, EnuWarp, warp_record
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.gcps import GCP
 from recon_core.io.models import load_upgrade, save_upgrade
@@ -80,22 +81,34 @@ def bend_observability(model, H: np.ndarray, max_per_image: int = 20000, seed: i
             "singular_px_per_m": s.tolist(), "vertical_share": vertical.tolist(),
             "weakest_vertical_px_per_m": float(weakest.min()) if len(weakest) else None,
             "invisible_warps": int(np.sum(s < BEND_INVISIBLE_PX_PER_M)),
+            "basis": {"warps": np.asarray(w["warps"]).tolist(), "centre_m": w["centre_m"],
+                      "half_width_m": w["half_width_m"],
+                      "meaning": "the warps of singular_px_per_m (rows, a-major over E, N, U x e^2, e n, "
+                                 "n^2; e, n = (E, N - centre_m) / half_width_m), in the metric frame"},
             "meaning": "pixel motion (RMS, px) that each quadratic warp of the structure, 1 m at "
                        "the site's edge, leaves once every image's pushbroom model re-fits: a warp "
                        f"below {BEND_INVISIBLE_PX_PER_M:g} px per m is invisible to the images, and 4 "
                        "GCPs (an affine map) do not fix it either"}
 
 
-def bend_warning(b: dict) -> str | None:
+def bend_warning(b: dict, gcp_fit: dict | None = None) -> str | None:
     """One line when the views cannot see a vertical bend of a site wider than
-    BEND_WARN_WIDTH_KM; None otherwise."""
+    BEND_WARN_WIDTH_KM (and the control GCPs did not hold it: gcp_fit, the summary of
+    recon_core.euclidean.gcp_bend); None otherwise."""
     s = b.get("weakest_vertical_px_per_m")
     if s is None or s >= BEND_INVISIBLE_PX_PER_M or b["site_width_km"] < BEND_WARN_WIDTH_KM:
         return None
-    return (f"its {b['views']} views cannot see a bend of the structure (a height warp of 1 m over "
+    text = (f"its {b['views']} views cannot see a bend of the structure (a height warp of 1 m over "
             f"its {b['site_width_km']:.1f} km moves them by {s:.0e} px): 4 GCPs fix an affine map, not a "
-            "bend, so heights away from the GCPs may be off by a metre or more (3 views of one date "
-            "over 2.5 km: 1.5-2.9 m); views of another date, or more GCPs spread over the site, hold it")
+            "bend, so heights away from the GCPs may be off by metres (3 views of one date: 1.5-2.9 m "
+            "over 2.5 km, 30 m RMS over 10 km); views of another date, or more control GCPs spread "
+            "over the site, hold it")
+    need = (gcp_fit or {}).get("control_gcps_needed")
+    if need:
+        text += f" ({need} control GCPs fit the {gcp_fit['invisible_warps']} warps it cannot see)"
+    if (gcp_fit or {}).get("loo_rms_bend_m") is not None:
+        text += f"; {gcp_fit['reason']}"
+    return text
 
 
 @dataclass
@@ -119,6 +132,8 @@ class Upgrade:
     bend: dict[int, dict] = field(default_factory=dict)   # group -> bend_observability
     warps: dict[int, object] = field(default_factory=dict)  # group -> the metric bend step's BendWarp
     metric: dict[int, dict] = field(default_factory=dict)   # group -> the metric bend step's summary
+    enu_warps: dict[int, EnuWarp] = field(default_factory=dict)  # group -> the bend fitted to GCPs
+    gcp_bend: dict[int, dict] = field(default_factory=dict)  # group -> that fit's summary
 
     @property
     def Hs(self) -> dict[int, np.ndarray]:
@@ -126,8 +141,8 @@ class Upgrade:
 
     @property
     def maps(self) -> dict[int, EnuMap]:
-        """Each group's whole upgrade: the metric bend step's warp, then H_A."""
-        return {g: EnuMap(r.H, self.warps.get(g)) for g, r in self.results.items()}
+        """Each group's whole upgrade: the metric bend step's warp, H_A, the bend fitted to GCPs."""
+        return {g: EnuMap(r.H, self.warps.get(g), self.enu_warps.get(g)) for g, r in self.results.items()}
 
     def record(self, g: int) -> dict:
         """What upgrade/group_<g>.json holds: the UpgradeResult, how each GCP was placed, GSD."""
@@ -142,6 +157,10 @@ class Upgrade:
             d["metric_bend"] = self.metric[g]
         if self.warps.get(g) is not None:
             d["metric_warp"] = warp_record(self.warps[g])
+        if self.gcp_bend.get(g):
+            d["gcp_bend"] = self.gcp_bend[g]
+        if self.enu_warps.get(g) is not None:
+            d["gcp_warp"] = self.enu_warps[g].record()
         return d
 
     def report(self) -> dict:
@@ -184,6 +203,23 @@ def _fit_metric(model, gcps: list[GCP], frame: LocalFrame, cfg: Config):
     return res_w, aff_w, warp, info, moved
 
 
+def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP], frame: LocalFrame,
+                  bend: dict, cfg: Config) -> tuple[UpgradeResult, EnuWarp | None, dict]:
+    """The bend the views cannot see, fitted to the control GCPs H_A used
+    (recon_core.euclidean.gcp_bend), and the result re-scored with it when it applies."""
+    if not cfg.upgrade.gcp_bend:
+        return res, None, {}
+    used = [p["id"] for p in res.points if p["status"] == "used"]
+    pos = {k: a.xyz for k, a in aff.items() if a.xyz is not None}
+    enu = {g.id: frame.geodetic_to_enu(g.llh[None])[0] for g in gcps}
+    H, warp, info, loo = fit_gcp_bend(res.H, np.array([pos[k] for k in used]).reshape(-1, 3),
+                                      np.array([enu[k] for k in used]).reshape(-1, 3), bend,
+                                      BEND_INVISIBLE_PX_PER_M)
+    if warp is None:
+        return res, None, info
+    return rescore(res, H, warp, pos, enu, dict(zip(used, loo)), info), warp, info
+
+
 def _picks_joint(gcp: GCP, group: int) -> GCP:
     """In a joint reconstruction every group's cloud is in one frame: a position picked on any
     group's cloud stands for the merged model's (the lowest group's pick when several)."""
@@ -211,11 +247,15 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
             res, aff, warp, info, moved = _fit_metric(joint, [_picks_joint(g, joint.group) for g in gcps],
                                                       up.frame, cfg)
             bend = bend_observability(moved, res.H)
-            _warn_bend(res, bend)
+            res, gwarp, ginfo = _fit_gcp_bend(res, aff, gcps, up.frame, bend, cfg)
+            _warn_bend(res, bend, ginfo)
             for g, model in sorted(models.items()):
                 up.results[g], up.affine[g] = res, aff
                 up.gsd_m[g] = estimate_gsd(model if warp is None else warped_model(model, warp), res.H)
                 up.bend[g], up.warps[g], up.metric[g] = bend, warp, info
+                up.gcp_bend[g] = ginfo
+                if gwarp is not None:
+                    up.enu_warps[g] = gwarp
             up.joint = True
             return up
         except ReconstructionError:           # each group on its own, below
@@ -230,14 +270,20 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
         up.results[g], up.affine[g], up.gsd_m[g] = res, aff, gsd
         up.warps[g], up.metric[g] = warp, info
         up.bend[g] = bend_observability(moved, res.H)
-        _warn_bend(res, up.bend[g])
+        res, gwarp, up.gcp_bend[g] = _fit_gcp_bend(res, aff, gcps, up.frame, up.bend[g], cfg)
+        up.results[g] = res
+        if gwarp is not None:
+            up.enu_warps[g] = gwarp
+        _warn_bend(res, up.bend[g], up.gcp_bend[g])
     if not up.results:
         raise ReconstructionError("; ".join(up.errors.values()))
     return up
 
 
-def _warn_bend(res: UpgradeResult, bend: dict) -> None:
-    text = bend_warning(bend)
+def _warn_bend(res: UpgradeResult, bend: dict, gcp_fit: dict | None = None) -> None:
+    if (gcp_fit or {}).get("applied"):
+        return                 # the GCPs hold what the views cannot see
+    text = bend_warning(bend, gcp_fit)
     if text and text not in res.warnings:
         res.warnings.append(text)
 

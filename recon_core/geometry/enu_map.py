@@ -1,5 +1,6 @@
 """The Euclidean upgrade of a group as one map: affine frame -> local ENU metres,
-X -> H_A (X + D(X)), D the metric bend step's warp (recon_core.euclidean.metric_bend) or none.
+X -> Y + G(Y), Y = H_A (X + D(X)), D the metric bend step's warp (recon_core.euclidean.metric_bend)
+or none, G the bend fitted to control GCPs (recon_core.euclidean.gcp_bend) or none.
 Shared by the upgrade stage that fits it, the files that record it and the DSM stage that
 applies it."""
 
@@ -14,31 +15,70 @@ from recon_core.geometry.pushbroom import BendWarp
 
 
 @dataclass
+class EnuWarp:
+    """A quadratic displacement of local ENU positions: D(Y) = sum_a,m coef[3 a + m] mono_m(e, n)
+    along axis a (E, N, U), mono = (e^2, e n, n^2), e = (E - centre_E) / half, n likewise."""
+
+    centre: np.ndarray    # (2,) E, N (m)
+    half: float           # m
+    coef: np.ndarray      # (9,) m at e, n = +-1, a-major
+
+    def mono(self, Y: np.ndarray) -> np.ndarray:
+        e = (Y[:, 0] - self.centre[0]) / self.half
+        n = (Y[:, 1] - self.centre[1]) / self.half
+        return np.stack([e * e, e * n, n * n], 1)
+
+    def __call__(self, Y: np.ndarray) -> np.ndarray:
+        """(n, 3) displacement of ENU positions Y (n, 3)."""
+        Y = np.asarray(Y, dtype=np.float64).reshape(-1, 3)
+        return self.mono(Y) @ self.coef.reshape(3, 3).T
+
+    def record(self) -> dict:
+        return {"centre": np.asarray(self.centre).tolist(), "half": float(self.half),
+                "coef": np.asarray(self.coef).tolist()}
+
+    @classmethod
+    def from_record(cls, d: dict) -> "EnuWarp":
+        return cls(np.asarray(d["centre"], np.float64), float(d["half"]), np.asarray(d["coef"], np.float64))
+
+
+@dataclass
 class EnuMap:
     """The Euclidean upgrade of a group: affine frame -> local ENU metres,
-    X -> H (X + warp(X)) (warp: the metric bend step's, or None)."""
+    X -> Y + enu_warp(Y), Y = H (X + warp(X)) (warp: the metric bend step's, enu_warp: the bend
+    fitted to control GCPs; each None when not applied)."""
 
     H: np.ndarray
     warp: BendWarp | None = None
+    enu_warp: EnuWarp | None = None
 
     def __call__(self, X: np.ndarray) -> np.ndarray:
         X = np.asarray(X, dtype=np.float64)
         if self.warp is not None and len(X):
             X = X + self.warp(X)
-        return apply_affine_3d(self.H, X)
+        Y = apply_affine_3d(self.H, X)
+        if self.enu_warp is not None and len(Y):
+            Y = Y + self.enu_warp(Y)
+        return Y
 
     def same(self, other: "EnuMap") -> bool:
         """The same map (one joint reconstruction's groups share one)."""
         if not np.array_equal(self.H, other.H) or (self.warp is None) != (other.warp is None):
             return False
+        if (self.enu_warp is None) != (other.enu_warp is None):
+            return False
+        if self.enu_warp is not None and self.enu_warp.record() != other.enu_warp.record():
+            return False
         return self.warp is None or warp_record(self.warp) == warp_record(other.warp)
 
     @classmethod
     def from_record(cls, rec: dict) -> "EnuMap":
-        """From an upgrade record (upgrade/group_<k>.json: "H", optional "metric_warp")."""
-        w = rec.get("metric_warp")
+        """From an upgrade record (upgrade/group_<k>.json: "H", optional "metric_warp" and
+        "gcp_warp")."""
+        w, g = rec.get("metric_warp"), rec.get("gcp_warp")
         return cls(np.array(rec["H"], dtype=np.float64), None if w is None else BendWarp(
-            **{k: np.array(w[k], dtype=np.float64) for k in ("x0", "T", "S", "w0", "coef")}))
+            **{k: np.array(w[k], dtype=np.float64) for k in ("x0", "T", "S", "w0", "coef")}),
+            None if g is None else EnuWarp.from_record(g))
 
 
 def warp_record(w: BendWarp) -> dict:

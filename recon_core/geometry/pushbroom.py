@@ -190,6 +190,7 @@ def warp_observability(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]
     U, s, Vt = np.linalg.svd(Rm, full_matrices=False)
     k = Rm.shape[0] / 2.0                                      # observations
     return {"singular_px_per_m": (s / np.sqrt(k)).tolist(), "warps": Vt, "half_width_m": float(half),
+            "centre_m": [float(e0), float(n0)],
             "labels": [f"{ax} {m}" for ax in "enu" for m in WARP_MONOMIALS]}
 
 

@@ -115,6 +115,15 @@ def test_the_euclidean_display_is_the_upgrade_map_with_its_metric_warp():
     np.testing.assert_allclose(T.inverse(EnuMap(H, warp)(X)), X, atol=1e-9)
     plain = euclidean_display_transform(H, np.array([55.0, -21.0, 10.0]))
     assert np.abs(plain.apply(X) - T.apply(X)).max() > 0.05
+    # and with the bend fitted to control GCPs after H_A (recon_core.euclidean.gcp_bend)
+    from recon_core.geometry.enu_map import EnuWarp
+
+    post = EnuWarp(np.array([10.0, -5.0]), 300.0, np.array([0.3, -0.2, 0.1, 0.0, 0.2, 0.1, 1.5, -0.8, 1.2]))
+    T2 = euclidean_display_transform(H, np.array([55.0, -21.0, 10.0]), warp, post)
+    full = EnuMap(H, warp, post)
+    assert np.abs(full(X) - EnuMap(H, warp)(X)).max() > 0.5
+    np.testing.assert_allclose(T2.apply(X), full(X), atol=1e-3)
+    np.testing.assert_allclose(T2.inverse(full(X)), X, atol=1e-6)
 
 
 def test_affine_display_transform_is_image_aligned_and_not_mirrored():

@@ -1,0 +1,78 @@
+"""The bend the views cannot see, fitted to control GCPs (recon_core.euclidean.gcp_bend): the
+true bend of a synthetic site is recovered from spread GCPs (checked on held-out points), and
+nothing is applied from too few GCPs or where there is no bend to find."""
+
+import numpy as np
+
+from recon_core.euclidean.gcp_bend import fit_gcp_bend
+from recon_core.geometry.enu_map import EnuMap, EnuWarp
+
+
+def _site(seed: int, n_ctrl: int, dome_m: float, noise_m: float = 0.05):
+    """A 10 km site: an affine frame, its H_A, GCPs whose surveyed ENU positions carry a dome
+    of `dome_m` at the edge in U paired with a horizontal shift (a warp of the invisible kind)."""
+    rng = np.random.default_rng(seed)
+    half, centre = 5000.0, np.array([120.0, -80.0])
+    # the invisible warps as the views would give them: a U dome (e^2 + n^2) with 0.3 of it in E
+    V = np.zeros((2, 9))
+    V[0, [6, 8]] = 1.0                 # U e^2, U n^2
+    V[0, [0, 2]] = 0.3                 # E e^2, E n^2
+    V[0] /= np.linalg.norm(V[0])
+    V[1, 7] = 1.0                      # U e n
+    s = np.array([0.2, 0.1, 0.05, 5e-4, 1e-5])          # three seen, two not
+    basis = np.vstack([np.eye(9)[[0, 4, 5]], V])
+    obs = {"singular_px_per_m": s.tolist(),
+           "basis": {"warps": basis.tolist(), "centre_m": centre.tolist(), "half_width_m": half}}
+    true = EnuWarp(centre, half, dome_m * np.linalg.norm(np.r_[1.0, 0.3, 1.0, 0.3]) * V[0] / 2.0)
+    n = n_ctrl + 30
+    Y = np.c_[rng.uniform(-half, half, (n, 2)) + centre, rng.uniform(20, 60, n)]
+    Xe = Y + true(Y)                                      # surveyed
+    H = np.eye(4)
+    H[:3, :3] = np.array([[0.9, 0.1, 0.0], [-0.05, 1.1, 0.02], [0.01, 0.0, 0.7]])
+    H[:3, 3] = [10.0, -4.0, 2.0]
+    Xa = np.linalg.solve(H[:3, :3], (Y - H[:3, 3]).T).T    # the affine frame's points
+    # H_A as fitted on the bent GCPs: the least-squares affine map from Xa to Xe
+    A = np.c_[Xa[:n_ctrl], np.ones(n_ctrl)]
+    H_fit = np.eye(4)
+    H_fit[:3] = np.linalg.lstsq(A, Xe[:n_ctrl] + rng.normal(0, noise_m, (n_ctrl, 3)), rcond=None)[0].T
+    return H_fit, Xa, Xe + 0.0, obs, n_ctrl, rng
+
+
+def _rms(r):
+    return float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+
+
+def test_spread_gcps_recover_the_invisible_bend():
+    H, Xa, Xe, obs, n, rng = _site(0, 12, dome_m=20.0)
+    noisy = Xe[:n] + rng.normal(0, 0.05, (n, 3))
+    Hn, warp, info, loo = fit_gcp_bend(H, Xa[:n], noisy, obs, 1e-3)
+    assert info["applied"] and info["invisible_warps"] == 2 and loo.shape == (n, 3)
+    before = _rms((np.c_[Xa[n:], np.ones(len(Xa) - n)] @ H.T)[:, :3] - Xe[n:])
+    after = _rms(EnuMap(Hn, None, warp)(Xa[n:]) - Xe[n:])
+    assert before > 5.0                      # 4-GCP-style affine map: metres off at the checks
+    assert after < 0.3, (before, after)      # the warps fitted: at the GCPs' noise
+    assert info["loo_rms_bend_m"] < 0.2 * info["loo_rms_affine_m"]
+
+
+def test_too_few_gcps_or_no_bend_apply_nothing():
+    H, Xa, Xe, obs, n, rng = _site(1, 5, dome_m=20.0)
+    Hn, warp, info, loo = fit_gcp_bend(H, Xa[:n], Xe[:n], obs, 1e-3)
+    assert warp is None and not info["applied"] and info["control_gcps_needed"] == 7
+    assert "needed" in info["reason"]
+    # no bend: the extra warps only fit noise, and the leave-one-out says so
+    H, Xa, Xe, obs, n, rng = _site(2, 10, dome_m=0.0, noise_m=0.3)
+    noisy = Xe[:n] + rng.normal(0, 0.3, (n, 3))
+    Hn, warp, info, loo = fit_gcp_bend(H, Xa[:n], noisy, obs, 1e-3)
+    assert warp is None and not info["applied"] and "leave-one-out" in info["reason"]
+    # every warp seen: nothing to fit
+    obs2 = dict(obs, singular_px_per_m=[0.2, 0.1, 0.05, 0.02, 0.01])
+    assert fit_gcp_bend(H, Xa[:n], noisy, obs2, 1e-3)[2]["reason"] == "the views see every quadratic warp"
+
+
+def test_enu_map_record_round_trip():
+    w = EnuWarp(np.array([1.0, 2.0]), 3000.0, np.arange(9.0))
+    m = EnuMap(np.eye(4), None, w)
+    back = EnuMap.from_record({"H": np.eye(4).tolist(), "gcp_warp": w.record()})
+    X = np.random.default_rng(0).normal(0, 2000, (50, 3))
+    np.testing.assert_allclose(back(X), m(X))
+    assert back.same(m) and not EnuMap(np.eye(4)).same(m)
