@@ -74,18 +74,52 @@ def _compose(H: np.ndarray, p: np.ndarray, warp: EnuWarp, z0: float) -> np.ndarr
     return L @ H
 
 
+def _consensus(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, V: np.ndarray, thresh_m: float,
+               rng: np.random.Generator, iters: int = 2000) -> np.ndarray:
+    """Inliers (n,) bool of the fit with the warps: MSAC over minimal samples (every sample
+    when there are fewer than `iters`), refitted on the inliers until they stop changing."""
+    from itertools import combinations
+    from math import comb
+
+    n, m = len(Y), int(np.ceil((12 + len(V)) / 3.0))
+    if comb(n, m) <= iters:
+        samples = [np.array(c) for c in combinations(range(n), m)]
+    else:
+        samples = [rng.choice(n, m, replace=False) for _ in range(iters)]
+    best, best_cost = None, np.inf
+    for sm in samples:
+        p = _solve(Y[sm], Xe[sm], warp, V)
+        r = np.linalg.norm(Y + warp(Y) + (_design(Y, warp, V) @ p).reshape(-1, 3) - Xe, axis=1)
+        cost = np.minimum(r, thresh_m).sum()
+        if cost < best_cost:
+            best, best_cost = r < thresh_m, cost
+    for _ in range(5):
+        if best.sum() < m:
+            break
+        p = _solve(Y[best], Xe[best], warp, V)
+        r = np.linalg.norm(Y + warp(Y) + (_design(Y, warp, V) @ p).reshape(-1, 3) - Xe, axis=1)
+        new = r < thresh_m
+        if (new == best).all():
+            break
+        best = new
+    return best
+
+
 def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
-                 invisible_px_per_m: float
-                 ) -> tuple[np.ndarray | None, EnuWarp | None, dict, np.ndarray | None]:
+                 invisible_px_per_m: float, thresh_m: float = 2.0, seed: int = 0):
     """Fit the warps the views cannot see to control GCPs (affine positions X_aff (n, 3) in the
-    frame H maps, surveyed ENU X_enu (n, 3)), with an affine correction of H.
+    frame H maps, surveyed ENU X_enu (n, 3): every usable control GCP, whether or not the
+    affine fit of H kept it: a bend makes good GCPs disagree with any affine map), with an
+    affine correction of H, robustly (GCPs off by more than thresh_m from the consensus left out).
 
     obs: upgrade_stage.bend_observability of the model in the metric frame H gives, with its
-    "basis" (the 9 warps, centre and scale). Returns (new H, warp, summary, leave-one-out
-    residuals (n, 3) of the fit) when it applies, else (None, None, summary saying why, None)."""
+    "basis" (the 9 warps, centre and scale). Returns (new H, warp, summary, inliers (n,) bool,
+    leave-one-out residuals (inliers, 3)) when it applies, else (None, None, summary saying why,
+    None, None)."""
+    no = (None, None)
     basis_rec = obs.get("basis") if obs else None
     if not basis_rec:
-        return None, None, {"applied": False, "reason": "no view of the structure to tell the invisible warps"}, None
+        return None, None, {"applied": False, "reason": "no view of the structure to tell the invisible warps"}, *no
     s = np.asarray(obs["singular_px_per_m"])
     V = np.asarray(basis_rec["warps"], np.float64)[s < invisible_px_per_m]
     k, n = len(V), len(X_aff)
@@ -94,74 +128,105 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
                              "of H_A to the control GCPs; kept only when each control GCP left out is "
                              "predicted better than by H_A alone"}
     if k == 0:
-        return None, None, {**info, "applied": False, "reason": "the views see every quadratic warp"}, None
+        return None, None, {**info, "applied": False, "reason": "the views see every quadratic warp"}, *no
     need = int(np.ceil((12 + k + MIN_REDUNDANCY) / 3.0))
     info["control_gcps_needed"] = need
     if n < need:
         return None, None, {**info, "applied": False,
-                            "reason": f"{n} control GCPs used, {need} needed to fit {k} invisible warps "
-                                      f"with {MIN_REDUNDANCY} equations to spare"}, None
+                            "reason": f"{n} usable control GCPs, {need} needed to fit {k} invisible warps "
+                                      f"with {MIN_REDUNDANCY} equations to spare"}, *no
     warp = EnuWarp(np.asarray(basis_rec["centre_m"], np.float64), float(basis_rec["half_width_m"]),
                    np.zeros(9))
     Y = (np.c_[X_aff, np.ones(n)] @ H.T)[:, :3]
-    loo_affine = _rms3(_loo(Y, X_enu, warp, V[:0]))
-    loo_res = _loo(Y, X_enu, warp, V)
+    inl = _consensus(Y, X_enu, warp, V, thresh_m, np.random.default_rng(seed))
+    info["inliers"] = int(inl.sum())
+    if inl.sum() < need:
+        return None, None, {**info, "applied": False,
+                            "reason": f"only {int(inl.sum())} of {n} control GCPs agree within {thresh_m:g} m "
+                                      f"with the warps, {need} needed"}, *no
+    loo_affine = _rms3(_loo(Y[inl], X_enu[inl], warp, V[:0]))
+    loo_res = _loo(Y[inl], X_enu[inl], warp, V)
     loo_bend = _rms3(loo_res)
     info.update(loo_rms_affine_m=loo_affine, loo_rms_bend_m=loo_bend)
     if not loo_bend < MAX_LOO_RATIO * loo_affine:
         return None, None, {**info, "applied": False,
                             "reason": f"leave-one-out {loo_bend:.3f} m with the warps against {loo_affine:.3f} m "
-                                      f"without: not below {MAX_LOO_RATIO:g} x"}, None
+                                      f"without: not below {MAX_LOO_RATIO:g} x"}, *no
     # the warp is evaluated at the corrected positions: re-solved until the fit is the map
     Hn, z0 = H.copy(), float(Y[:, 2].mean())
+    Xa, Xe = X_aff[inl], X_enu[inl]
     for _ in range(3):
-        Yn = (np.c_[X_aff, np.ones(n)] @ Hn.T)[:, :3]
-        p = _solve(Yn, X_enu, warp, V)
+        Yn = (np.c_[Xa, np.ones(len(Xa))] @ Hn.T)[:, :3]
+        p = _solve(Yn, Xe, warp, V)
         Hn = _compose(Hn, p, warp, z0)
         warp = EnuWarp(warp.centre, warp.half, warp.coef + p[12:] @ V)
-    Yf = (np.c_[X_aff, np.ones(n)] @ Hn.T)[:, :3]
+    Yf = (np.c_[Xa, np.ones(len(Xa))] @ Hn.T)[:, :3]
     Yf = Yf + warp(Yf)
     g = np.linspace(-1.0, 1.0, 21)
     ge, gn = np.meshgrid(g, g)
     grid = np.c_[warp.centre[0] + warp.half * ge.ravel(), warp.centre[1] + warp.half * gn.ravel(),
                  np.zeros(ge.size)]
     d = warp(grid)
-    info.update(applied=True, control_rms_m=float(np.sqrt(np.mean(np.sum((Yf - X_enu) ** 2, axis=1)))),
+    info.update(applied=True, control_rms_m=_rms3(Yf - Xe),
                 warp_max_m=[float(v) for v in np.abs(d).max(axis=0)],
                 warp_rms_m=[float(v) for v in np.sqrt(np.mean(d * d, axis=0))])
-    return Hn, warp, info, loo_res
+    return Hn, warp, info, inl, loo_res
 
 
-def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, loo: dict, info: dict):
+# warnings of the affine fit that the fit with the bend replaces (upgrade.upgrade's wording)
+_AFFINE_FIT_WARNINGS = ("RANSAC rejected", "RANSAC cannot tell", "the check points are off by")
+
+
+def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used: list[str],
+            rejected: list[str], loo: dict, info: dict, thresh_m: float):
     """The UpgradeResult `res` with H and the warp: every GCP row with an affine position
     (positions: id -> (3,) in the frame H maps; enu: id -> surveyed (3,)) re-scored by the new
-    map, the used control points' leave-one-out from the fit with the warps (loo: id -> (3,)),
-    the statistics and degrees of freedom updated, and a note. A new object; res is unchanged."""
+    map; the control GCPs `used` or `rejected` as the fit with the warps decided; their
+    leave-one-out from that fit (loo: id -> (3,)); statistics, degrees of freedom, rejections,
+    warnings and a note updated. A new object; res is unchanged."""
     from dataclasses import replace
 
     from recon_core.euclidean.upgrade import _attach_loo, accuracy_stats
 
-    rows, groups = [], {"control": [], "check": []}
+    rows, groups, rejections = [], {"control": [], "check": []}, []
     for row in res.points:
-        row = dict(row)
+        row = {k: v for k, v in row.items() if not k.startswith("loo_")}
         x = positions.get(row["id"])
         if x is not None and row.get("dE") is not None:
             Y = (H @ np.r_[np.asarray(x, np.float64), 1.0])[:3]
             r = Y + warp(Y[None])[0] - np.asarray(enu[row["id"]], np.float64)
             row.update(dE=float(r[0]), dN=float(r[1]), dU=float(r[2]),
                        horizontal_m=float(np.hypot(r[0], r[1])), norm3d_m=float(np.linalg.norm(r)))
-            if row["status"] == "used":
+            if row["id"] in used:
+                row.update(status="used", reason=None)
                 groups["control"].append(r)
+            elif row["id"] in rejected:
+                row.update(status="rejected",
+                           reason=f"outlier of the fit with the bend: 3D residual {np.linalg.norm(r):.2f} m > "
+                                  f"{thresh_m:g} m against the consensus of the other control GCPs")
             elif row["status"] == "check":
                 groups["check"].append(r)
+        if row["status"] in ("rejected", "unusable"):
+            rejections.append({"id": row["id"], "reason": row["reason"]})
         rows.append(row)
     ids = list(loo)
     _attach_loo(rows, ids, np.array([loo[i] for i in ids]).reshape(-1, 3))
     stats = {k: accuracy_stats(np.array(v).reshape(-1, 3)) for k, v in groups.items()}
     stats["loo"] = accuracy_stats(np.array([loo[i] for i in ids]).reshape(-1, 3))
     k = info["invisible_warps"]
-    note = (f"{k} quadratic warps the views cannot see were fitted to the {len(ids)} control GCPs with an "
+    warnings = [w for w in res.warnings if not w.startswith(_AFFINE_FIT_WARNINGS)]
+    if rejected:
+        warnings.append("the fit with the bend left out control GCP(s) " + ", ".join(rejected)
+                        + f" (threshold {thresh_m:g} m): check their ground coordinates and image observations")
+    c = stats["check"]
+    if c.get("n") and c["rmse_3d_m"] > thresh_m:
+        warnings.append(f"the check points are off by {c['rmse_3d_m']:.2f} m RMS (3D) with the bend fitted, "
+                        f"more than the {thresh_m:g} m the control GCPs must agree within; see the "
+                        "per-point residuals")
+    note = (f"{k} quadratic warps the views cannot see were fitted to {len(used)} control GCPs with an "
             f"affine correction of H_A (leave-one-out {info['loo_rms_bend_m']:.3f} m RMS against "
-            f"{info['loo_rms_affine_m']:.3f} m for H_A alone); the residuals are of that map")
-    return replace(res, H=H, points=rows, stats=stats, dof=3 * len(ids) - 12 - k,
+            f"{info['loo_rms_affine_m']:.3f} m for an affine map alone, on the same GCPs); the residuals "
+            "are of that map")
+    return replace(res, H=H, points=rows, stats=stats, dof=3 * len(used) - 12 - k,
+                   n_control_used=len(used), rejections=rejections, warnings=warnings,
                    notes=list(res.notes) + [note])

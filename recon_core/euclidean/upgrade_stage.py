@@ -209,15 +209,18 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
     (recon_core.euclidean.gcp_bend), and the result re-scored with it when it applies."""
     if not cfg.upgrade.gcp_bend:
         return res, None, {}
-    used = [p["id"] for p in res.points if p["status"] == "used"]
     pos = {k: a.xyz for k, a in aff.items() if a.xyz is not None}
+    ctrl = [p["id"] for p in res.points if p["status"] in ("used", "rejected") and p["id"] in pos]
     enu = {g.id: frame.geodetic_to_enu(g.llh[None])[0] for g in gcps}
-    H, warp, info, loo = fit_gcp_bend(res.H, np.array([pos[k] for k in used]).reshape(-1, 3),
-                                      np.array([enu[k] for k in used]).reshape(-1, 3), bend,
-                                      BEND_INVISIBLE_PX_PER_M)
+    thresh = cfg.upgrade.ransac_thresh_m
+    H, warp, info, inl, loo = fit_gcp_bend(res.H, np.array([pos[k] for k in ctrl]).reshape(-1, 3),
+                                           np.array([enu[k] for k in ctrl]).reshape(-1, 3), bend,
+                                           BEND_INVISIBLE_PX_PER_M, thresh, cfg.seed)
     if warp is None:
         return res, None, info
-    return rescore(res, H, warp, pos, enu, dict(zip(used, loo)), info), warp, info
+    used = [k for k, ok in zip(ctrl, inl) if ok]
+    rejected = [k for k, ok in zip(ctrl, inl) if not ok]
+    return rescore(res, H, warp, pos, enu, used, rejected, dict(zip(used, loo)), info, thresh), warp, info
 
 
 def _picks_joint(gcp: GCP, group: int) -> GCP:

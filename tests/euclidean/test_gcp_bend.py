@@ -45,8 +45,8 @@ def _rms(r):
 def test_spread_gcps_recover_the_invisible_bend():
     H, Xa, Xe, obs, n, rng = _site(0, 12, dome_m=20.0)
     noisy = Xe[:n] + rng.normal(0, 0.05, (n, 3))
-    Hn, warp, info, loo = fit_gcp_bend(H, Xa[:n], noisy, obs, 1e-3)
-    assert info["applied"] and info["invisible_warps"] == 2 and loo.shape == (n, 3)
+    Hn, warp, info, inl, loo = fit_gcp_bend(H, Xa[:n], noisy, obs, 1e-3)
+    assert info["applied"] and info["invisible_warps"] == 2 and inl.all() and loo.shape == (n, 3)
     before = _rms((np.c_[Xa[n:], np.ones(len(Xa) - n)] @ H.T)[:, :3] - Xe[n:])
     after = _rms(EnuMap(Hn, None, warp)(Xa[n:]) - Xe[n:])
     assert before > 5.0                      # 4-GCP-style affine map: metres off at the checks
@@ -56,13 +56,13 @@ def test_spread_gcps_recover_the_invisible_bend():
 
 def test_too_few_gcps_or_no_bend_apply_nothing():
     H, Xa, Xe, obs, n, rng = _site(1, 5, dome_m=20.0)
-    Hn, warp, info, loo = fit_gcp_bend(H, Xa[:n], Xe[:n], obs, 1e-3)
+    Hn, warp, info, inl, loo = fit_gcp_bend(H, Xa[:n], Xe[:n], obs, 1e-3)
     assert warp is None and not info["applied"] and info["control_gcps_needed"] == 7
     assert "needed" in info["reason"]
     # no bend: the extra warps only fit noise, and the leave-one-out says so
     H, Xa, Xe, obs, n, rng = _site(2, 10, dome_m=0.0, noise_m=0.3)
     noisy = Xe[:n] + rng.normal(0, 0.3, (n, 3))
-    Hn, warp, info, loo = fit_gcp_bend(H, Xa[:n], noisy, obs, 1e-3)
+    Hn, warp, info, inl, loo = fit_gcp_bend(H, Xa[:n], noisy, obs, 1e-3)
     assert warp is None and not info["applied"] and "leave-one-out" in info["reason"]
     # every warp seen: nothing to fit
     obs2 = dict(obs, singular_px_per_m=[0.2, 0.1, 0.05, 0.02, 0.01])
@@ -76,3 +76,34 @@ def test_enu_map_record_round_trip():
     X = np.random.default_rng(0).normal(0, 2000, (50, 3))
     np.testing.assert_allclose(back(X), m(X))
     assert back.same(m) and not EnuMap(np.eye(4)).same(m)
+
+
+def test_the_report_is_rescored_with_the_bend_and_a_blunder_left_out():
+    """Through upgrade.upgrade (whose affine RANSAC rejects good GCPs that the bend moved) and
+    rescore: every good control GCP used again, the blunder rejected, the check points scored by
+    the map with the warps, and the affine fit's warnings replaced."""
+    from recon_core.euclidean.gcp_bend import rescore
+    from recon_core.euclidean.upgrade import GcpInput, upgrade
+
+    H, Xa, Xe, obs, n, rng = _site(3, 12, dome_m=30.0)
+    surveyed = Xe + rng.normal(0, 0.05, Xe.shape)
+    surveyed[2] += [0.0, 0.0, 25.0]                       # a blunder among the control GCPs
+    gcps = [GcpInput(f"G{i:02d}", "control" if i < n else "check", Xa[i], surveyed[i], None, 0.2)
+            for i in range(len(Xa))]
+    res = upgrade(gcps, rng=np.random.default_rng(0))
+    assert sum(p["status"] == "rejected" for p in res.points) >= 2     # the bend breaks the affine fit
+    assert any(w.startswith("RANSAC") for w in res.warnings)
+    ctrl = [p["id"] for p in res.points if p["status"] in ("used", "rejected")]
+    idx = [int(k[1:]) for k in ctrl]
+    Hn, warp, info, inl, loo = fit_gcp_bend(res.H, Xa[idx], surveyed[idx], obs, 1e-3)
+    assert info["applied"] and not inl[ctrl.index("G02")] and inl.sum() == n - 1
+    used = [k for k, ok in zip(ctrl, inl) if ok]
+    out = rescore(res, Hn, warp, {g.id: g.affine_xyz for g in gcps}, {g.id: g.enu for g in gcps}, used,
+                  ["G02"], dict(zip(used, loo)), info, 2.0)
+    status = {p["id"]: p["status"] for p in out.points}
+    assert status["G02"] == "rejected" and sum(v == "used" for v in status.values()) == n - 1
+    assert out.stats["check"]["rmse_3d_m"] < 0.3 < 5.0 < res.stats["check"]["rmse_3d_m"]
+    assert out.n_control_used == n - 1 and out.stats["loo"]["n"] == n - 1
+    assert not any(w.startswith("RANSAC") for w in out.warnings)
+    assert any("G02" in w for w in out.warnings) and [r["id"] for r in out.rejections] == ["G02"]
+    assert res.H is not out.H and status != {p["id"]: p["status"] for p in res.points}
