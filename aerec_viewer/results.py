@@ -187,8 +187,8 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
         gb = outcome.gcp_bend.get(g) or {}
         if gb.get("applied"):
             mx = gb["warp_max_m"]
-            parts.append(f"Bend fitted to the control GCPs: {gb['invisible_warps']} warps the views cannot "
-                         f"see, at most {mx[0]:.2f} / {mx[1]:.2f} / {mx[2]:.2f} m (E / N / U) over the site; "
+            what = "the views cannot see" if gb["family"] == "invisible" else "(all nine quadratic ones)"
+            parts.append(f"Bend fitted to the control GCPs: {gb['warps_fitted']} warps {what}, at most {mx[0]:.2f} / {mx[1]:.2f} / {mx[2]:.2f} m (E / N / U) over the site; "
                          f"leave-one-out {gb['loo_rms_bend_m']:.2f} m RMS against {gb['loo_rms_affine_m']:.2f} m "
                          "with H_A alone (in the 3D view, the DSM and cloud.ply alike).")
         elif gb.get("control_gcps_needed") and outcome.bend.get(g, {}).get("site_width_km", 0) >= 1.0:

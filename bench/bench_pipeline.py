@@ -232,8 +232,9 @@ def main(argv=None) -> int:
             if gb:
                 print(f"group {g} bend fitted to the GCPs: {'applied' if gb.get('applied') else 'not applied'}"
                       + (f" ({gb['reason']})" if gb.get("reason") else "")
-                      + (f"; leave-one-out {gb['loo_rms_bend_m']:.3f} m with the {gb['invisible_warps']} invisible "
-                         f"warps, {gb['loo_rms_affine_m']:.3f} m without" if "loo_rms_bend_m" in gb else "")
+                      + (f"; {gb['inliers']} of {gb['control_gcps']} control GCPs agree; leave-one-out "
+                         + ", ".join(f"{v:.3f} m with the {k} warps" for k, v in gb["loo_rms_m"].items())
+                         + f", {gb['loo_rms_affine_m']:.3f} m affine" if "loo_rms_m" in gb else "")
                       + (f"; warp at most E/N/U {', '.join(f'{v:.2f}' for v in gb['warp_max_m'])} m"
                          if gb.get("applied") else ""))
             c = u["stats"].get("check", {})

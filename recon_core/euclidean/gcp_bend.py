@@ -121,33 +121,43 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
     if not basis_rec:
         return None, None, {"applied": False, "reason": "no view of the structure to tell the invisible warps"}, *no
     s = np.asarray(obs["singular_px_per_m"])
-    V = np.asarray(basis_rec["warps"], np.float64)[s < invisible_px_per_m]
-    k, n = len(V), len(X_aff)
-    info: dict = {"invisible_warps": int(k), "control_gcps": int(n),
-                  "meaning": "the quadratic warps the views cannot see, fitted with an affine correction "
-                             "of H_A to the control GCPs; kept only when each control GCP left out is "
-                             "predicted better than by H_A alone"}
+    W = np.asarray(basis_rec["warps"], np.float64)
+    k, n = int(np.sum(s < invisible_px_per_m)), len(X_aff)
+    info: dict = {"invisible_warps": k, "control_gcps": int(n),
+                  "meaning": "quadratic warps of the structure fitted with an affine correction of H_A to "
+                             "the control GCPs: the warps the views cannot see, or all nine (one date's "
+                             "SfM also leaves the ones they see), whichever predicts each control GCP left "
+                             "out best; kept only when that is better than an affine map alone"}
     if k == 0:
         return None, None, {**info, "applied": False, "reason": "the views see every quadratic warp"}, *no
-    need = int(np.ceil((12 + k + MIN_REDUNDANCY) / 3.0))
-    info["control_gcps_needed"] = need
-    if n < need:
+    need = {m: int(np.ceil((12 + m + MIN_REDUNDANCY) / 3.0)) for m in (k, 9)}
+    info["control_gcps_needed"] = need[k]
+    if n < need[k]:
         return None, None, {**info, "applied": False,
-                            "reason": f"{n} usable control GCPs, {need} needed to fit {k} invisible warps "
+                            "reason": f"{n} usable control GCPs, {need[k]} needed to fit {k} invisible warps "
                                       f"with {MIN_REDUNDANCY} equations to spare"}, *no
     warp = EnuWarp(np.asarray(basis_rec["centre_m"], np.float64), float(basis_rec["half_width_m"]),
                    np.zeros(9))
     Y = (np.c_[X_aff, np.ones(n)] @ H.T)[:, :3]
-    inl = _consensus(Y, X_enu, warp, V, thresh_m, np.random.default_rng(seed))
+    # the consensus with the richest family the GCPs can fit (a bend makes good GCPs disagree
+    # with a poorer one), then the family chosen by leave-one-out on its inliers
+    rich = W if n >= need[9] else W[s < invisible_px_per_m]
+    inl = _consensus(Y, X_enu, warp, rich, thresh_m, np.random.default_rng(seed))
     info["inliers"] = int(inl.sum())
-    if inl.sum() < need:
+    if inl.sum() < need[k]:
         return None, None, {**info, "applied": False,
                             "reason": f"only {int(inl.sum())} of {n} control GCPs agree within {thresh_m:g} m "
-                                      f"with the warps, {need} needed"}, *no
-    loo_affine = _rms3(_loo(Y[inl], X_enu[inl], warp, V[:0]))
-    loo_res = _loo(Y[inl], X_enu[inl], warp, V)
-    loo_bend = _rms3(loo_res)
-    info.update(loo_rms_affine_m=loo_affine, loo_rms_bend_m=loo_bend)
+                                      f"with the warps, {need[k]} needed"}, *no
+    families = {"invisible": W[s < invisible_px_per_m]}
+    if inl.sum() >= need[9]:
+        families["all"] = W
+    loo_affine = _rms3(_loo(Y[inl], X_enu[inl], warp, W[:0]))
+    loos = {name: _loo(Y[inl], X_enu[inl], warp, V) for name, V in families.items()}
+    rms = {name: _rms3(r) for name, r in loos.items()}
+    best = min(rms, key=rms.get)
+    V, loo_res, loo_bend = families[best], loos[best], rms[best]
+    info.update(loo_rms_affine_m=loo_affine, loo_rms_bend_m=loo_bend, family=best, warps_fitted=len(V),
+                loo_rms_m={name: v for name, v in rms.items()})
     if not loo_bend < MAX_LOO_RATIO * loo_affine:
         return None, None, {**info, "applied": False,
                             "reason": f"leave-one-out {loo_bend:.3f} m with the warps against {loo_affine:.3f} m "
@@ -213,7 +223,7 @@ def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used:
     _attach_loo(rows, ids, np.array([loo[i] for i in ids]).reshape(-1, 3))
     stats = {k: accuracy_stats(np.array(v).reshape(-1, 3)) for k, v in groups.items()}
     stats["loo"] = accuracy_stats(np.array([loo[i] for i in ids]).reshape(-1, 3))
-    k = info["invisible_warps"]
+    k = info["warps_fitted"]
     warnings = [w for w in res.warnings if not w.startswith(_AFFINE_FIT_WARNINGS)]
     if rejected:
         warnings.append("the fit with the bend left out control GCP(s) " + ", ".join(rejected)
@@ -223,7 +233,8 @@ def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used:
         warnings.append(f"the check points are off by {c['rmse_3d_m']:.2f} m RMS (3D) with the bend fitted, "
                         f"more than the {thresh_m:g} m the control GCPs must agree within; see the "
                         "per-point residuals")
-    note = (f"{k} quadratic warps the views cannot see were fitted to {len(used)} control GCPs with an "
+    what = "the views cannot see" if info["family"] == "invisible" else "of the structure (all nine)"
+    note = (f"{k} quadratic warps {what} were fitted to {len(used)} control GCPs with an "
             f"affine correction of H_A (leave-one-out {info['loo_rms_bend_m']:.3f} m RMS against "
             f"{info['loo_rms_affine_m']:.3f} m for an affine map alone, on the same GCPs); the residuals "
             "are of that map")

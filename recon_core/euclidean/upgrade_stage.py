@@ -105,7 +105,7 @@ def bend_warning(b: dict, gcp_fit: dict | None = None) -> str | None:
             "over the site, hold it")
     need = (gcp_fit or {}).get("control_gcps_needed")
     if need:
-        text += f" ({need} control GCPs fit the {gcp_fit['invisible_warps']} warps it cannot see)"
+        text += f" ({need} or more control GCPs fit the {gcp_fit['invisible_warps']} warps it cannot see)"
     if (gcp_fit or {}).get("loo_rms_bend_m") is not None:
         text += f"; {gcp_fit['reason']}"
     return text
