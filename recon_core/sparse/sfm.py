@@ -266,8 +266,8 @@ class IncrementalSfM:
         reasons = {}
         for t in np.flatnonzero(~m.registered):
             reasons[m.tiles[t].id] = why.get(int(t)) or (
-                f"{counts[t]} 2D-3D correspondences (< {self.cfg.resect_min_inliers}): too little "
-                "overlap with the registered tiles, or too little texture")
+                f"{counts[t]} 2D-3D correspondences (< {self.cfg.resect_min_inliers}): "
+                + self._why_few(int(t)))
             self.bus.message(f"group {m.group}: tile {m.tiles[t].id} not registered: "
                              f"{reasons[m.tiles[t].id]}", "warning", m.group)
         m.stats = {"init": init, "tiles_registered": int(m.registered.sum()), "tiles_total": len(m.tiles),
@@ -581,6 +581,23 @@ class IncrementalSfM:
         o.corr[:] = 0.0
         o.corr[idx] = corr
         self._correction_info = info
+
+    def _why_few(self, t: int) -> str:
+        """Why an unregistered tile has too few 2D-3D correspondences: its tracks that registered
+        tiles of other images see have no 3D point (a pair of views too close in angle:
+        sfm.min_triangulation_ratio), or there are too few such tracks at all."""
+        m, o = self.m, self.m.obs
+        own = o.tile == t
+        if not own.any():
+            return "no feature of it is matched in another image: no overlap, or too little texture"
+        mine = np.unique(o.track[own & o.valid])
+        k = np.flatnonzero(np.isin(o.track, mine) & o.valid & m.registered[o.tile] & (o.img != o.img[own][0]))
+        shared = np.unique(o.track[k])
+        lost = int(np.sum(~m.has_point[shared]))
+        if lost >= self.cfg.resect_min_inliers:
+            return (f"{lost} of its tracks are seen by registered tiles of other images but have no 3D point "
+                    "(dropped: views too close in angle, sfm.min_triangulation_ratio, or a poor reprojection)")
+        return "too little overlap with the registered tiles, or too little texture"
 
     def _bend_step(self, apply: bool) -> dict:
         """The bend step (recon_core.geometry.pushbroom, "the bend step"): the visible quadratic
