@@ -107,3 +107,25 @@ def test_the_report_is_rescored_with_the_bend_and_a_blunder_left_out():
     assert not any(w.startswith("RANSAC") for w in out.warnings)
     assert any("G02" in w for w in out.warnings) and [r["id"] for r in out.rejections] == ["G02"]
     assert res.H is not out.H and status != {p["id"]: p["status"] for p in res.points}
+
+
+def test_the_results_tab_says_what_the_gcp_bend_did():
+    """The viewer's Results tab: the warps fitted and how far they move the site, or why not."""
+    from aerec_viewer.results import UpgradeOutcome, outcome_markdown
+    from recon_core.euclidean.upgrade import GcpInput, upgrade
+    from recon_core.geometry.geodesy import LocalFrame
+
+    H, Xa, Xe, obs, n, rng = _site(4, 12, dome_m=30.0)
+    gcps = [GcpInput(f"G{i:02d}", "control" if i < n else "check", Xa[i], Xe[i], None, 0.2) for i in range(n + 3)]
+    res = upgrade(gcps, rng=np.random.default_rng(0))
+    Hn, warp, info, inl, loo = fit_gcp_bend(res.H, Xa[:n], Xe[:n], obs, 1e-3)
+    out = UpgradeOutcome(LocalFrame(30.0, 31.0), results={0: res}, gcp_bend={0: info}, enu_warps={0: warp},
+                         bend={0: {"site_width_km": 10.0}})
+    md = outcome_markdown(out)
+    assert "Bend fitted to the control GCPs" in md and "leave-one-out" in md
+    T = out.transform(0)
+    assert T.post is warp
+    refused = dict(info, applied=False, reason="only 5 of 12 control GCPs agree within 2 m with the warps, 8 needed")
+    md = outcome_markdown(UpgradeOutcome(LocalFrame(30.0, 31.0), results={0: res}, gcp_bend={0: refused},
+                                         bend={0: {"site_width_km": 10.0}}))
+    assert "Bend not fitted to the GCPs: only 5 of 12" in md
