@@ -288,6 +288,11 @@ def _warn_bend(res: UpgradeResult, bend: dict, gcp_fit: dict | None = None) -> N
         return                 # the GCPs hold what the views cannot see
     text = bend_warning(bend, gcp_fit)
     if text and text not in res.warnings:
+        # check points far off the control GCPs' fit are then the bend's doing as much as a
+        # wrong GCP's: say so where that warning blames the GCPs
+        res.warnings[:] = [w + "; or the structure is bent (next warning)"
+                           if w.startswith("the check points are off by") and "bent" not in w else w
+                           for w in res.warnings]
         res.warnings.append(text)
 
 

@@ -129,3 +129,20 @@ def test_the_results_tab_says_what_the_gcp_bend_did():
     md = outcome_markdown(UpgradeOutcome(LocalFrame(30.0, 31.0), results={0: res}, gcp_bend={0: refused},
                                          bend={0: {"site_width_km": 10.0}}))
     assert "Bend not fitted to the GCPs: only 5 of 12" in md
+
+
+def test_check_points_off_by_a_bend_are_not_only_blamed_on_the_gcps():
+    """4 control GCPs on a bent site: the check points are far off and the views cannot see the
+    bend; the warning that blames a wrong GCP also names the bend."""
+    from recon_core.euclidean.upgrade import GcpInput, upgrade
+    from recon_core.euclidean.upgrade_stage import _warn_bend
+
+    H, Xa, Xe, obs, n, rng = _site(5, 4, dome_m=30.0)
+    gcps = [GcpInput(f"G{i:02d}", "control" if i < n else "check", Xa[i], Xe[i], None, 0.2) for i in range(n + 10)]
+    res = upgrade(gcps, rng=np.random.default_rng(0))
+    assert any(w.startswith("the check points are off by") for w in res.warnings)
+    _warn_bend(res, {"weakest_vertical_px_per_m": 1e-5, "site_width_km": 10.0, "views": 3},
+               {"applied": False, "control_gcps_needed": 8, "invisible_warps": 6})
+    off = [w for w in res.warnings if w.startswith("the check points are off by")]
+    assert off and off[0].endswith("or the structure is bent (next warning)")
+    assert "cannot see a bend" in res.warnings[-1] and "8 or more control GCPs" in res.warnings[-1]
