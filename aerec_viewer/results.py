@@ -379,7 +379,7 @@ def provenance_markdown(out: str | Path) -> str:
         used = [p["id"] for p in pts if p.get("role") == "control" and p.get("status") == "used"]
         rej = [p["id"] for p in pts if p.get("status") == "rejected"]
         txt = f"Group {g}: upgrade from {len(used)} control GCP(s) ({', '.join(used)})"
-        lines.append(txt + (f", {len(rej)} rejected by RANSAC ({', '.join(rej)})." if rej else "."))
+        lines.append(txt + (f", {len(rej)} left out as outliers ({', '.join(rej)})." if rej else "."))
         newest = max(newest or 0.0, rec_path.stat().st_mtime)
     if gcp_file and newest is not None and Path(gcp_file).exists() \
             and Path(gcp_file).stat().st_mtime > newest + 1e-3:

@@ -196,7 +196,7 @@ def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used:
     warnings and a note updated. A new object; res is unchanged."""
     from dataclasses import replace
 
-    from recon_core.euclidean.upgrade import _attach_loo, accuracy_stats
+    from recon_core.euclidean.upgrade import _attach_loo, accuracy_stats, conditioning
 
     rows, groups, rejections = [], {"control": [], "check": []}, []
     for row in res.points:
@@ -224,7 +224,14 @@ def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used:
     stats = {k: accuracy_stats(np.array(v).reshape(-1, 3)) for k, v in groups.items()}
     stats["loo"] = accuracy_stats(np.array([loo[i] for i in ids]).reshape(-1, 3))
     k = info["warps_fitted"]
-    warnings = [w for w in res.warnings if not w.startswith(_AFFINE_FIT_WARNINGS)]
+    # how well the GCPs the fit used fix the height scale (the affine fit's were fewer)
+    c0 = res.conditioning or {}
+    cond = conditioning(np.array([enu[i] for i in used]).reshape(-1, 3), c0.get("affine_height_sigma_m", 0.4),
+                        c0.get("structure_height_m", 40.0), c0.get("warn_height_error_m", 2.0),
+                        c0.get("poor_height_error_m", 5.0))
+    warnings = [w for w in res.warnings if not w.startswith(_AFFINE_FIT_WARNINGS) and w != c0.get("warning")]
+    if cond.get("warning"):
+        warnings.append(cond["warning"])
     if rejected:
         warnings.append("the fit with the bend left out control GCP(s) " + ", ".join(rejected)
                         + f" (threshold {thresh_m:g} m): check their ground coordinates and image observations")
@@ -239,5 +246,5 @@ def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used:
             f"{info['loo_rms_affine_m']:.3f} m for an affine map alone, on the same GCPs); the residuals "
             "are of that map")
     return replace(res, H=H, points=rows, stats=stats, dof=3 * len(used) - 12 - k,
-                   n_control_used=len(used), rejections=rejections, warnings=warnings,
+                   n_control_used=len(used), rejections=rejections, warnings=warnings, conditioning=cond,
                    notes=list(res.notes) + [note])

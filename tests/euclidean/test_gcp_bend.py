@@ -107,6 +107,7 @@ def test_the_report_is_rescored_with_the_bend_and_a_blunder_left_out():
     assert not any(w.startswith("RANSAC") for w in out.warnings)
     assert any("G02" in w for w in out.warnings) and [r["id"] for r in out.rejections] == ["G02"]
     assert res.H is not out.H and status != {p["id"]: p["status"] for p in res.points}
+    assert out.conditioning["n"] == n - 1 and res.conditioning["n"] < n - 1   # of the GCPs it used
 
 
 def test_the_results_tab_says_what_the_gcp_bend_did():
