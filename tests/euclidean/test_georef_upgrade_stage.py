@@ -93,6 +93,10 @@ def test_the_upgrade_says_what_the_views_can_see_of_a_bend(tiny_run):
     wide = dict(b, site_width_km=2.5)
     assert "cannot see a bend" in bend_warning(wide) and "2.5 km" in bend_warning(wide)
     assert bend_warning(dict(wide, weakest_vertical_px_per_m=0.006)) is None   # `large`'s 9 views
+    # 4 control GCPs cannot fit the invisible warps (recon_core.euclidean.gcp_bend): said, none applied
+    gb = rec["gcp_bend"]
+    assert not gb["applied"] and gb["control_gcps"] == 4 and "needed" in gb["reason"]
+    assert maps[0].enu_warp is None and "gcp_warp" not in rec
 
 
 def test_the_metric_bend_step_is_recorded_and_applied(tiny_run):
