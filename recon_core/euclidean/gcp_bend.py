@@ -27,11 +27,11 @@ MIN_REDUNDANCY = 6
 MAX_LOO_RATIO = 0.9
 
 
-def _design(Y: np.ndarray, warp: EnuWarp, basis: np.ndarray) -> np.ndarray:
+def _design(Y: np.ndarray, warp: EnuWarp, basis: np.ndarray, z0: float) -> np.ndarray:
     """(3 n, 12 + k) equations of an affine correction [M | t] of Y (n, 3) and k warps (basis
     rows (k, 9)), in E, N, U per GCP; the affine columns are centred and scaled like the warps."""
     n = len(Y)
-    Yc = np.hstack([(Y - np.r_[warp.centre, Y[:, 2].mean()]) / warp.half, np.ones((n, 1))])
+    Yc = np.hstack([(Y - np.r_[warp.centre, z0]) / warp.half, np.ones((n, 1))])
     mono = warp.mono(Y)
     k = len(basis)
     A = np.zeros((n, 3, 12 + k))
@@ -41,19 +41,32 @@ def _design(Y: np.ndarray, warp: EnuWarp, basis: np.ndarray) -> np.ndarray:
     return A.reshape(3 * n, 12 + k)
 
 
-def _solve(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, basis: np.ndarray) -> np.ndarray:
+def _unknowns_per_gcp(V: np.ndarray) -> int:
+    """The fewest GCPs that can fix an affine correction and the warps V (k, 9): the 12 + k
+    unknowns over 3 equations each, and no fewer than each axis's own 4 + (its warps' rank)."""
+    per_axis = max(4 + np.linalg.matrix_rank(V[:, 3 * a:3 * a + 3]) if len(V) else 4 for a in range(3))
+    return int(max(np.ceil((12 + len(V)) / 3.0), per_axis))
+
+
+def _needed(V: np.ndarray) -> int:
+    """Control GCPs needed to fit V: the fewest that fix it, with MIN_REDUNDANCY equations to spare
+    (and two GCPs to spare on the worst axis)."""
+    return int(max(np.ceil((12 + len(V) + MIN_REDUNDANCY) / 3.0), _unknowns_per_gcp(V) + 2))
+
+
+def _solve(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, basis: np.ndarray, z0: float) -> np.ndarray:
     """The correction and warp steps that take Y + warp(Y) onto Xe (least squares)."""
-    A = _design(Y, warp, basis)
+    A = _design(Y, warp, basis, z0)
     return np.linalg.lstsq(A, (Xe - Y - warp(Y)).reshape(-1), rcond=None)[0]
 
 
-def _loo(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, basis: np.ndarray) -> np.ndarray:
+def _loo(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, basis: np.ndarray, z0: float) -> np.ndarray:
     """(n, 3) residual of each point predicted by the fit on the others."""
     res = []
     for i in range(len(Y)):
         keep = np.arange(len(Y)) != i
-        p = _solve(Y[keep], Xe[keep], warp, basis)
-        pred = Y[i] + warp(Y[i:i + 1])[0] + (_design(Y[i:i + 1], warp, basis) @ p)
+        p = _solve(Y[keep], Xe[keep], warp, basis, z0)
+        pred = Y[i] + warp(Y[i:i + 1])[0] + (_design(Y[i:i + 1], warp, basis, z0) @ p)
         res.append(pred - Xe[i])
     return np.array(res).reshape(-1, 3)
 
@@ -75,29 +88,29 @@ def _compose(H: np.ndarray, p: np.ndarray, warp: EnuWarp, z0: float) -> np.ndarr
 
 
 def _consensus(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, V: np.ndarray, thresh_m: float,
-               rng: np.random.Generator, iters: int = 2000) -> np.ndarray:
+               rng: np.random.Generator, z0: float, iters: int = 2000) -> np.ndarray:
     """Inliers (n,) bool of the fit with the warps: MSAC over minimal samples (every sample
     when there are fewer than `iters`), refitted on the inliers until they stop changing."""
     from itertools import combinations
     from math import comb
 
-    n, m = len(Y), int(np.ceil((12 + len(V)) / 3.0))
+    n, m = len(Y), _unknowns_per_gcp(V)
     if comb(n, m) <= iters:
         samples = [np.array(c) for c in combinations(range(n), m)]
     else:
         samples = [rng.choice(n, m, replace=False) for _ in range(iters)]
     best, best_cost = None, np.inf
     for sm in samples:
-        p = _solve(Y[sm], Xe[sm], warp, V)
-        r = np.linalg.norm(Y + warp(Y) + (_design(Y, warp, V) @ p).reshape(-1, 3) - Xe, axis=1)
+        p = _solve(Y[sm], Xe[sm], warp, V, z0)
+        r = np.linalg.norm(Y + warp(Y) + (_design(Y, warp, V, z0) @ p).reshape(-1, 3) - Xe, axis=1)
         cost = np.minimum(r, thresh_m).sum()
         if cost < best_cost:
             best, best_cost = r < thresh_m, cost
     for _ in range(5):
         if best.sum() < m:
             break
-        p = _solve(Y[best], Xe[best], warp, V)
-        r = np.linalg.norm(Y + warp(Y) + (_design(Y, warp, V) @ p).reshape(-1, 3) - Xe, axis=1)
+        p = _solve(Y[best], Xe[best], warp, V, z0)
+        r = np.linalg.norm(Y + warp(Y) + (_design(Y, warp, V, z0) @ p).reshape(-1, 3) - Xe, axis=1)
         new = r < thresh_m
         if (new == best).all():
             break
@@ -130,7 +143,7 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
                              "out best; kept only when that is better than an affine map alone"}
     if k == 0:
         return None, None, {**info, "applied": False, "reason": "the views see every quadratic warp"}, *no
-    need = {m: int(np.ceil((12 + m + MIN_REDUNDANCY) / 3.0)) for m in (k, 9)}
+    need = {m: _needed(W[s < invisible_px_per_m] if m == k else W) for m in (k, 9)}
     info["control_gcps_needed"] = need[k]
     if n < need[k]:
         return None, None, {**info, "applied": False,
@@ -139,10 +152,11 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
     warp = EnuWarp(np.asarray(basis_rec["centre_m"], np.float64), float(basis_rec["half_width_m"]),
                    np.zeros(9))
     Y = (np.c_[X_aff, np.ones(n)] @ H.T)[:, :3]
+    z0 = float(Y[:, 2].mean())       # one centre of the heights for every fit below
     # the consensus with the richest family the GCPs can fit (a bend makes good GCPs disagree
     # with a poorer one), then the family chosen by leave-one-out on its inliers
     rich = W if n >= need[9] else W[s < invisible_px_per_m]
-    inl = _consensus(Y, X_enu, warp, rich, thresh_m, np.random.default_rng(seed))
+    inl = _consensus(Y, X_enu, warp, rich, thresh_m, np.random.default_rng(seed), z0)
     info["inliers"] = int(inl.sum())
     if inl.sum() < need[k]:
         return None, None, {**info, "applied": False,
@@ -151,8 +165,8 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
     families = {"invisible": W[s < invisible_px_per_m]}
     if inl.sum() >= need[9]:
         families["all"] = W
-    loo_affine = _rms3(_loo(Y[inl], X_enu[inl], warp, W[:0]))
-    loos = {name: _loo(Y[inl], X_enu[inl], warp, V) for name, V in families.items()}
+    loo_affine = _rms3(_loo(Y[inl], X_enu[inl], warp, W[:0], z0))
+    loos = {name: _loo(Y[inl], X_enu[inl], warp, V, z0) for name, V in families.items()}
     rms = {name: _rms3(r) for name, r in loos.items()}
     best = min(rms, key=rms.get)
     V, loo_res, loo_bend = families[best], loos[best], rms[best]
@@ -163,11 +177,11 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
                             "reason": f"leave-one-out {loo_bend:.3f} m with the warps against {loo_affine:.3f} m "
                                       f"without: not below {MAX_LOO_RATIO:g} x"}, *no
     # the warp is evaluated at the corrected positions: re-solved until the fit is the map
-    Hn, z0 = H.copy(), float(Y[:, 2].mean())
+    Hn = H.copy()
     Xa, Xe = X_aff[inl], X_enu[inl]
     for _ in range(3):
         Yn = (np.c_[Xa, np.ones(len(Xa))] @ Hn.T)[:, :3]
-        p = _solve(Yn, Xe, warp, V)
+        p = _solve(Yn, Xe, warp, V, z0)
         Hn = _compose(Hn, p, warp, z0)
         warp = EnuWarp(warp.centre, warp.half, warp.coef + p[12:] @ V)
     Yf = (np.c_[Xa, np.ones(len(Xa))] @ Hn.T)[:, :3]
@@ -245,6 +259,11 @@ def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used:
             f"affine correction of H_A (leave-one-out {info['loo_rms_bend_m']:.3f} m RMS against "
             f"{info['loo_rms_affine_m']:.3f} m for an affine map alone, on the same GCPs); the residuals "
             "are of that map")
+    # the affine fit's notes on its own redundancy and metric constraint no longer hold
+    notes = [t for t in res.notes if not t.startswith("N = 4 control GCPs")]
+    if res.metric_prior is not None:
+        note += ("; this fit uses the GCPs alone, without the cameras' metric constraint of the affine "
+                 "fit (metric_prior is that fit's)")
     return replace(res, H=H, points=rows, stats=stats, dof=3 * len(used) - 12 - k,
                    n_control_used=len(used), rejections=rejections, warnings=warnings, conditioning=cond,
-                   notes=list(res.notes) + [note])
+                   notes=notes + [note])

@@ -104,7 +104,7 @@ def bend_warning(b: dict, gcp_fit: dict | None = None) -> str | None:
             "over 2.5 km, 30 m RMS over 10 km); views of another date, or more control GCPs spread "
             "over the site, hold it")
     need = (gcp_fit or {}).get("control_gcps_needed")
-    if need:
+    if need and gcp_fit.get("control_gcps", 0) < need:
         text += f" ({need} or more control GCPs fit the {gcp_fit['invisible_warps']} warps it cannot see)"
     if (gcp_fit or {}).get("loo_rms_bend_m") is not None:
         text += f"; {gcp_fit['reason']}"
@@ -220,7 +220,11 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
         return res, None, info
     used = [k for k, ok in zip(ctrl, inl) if ok]
     rejected = [k for k, ok in zip(ctrl, inl) if not ok]
-    return rescore(res, H, warp, pos, enu, used, rejected, dict(zip(used, loo)), info, thresh), warp, info
+    out = rescore(res, H, warp, pos, enu, used, rejected, dict(zip(used, loo)), info, thresh)
+    refusal = None if cfg.upgrade.allow_flat_gcps else flat_gcp_refusal(out.conditioning)
+    if refusal:                 # the GCPs the fit kept are too flat for its height scale
+        return res, None, {**info, "applied": False, "reason": f"the control GCPs it kept: {refusal}"}
+    return out, warp, info
 
 
 def _picks_joint(gcp: GCP, group: int) -> GCP:
@@ -266,15 +270,15 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
     for g, model in sorted(models.items()):
         try:
             res, aff, warp, info, moved = _fit_metric(model, gcps, up.frame, cfg)
-            gsd = estimate_gsd(moved, res.H)
+            estimate_gsd(moved, res.H)            # a model without a registered camera stops here
         except ReconstructionError as exc:
             up.errors[g] = f"group {g}: {exc}"
             continue
-        up.results[g], up.affine[g], up.gsd_m[g] = res, aff, gsd
+        up.affine[g] = aff
         up.warps[g], up.metric[g] = warp, info
         up.bend[g] = bend_observability(moved, res.H)
         res, gwarp, up.gcp_bend[g] = _fit_gcp_bend(res, aff, gcps, up.frame, up.bend[g], cfg)
-        up.results[g] = res
+        up.results[g], up.gsd_m[g] = res, estimate_gsd(moved, res.H)
         if gwarp is not None:
             up.enu_warps[g] = gwarp
         _warn_bend(res, up.bend[g], up.gcp_bend[g])

@@ -57,7 +57,7 @@ def test_spread_gcps_recover_the_invisible_bend():
 def test_too_few_gcps_or_no_bend_apply_nothing():
     H, Xa, Xe, obs, n, rng = _site(1, 5, dome_m=20.0)
     Hn, warp, info, inl, loo = fit_gcp_bend(H, Xa[:n], Xe[:n], obs, 1e-3)
-    assert warp is None and not info["applied"] and info["control_gcps_needed"] == 7
+    assert warp is None and not info["applied"] and info["control_gcps_needed"] == 8
     assert "needed" in info["reason"]
     # no bend: the extra warps only fit noise, and the leave-one-out says so
     H, Xa, Xe, obs, n, rng = _site(2, 10, dome_m=0.0, noise_m=0.3)
@@ -147,3 +147,25 @@ def test_check_points_off_by_a_bend_are_not_only_blamed_on_the_gcps():
     off = [w for w in res.warnings if w.startswith("the check points are off by")]
     assert off and off[0].endswith("or the structure is bent (next warning)")
     assert "cannot see a bend" in res.warnings[-1] and "8 or more control GCPs" in res.warnings[-1]
+
+
+def test_leave_one_out_and_consensus_predict_with_the_map_they_fit():
+    """Every fit centres the heights on one value: an exact affine change of the height scale is
+    predicted exactly for each point left out, and a blunder kilometres off does not move the
+    consensus (review: the centre had followed each subset's mean height)."""
+    from recon_core.euclidean.gcp_bend import _consensus, _loo
+
+    rng = np.random.default_rng(7)
+    Y = np.c_[rng.uniform(-5000, 5000, (12, 2)), rng.uniform(0, 200, 12)]
+    Xe = Y.copy()
+    Xe[:, 2] = 1.02 * Y[:, 2] + 0.001 * Y[:, 0] + 3.0        # an affine correction, no bend
+    warp = EnuWarp(np.zeros(2), 5000.0, np.zeros(9))
+    V = np.zeros((1, 9))
+    V[0, 8] = 1.0                                            # a U n^2 warp
+    z0 = float(Y[:, 2].mean())
+    assert np.abs(_loo(Y, Xe, warp, V[:0], z0)).max() < 1e-6
+    assert np.abs(_loo(Y, Xe, warp, V, z0)).max() < 1e-6
+    Yb = Y.copy()
+    Yb[3, 2] += 1500.0                                       # a blunder in one affine height
+    inl = _consensus(Yb, Xe, warp, V, 2.0, np.random.default_rng(0), float(Yb[:, 2].mean()))
+    assert inl.sum() == 11 and not inl[3]
