@@ -156,7 +156,7 @@ class UpgradeConfig:
     metric_bend: bool = True          # the metric bend step (recon_core.euclidean.metric_bend): the
                                       # horizontal warp no affine frame lets the views see, found once
                                       # H_A gives metres, each image's 1D perspective from its orbit
-    gcp_bend: bool = True             # fit the bend the views cannot see to >= 8 control GCPs
+    gcp_bend: bool = True             # fit the bend the views cannot see to >= 9 control GCPs
                                       # (recon_core.euclidean.gcp_bend): kept only when it
                                       # predicts each control GCP left out better than H_A alone
     orbit_altitude_km: float = 694.0  # its start: the orbit's altitude (Pleiades, SPOT 6/7: 694;
