@@ -353,3 +353,27 @@ def test_bend_step_in_the_closing_rounds(tiny_site, tmp_path, monkeypatch):
     assert m.stats["mean_reproj_px"] < 0.5
     r = sparse_vs_truth(tiny_site, m, frame_for(state.gcps))
     assert r["rms_m"] < 0.5, r
+
+
+def test_an_unregistered_tile_says_why_it_has_too_few_correspondences():
+    """Tracks that other images' registered tiles see but that have no 3D point (views too close
+    in angle) are told apart from a tile with too little overlap, and from one with no match."""
+    from types import SimpleNamespace
+
+    from recon_core.sparse.sfm import IncrementalSfM
+
+    n = 20
+    # tile 0 (image 0, registered) and tile 2 (image 1, not registered) share n tracks;
+    # tile 1 (image 1) is registered; tile 3 (image 1) has no observation
+    tile = np.r_[np.zeros(n, int), np.full(n, 2)]
+    track = np.r_[np.arange(n), np.arange(n)]
+    img = np.r_[np.zeros(n, int), np.ones(n, int)]
+    obs = SimpleNamespace(tile=tile, track=track, img=img, valid=np.ones(2 * n, bool))
+    m = SimpleNamespace(obs=obs, registered=np.array([True, True, False, False]),
+                        has_point=np.zeros(n, bool))
+    sfm = SimpleNamespace(m=m, cfg=SimpleNamespace(resect_min_inliers=12))
+    why = IncrementalSfM._why_few(sfm, 2)
+    assert why.startswith(f"{n} of its tracks are seen by registered tiles of other images but have no 3D point")
+    m.has_point[:] = True                  # they have points: the tile simply overlaps too little
+    assert IncrementalSfM._why_few(sfm, 2).startswith("too little overlap")
+    assert IncrementalSfM._why_few(sfm, 3).startswith("no feature of it is matched")
