@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from recon_core.geometry.affine import apply_affine_3d
 from recon_core.geometry.enu_map import EnuWarp
 
 # each fitted warp takes one unknown; the fit needs this many equations (3 per GCP) beyond its
@@ -60,14 +61,18 @@ def _solve(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, basis: np.ndarray, z0: 
     return np.linalg.lstsq(A, (Xe - Y - warp(Y)).reshape(-1), rcond=None)[0]
 
 
+def _predict(Y: np.ndarray, warp: EnuWarp, basis: np.ndarray, z0: float, p: np.ndarray) -> np.ndarray:
+    """(n, 3) positions Y moved by the warp and by the correction and warp steps p."""
+    return Y + warp(Y) + (_design(Y, warp, basis, z0) @ p).reshape(-1, 3)
+
+
 def _loo(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, basis: np.ndarray, z0: float) -> np.ndarray:
     """(n, 3) residual of each point predicted by the fit on the others."""
     res = []
     for i in range(len(Y)):
         keep = np.arange(len(Y)) != i
         p = _solve(Y[keep], Xe[keep], warp, basis, z0)
-        pred = Y[i] + warp(Y[i:i + 1])[0] + (_design(Y[i:i + 1], warp, basis, z0) @ p)
-        res.append(pred - Xe[i])
+        res.append(_predict(Y[i:i + 1], warp, basis, z0, p)[0] - Xe[i])
     return np.array(res).reshape(-1, 3)
 
 
@@ -101,16 +106,14 @@ def _consensus(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, V: np.ndarray, thre
         samples = [rng.choice(n, m, replace=False) for _ in range(iters)]
     best, best_cost = None, np.inf
     for sm in samples:
-        p = _solve(Y[sm], Xe[sm], warp, V, z0)
-        r = np.linalg.norm(Y + warp(Y) + (_design(Y, warp, V, z0) @ p).reshape(-1, 3) - Xe, axis=1)
+        r = np.linalg.norm(_predict(Y, warp, V, z0, _solve(Y[sm], Xe[sm], warp, V, z0)) - Xe, axis=1)
         cost = np.minimum(r, thresh_m).sum()
         if cost < best_cost:
             best, best_cost = r < thresh_m, cost
     for _ in range(5):
         if best.sum() < m:
             break
-        p = _solve(Y[best], Xe[best], warp, V, z0)
-        r = np.linalg.norm(Y + warp(Y) + (_design(Y, warp, V, z0) @ p).reshape(-1, 3) - Xe, axis=1)
+        r = np.linalg.norm(_predict(Y, warp, V, z0, _solve(Y[best], Xe[best], warp, V, z0)) - Xe, axis=1)
         new = r < thresh_m
         if (new == best).all():
             break
@@ -135,7 +138,8 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
         return None, None, {"applied": False, "reason": "no view of the structure to tell the invisible warps"}, *no
     s = np.asarray(obs["singular_px_per_m"])
     W = np.asarray(basis_rec["warps"], np.float64)
-    k, n = int(np.sum(s < invisible_px_per_m)), len(X_aff)
+    Vi = W[s < invisible_px_per_m]                  # the warps the views cannot see
+    k, n = len(Vi), len(X_aff)
     info: dict = {"invisible_warps": k, "control_gcps": int(n),
                   "meaning": "quadratic warps of the structure fitted with an affine correction of H_A to "
                              "the control GCPs: the warps the views cannot see, or all nine (one date's "
@@ -143,27 +147,27 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
                              "out best; kept only when that is better than an affine map alone"}
     if k == 0:
         return None, None, {**info, "applied": False, "reason": "the views see every quadratic warp"}, *no
-    need = {m: _needed(W[s < invisible_px_per_m] if m == k else W) for m in (k, 9)}
-    info["control_gcps_needed"] = need[k]
-    if n < need[k]:
+    need, need_all = _needed(Vi), _needed(W)
+    info["control_gcps_needed"] = need
+    if n < need:
         return None, None, {**info, "applied": False,
-                            "reason": f"{n} usable control GCPs, {need[k]} needed to fit {k} invisible warps "
+                            "reason": f"{n} usable control GCPs, {need} needed to fit {k} invisible warps "
                                       f"with {MIN_REDUNDANCY} equations to spare"}, *no
     warp = EnuWarp(np.asarray(basis_rec["centre_m"], np.float64), float(basis_rec["half_width_m"]),
                    np.zeros(9))
-    Y = (np.c_[X_aff, np.ones(n)] @ H.T)[:, :3]
+    Y = apply_affine_3d(H, X_aff)
     z0 = float(Y[:, 2].mean())       # one centre of the heights for every fit below
     # the consensus with the richest family the GCPs can fit (a bend makes good GCPs disagree
     # with a poorer one), then the family chosen by leave-one-out on its inliers
-    rich = W if n >= need[9] else W[s < invisible_px_per_m]
+    rich = W if n >= need_all else Vi
     inl = _consensus(Y, X_enu, warp, rich, thresh_m, np.random.default_rng(seed), z0)
     info["inliers"] = int(inl.sum())
-    if inl.sum() < need[k]:
+    if inl.sum() < need:
         return None, None, {**info, "applied": False,
                             "reason": f"only {int(inl.sum())} of {n} control GCPs agree within {thresh_m:g} m "
-                                      f"with the warps, {need[k]} needed"}, *no
-    families = {"invisible": W[s < invisible_px_per_m]}
-    if inl.sum() >= need[9]:
+                                      f"with the warps, {need} needed"}, *no
+    families = {"invisible": Vi}
+    if inl.sum() >= need_all:
         families["all"] = W
     loo_affine = _rms3(_loo(Y[inl], X_enu[inl], warp, W[:0], z0))
     loos = {name: _loo(Y[inl], X_enu[inl], warp, V, z0) for name, V in families.items()}
@@ -180,11 +184,10 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
     Hn = H.copy()
     Xa, Xe = X_aff[inl], X_enu[inl]
     for _ in range(3):
-        Yn = (np.c_[Xa, np.ones(len(Xa))] @ Hn.T)[:, :3]
-        p = _solve(Yn, Xe, warp, V, z0)
+        p = _solve(apply_affine_3d(Hn, Xa), Xe, warp, V, z0)
         Hn = _compose(Hn, p, warp, z0)
         warp = EnuWarp(warp.centre, warp.half, warp.coef + p[12:] @ V)
-    Yf = (np.c_[Xa, np.ones(len(Xa))] @ Hn.T)[:, :3]
+    Yf = apply_affine_3d(Hn, Xa)
     Yf = Yf + warp(Yf)
     g = np.linspace(-1.0, 1.0, 21)
     ge, gn = np.meshgrid(g, g)
@@ -217,8 +220,8 @@ def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used:
         row = {k: v for k, v in row.items() if not k.startswith("loo_")}
         x = positions.get(row["id"])
         if x is not None and row.get("dE") is not None:
-            Y = (H @ np.r_[np.asarray(x, np.float64), 1.0])[:3]
-            r = Y + warp(Y[None])[0] - np.asarray(enu[row["id"]], np.float64)
+            Y = apply_affine_3d(H, np.asarray(x, np.float64)[None])
+            r = (Y + warp(Y))[0] - np.asarray(enu[row["id"]], np.float64)
             row.update(dE=float(r[0]), dN=float(r[1]), dU=float(r[2]),
                        horizontal_m=float(np.hypot(r[0], r[1])), norm3d_m=float(np.linalg.norm(r)))
             if row["id"] in used:

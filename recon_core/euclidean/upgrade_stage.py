@@ -211,7 +211,7 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
         return res, None, {}
     pos = {k: a.xyz for k, a in aff.items() if a.xyz is not None}
     ctrl = [p["id"] for p in res.points if p["status"] in ("used", "rejected") and p["id"] in pos]
-    enu = {g.id: frame.geodetic_to_enu(g.llh[None])[0] for g in gcps}
+    enu = dict(zip([g.id for g in gcps], frame.geodetic_to_enu(np.array([g.llh for g in gcps]).reshape(-1, 3))))
     thresh = cfg.upgrade.ransac_thresh_m
     H, warp, info, inl, loo = fit_gcp_bend(res.H, np.array([pos[k] for k in ctrl]).reshape(-1, 3),
                                            np.array([enu[k] for k in ctrl]).reshape(-1, 3), bend,
