@@ -142,6 +142,11 @@ PRESETS: dict[str, SynthPreset] = {
     "wide": SynthPreset(name="wide", groups=(3,), group_months=(5,), image_size=(10000, 10000),
                         size_jitter=0.04, gsd=1.0, supersample=1, accel_cell=2.0,
                         accel_sample=0.5, n_gcps=24, block_rows=256),
+    # the same 10 km extent over three dates of 3 images (large's layout at wide's size): what
+    # the dates' different views do to the bend of one date, end to end
+    "wide3": SynthPreset(name="wide3", groups=(3, 3, 3), group_months=(2, 6, 10),
+                         image_size=(10000, 10000), size_jitter=0.04, gsd=1.0, supersample=1,
+                         accel_cell=2.0, accel_sample=0.5, n_gcps=24, block_rows=256),
 }
 
 # ----------------------------------------------------------------------------------------
