@@ -193,6 +193,13 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
                          "with H_A alone (in the 3D view, the DSM and cloud.ply alike).")
         elif gb.get("control_gcps_needed") and outcome.bend.get(g, {}).get("site_width_km", 0) >= 1.0:
             parts.append(f"Bend not fitted to the GCPs: {gb['reason']}.")
+        db = outcome.dem_bend.get(g) or {}
+        if db.get("applied"):
+            parts.append(f"Vertical bend taken from the reference DEM ({Path(db['dem']).name}): "
+                         f"{db['bend_range_m']:.2f} m peak to peak over the site, known to "
+                         f"{db['bend_sigma_m']:.2f} m at its edge (in the 3D view, the DSM and cloud.ply alike).")
+        elif db.get("reason"):
+            parts.append(f"Reference DEM not used: {db['reason']}.")
     for g, e in sorted(outcome.errors.items()):
         parts.append(f"#### Group {g}: not upgraded\n\n{e}")
     return "\n\n".join(parts)

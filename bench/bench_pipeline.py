@@ -237,6 +237,14 @@ def main(argv=None) -> int:
                          + f", {gb['loo_rms_affine_m']:.3f} m affine" if "loo_rms_m" in gb else "")
                       + (f"; warp at most E/N/U {', '.join(f'{v:.2f}' for v in gb['warp_max_m'])} m"
                          if gb.get("applied") else ""))
+            db = u.get("dem_bend") or {}
+            if db:
+                print(f"group {g} bend from the reference DEM: {'applied' if db.get('applied') else 'not applied'}"
+                      + (f" ({db['reason']})" if db.get("reason") else "")
+                      + (f"; {db['cells']} cells of {db['cell_m']:g} m, scatter {db['cell_scale_m']:.2f} m, bend "
+                         f"{db['bend_range_m']:.2f} m peak to peak (standard error at the edge {db['bend_sigma_m']:.2f} m), "
+                         f"the DEM's offset {db['offset_m']:.2f} m and tilt {db['tilt_m'][0]:.2f} / {db['tilt_m'][1]:.2f} m "
+                         "left to the GCPs" if "bend_range_m" in db else ""))
             c = u["stats"].get("check", {})
             if c.get("n"):
                 print(f"group {g} upgrade: {u['n_control_used']} control GCPs; {c['n']} check points: "

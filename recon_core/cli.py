@@ -148,6 +148,8 @@ def cmd_run(args) -> int:
         overrides["tiling.tile_size"] = args.tile_size
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if args.reference_dem is not None:
+        overrides["upgrade.reference_dem"] = str(args.reference_dem.expanduser().resolve())
     if args.scheduler:
         overrides["dense.scheduler"] = args.scheduler
     if args.workers:
@@ -328,6 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="parameters from a TOML file (see `aerec config --dump`); replaces --preset; "
                         "the options below override it")
     s.add_argument("--tile-size", type=int, default=None, help="tile side d in pixels (default 1000)")
+    s.add_argument("--reference-dem", type=Path, default=None, metavar="FILE",
+                   help="a coarse DEM of the site (GeoTIFF: SRTM, Copernicus GLO-30) that holds the bend "
+                        "3 views of one date cannot see over a wide site (upgrade.reference_dem)")
     s.add_argument("--seed", type=int, default=None)
     s.add_argument("--workers", type=int, default=None, help="local dense worker processes (default: all cores)")
     s.add_argument("--scheduler", default=None, metavar="ADDRESS",

@@ -162,6 +162,10 @@ class UpgradeConfig:
     orbit_altitude_km: float = 694.0  # its start: the orbit's altitude (Pleiades, SPOT 6/7: 694;
                                       # Pleiades Neo, WorldView-3: ~620); the step then estimates one
                                       # common change of the ranges from the data (10 % off: harmless)
+    reference_dem: str = ""           # a coarse DEM of the site (GeoTIFF: SRTM, Copernicus GLO-30, a
+                                      # national DEM; any CRS, geoid or ellipsoid heights) that holds
+                                      # the vertical bend the views cannot see when the GCPs do not
+                                      # (recon_core.euclidean.dem_bend); "" = none
 
 
 @dataclass

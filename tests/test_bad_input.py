@@ -363,3 +363,41 @@ def test_a_broken_pipe_that_is_not_stdout_is_not_swallowed(monkeypatch):
     monkeypatch.setattr(cli, "cmd_info", broken)
     with pytest.raises(BrokenPipeError):
         main(["info", "x"])
+
+
+def _dem(path: Path, lon0: float, lat0: float, crs: str | None = "EPSG:4326") -> None:
+    import rasterio
+    from rasterio.transform import from_origin
+
+    with rasterio.open(path, "w", driver="GTiff", width=20, height=20, count=1, dtype="float32",
+                       crs=crs, transform=from_origin(lon0, lat0, 1e-3, 1e-3)) as dst:
+        dst.write(np.full((20, 20), 120.0, np.float32), 1)
+
+
+DEM_CASES = [
+    ("missing", lambda d: None, "no such file"),
+    ("not a raster", lambda d: d.write_text("not a DEM"), "not a raster"),
+    ("no CRS", lambda d: _dem(d, 9.99, 45.01, crs=None), "no CRS"),
+    ("elsewhere", lambda d: _dem(d, 20.0, 10.0), "does not cover the site"),
+]
+
+
+@pytest.mark.parametrize("case", DEM_CASES, ids=[c[0] for c in DEM_CASES])
+def test_a_bad_reference_dem_is_refused_in_one_line_before_any_compute(case, small_site, tmp_path, capsys):
+    _, make, words = case
+    _four_control_gcps(small_site)
+    dem = tmp_path / "dem.tif"
+    make(dem)
+    out = tmp_path / "out"
+    code = main(["run", str(small_site), "--out", str(out), "--quiet", "--reference-dem", str(dem)])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.strip().splitlines() if ln.startswith("aerec: error:")]
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert "dem.tif" in lines[0] and words in lines[0], lines[0]
+    assert not (out / "affine").exists() and not (out / "stages").exists()
+    # the DEM that covers the GCPs passes the check (the run itself is not started here)
+    _dem(dem, 9.99, 45.01)
+    from recon_core.config import preset
+    from recon_core.pipeline import preflight
+
+    preflight(small_site, out, preset("default").with_overrides({"upgrade.reference_dem": str(dem)}))

@@ -13,11 +13,13 @@ import numpy as np
 
 from recon_core.config import Config
 from recon_core.errors import ReconstructionError
+from recon_core.euclidean.dem_bend import fit_dem_bend, open_reference_dem
 from recon_core.euclidean.gcp_bend import fit_gcp_bend, rescore
 from recon_core.euclidean.georef import GcpAffine, frame_for, upgrade_group
 from recon_core.euclidean.metric_bend import metric_bend, warped_model
 from recon_core.euclidean.upgrade import UpgradeResult, flat_gcp_refusal
 from recon_core.events import EventBus
+from recon_core.geometry.affine import apply_affine_3d, fit_affine_3d
 from recon_core.geometry.enu_map import EnuMap, EnuWarp, warp_record
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.gcps import GCP
@@ -46,6 +48,8 @@ BEND_INVISIBLE_PX_PER_M = 1e-3
 # ... and worth a warning on sites wider than this: the bend such a warp lets through grows
 # with the site (measured with 3 views: 0.4 m over 1.3 km, 1.5-2.9 m over 2.5 km)
 BEND_WARN_WIDTH_KM = 1.0
+# a reference DEM tilted against the control GCPs by more than this at the site's edge is said
+DEM_TILT_WARN_M = 5.0
 
 
 def bend_observability(model, H: np.ndarray, max_per_image: int = 20000, seed: int = 0) -> dict:
@@ -55,7 +59,6 @@ def bend_observability(model, H: np.ndarray, max_per_image: int = 20000, seed: i
     warp at the site's edge), each warp's vertical share, the weakest mostly vertical one, how
     many are invisible (< BEND_INVISIBLE_PX_PER_M) and the site's width. {} for a model of
     fewer than 2 images with points."""
-    from recon_core.geometry.affine import apply_affine_3d
     from recon_core.geometry.pushbroom import warp_observability
 
     ids = model.point_ids()
@@ -134,6 +137,7 @@ class Upgrade:
     metric: dict[int, dict] = field(default_factory=dict)   # group -> the metric bend step's summary
     enu_warps: dict[int, EnuWarp] = field(default_factory=dict)  # group -> the bend fitted to GCPs
     gcp_bend: dict[int, dict] = field(default_factory=dict)  # group -> that fit's summary
+    dem_bend: dict[int, dict] = field(default_factory=dict)  # group -> the reference DEM's fit's summary
 
     @property
     def Hs(self) -> dict[int, np.ndarray]:
@@ -159,8 +163,11 @@ class Upgrade:
             d["metric_warp"] = warp_record(self.warps[g])
         if self.gcp_bend.get(g):
             d["gcp_bend"] = self.gcp_bend[g]
+        if self.dem_bend.get(g):
+            d["dem_bend"] = self.dem_bend[g]
         if self.enu_warps.get(g) is not None:
-            d["gcp_warp"] = self.enu_warps[g].record()
+            key = "dem_warp" if self.dem_bend.get(g, {}).get("applied") else "gcp_warp"
+            d[key] = self.enu_warps[g].record()
         return d
 
     def report(self) -> dict:
@@ -227,6 +234,55 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
     return out, warp, info
 
 
+def _fit_dem_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP], frame: LocalFrame,
+                  model, bend: dict, gcp_fit: dict, cfg: Config,
+                  max_points: int = 300_000) -> tuple[UpgradeResult, EnuWarp | None, dict]:
+    """The vertical bend the views cannot see, taken from the reference DEM
+    (recon_core.euclidean.dem_bend) when one is given, the GCPs did not hold the bend and the
+    views cannot see it; the result re-scored with it."""
+    path = cfg.upgrade.reference_dem
+    if not path:
+        return res, None, {}
+    if (gcp_fit or {}).get("applied"):
+        return res, None, {"applied": False, "reason": "the control GCPs hold the bend (gcp_bend)"}
+    s = (bend or {}).get("weakest_vertical_px_per_m")
+    if s is None or s >= BEND_INVISIBLE_PX_PER_M or bend["site_width_km"] < BEND_WARN_WIDTH_KM:
+        return res, None, {"applied": False, "reason": "the views see the bend, or the site is too small to bend"}
+    dem = open_reference_dem(path)
+    pos = {k: a.xyz for k, a in aff.items() if a.xyz is not None}
+    used = [p["id"] for p in res.points if p["status"] == "used" and p["id"] in pos]
+    enu = dict(zip([g.id for g in gcps], frame.geodetic_to_enu(np.array([g.llh for g in gcps]).reshape(-1, 3))))
+    ids = model.point_ids()
+    if len(ids) > max_points:
+        ids = np.sort(np.random.default_rng(cfg.seed).choice(ids, max_points, replace=False))
+    basis = bend["basis"]
+    Xa = np.array([pos[k] for k in used]).reshape(-1, 3)
+    Xe = np.array([enu[k] for k in used]).reshape(-1, 3)
+    H, warp, info = fit_dem_bend(res.H, model.X[ids], frame, dem, Xa, Xe, basis["centre_m"], basis["half_width_m"])
+    info["dem"] = str(dem.path)
+    if warp is None:
+        return res, None, info
+    loo = {}
+    if len(used) >= 5:           # each control GCP predicted by the affine correction fitted on the others
+        Y = apply_affine_3d(H, Xa)
+        Y = Y + warp(Y)
+        for i, k in enumerate(used):
+            keep = np.arange(len(used)) != i
+            loo[k] = apply_affine_3d(fit_affine_3d(Y[keep], Xe[keep]), Y[i:i + 1])[0] - Xe[i]
+    note = (f"the vertical bend the views cannot see was taken from the reference DEM {dem.path.name}: a "
+            f"quadratic surface of {info['bend_range_m']:.2f} m peak to peak over the site ({info['cells']} cells "
+            f"of {info['cell_m']:g} m, scatter {info['cell_scale_m']:.2f} m, its standard error at the edge "
+            f">= {info['bend_sigma_m']:.2f} m); H_A's affine correction refitted on the control GCPs with it; "
+            f"the DEM's own offset and tilt ({info['offset_m']:.2f} m; {info['tilt_m'][0]:.2f} / "
+            f"{info['tilt_m'][1]:.2f} m at the east / north edge) are left to the GCPs")
+    out = rescore(res, H, warp, pos, enu, used, [], loo, info, cfg.upgrade.ransac_thresh_m, note=note)
+    if max(abs(v) for v in info["tilt_m"]) > DEM_TILT_WARN_M:
+        out.warnings.append(f"the reference DEM {dem.path.name} is tilted against the control GCPs by "
+                            f"{info['tilt_m'][0]:.1f} / {info['tilt_m'][1]:.1f} m at the site's east / north edge: "
+                            "a GCP or the DEM is probably wrong (its datum is not: an offset is expected)")
+    return out, warp, info
+
+
 def _picks_joint(gcp: GCP, group: int) -> GCP:
     """In a joint reconstruction every group's cloud is in one frame: a position picked on any
     group's cloud stands for the merged model's (the lowest group's pick when several)."""
@@ -255,12 +311,16 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
                                                       up.frame, cfg)
             bend = bend_observability(moved, res.H)
             res, gwarp, ginfo = _fit_gcp_bend(res, aff, gcps, up.frame, bend, cfg)
-            _warn_bend(res, bend, ginfo)
+            res, dwarp, dinfo = _fit_dem_bend(res, aff, gcps, up.frame, moved, bend, ginfo, cfg)
+            gwarp = gwarp if dwarp is None else dwarp
+            _warn_bend(res, bend, ginfo, dinfo)
             for g, model in sorted(models.items()):
                 up.results[g], up.affine[g] = res, aff
                 up.gsd_m[g] = estimate_gsd(model if warp is None else warped_model(model, warp), res.H)
                 up.bend[g], up.warps[g], up.metric[g] = bend, warp, info
                 up.gcp_bend[g] = ginfo
+                if dinfo:
+                    up.dem_bend[g] = dinfo
                 if gwarp is not None:
                     up.enu_warps[g] = gwarp
             up.joint = True
@@ -278,19 +338,27 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
         up.warps[g], up.metric[g] = warp, info
         up.bend[g] = bend_observability(moved, res.H)
         res, gwarp, up.gcp_bend[g] = _fit_gcp_bend(res, aff, gcps, up.frame, up.bend[g], cfg)
+        res, dwarp, dinfo = _fit_dem_bend(res, aff, gcps, up.frame, moved, up.bend[g], up.gcp_bend[g], cfg)
+        if dinfo:
+            up.dem_bend[g] = dinfo
+        gwarp = gwarp if dwarp is None else dwarp
         up.results[g], up.gsd_m[g] = res, estimate_gsd(moved, res.H)
         if gwarp is not None:
             up.enu_warps[g] = gwarp
-        _warn_bend(res, up.bend[g], up.gcp_bend[g])
+        _warn_bend(res, up.bend[g], up.gcp_bend[g], dinfo)
     if not up.results:
         raise ReconstructionError("; ".join(up.errors.values()))
     return up
 
 
-def _warn_bend(res: UpgradeResult, bend: dict, gcp_fit: dict | None = None) -> None:
-    if (gcp_fit or {}).get("applied"):
-        return                 # the GCPs hold what the views cannot see
+def _warn_bend(res: UpgradeResult, bend: dict, gcp_fit: dict | None = None, dem_fit: dict | None = None) -> None:
+    if (gcp_fit or {}).get("applied") or (dem_fit or {}).get("applied"):
+        return                 # the GCPs or the reference DEM hold what the views cannot see
     text = bend_warning(bend, gcp_fit)
+    if text and (dem_fit or {}).get("reason"):
+        text += f"; the reference DEM could not: {dem_fit['reason']}"
+    elif text:
+        text += "; so does a coarse reference DEM of the site (upgrade.reference_dem: SRTM, Copernicus)"
     if text and text not in res.warnings:
         # check points far off the control GCPs' fit are then the bend's doing as much as a
         # wrong GCP's: say so where that warning blames the GCPs

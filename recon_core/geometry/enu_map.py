@@ -1,6 +1,7 @@
 """The Euclidean upgrade of a group as one map: affine frame -> local ENU metres,
 X -> Y + G(Y), Y = H_A (X + D(X)), D the metric bend step's warp (recon_core.euclidean.metric_bend)
-or none, G the bend fitted to control GCPs (recon_core.euclidean.gcp_bend) or none.
+or none, G the bend fitted to control GCPs (recon_core.euclidean.gcp_bend), or the vertical bend
+taken from a reference DEM (recon_core.euclidean.dem_bend), or none.
 Shared by the upgrade stage that fits it, the files that record it and the DSM stage that
 applies it."""
 
@@ -74,8 +75,8 @@ class EnuMap:
     @classmethod
     def from_record(cls, rec: dict) -> "EnuMap":
         """From an upgrade record (upgrade/group_<k>.json: "H", optional "metric_warp" and
-        "gcp_warp")."""
-        w, g = rec.get("metric_warp"), rec.get("gcp_warp")
+        "gcp_warp" or "dem_warp")."""
+        w, g = rec.get("metric_warp"), rec.get("gcp_warp") or rec.get("dem_warp")
         return cls(np.array(rec["H"], dtype=np.float64), None if w is None else BendWarp(
             **{k: np.array(w[k], dtype=np.float64) for k in ("x0", "T", "S", "w0", "coef")}),
             None if g is None else EnuWarp.from_record(g))

@@ -1,0 +1,192 @@
+"""The vertical bend held by a coarse reference DEM (recon_core.euclidean.dem_bend), against a
+known scene: a 10 km site of terrain and buildings, its structure bent by a saddle of tens of
+metres the way three views of one date leave it, 4 control GCPs near the centre, and a DEM of
+1 arc-second cells with an offset, a tilt and correlated noise of metres."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from recon_core.euclidean.dem_bend import fit_dem_bend, fit_surface, open_reference_dem
+from recon_core.geometry.affine import apply_affine_3d, fit_affine_3d
+from recon_core.geometry.geodesy import LocalFrame
+
+HALF = 5000.0
+
+
+def _ground(E, N):
+    return 120.0 + 25.0 * np.sin(E / 1700.0) * np.cos(N / 2300.0) + 8e-4 * E
+
+
+def _roofs(E, N):
+    # blocks of 60 m with a building of 15 m on every third one
+    k = (np.floor(E / 60.0) * 7 + np.floor(N / 60.0) * 13) % 3 == 0
+    return 15.0 * k
+
+
+def _write_dem(path, frame, *, noise_m=2.0, offset_m=25.0, tilt=2e-4, seed=0):
+    """A 1 arc-second DEM (EPSG:4326) of the scene: the ground plus the buildings' mean share,
+    an offset, a tilt and correlated noise."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    corners = frame.enu_to_geodetic(np.array([[-1.2 * HALF, -1.2 * HALF, 0], [1.2 * HALF, 1.2 * HALF, 0]]))
+    d = 1.0 / 3600.0
+    lon0, lat1 = corners[0, 0], corners[1, 1]
+    w = int(np.ceil((corners[1, 0] - lon0) / d))
+    h = int(np.ceil((lat1 - corners[0, 1]) / d))
+    lon = lon0 + (np.arange(w) + 0.5) * d
+    lat = lat1 - (np.arange(h) + 0.5) * d
+    LON, LAT = np.meshgrid(lon, lat)
+    enu = frame.geodetic_to_enu(np.stack([LON.ravel(), LAT.ravel(), np.zeros(LON.size)], 1))
+    E, N = enu[:, 0], enu[:, 1]
+    z = _ground(E, N) + 5.0 + offset_m + tilt * (E + N)
+    rng = np.random.default_rng(seed)
+    noise = ndimage.gaussian_filter(rng.standard_normal((h, w)), 5.0)
+    z = z.reshape(h, w) + noise * noise_m / noise.std()
+    with rasterio.open(path, "w", driver="GTiff", width=w, height=h, count=1, dtype="float32", crs="EPSG:4326",
+                       transform=from_origin(lon0, lat1, d, d)) as dst:
+        dst.write(z.astype(np.float32), 1)
+    return path
+
+
+def _scene(frame, n=60000, seed=1):
+    """True ENU points (ellipsoidal heights of ground and roofs) and their structure in an
+    affine frame, bent by a vertical saddle and a horizontal warp the DEM cannot see."""
+    rng = np.random.default_rng(seed)
+    E, N = rng.uniform(-HALF, HALF, (2, n))
+    llh = frame.enu_to_geodetic(np.stack([E, N, np.zeros(n)], 1))
+    llh[:, 2] = _ground(E, N) + _roofs(E, N)
+    T = frame.geodetic_to_enu(llh)
+    e, n_ = T[:, 0] / HALF, T[:, 1] / HALF
+    bent = T + np.stack([1.5 * e * n_, -1.0 * e * e, 18.0 * e * e - 10.0 * e * n_ - 22.0 * n_ * n_], 1)
+    bent += rng.normal(0, 0.3, bent.shape)
+    A = np.array([[0.8, 0.3, 0.1, 40.0], [-0.2, 1.1, 0.05, -7.0], [0.25, -0.1, 0.6, 3.0], [0, 0, 0, 1.0]])
+    X = apply_affine_3d(np.linalg.inv(A), bent)
+    return T, X
+
+
+def test_a_dem_takes_out_the_saddle_four_gcps_leave(tmp_path):
+    frame = LocalFrame(30.0, 31.0, 120.0)
+    T, X = _scene(frame)
+    dem = open_reference_dem(_write_dem(tmp_path / "dem.tif", frame))
+    # 4 control GCPs 2 km from the centre, two on roofs and two on the ground (non-coplanar, as
+    # an operator picks them), among the points
+    roof = _roofs(T[:, 0], T[:, 1]) > 0
+    ctrl = [int(np.argmin(np.hypot(T[:, 0] - x, T[:, 1] - y) + 1e6 * (roof != r)))
+            for x, y, r in ((-1500, -1500, True), (1500, -1500, False), (1500, 1500, True), (-1500, 1500, False))]
+    H0 = np.eye(4)
+    H0[:3] = fit_affine_3d(X[ctrl], T[ctrl])
+    before = apply_affine_3d(H0, X) - T
+    H, warp, info = fit_dem_bend(H0, X, frame, dem, X[ctrl], T[ctrl], np.zeros(2), HALF)
+    assert info["applied"] and warp is not None
+    Y = apply_affine_3d(H, X)
+    after = Y + warp(Y) - T
+    rms_u = lambda r: float(np.sqrt(np.mean(r[:, 2] ** 2)))   # noqa: E731
+    # the GCPs' affine map leaves the saddle, extrapolated: tens of metres at the edges
+    assert rms_u(before) > 8.0
+    # the saddle is found: 18 / -10 / -22 m of e^2, e n, n^2 in the structure, through the DEM's
+    # 2 m noise, offset of 25 m and tilt of 1 m over the site
+    np.testing.assert_allclose(info["bend_coef_m"], [-18.0, 10.0, 22.0], atol=1.0)
+    # what is left in the heights is the 4 GCPs' affine map, extrapolated from their 3 km
+    # square (their positions in the structure carry its 0.3 m noise), and that noise itself
+    assert rms_u(after) < 1.5, rms_u(after)
+    A = fit_affine_3d(Y + warp(Y), T)
+    assert rms_u(apply_affine_3d(A, Y + warp(Y)) - T) < 0.5
+    # the warp is vertical only, and the control GCPs still fit
+    assert np.allclose(warp.coef[:6], 0) and info["control_rms_m"] < 0.2
+    # the DEM's own offset is reported, not applied (it is the GCPs' to fix)
+    assert abs(info["offset_m"] - 25.0) < 6.0
+
+
+def test_without_a_bend_the_dem_changes_little_and_too_little_cover_is_refused(tmp_path):
+    frame = LocalFrame(30.0, 31.0, 120.0)
+    T, _ = _scene(frame)
+    dem = open_reference_dem(_write_dem(tmp_path / "dem.tif", frame, seed=3))
+    H = np.eye(4)
+    H, warp, info = fit_dem_bend(H, T, frame, dem, T[:4], T[:4], np.zeros(2), HALF)
+    d = warp(T)[:, 2]
+    assert np.sqrt(np.mean(d ** 2)) < 0.5 and info["bend_range_m"] < 2.0
+    # a structure of which the DEM sees only a corner: no bend is fitted from it
+    r = dem.heights(*frame.enu_to_geodetic(T)[:, :2].T) - frame.enu_to_geodetic(T)[:, 2]
+    corner = np.all(T[:, :2] > 2500, 1)
+    r[~corner] = np.nan
+    coef, why = fit_surface(T[:, 0], T[:, 1], r, np.zeros(2), HALF)
+    assert coef is None and "covers" in why["reason"]
+
+
+@pytest.mark.parametrize("inside", [True, False])
+def test_the_dem_is_sampled_where_it_is(tmp_path, inside):
+    frame = LocalFrame(30.0, 31.0, 120.0)
+    dem = open_reference_dem(_write_dem(tmp_path / "dem.tif", frame, noise_m=1e-6, offset_m=0.0, tilt=0.0))
+    enu = np.array([[100.0, -250.0, 0.0], [3000.0, 1200.0, 0.0]]) * (1 if inside else 30)
+    llh = frame.enu_to_geodetic(enu)
+    h = dem.heights(llh[:, 0], llh[:, 1])
+    if inside:   # bilinear between cells of ~30 m on smooth ground: within a few centimetres
+        np.testing.assert_allclose(h, _ground(enu[:, 0], enu[:, 1]) + 5.0, atol=0.1)
+    else:
+        assert np.isnan(h).all()
+
+
+def test_the_upgrade_takes_the_bend_from_a_dem_only_where_the_views_cannot_see_it(tiny_run, tiny_site, tmp_path,
+                                                                                   monkeypatch):
+    """Through upgrade_models on `tiny`: a site of 0.2 km is not bent, the DEM is not applied and
+    the map is the one without it; made to count as wide, the DEM's warp is applied, recorded
+    where the DSM stage reads it, and the check points are no worse for it."""
+    from aerec_viewer.results import outcome_markdown
+    from recon_core.config import preset
+    from recon_core.euclidean import dem_bend, upgrade_stage
+    from recon_core.euclidean.upgrade_stage import upgrade_models
+    from recon_core.geometry.enu_map import EnuMap
+    from recon_core.synthetic.ref_dem import simulate_reference_dem
+
+    state, _ = tiny_run
+    # a DEM of 2 m cells: on a site of 0.2 km, what a DEM of 30 m is on 10 km
+    dem = simulate_reference_dem(tiny_site / "gt_dsm.tif", tmp_path / "dem.tif", cell_m=2.0, noise_m=0.01,
+                                 corr_m=30.0, arcsec=0.06)
+    base = upgrade_models(state.gcps, state.models, preset("tiny"))
+    cfg = preset("tiny").with_overrides({"upgrade.reference_dem": str(dem)})
+    up = upgrade_models(state.gcps, state.models, cfg)
+    assert not up.dem_bend[0]["applied"] and "too small" in up.dem_bend[0]["reason"]
+    np.testing.assert_array_equal(up.results[0].H, base.results[0].H)
+    assert up.maps[0].enu_warp is None
+    # as if it were wide (its views cannot see a vertical bend: test_georef_upgrade_stage)
+    monkeypatch.setattr(upgrade_stage, "BEND_WARN_WIDTH_KM", 0.0)
+    monkeypatch.setattr(dem_bend, "CELL_M", 40.0)
+    monkeypatch.setattr(dem_bend, "MIN_CELLS", 10)
+    up = upgrade_models(state.gcps, state.models, cfg)
+    info = up.dem_bend[0]
+    assert info["applied"] and info["cells"] >= 10, info
+    rec = up.record(0)
+    assert "dem_warp" in rec and "gcp_warp" not in rec and rec["dem_bend"]["applied"]
+    back = EnuMap.from_record(rec)
+    np.testing.assert_allclose(back.enu_warp.coef, up.maps[0].enu_warp.coef)
+    assert np.allclose(back.enu_warp.coef[:6], 0.0)
+    assert any("reference DEM dem.tif" in n for n in up.results[0].notes)
+    assert not any("cannot see a bend" in w for w in up.results[0].warnings)
+    c0, c1 = (u.results[0].stats["check"]["rmse_U_m"] for u in (base, up))
+    assert c1 < c0 + 0.2, (c0, c1)
+    # the viewer: its Results tab says so, and its Euclidean view applies the same warp
+    out = _outcome(up)
+    assert "Vertical bend taken from the reference DEM (dem.tif)" in outcome_markdown(out)
+    assert out.transform(0).post is up.enu_warps[0]
+    # a DEM of 10 m cells with 0.5 m of noise cannot tell a bend over 0.2 km of 40 m buildings:
+    # refused with the fit's own standard error, and the warning that there is a bend is kept
+    simulate_reference_dem(tiny_site / "gt_dsm.tif", tmp_path / "dem.tif", cell_m=10.0, noise_m=0.5,
+                           corr_m=30.0, arcsec=0.3)
+    monkeypatch.setattr(dem_bend, "CELL_M", 20.0)
+    up = upgrade_models(state.gcps, state.models, cfg)
+    assert not up.dem_bend[0]["applied"] and "tells the bend to" in up.dem_bend[0]["reason"]
+    np.testing.assert_array_equal(up.results[0].H, base.results[0].H)
+    assert any("the reference DEM could not" in w for w in up.results[0].warnings)
+    assert "Reference DEM not used: the DEM tells the bend to" in outcome_markdown(_outcome(up))
+
+
+def _outcome(up):
+    from dataclasses import fields
+
+    from aerec_viewer.results import UpgradeOutcome
+
+    return UpgradeOutcome(**{f.name: getattr(up, f.name) for f in fields(up)})
