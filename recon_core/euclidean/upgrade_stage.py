@@ -245,7 +245,9 @@ def _fit_dem_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
         return res, None, {}
     if (gcp_fit or {}).get("applied"):
         return res, None, {"applied": False, "reason": "the control GCPs hold the bend (gcp_bend)"}
-    s = (bend or {}).get("weakest_vertical_px_per_m")
+    if not bend:
+        return res, None, {"applied": False, "reason": "no two views of the structure to tell a bend"}
+    s = bend.get("weakest_vertical_px_per_m")
     if s is None or s >= BEND_INVISIBLE_PX_PER_M or bend["site_width_km"] < BEND_WARN_WIDTH_KM:
         return res, None, {"applied": False, "reason": "the views see the bend, or the site is too small to bend"}
     dem = open_reference_dem(path)
