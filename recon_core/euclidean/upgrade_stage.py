@@ -8,6 +8,7 @@ shows its result at once, then re-runs the pipeline from this stage.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -248,8 +249,12 @@ def _fit_dem_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
     if not bend:
         return res, None, {"applied": False, "reason": "no two views of the structure to tell a bend"}
     s = bend.get("weakest_vertical_px_per_m")
-    if s is None or s >= BEND_INVISIBLE_PX_PER_M or bend["site_width_km"] < BEND_WARN_WIDTH_KM:
-        return res, None, {"applied": False, "reason": "the views see the bend, or the site is too small to bend"}
+    if bend["site_width_km"] < BEND_WARN_WIDTH_KM:
+        return res, None, {"applied": False, "reason": f"the site is {bend['site_width_km']:.2f} km wide, too small to "
+                                                       f"bend (a DEM is used from {BEND_WARN_WIDTH_KM:g} km)"}
+    if s is None or s >= BEND_INVISIBLE_PX_PER_M:
+        return res, None, {"applied": False, "reason": "the views see the bend (several dates, or views from "
+                                                       "more than one direction)"}
     dem = open_reference_dem(path)
     pos = {k: a.xyz for k, a in aff.items() if a.xyz is not None}
     used = [p["id"] for p in res.points if p["status"] == "used" and p["id"] in pos]
@@ -393,6 +398,13 @@ def run(state, bus: EventBus) -> dict:
             if w not in said:
                 said.append(w)
                 bus.message(f"group {g}: {w}", "warning", int(g))
+        db = r.get("dem_bend")
+        if db:
+            name = Path(state.cfg.upgrade.reference_dem).name
+            bus.message(f"group {g}: reference DEM {name}: " + (
+                f"the vertical bend taken from it, {db['bend_range_m']:.2f} m peak to peak over the site "
+                f"(standard error at the edge {db['bend_sigma_m']:.2f} m)" if db.get("applied")
+                else f"not used ({db.get('reason')})"), "info", int(g))
     return report
 
 

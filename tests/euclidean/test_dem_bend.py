@@ -149,7 +149,7 @@ def test_the_upgrade_takes_the_bend_from_a_dem_only_where_the_views_cannot_see_i
     base = upgrade_models(state.gcps, state.models, preset("tiny"))
     cfg = preset("tiny").with_overrides({"upgrade.reference_dem": str(dem)})
     up = upgrade_models(state.gcps, state.models, cfg)
-    assert not up.dem_bend[0]["applied"] and "too small" in up.dem_bend[0]["reason"]
+    assert not up.dem_bend[0]["applied"] and "too small to bend" in up.dem_bend[0]["reason"]
     np.testing.assert_array_equal(up.results[0].H, base.results[0].H)
     assert up.maps[0].enu_warp is None
     # as if it were wide (its views cannot see a vertical bend: test_georef_upgrade_stage)
@@ -190,3 +190,24 @@ def _outcome(up):
     from aerec_viewer.results import UpgradeOutcome
 
     return UpgradeOutcome(**{f.name: getattr(up, f.name) for f in fields(up)})
+
+
+def test_aerec_run_says_what_became_of_the_reference_dem(tiny_site, tmp_path, capsys):
+    """`aerec run --reference-dem`: one line of the console says whether the DEM was used and
+    why not; the report holds the same."""
+    import json
+
+    from recon_core.cli import main
+    from recon_core.synthetic.ref_dem import simulate_reference_dem
+
+    dem = simulate_reference_dem(tiny_site / "gt_dsm.tif", tmp_path / "srtm.tif", cell_m=10.0, arcsec=0.3)
+    out = tmp_path / "out"
+    assert main(["run", str(tiny_site), "--out", str(out), "--preset", "tiny", "--stage", "upgrade",
+                 "--reference-dem", str(dem)]) == 0
+    cap = capsys.readouterr()
+    said = [ln for ln in (cap.out + cap.err).splitlines() if "reference DEM srtm.tif" in ln]
+    assert len(said) == 1 and "not used (the site is" in said[0], said
+    report = json.loads((out / "report.json").read_text())
+    db = report["stages"]["upgrade"]["groups"]["0"]["dem_bend"]
+    assert not db["applied"] and "too small to bend" in db["reason"]
+    assert report["config"]["upgrade"]["reference_dem"] == str(dem.resolve())
