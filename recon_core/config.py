@@ -338,6 +338,9 @@ def config_from_toml(path) -> Config:
     try:
         cfg = config_from_dict(doc)
         check_types(cfg)
+        if cfg.upgrade.reference_dem:         # a relative path is the TOML file's
+            dem = Path(cfg.upgrade.reference_dem).expanduser()
+            cfg = cfg.with_overrides({"upgrade.reference_dem": str((path.parent / dem).resolve())})
         return cfg
     except KeyError as exc:
         raise InputError(path, str(exc).strip("'\"")) from None

@@ -64,6 +64,10 @@ def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None,
             gcp_file = working_gcp_file(site.root, out) if out is not None else site.root / "gcps.geojson"
             gcp_text = gcp_file.read_text() if gcp_file.exists() else ""
         blob["gcps"] = gcp_text
+        dem = cfg.upgrade.reference_dem
+        if dem:                     # a DEM replaced in place makes the upgrade stale
+            st = Path(dem).stat() if Path(dem).is_file() else None
+            blob["reference_dem"] = None if st is None else [st.st_size, st.st_mtime_ns]
     return hashlib.sha1(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 

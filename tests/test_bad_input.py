@@ -379,6 +379,8 @@ DEM_CASES = [
     ("not a raster", lambda d: d.write_text("not a DEM"), "not a raster"),
     ("no CRS", lambda d: _dem(d, 9.99, 45.01, crs=None), "no CRS"),
     ("elsewhere", lambda d: _dem(d, 20.0, 10.0), "does not cover the site"),
+    ("a local CRS", lambda d: _dem(d, 9.99, 45.01, crs='LOCAL_CS["arbitrary",UNIT["metre",1]]'),
+     "cannot be reached from WGS84"),
 ]
 
 
@@ -401,3 +403,13 @@ def test_a_bad_reference_dem_is_refused_in_one_line_before_any_compute(case, sma
     from recon_core.pipeline import preflight
 
     preflight(small_site, out, preset("default").with_overrides({"upgrade.reference_dem": str(dem)}))
+
+
+def test_a_reference_dem_named_in_a_toml_file_is_that_files_neighbour(tmp_path, monkeypatch):
+    from recon_core.config import config_from_toml
+
+    (tmp_path / "cfg").mkdir()
+    (tmp_path / "cfg" / "my.toml").write_text('[upgrade]\nreference_dem = "srtm.tif"\n')
+    monkeypatch.chdir(tmp_path)
+    cfg = config_from_toml(tmp_path / "cfg" / "my.toml")
+    assert cfg.upgrade.reference_dem == str((tmp_path / "cfg" / "srtm.tif").resolve())

@@ -14,9 +14,10 @@ median of those differences in cells of `cell_m`; a quadratic surface in (E, N) 
 cells' medians, robustly (Huber, scale from the median absolute deviation). The fit's constant
 and tilt are left free and thrown away: they hold the DEM's datum (geoid or ellipsoid), bias and
 tilt, which the GCPs fix better. Its dome or saddle becomes the vertical displacement D of the
-group's map X -> Y + D(Y) (EnuWarp, U only), and the affine correction of H_A is refitted on the
-control GCPs with it (repeated, since D is evaluated at the corrected positions). The
-horizontal warps are left as they are: a DEM does not see them.
+group's map X -> Y + D(Y) (EnuWarp, U only), and H_A is refitted by the upgrade's own fit
+(RANSAC, the cameras' metric constraint) on the control GCPs' surveyed positions less D
+(repeated until H_A stops moving the structure). The horizontal warps are left as they are: a
+DEM does not see them.
 
 What it assumes: the DEM's errors over the site are not a dome or a saddle themselves (a DEM's
 long-wave error over 10 km is a metre or less); the heights compared are of the same surface
@@ -32,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from recon_core.errors import InputError
-from recon_core.geometry.affine import apply_affine_3d, fit_affine_3d
+from recon_core.geometry.affine import apply_affine_3d
 from recon_core.geometry.enu_map import EnuWarp
 
 CELL_M = 150.0            # cells of the comparison (each holds ~ 25 sparse points on `wide`)
@@ -69,17 +70,20 @@ class ReferenceDem:
         inv = ~self.transform
         x, y = np.asarray(x), np.asarray(y)
         col, row = inv.a * x + inv.b * y + inv.c, inv.d * x + inv.e * y + inv.f
-        ok = np.isfinite(col) & np.isfinite(row)
+        ok = (np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col <= self.width)
+              & (row >= 0) & (row <= self.height))                  # on the raster
         if not ok.any():
             return out
-        c0 = int(max(np.floor(col[ok].min()) - 2, 0))
-        r0 = int(max(np.floor(row[ok].min()) - 2, 0))
-        c1 = int(min(np.ceil(col[ok].max()) + 2, self.width))
-        r1 = int(min(np.ceil(row[ok].max()) + 2, self.height))
+        span = max(np.ptp(col[ok]), np.ptp(row[ok])) + 4
+        step = max(1, int(np.ceil(span / MAX_READ_PX)))     # a large DEM is read decimated
+        pad = 2 * step                    # the outermost read pixels' centres beyond every point
+        c0 = int(max(np.floor(col[ok].min()) - pad, 0))
+        r0 = int(max(np.floor(row[ok].min()) - pad, 0))
+        c1 = int(min(np.ceil(col[ok].max()) + pad, self.width))
+        r1 = int(min(np.ceil(row[ok].max()) + pad, self.height))
         if c1 <= c0 or r1 <= r0:
             return out
         w, h = c1 - c0, r1 - r0
-        step = max(1, int(np.ceil(max(w, h) / MAX_READ_PX)))
         with rasterio.open(self.path) as src:
             z = src.read(1, window=Window(c0, r0, w, h), out_shape=(int(np.ceil(h / step)), int(np.ceil(w / step))),
                          masked=True, resampling=rasterio.enums.Resampling.average if step > 1
@@ -91,6 +95,7 @@ class ReferenceDem:
         # read pixel i covers source pixels [i s, (i + 1) s): its centre is at (i + 0.5) s
         rr = (row - r0) / sy - 0.5
         cc = (col - c0) / sx - 0.5
+        # NaN within half a read pixel of the raster's edge (no neighbour to interpolate with)
         vals = ndimage.map_coordinates(z, [rr[ok], cc[ok]], order=1, mode="constant", cval=np.nan)
         out[ok] = vals
         return out
@@ -112,6 +117,12 @@ def open_reference_dem(path: str | Path) -> ReferenceDem:
                                     "(SRTM and Copernicus DEM tiles are EPSG:4326)")
             if src.count < 1:
                 raise InputError(p, "upgrade.reference_dem has no band")
+            try:
+                from pyproj import Transformer
+
+                Transformer.from_crs("EPSG:4326", src.crs, always_xy=True).transform(0.0, 0.0)
+            except Exception as exc:      # pyproj's CRSError / ProjError, or what GDAL's CRS gives it
+                raise InputError(p, f"upgrade.reference_dem's CRS cannot be reached from WGS84 ({exc})") from None
             return ReferenceDem(p, src.crs, src.transform, src.width, src.height, src.nodata)
     except RasterioIOError as exc:
         raise InputError(p, f"upgrade.reference_dem is not a raster GDAL can read ({str(exc).splitlines()[0]})") from None
@@ -134,13 +145,24 @@ def _quadratic_columns(e: np.ndarray, n: np.ndarray) -> np.ndarray:
 
 
 def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray, half: float,
-                cell_m: float = CELL_M) -> tuple[np.ndarray | None, dict]:
+                cell_m: float | None = None, seed: int = 0) -> tuple[np.ndarray | None, dict]:
     """The quadratic surface c0 + c1 e + c2 n + a e^2 + b e n + c n^2 (e, n = (E, N - centre) /
-    half) through the medians of r (DEM minus structure height) in cells of cell_m. Returns
-    ((a, b, c) in metres at e, n = +-1, summary), or (None, summary with the reason)."""
-    ok = np.isfinite(r) & np.isfinite(E) & np.isfinite(N)
+    half) through the medians of r (DEM minus structure height; NaN where the DEM has none) in
+    cells of cell_m (default: CELL_M, or a twentieth of a smaller site). Returns ((a, b, c) in
+    metres at e, n = +-1, summary), or (None, summary with the reason).
+
+    Its standard error (`bend_sigma_m`, the largest over the site's rectangle) is a block
+    bootstrap over blocks of ~1 km (a fifth of the site when smaller): a DEM's errors are
+    correlated over several cells, which a formula for independent cells would not see."""
+    fin = np.isfinite(E) & np.isfinite(N)
+    E, N, r = E[fin], N[fin], r[fin]
+    if len(E) == 0:
+        return None, {"points": 0, "reason": "no structure point"}
+    extent = np.array([np.ptp(E), np.ptp(N)])
+    cell_m = float(cell_m or min(CELL_M, max(extent.min(), 1.0) / 20.0))
+    ok = np.isfinite(r)
     E, N, r = E[ok], N[ok], r[ok]
-    info: dict = {"points": int(len(r)), "cell_m": float(cell_m)}
+    info: dict = {"points": int(len(r)), "cell_m": cell_m}
     if len(r) == 0:
         return None, {**info, "reason": "the reference DEM has no height under the structure"}
     key = np.stack([np.floor(E / cell_m), np.floor(N / cell_m)], 1).astype(np.int64)
@@ -151,14 +173,16 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
     rs, es, ns = r[order], E[order], N[order]
     full = np.flatnonzero(cnt >= MIN_POINTS_PER_CELL)
     med = np.array([np.median(rs[bounds[i]:bounds[i + 1]]) for i in full])
-    ce = (np.add.reduceat(es, bounds[:-1])[full] / cnt[full] - centre[0]) / half
-    cn = (np.add.reduceat(ns, bounds[:-1])[full] / cnt[full] - centre[1]) / half
+    cE = np.add.reduceat(es, bounds[:-1])[full] / cnt[full]
+    cN = np.add.reduceat(ns, bounds[:-1])[full] / cnt[full]
+    ce, cn = (cE - centre[0]) / half, (cN - centre[1]) / half
     info["cells"] = int(len(full))
     if len(full) < MIN_CELLS:
-        return None, {**info, "reason": f"{len(full)} cells of {cell_m:g} m with >= {MIN_POINTS_PER_CELL} points "
+        return None, {**info, "reason": f"{len(full)} cells of {cell_m:.0f} m with >= {MIN_POINTS_PER_CELL} points "
                                         f"under the DEM, {MIN_CELLS} needed"}
-    span = min(np.ptp(ce), np.ptp(cn)) / 2.0
-    info["span"] = float(span)
+    # the share of the structure's extent the cells span, along E and along N
+    span = float(min(np.ptp(cE) / max(extent[0] - cell_m, cell_m), np.ptp(cN) / max(extent[1] - cell_m, cell_m)))
+    info["span"] = span
     if span < MIN_SPAN:
         return None, {**info, "reason": f"the DEM covers {span:.0%} of the site along one axis, "
                                         f"{MIN_SPAN:.0%} needed to fit its bend"}
@@ -172,51 +196,61 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
         if np.allclose(w_new, w, atol=1e-4):
             break
         w = w_new
-    # the surface's standard error at the site's edge, as if the cells were independent (a
-    # DEM's errors are correlated over a few cells: a lower bound)
-    cov = scale ** 2 * np.linalg.pinv((A * w[:, None]).T @ (A * w[:, None]))
-    g = np.linspace(-1.0, 1.0, 11)
-    ge, gn = (v.ravel() for v in np.meshgrid(g, g))
+    # the bend over the site's rectangle (the cells' bounding box)
+    ge, gn = (v.ravel() for v in np.meshgrid(np.linspace(ce.min(), ce.max(), 11), np.linspace(cn.min(), cn.max(), 11)))
     Q = _quadratic_columns(ge, gn)[:, 3:]
     surf = Q @ sol[3:]
+    # block bootstrap of the weighted fit (the Huber weights of the final fit kept)
+    block_m = min(1000.0, extent.min() / 5.0)
+    _, blk = np.unique(np.floor(np.stack([cE, cN], 1) / block_m).astype(np.int64), axis=0, return_inverse=True)
+    blk = blk.ravel()
+    nb = int(blk.max()) + 1
+    members = [np.flatnonzero(blk == b) for b in range(nb)]
+    rng = np.random.default_rng(seed)
+    Aw, mw = A * w[:, None], med * w
+    draws = []
+    for _ in range(200):
+        idx = np.concatenate([members[b] for b in rng.integers(0, nb, nb)])
+        draws.append(Q @ np.linalg.lstsq(Aw[idx], mw[idx], rcond=None)[0][3:])
+    sigma = float(np.max(np.std(np.array(draws), axis=0)))
     info.update(cell_scale_m=scale, offset_m=float(sol[0]), tilt_m=[float(sol[1]), float(sol[2])],
                 bend_coef_m=[float(v) for v in sol[3:]], bend_range_m=float(np.ptp(surf)),
-                bend_sigma_m=float(np.sqrt(np.max(np.einsum("ij,jk,ik->i", Q, cov[3:, 3:], Q)))))
-    if info["bend_sigma_m"] > MAX_BEND_SIGMA_M:
-        return None, {**info, "reason": f"the DEM tells the bend to {info['bend_sigma_m']:.2f} m at the site's "
-                                        f"edge (its cells scatter by {scale:.2f} m about the surface), more "
+                bend_sigma_m=sigma, bootstrap_blocks=nb, block_m=float(block_m))
+    if sigma > MAX_BEND_SIGMA_M:
+        return None, {**info, "reason": f"the DEM tells the bend to {sigma:.2f} m at the site's edge (a block "
+                                        f"bootstrap; its cells scatter by {scale:.2f} m about the surface), more "
                                         f"than {MAX_BEND_SIGMA_M:g} m"}
     return sol[3:], info
 
 
-def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, X_aff: np.ndarray,
-                 X_enu: np.ndarray, centre: np.ndarray, half: float, cell_m: float | None = None,
-                 iters: int = 4):
-    """The vertical bend of the structure X_points (n, 3, the frame H maps) against the DEM,
-    with the affine correction of H refitted on the control GCPs (affine positions X_aff,
-    surveyed ENU X_enu, (k, 3), k >= 4) each round. Returns (new H (4, 4), EnuWarp, summary) or
-    (None, None, summary with the reason)."""
-    cell_m = cell_m or CELL_M
+def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, centre: np.ndarray, half: float,
+                 refit, cell_m: float | None = None, iters: int = 6, seed: int = 0):
+    """The vertical bend of the structure X_points (n, 3, in the frame H maps) against the DEM.
+
+    refit(warp) -> H: the upgrade's own fit of H_A on the control GCPs, their surveyed positions
+    less the warp (the warp moves heights by a function of E and N alone, so Y + warp(Y) = X_enu
+    is Y = X_enu - warp(X_enu)); it may raise (e.g. ReconstructionError). The warp is refitted
+    on the structure the new H gives, until H stops moving it. Returns (H (4, 4), EnuWarp,
+    summary) or (None, None, summary with the reason)."""
     Hn = np.eye(4)
     Hn[:3] = np.asarray(H, np.float64)[:3]
-    warp, info = None, {}
     centre = np.asarray(centre, np.float64)
+    sample = X_points[np.random.default_rng(seed).choice(len(X_points), min(len(X_points), 5000), replace=False)]
+    warp, info = None, {}
     for it in range(iters):
         Y = apply_affine_3d(Hn, X_points)
         llh = frame.enu_to_geodetic(Y)
         r = dem.heights(llh[:, 0], llh[:, 1]) - llh[:, 2]
-        coef, info = fit_surface(Y[:, 0], Y[:, 1], r, centre, half, cell_m)
+        coef, info = fit_surface(Y[:, 0], Y[:, 1], r, centre, half, cell_m, seed)
         if coef is None:
             return None, None, {**info, "applied": False}
         warp = EnuWarp(centre, float(half), np.r_[np.zeros(6), coef])
-        Yc = apply_affine_3d(Hn, X_aff)
-        C = np.eye(4)
-        C[:3] = fit_affine_3d(Yc + warp(Yc), X_enu)
-        Hn = C @ Hn
-        info["rounds"] = it + 1
-        info["last_correction_m"] = float(np.abs(apply_affine_3d(C, Yc) - Yc).max())
-        if info["last_correction_m"] < 1e-3:
+        H_new = np.eye(4)
+        H_new[:3] = np.asarray(refit(warp), np.float64)[:3]
+        moved = float(np.abs(apply_affine_3d(H_new, sample) - apply_affine_3d(Hn, sample)).max())
+        Hn = H_new
+        info.update(rounds=it + 1, last_move_m=moved)
+        if moved < 0.01:
             break
-    Yc = apply_affine_3d(Hn, X_aff)
-    info.update(applied=True, control_rms_m=float(np.sqrt(np.mean(np.sum((Yc + warp(Yc) - X_enu) ** 2, 1)))))
+    info["applied"] = True
     return Hn, warp, info

@@ -205,13 +205,12 @@ _AFFINE_FIT_WARNINGS = ("RANSAC rejected", "RANSAC cannot tell", "the check poin
 
 
 def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used: list[str],
-            rejected: list[str], loo: dict, info: dict, thresh_m: float, note: str | None = None):
+            rejected: list[str], loo: dict, info: dict, thresh_m: float):
     """The UpgradeResult `res` with H and the warp: every GCP row with an affine position
     (positions: id -> (3,) in the frame H maps; enu: id -> surveyed (3,)) re-scored by the new
     map; the control GCPs `used` or `rejected` as the fit with the warps decided; their
     leave-one-out from that fit (loo: id -> (3,)); statistics, degrees of freedom, rejections,
-    warnings and a note updated (`note`: what fitted the warp, when not these GCPs: then no
-    warp counts against their degrees of freedom). A new object; res is unchanged."""
+    warnings and a note updated. A new object; res is unchanged."""
     from dataclasses import replace
 
     from recon_core.euclidean.upgrade import _attach_loo, accuracy_stats, conditioning
@@ -241,7 +240,7 @@ def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used:
     _attach_loo(rows, ids, np.array([loo[i] for i in ids]).reshape(-1, 3))
     stats = {k: accuracy_stats(np.array(v).reshape(-1, 3)) for k, v in groups.items()}
     stats["loo"] = accuracy_stats(np.array([loo[i] for i in ids]).reshape(-1, 3))
-    k = info["warps_fitted"] if note is None else 0
+    k = info["warps_fitted"]
     # how well the GCPs the fit used fix the height scale (the affine fit's were fewer)
     c0 = res.conditioning or {}
     cond = conditioning(np.array([enu[i] for i in used]).reshape(-1, 3), c0.get("affine_height_sigma_m", 0.4),
@@ -258,8 +257,8 @@ def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used:
         warnings.append(f"the check points are off by {c['rmse_3d_m']:.2f} m RMS (3D) with the bend fitted, "
                         f"more than the {thresh_m:g} m the control GCPs must agree within; see the "
                         "per-point residuals")
-    what = "the views cannot see" if info.get("family") == "invisible" else "of the structure (all nine)"
-    note = note or (f"{k} quadratic warps {what} were fitted to {len(used)} control GCPs with an "
+    what = "the views cannot see" if info["family"] == "invisible" else "of the structure (all nine)"
+    note = (f"{k} quadratic warps {what} were fitted to {len(used)} control GCPs with an "
             f"affine correction of H_A (leave-one-out {info['loo_rms_bend_m']:.3f} m RMS against "
             f"{info['loo_rms_affine_m']:.3f} m for an affine map alone, on the same GCPs); the residuals "
             "are of that map")

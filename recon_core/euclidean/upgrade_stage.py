@@ -20,7 +20,7 @@ from recon_core.euclidean.georef import GcpAffine, frame_for, upgrade_group
 from recon_core.euclidean.metric_bend import metric_bend, warped_model
 from recon_core.euclidean.upgrade import UpgradeResult, flat_gcp_refusal
 from recon_core.events import EventBus
-from recon_core.geometry.affine import apply_affine_3d, fit_affine_3d
+from recon_core.geometry.affine import apply_affine_3d
 from recon_core.geometry.enu_map import EnuMap, EnuWarp, warp_record
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.gcps import GCP
@@ -194,21 +194,22 @@ def _fit(model, gcps: list[GCP], frame: LocalFrame, cfg: Config) -> tuple[Upgrad
 def _fit_metric(model, gcps: list[GCP], frame: LocalFrame, cfg: Config):
     """_fit, then the metric bend step (recon_core.euclidean.metric_bend) and, when it applies a
     warp, H_A refitted on the warped model (GCP positions picked on the cloud move with it).
-    Returns (result, GCP placements, warp or None, the step's summary, the model H_A is of)."""
+    Returns (result, GCP placements, warp or None, the step's summary, the model H_A is of, the
+    GCPs as that fit had them)."""
     res, aff = _fit(model, gcps, frame, cfg)
     if not cfg.upgrade.metric_bend:
-        return res, aff, None, {}, model
+        return res, aff, None, {}, model, gcps
     warp, info = metric_bend(model, res.H, cfg.upgrade.orbit_altitude_km * 1e3)
     if warp is None:
-        return res, aff, None, info, model
+        return res, aff, None, info, model, gcps
     moved = warped_model(model, warp)
     picks = [replace(g, affine_picked={k: np.asarray(x, np.float64) + warp(np.asarray(x, np.float64)[None])[0]
                                        for k, x in g.affine_picked.items()}) for g in gcps]
     try:
         res_w, aff_w = _fit(moved, picks, frame, cfg)
     except ReconstructionError as exc:       # e.g. the control GCPs too flat once warped
-        return res, aff, None, {**info, "applied": False, "reason": f"H_A refit on the warped model: {exc}"}, model
-    return res_w, aff_w, warp, info, moved
+        return res, aff, None, {**info, "applied": False, "reason": f"H_A refit on the warped model: {exc}"}, model, gcps
+    return res_w, aff_w, warp, info, moved, picks
 
 
 def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP], frame: LocalFrame,
@@ -235,12 +236,14 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
     return out, warp, info
 
 
-def _fit_dem_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP], frame: LocalFrame,
-                  model, bend: dict, gcp_fit: dict, cfg: Config,
-                  max_points: int = 300_000) -> tuple[UpgradeResult, EnuWarp | None, dict]:
+def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model, bend: dict, gcp_fit: dict,
+                  cfg: Config, max_points: int = 300_000) -> tuple[UpgradeResult, EnuWarp | None, dict]:
     """The vertical bend the views cannot see, taken from the reference DEM
     (recon_core.euclidean.dem_bend) when one is given, the GCPs did not hold the bend and the
-    views cannot see it; the result re-scored with it."""
+    views cannot see it; H_A refitted by the upgrade's own fit (`_fit`, on `model` with `gcps`
+    as the first fit had them) on the GCPs' surveyed positions less the bend. Returns the new
+    result (its residuals: against the surveyed positions less the bend there), the warp or
+    None, and the summary."""
     path = cfg.upgrade.reference_dem
     if not path:
         return res, None, {}
@@ -256,37 +259,44 @@ def _fit_dem_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
         return res, None, {"applied": False, "reason": "the views see the bend (several dates, or views from "
                                                        "more than one direction)"}
     dem = open_reference_dem(path)
-    pos = {k: a.xyz for k, a in aff.items() if a.xyz is not None}
-    used = [p["id"] for p in res.points if p["status"] == "used" and p["id"] in pos]
-    enu = dict(zip([g.id for g in gcps], frame.geodetic_to_enu(np.array([g.llh for g in gcps]).reshape(-1, 3))))
     ids = model.point_ids()
     if len(ids) > max_points:
         ids = np.sort(np.random.default_rng(cfg.seed).choice(ids, max_points, replace=False))
+    enu = frame.geodetic_to_enu(np.array([g.llh for g in gcps]).reshape(-1, 3))
+    fits = {}
+
+    def refit(warp: EnuWarp) -> np.ndarray:
+        llh = frame.enu_to_geodetic(enu - warp(enu))
+        moved = [replace(g, lon=float(p[0]), lat=float(p[1]), h=float(p[2])) for g, p in zip(gcps, llh)]
+        fits["res"], _ = _fit(model, moved, frame, cfg)
+        return fits["res"].H
+
     basis = bend["basis"]
-    Xa = np.array([pos[k] for k in used]).reshape(-1, 3)
-    Xe = np.array([enu[k] for k in used]).reshape(-1, 3)
-    H, warp, info = fit_dem_bend(res.H, model.X[ids], frame, dem, Xa, Xe, basis["centre_m"], basis["half_width_m"])
+    try:
+        H, warp, info = fit_dem_bend(res.H, model.X[ids], frame, dem, basis["centre_m"], basis["half_width_m"],
+                                     refit, seed=cfg.seed)
+    except ReconstructionError as exc:        # e.g. the control GCPs too flat once moved
+        return res, None, {"applied": False, "reason": f"H_A refit with the DEM's bend: {exc}"}
     info["dem"] = str(dem.path)
     if warp is None:
         return res, None, info
-    loo = {}
-    if len(used) >= 5:           # each control GCP predicted by the affine correction fitted on the others
-        Y = apply_affine_3d(H, Xa)
-        Y = Y + warp(Y)
-        for i, k in enumerate(used):
-            keep = np.arange(len(used)) != i
-            loo[k] = apply_affine_3d(fit_affine_3d(Y[keep], Xe[keep]), Y[i:i + 1])[0] - Xe[i]
+    out = fits["res"]
     note = (f"the vertical bend the views cannot see was taken from the reference DEM {dem.path.name}: a "
             f"quadratic surface of {info['bend_range_m']:.2f} m peak to peak over the site ({info['cells']} cells "
-            f"of {info['cell_m']:g} m, scatter {info['cell_scale_m']:.2f} m, its standard error at the edge "
-            f">= {info['bend_sigma_m']:.2f} m); H_A's affine correction refitted on the control GCPs with it; "
-            f"the DEM's own offset and tilt ({info['offset_m']:.2f} m; {info['tilt_m'][0]:.2f} / "
-            f"{info['tilt_m'][1]:.2f} m at the east / north edge) are left to the GCPs")
-    out = rescore(res, H, warp, pos, enu, used, [], loo, info, cfg.upgrade.ransac_thresh_m, note=note)
+            f"of {info['cell_m']:.0f} m, scatter {info['cell_scale_m']:.2f} m; standard error at the edge "
+            f"{info['bend_sigma_m']:.2f} m by a block bootstrap); H_A refitted on the control GCPs' surveyed "
+            f"positions less it (the residuals are against those); the DEM's own offset and tilt "
+            f"({info['offset_m']:.2f} m; {info['tilt_m'][0]:.2f} / {info['tilt_m'][1]:.2f} m at the east / north "
+            "edge) are left to the GCPs")
+    out.notes.append(note)
     if max(abs(v) for v in info["tilt_m"]) > DEM_TILT_WARN_M:
         out.warnings.append(f"the reference DEM {dem.path.name} is tilted against the control GCPs by "
                             f"{info['tilt_m'][0]:.1f} / {info['tilt_m'][1]:.1f} m at the site's east / north edge: "
                             "a GCP or the DEM is probably wrong (its datum is not: an offset is expected)")
+    out.warnings.append(f"the reference DEM holds the vertical bend its {bend['views']} views cannot see over "
+                        f"{bend['site_width_km']:.1f} km, not the horizontal one: positions away from the GCPs may "
+                        "be off by metres (9 or more control GCPs spread over the site, or views of another "
+                        "date, hold it)")
     return out, warp, info
 
 
@@ -314,11 +324,11 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
     joint = merge_joint([models[g] for g in sorted(models)])
     if joint is not None:
         try:
-            res, aff, warp, info, moved = _fit_metric(joint, [_picks_joint(g, joint.group) for g in gcps],
-                                                      up.frame, cfg)
+            res, aff, warp, info, moved, used = _fit_metric(joint, [_picks_joint(g, joint.group) for g in gcps],
+                                                            up.frame, cfg)
             bend = bend_observability(moved, res.H)
             res, gwarp, ginfo = _fit_gcp_bend(res, aff, gcps, up.frame, bend, cfg)
-            res, dwarp, dinfo = _fit_dem_bend(res, aff, gcps, up.frame, moved, bend, ginfo, cfg)
+            res, dwarp, dinfo = _fit_dem_bend(res, used, up.frame, moved, bend, ginfo, cfg)
             gwarp = gwarp if dwarp is None else dwarp
             _warn_bend(res, bend, ginfo, dinfo)
             for g, model in sorted(models.items()):
@@ -336,7 +346,7 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
             up = Upgrade(up.frame)
     for g, model in sorted(models.items()):
         try:
-            res, aff, warp, info, moved = _fit_metric(model, gcps, up.frame, cfg)
+            res, aff, warp, info, moved, used = _fit_metric(model, gcps, up.frame, cfg)
             estimate_gsd(moved, res.H)            # a model without a registered camera stops here
         except ReconstructionError as exc:
             up.errors[g] = f"group {g}: {exc}"
@@ -345,7 +355,7 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
         up.warps[g], up.metric[g] = warp, info
         up.bend[g] = bend_observability(moved, res.H)
         res, gwarp, up.gcp_bend[g] = _fit_gcp_bend(res, aff, gcps, up.frame, up.bend[g], cfg)
-        res, dwarp, dinfo = _fit_dem_bend(res, aff, gcps, up.frame, moved, up.bend[g], up.gcp_bend[g], cfg)
+        res, dwarp, dinfo = _fit_dem_bend(res, used, up.frame, moved, up.bend[g], up.gcp_bend[g], cfg)
         if dinfo:
             up.dem_bend[g] = dinfo
         gwarp = gwarp if dwarp is None else dwarp
@@ -365,7 +375,7 @@ def _warn_bend(res: UpgradeResult, bend: dict, gcp_fit: dict | None = None, dem_
     if text and (dem_fit or {}).get("reason"):
         text += f"; the reference DEM could not: {dem_fit['reason']}"
     elif text:
-        text += "; so does a coarse reference DEM of the site (upgrade.reference_dem: SRTM, Copernicus)"
+        text += "; a coarse reference DEM of the site also holds its vertical part (upgrade.reference_dem: SRTM, Copernicus)"
     if text and text not in res.warnings:
         # check points far off the control GCPs' fit are then the bend's doing as much as a
         # wrong GCP's: say so where that warning blames the GCPs

@@ -80,8 +80,10 @@ def test_a_dem_takes_out_the_saddle_four_gcps_leave(tmp_path):
     H0 = np.eye(4)
     H0[:3] = fit_affine_3d(X[ctrl], T[ctrl])
     before = apply_affine_3d(H0, X) - T
-    H, warp, info = fit_dem_bend(H0, X, frame, dem, X[ctrl], T[ctrl], np.zeros(2), HALF)
-    assert info["applied"] and warp is not None
+    # the upgrade's fit, here a plain affine map, on the GCPs' surveyed positions less the bend
+    H, warp, info = fit_dem_bend(H0, X, frame, dem, np.zeros(2), HALF,
+                                 lambda w: fit_affine_3d(X[ctrl], T[ctrl] - w(T[ctrl])))
+    assert info["applied"] and warp is not None and info["last_move_m"] < 0.01
     Y = apply_affine_3d(H, X)
     after = Y + warp(Y) - T
     rms_u = lambda r: float(np.sqrt(np.mean(r[:, 2] ** 2)))   # noqa: E731
@@ -95,8 +97,12 @@ def test_a_dem_takes_out_the_saddle_four_gcps_leave(tmp_path):
     assert rms_u(after) < 1.5, rms_u(after)
     A = fit_affine_3d(Y + warp(Y), T)
     assert rms_u(apply_affine_3d(A, Y + warp(Y)) - T) < 0.5
-    # the warp is vertical only, and the control GCPs still fit
-    assert np.allclose(warp.coef[:6], 0) and info["control_rms_m"] < 0.2
+    # the warp is vertical only, and the map puts the control GCPs where they were surveyed
+    Yc = apply_affine_3d(H, X[ctrl])
+    assert np.allclose(warp.coef[:6], 0) and np.abs(Yc + warp(Yc) - T[ctrl]).max() < 0.05
+    # its standard error (a block bootstrap) covers what the 2 m of correlated noise leaves
+    err = np.abs(np.array(info["bend_coef_m"]) - [-18.0, 10.0, 22.0]).max()
+    assert 0.1 < info["bend_sigma_m"] < 1.0 and err < 3 * info["bend_sigma_m"]
     # the DEM's own offset is reported, not applied (it is the GCPs' to fix)
     assert abs(info["offset_m"] - 25.0) < 6.0
 
@@ -105,8 +111,8 @@ def test_without_a_bend_the_dem_changes_little_and_too_little_cover_is_refused(t
     frame = LocalFrame(30.0, 31.0, 120.0)
     T, _ = _scene(frame)
     dem = open_reference_dem(_write_dem(tmp_path / "dem.tif", frame, seed=3))
-    H = np.eye(4)
-    H, warp, info = fit_dem_bend(H, T, frame, dem, T[:4], T[:4], np.zeros(2), HALF)
+    H, warp, info = fit_dem_bend(np.eye(4), T, frame, dem, np.zeros(2), HALF,
+                                 lambda w: fit_affine_3d(T[:50], T[:50] - w(T[:50])))
     d = warp(T)[:, 2]
     assert np.sqrt(np.mean(d ** 2)) < 0.5 and info["bend_range_m"] < 2.0
     # a structure of which the DEM sees only a corner: no bend is fitted from it
@@ -117,17 +123,45 @@ def test_without_a_bend_the_dem_changes_little_and_too_little_cover_is_refused(t
     assert coef is None and "covers" in why["reason"]
 
 
-@pytest.mark.parametrize("inside", [True, False])
-def test_the_dem_is_sampled_where_it_is(tmp_path, inside):
+@pytest.mark.parametrize("max_read", [6000, 37])
+def test_the_dem_is_sampled_where_it_is(tmp_path, monkeypatch, max_read):
+    """A DEM that is a plane in lon and lat is sampled exactly (bilinear), read whole or
+    decimated (a large DEM), to its last cell; outside it, NaN."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from recon_core.euclidean import dem_bend
+
+    monkeypatch.setattr(dem_bend, "MAX_READ_PX", max_read)
+    d, lon0, lat0 = 1.0 / 3600.0, 30.0, 31.1
+    w, h = 300, 200
+    lon = lon0 + (np.arange(w) + 0.5) * d
+    lat = lat0 - (np.arange(h) + 0.5) * d
+    plane = lambda x, y: 100.0 + 3e4 * (x - lon0) - 5e4 * (y - lat0)   # noqa: E731  (8 m and -14 m per cell)
+    with rasterio.open(tmp_path / "ramp.tif", "w", driver="GTiff", width=w, height=h, count=1, dtype="float64",
+                       crs="EPSG:4326", transform=from_origin(lon0, lat0, d, d), nodata=-32768) as dst:
+        dst.write(plane(*np.meshgrid(lon, lat)), 1)
+    dem = open_reference_dem(tmp_path / "ramp.tif")
+    # points in the middle of the raster: the window read is theirs, inside it, to its edges
+    rng = np.random.default_rng(0)
+    x = rng.uniform(lon[50], lon[250], 2000)
+    y = rng.uniform(lat[160], lat[40], 2000)
+    # decimated, GDAL averages blocks of a non-integer size: within 1 % of the plane's change
+    # over a read pixel (~9 cells of 8 m)
+    np.testing.assert_allclose(dem.heights(x, y), plane(x, y), atol=1e-6 if max_read > w else 0.7)
+    assert np.isnan(dem.heights(np.array([lon0 - 0.01, lon0 + 1]), np.array([lat0 - 0.01, lat0 - 0.01]))).all()
+
+
+def test_a_long_narrow_site_fully_covered_is_not_refused(tmp_path):
+    """A 10 x 4 km strip that the DEM covers whole: its span is the strip's, not the square's."""
     frame = LocalFrame(30.0, 31.0, 120.0)
-    dem = open_reference_dem(_write_dem(tmp_path / "dem.tif", frame, noise_m=1e-6, offset_m=0.0, tilt=0.0))
-    enu = np.array([[100.0, -250.0, 0.0], [3000.0, 1200.0, 0.0]]) * (1 if inside else 30)
-    llh = frame.enu_to_geodetic(enu)
-    h = dem.heights(llh[:, 0], llh[:, 1])
-    if inside:   # bilinear between cells of ~30 m on smooth ground: within a few centimetres
-        np.testing.assert_allclose(h, _ground(enu[:, 0], enu[:, 1]) + 5.0, atol=0.1)
-    else:
-        assert np.isnan(h).all()
+    T, _ = _scene(frame)
+    strip = T[np.abs(T[:, 1]) < 2000]
+    dem = open_reference_dem(_write_dem(tmp_path / "dem.tif", frame))
+    llh = frame.enu_to_geodetic(strip)
+    r = dem.heights(llh[:, 0], llh[:, 1]) - llh[:, 2]
+    coef, info = fit_surface(strip[:, 0], strip[:, 1], r, np.zeros(2), HALF)
+    assert coef is not None and info["span"] > 0.9, info
 
 
 def test_the_upgrade_takes_the_bend_from_a_dem_only_where_the_views_cannot_see_it(tiny_run, tiny_site, tmp_path,
@@ -211,3 +245,21 @@ def test_aerec_run_says_what_became_of_the_reference_dem(tiny_site, tmp_path, ca
     db = report["stages"]["upgrade"]["groups"]["0"]["dem_bend"]
     assert not db["applied"] and "too small to bend" in db["reason"]
     assert report["config"]["upgrade"]["reference_dem"] == str(dem.resolve())
+
+
+def test_a_dem_replaced_in_place_makes_the_upgrade_stale(tiny_site, tmp_path):
+    import os
+
+    from recon_core.config import preset
+    from recon_core.io.site import load_site
+    from recon_core.pipeline import stage_hash
+    from recon_core.synthetic.ref_dem import simulate_reference_dem
+
+    dem = simulate_reference_dem(tiny_site / "gt_dsm.tif", tmp_path / "dem.tif", cell_m=10.0, arcsec=0.3)
+    cfg = preset("tiny").with_overrides({"upgrade.reference_dem": str(dem)})
+    site = load_site(tiny_site)
+    before = {s: stage_hash(cfg, s, site) for s in ("sparse", "upgrade")}
+    simulate_reference_dem(tiny_site / "gt_dsm.tif", dem, cell_m=10.0, arcsec=0.3, seed=5)
+    os.utime(dem, ns=(1, 1))
+    assert stage_hash(cfg, "upgrade", site) != before["upgrade"]
+    assert stage_hash(cfg, "sparse", site) == before["sparse"]
