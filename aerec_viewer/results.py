@@ -196,8 +196,9 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
         db = outcome.dem_bend.get(g) or {}
         if db.get("applied"):
             parts.append(f"Vertical bend taken from the reference DEM ({Path(db['dem']).name}): "
-                         f"{db['bend_range_m']:.2f} m peak to peak over the site, known to "
-                         f"{db['bend_sigma_m']:.2f} m at its edge (in the 3D view, the DSM and cloud.ply alike).")
+                         f"{db['bend_range_m']:.2f} m peak to peak over the site, standard error "
+                         f"{db['bend_sigma_m']:.2f} m at its edge (in the 3D view, the DSM and cloud.ply alike); "
+                         "the horizontal bend stays.")
         elif db.get("reason"):
             parts.append(f"Reference DEM not used: {db['reason']}.")
     for g, e in sorted(outcome.errors.items()):

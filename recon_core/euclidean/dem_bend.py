@@ -40,7 +40,8 @@ CELL_M = 150.0            # cells of the comparison (each holds ~ 25 sparse poin
 MIN_POINTS_PER_CELL = 5   # a cell's median needs this many points
 MIN_CELLS = 50            # the quadratic needs this many cells
 MIN_SPAN = 0.6            # ... spanning this share of the site along E and along N
-MAX_BEND_SIGMA_M = 1.0   # ... and must tell the bend at the site's edge to this standard error
+MAX_BEND_SIGMA_M = 1.0   # ... and must tell the bend at the site's edge to this standard error,
+MIN_BEND_SNR = 10.0      # or to this fraction of its size (a bend of tens of metres)
 MAX_READ_PX = 6000        # a DEM window larger than this on a side is read decimated
 
 
@@ -145,7 +146,7 @@ def _quadratic_columns(e: np.ndarray, n: np.ndarray) -> np.ndarray:
 
 
 def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray, half: float,
-                cell_m: float | None = None, seed: int = 0) -> tuple[np.ndarray | None, dict]:
+                cell_m: float | None = None, seed: int = 0, gate: bool = True) -> tuple[np.ndarray | None, dict]:
     """The quadratic surface c0 + c1 e + c2 n + a e^2 + b e n + c n^2 (e, n = (E, N - centre) /
     half) through the medians of r (DEM minus structure height; NaN where the DEM has none) in
     cells of cell_m (default: CELL_M, or a twentieth of a smaller site). Returns ((a, b, c) in
@@ -153,7 +154,9 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
 
     Its standard error (`bend_sigma_m`, the largest over the site's rectangle) is a block
     bootstrap over blocks of ~1 km (a fifth of the site when smaller): a DEM's errors are
-    correlated over several cells, which a formula for independent cells would not see."""
+    correlated over several cells, which a formula for independent cells would not see. With
+    `gate`, a bend known no better than MAX_BEND_SIGMA_M and a MIN_BEND_SNR-th of its size is
+    refused."""
     fin = np.isfinite(E) & np.isfinite(N)
     E, N, r = E[fin], N[fin], r[fin]
     if len(E) == 0:
@@ -216,10 +219,11 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
     info.update(cell_scale_m=scale, offset_m=float(sol[0]), tilt_m=[float(sol[1]), float(sol[2])],
                 bend_coef_m=[float(v) for v in sol[3:]], bend_range_m=float(np.ptp(surf)),
                 bend_sigma_m=sigma, bootstrap_blocks=nb, block_m=float(block_m))
-    if sigma > MAX_BEND_SIGMA_M:
-        return None, {**info, "reason": f"the DEM tells the bend to {sigma:.2f} m at the site's edge (a block "
-                                        f"bootstrap; its cells scatter by {scale:.2f} m about the surface), more "
-                                        f"than {MAX_BEND_SIGMA_M:g} m"}
+    if gate and sigma > max(MAX_BEND_SIGMA_M, info["bend_range_m"] / MIN_BEND_SNR):
+        return None, {**info, "reason": f"the DEM tells its bend of {info['bend_range_m']:.2f} m to {sigma:.2f} m at "
+                                        f"the site's edge (a block bootstrap; its cells scatter by {scale:.2f} m "
+                                        f"about the surface): more than {MAX_BEND_SIGMA_M:g} m and a "
+                                        f"{MIN_BEND_SNR:g}th of the bend"}
     return sol[3:], info
 
 
@@ -241,7 +245,9 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
         Y = apply_affine_3d(Hn, X_points)
         llh = frame.enu_to_geodetic(Y)
         r = dem.heights(llh[:, 0], llh[:, 1]) - llh[:, 2]
-        coef, info = fit_surface(Y[:, 0], Y[:, 1], r, centre, half, cell_m, seed)
+        # refused or not on the structure H_A gives once it stops moving (the first H_A, fitted
+        # to GCPs on the bent structure, scales its heights wrongly: the cells scatter more)
+        coef, info = fit_surface(Y[:, 0], Y[:, 1], r, centre, half, cell_m, seed, gate=False)
         if coef is None:
             return None, None, {**info, "applied": False}
         warp = EnuWarp(centre, float(half), np.r_[np.zeros(6), coef])
@@ -252,5 +258,12 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
         info.update(rounds=it + 1, last_move_m=moved)
         if moved < 0.01:
             break
-    info["applied"] = True
+    Y = apply_affine_3d(Hn, X_points)
+    llh = frame.enu_to_geodetic(Y)
+    coef, final = fit_surface(Y[:, 0], Y[:, 1], dem.heights(llh[:, 0], llh[:, 1]) - llh[:, 2], centre, half,
+                              cell_m, seed)
+    if coef is None:
+        return None, None, {**final, "applied": False, "rounds": info["rounds"]}
+    info.update(applied=True, final_change_m=float(np.abs(np.subtract(final["bend_coef_m"], info["bend_coef_m"])).max()),
+                bend_sigma_m=final["bend_sigma_m"], cell_scale_m=final["cell_scale_m"])
     return Hn, warp, info

@@ -212,10 +212,10 @@ def test_the_upgrade_takes_the_bend_from_a_dem_only_where_the_views_cannot_see_i
                            corr_m=30.0, arcsec=0.3)
     monkeypatch.setattr(dem_bend, "CELL_M", 20.0)
     up = upgrade_models(state.gcps, state.models, cfg)
-    assert not up.dem_bend[0]["applied"] and "tells the bend to" in up.dem_bend[0]["reason"]
+    assert not up.dem_bend[0]["applied"] and "the DEM tells its bend of" in up.dem_bend[0]["reason"]
     np.testing.assert_array_equal(up.results[0].H, base.results[0].H)
     assert any("the reference DEM could not" in w for w in up.results[0].warnings)
-    assert "Reference DEM not used: the DEM tells the bend to" in outcome_markdown(_outcome(up))
+    assert "Reference DEM not used: the DEM tells its bend of" in outcome_markdown(_outcome(up))
 
 
 def _outcome(up):
