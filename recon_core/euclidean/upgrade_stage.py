@@ -409,9 +409,10 @@ def run(state, bus: EventBus) -> dict:
                 said.append(w)
                 bus.message(f"group {g}: {w}", "warning", int(g))
         db = r.get("dem_bend")
-        if db:
+        if db and not (up.joint and g != min(report["groups"], key=int)):   # one joint map: said once
             name = Path(state.cfg.upgrade.reference_dem).name
-            bus.message(f"group {g}: reference DEM {name}: " + (
+            who = "the date groups" if up.joint else f"group {g}"
+            bus.message(f"{who}: reference DEM {name}: " + (
                 f"the vertical bend taken from it, {db['bend_range_m']:.2f} m peak to peak over the site "
                 f"(standard error at the edge {db['bend_sigma_m']:.2f} m)" if db.get("applied")
                 else f"not used ({db.get('reason')})"), "info", int(g))
