@@ -265,9 +265,7 @@ class IncrementalSfM:
         counts = self._correspondence_counts()
         reasons = {}
         for t in np.flatnonzero(~m.registered):
-            reasons[m.tiles[t].id] = why.get(int(t)) or (
-                f"{counts[t]} 2D-3D correspondences (< {self.cfg.resect_min_inliers}): "
-                + self._why_few(int(t)))
+            reasons[m.tiles[t].id] = self._unregistered_reason(int(t), why.get(int(t)), int(counts[t]))
             self.bus.message(f"group {m.group}: tile {m.tiles[t].id} not registered: "
                              f"{reasons[m.tiles[t].id]}", "warning", m.group)
         m.stats = {"init": init, "tiles_registered": int(m.registered.sum()), "tiles_total": len(m.tiles),
@@ -581,6 +579,14 @@ class IncrementalSfM:
         o.corr[:] = 0.0
         o.corr[idx] = corr
         self._correction_info = info
+
+    def _unregistered_reason(self, t: int, last_try: str | None, count: int) -> str:
+        """What the report says of a tile left unregistered: its last try's reason, or, when
+        that is a count of correspondences alone (or it was never tried), why so few."""
+        few = f"2D-3D correspondences (< {self.cfg.resect_min_inliers})"
+        if last_try is None or last_try.endswith(few):
+            return f"{count} {few}: " + self._why_few(t)
+        return last_try
 
     def _why_few(self, t: int) -> str:
         """Why an unregistered tile has too few 2D-3D correspondences: its tracks that registered

@@ -377,3 +377,11 @@ def test_an_unregistered_tile_says_why_it_has_too_few_correspondences():
     m.has_point[:] = True                  # they have points: the tile simply overlaps too little
     assert IncrementalSfM._why_few(sfm, 2).startswith("too little overlap")
     assert IncrementalSfM._why_few(sfm, 3).startswith("no feature of it is matched")
+    # the report's reason: a last try that only counted its correspondences is completed
+    # with why so few (wide3's corner tiles said "0 2D-3D correspondences (< 12)" alone)
+    sfm._why_few = lambda t: IncrementalSfM._why_few(sfm, t)
+    said = IncrementalSfM._unregistered_reason(sfm, 3, "0 2D-3D correspondences (< 12)", 0)
+    assert said == "0 2D-3D correspondences (< 12): no feature of it is matched in another image: no overlap, or too little texture"
+    assert IncrementalSfM._unregistered_reason(sfm, 2, None, 5).startswith("5 2D-3D correspondences (< 12): too little")
+    other = "its points are nearly coplanar (conditioning 0.0040 < 0.01)"
+    assert IncrementalSfM._unregistered_reason(sfm, 2, other, 40) == other
