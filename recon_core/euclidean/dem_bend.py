@@ -236,34 +236,39 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
     is Y = X_enu - warp(X_enu)); it may raise (e.g. ReconstructionError). The warp is refitted
     on the structure the new H gives, until H stops moving it. Returns (H (4, 4), EnuWarp,
     summary) or (None, None, summary with the reason)."""
-    Hn = np.eye(4)
-    Hn[:3] = np.asarray(H, np.float64)[:3]
     centre = np.asarray(centre, np.float64)
     sample = X_points[np.random.default_rng(seed).choice(len(X_points), min(len(X_points), 5000), replace=False)]
-    warp, info = None, {}
-    for it in range(iters):
-        Y = apply_affine_3d(Hn, X_points)
+
+    def surface(H4: np.ndarray, gate: bool):
+        Y = apply_affine_3d(H4, X_points)
         llh = frame.enu_to_geodetic(Y)
-        r = dem.heights(llh[:, 0], llh[:, 1]) - llh[:, 2]
+        return fit_surface(Y[:, 0], Y[:, 1], dem.heights(llh[:, 0], llh[:, 1]) - llh[:, 2], centre, half,
+                           cell_m, seed, gate=gate)
+
+    Hn, warp, info = _as_4x4(H), None, {}
+    for it in range(iters):
         # refused or not on the structure H_A gives once it stops moving (the first H_A, fitted
         # to GCPs on the bent structure, scales its heights wrongly: the cells scatter more)
-        coef, info = fit_surface(Y[:, 0], Y[:, 1], r, centre, half, cell_m, seed, gate=False)
+        coef, info = surface(Hn, gate=False)
         if coef is None:
             return None, None, {**info, "applied": False}
         warp = EnuWarp(centre, float(half), np.r_[np.zeros(6), coef])
-        H_new = np.eye(4)
-        H_new[:3] = np.asarray(refit(warp), np.float64)[:3]
+        H_new = _as_4x4(refit(warp))
         moved = float(np.abs(apply_affine_3d(H_new, sample) - apply_affine_3d(Hn, sample)).max())
         Hn = H_new
         info.update(rounds=it + 1, last_move_m=moved)
         if moved < 0.01:
             break
-    Y = apply_affine_3d(Hn, X_points)
-    llh = frame.enu_to_geodetic(Y)
-    coef, final = fit_surface(Y[:, 0], Y[:, 1], dem.heights(llh[:, 0], llh[:, 1]) - llh[:, 2], centre, half,
-                              cell_m, seed)
+    coef, final = surface(Hn, gate=True)
     if coef is None:
         return None, None, {**final, "applied": False, "rounds": info["rounds"]}
     info.update(applied=True, final_change_m=float(np.abs(np.subtract(final["bend_coef_m"], info["bend_coef_m"])).max()),
                 bend_sigma_m=final["bend_sigma_m"], cell_scale_m=final["cell_scale_m"])
     return Hn, warp, info
+
+
+def _as_4x4(H: np.ndarray) -> np.ndarray:
+    """A (3, 4) or (4, 4) affine map as (4, 4)."""
+    out = np.eye(4)
+    out[:3] = np.asarray(H, np.float64)[:3]
+    return out

@@ -95,13 +95,27 @@ def bend_observability(model, H: np.ndarray, max_per_image: int = 20000, seed: i
                        "GCPs (an affine map) do not fix it either"}
 
 
+def bend_seen(b: dict) -> str | None:
+    """Why the views' bend needs nothing beyond them (they see it, or the site is too small to
+    bend), or None when they cannot see a vertical bend of a site of BEND_WARN_WIDTH_KM or more
+    (b: bend_observability's summary)."""
+    if not b:
+        return "no two views of the structure to tell a bend"
+    if b["site_width_km"] < BEND_WARN_WIDTH_KM:
+        return f"the site is {b['site_width_km']:.2f} km wide, too small to bend (a DEM is used from {BEND_WARN_WIDTH_KM:g} km)"
+    s = b.get("weakest_vertical_px_per_m")
+    if s is None or s >= BEND_INVISIBLE_PX_PER_M:
+        return "the views see the bend (several dates, or views from more than one direction)"
+    return None
+
+
 def bend_warning(b: dict, gcp_fit: dict | None = None) -> str | None:
     """One line when the views cannot see a vertical bend of a site wider than
     BEND_WARN_WIDTH_KM (and the control GCPs did not hold it: gcp_fit, the summary of
     recon_core.euclidean.gcp_bend); None otherwise."""
-    s = b.get("weakest_vertical_px_per_m")
-    if s is None or s >= BEND_INVISIBLE_PX_PER_M or b["site_width_km"] < BEND_WARN_WIDTH_KM:
+    if bend_seen(b):
         return None
+    s = b["weakest_vertical_px_per_m"]
     text = (f"its {b['views']} views cannot see a bend of the structure (a height warp of 1 m over "
             f"its {b['site_width_km']:.1f} km moves them by {s:.0e} px): 4 GCPs fix an affine map, not a "
             "bend, so heights away from the GCPs may be off by metres (3 views of one date: 1.5-2.9 m "
@@ -212,6 +226,11 @@ def _fit_metric(model, gcps: list[GCP], frame: LocalFrame, cfg: Config):
     return res_w, aff_w, warp, info, moved, picks
 
 
+def _surveyed_enu(gcps: list[GCP], frame: LocalFrame) -> np.ndarray:
+    """(n, 3) the GCPs' surveyed positions in the frame's ENU."""
+    return frame.geodetic_to_enu(np.array([g.llh for g in gcps]).reshape(-1, 3))
+
+
 def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP], frame: LocalFrame,
                   bend: dict, cfg: Config) -> tuple[UpgradeResult, EnuWarp | None, dict]:
     """The bend the views cannot see, fitted to the control GCPs H_A used
@@ -220,7 +239,7 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
         return res, None, {}
     pos = {k: a.xyz for k, a in aff.items() if a.xyz is not None}
     ctrl = [p["id"] for p in res.points if p["status"] in ("used", "rejected") and p["id"] in pos]
-    enu = dict(zip([g.id for g in gcps], frame.geodetic_to_enu(np.array([g.llh for g in gcps]).reshape(-1, 3))))
+    enu = dict(zip([g.id for g in gcps], _surveyed_enu(gcps, frame)))
     thresh = cfg.upgrade.ransac_thresh_m
     H, warp, info, inl, loo = fit_gcp_bend(res.H, np.array([pos[k] for k in ctrl]).reshape(-1, 3),
                                            np.array([enu[k] for k in ctrl]).reshape(-1, 3), bend,
@@ -249,20 +268,14 @@ def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model,
         return res, None, {}
     if (gcp_fit or {}).get("applied"):
         return res, None, {"applied": False, "reason": "the control GCPs hold the bend (gcp_bend)"}
-    if not bend:
-        return res, None, {"applied": False, "reason": "no two views of the structure to tell a bend"}
-    s = bend.get("weakest_vertical_px_per_m")
-    if bend["site_width_km"] < BEND_WARN_WIDTH_KM:
-        return res, None, {"applied": False, "reason": f"the site is {bend['site_width_km']:.2f} km wide, too small to "
-                                                       f"bend (a DEM is used from {BEND_WARN_WIDTH_KM:g} km)"}
-    if s is None or s >= BEND_INVISIBLE_PX_PER_M:
-        return res, None, {"applied": False, "reason": "the views see the bend (several dates, or views from "
-                                                       "more than one direction)"}
+    seen = bend_seen(bend)
+    if seen:
+        return res, None, {"applied": False, "reason": seen}
     dem = open_reference_dem(path)
     ids = model.point_ids()
     if len(ids) > max_points:
         ids = np.sort(np.random.default_rng(cfg.seed).choice(ids, max_points, replace=False))
-    enu = frame.geodetic_to_enu(np.array([g.llh for g in gcps]).reshape(-1, 3))
+    enu = _surveyed_enu(gcps, frame)
     fits = {}
 
     def refit(warp: EnuWarp) -> np.ndarray:
