@@ -125,6 +125,7 @@ def main(argv=None) -> int:
     ap.add_argument("--reference", type=Path, default=None, help="reference DSM to compare with (aerec eval)")
     ap.add_argument("--root", type=Path, default=Path("/tmp/aerec_bench"))
     ap.add_argument("--log", action="store_true", help="print progress lines with timestamps as it runs")
+    ap.add_argument("--redo-from", default=None, help="with --resume: recompute this stage and every later one")
     ap.add_argument("--resume", action="store_true",
                     help="reuse the finished stages of OUT (their seconds are those of the earlier run)")
     args = ap.parse_args(argv)
@@ -176,7 +177,8 @@ def main(argv=None) -> int:
             log(f"{type(ev).__name__}: {getattr(ev, 'stage', '')} {getattr(ev, 'text', '')}".strip())
 
     t0 = time.time()
-    state = run(site, out, cfg, until=args.until, bus=EventBus(listen), resume=args.resume)
+    state = run(site, out, cfg, until=args.until, bus=EventBus(listen), resume=args.resume,
+                redo_from=args.redo_from)
     wall = time.time() - t0
     st = state.report["stages"]
     print(f"\n== {site} (tile size {cfg.tiling.tile_size}) total {wall:.1f} s ==")
@@ -265,6 +267,21 @@ def main(argv=None) -> int:
                 f"group {g} {v['aligned']['median_abs_err_m']:.3f} m / {v['aligned']['completeness_pct']:.1f} %; "
                 f"{v['unaligned']['median_abs_err_m']:.3f} m" for g, v in sorted(groups.items())
                 if "aligned" in v and "unaligned" in v))
+            for g, v in sorted(groups.items()):
+                sc = v.get("fused_vs_group_same_cells") or {}
+                if sc.get("cells"):
+                    print(f"fused vs group {g} on the {sc['cells_pct_of_gt']:.1f} % of cells both cover: "
+                          f"median |error| {sc['a']['median_abs_err_m']:.3f} m vs {sc['b']['median_abs_err_m']:.3f} m, "
+                          f"within 1 m {sc['a']['within_pct']:.1f} % vs {sc['b']['within_pct']:.1f} %")
+        nm = (st.get("dsm") or {}).get("noise_model") or {}
+        if nm:
+            print("fusion noise model: " + nm["rule"]
+                  + (f"; matching precision {nm['matching_precision_px']:.3f} px" if nm.get("matching_precision_px") else "")
+                  + "; groups (rank order) " + ", ".join(
+                      f"{g}: noise {st['dsm']['groups'][str(g)]['noise_m']:.3f} m"
+                      + (f" ({st['dsm']['groups'][str(g)]['geometry_m_per_px']:.2f} m/px)"
+                         if st['dsm']['groups'][str(g)].get('geometry_m_per_px') else "")
+                      for g in st["dsm"]["group_order"] if st['dsm']['groups'][str(g)].get('noise_m') is not None))
         a = st["eval"]["alignment"]
         print(f"alignment (DSM - GT): dx {a['dx_m']:+.2f} dy {a['dy_m']:+.2f} dz {a['dz_m']:+.2f} m")
     if args.reference and (out / "dsm.tif").exists():

@@ -148,6 +148,9 @@ def check_config(cfg: Config) -> None:
         raise bad("matching.ratio", cfg.matching.ratio, "Lowe's ratio must be in (0, 1]")
     if cfg.dense.step < 1:
         raise bad("dense.step", cfg.dense.step, "must be at least 1")
+    if cfg.dsm.fusion_fill_agreeing < 1:
+        raise bad("dsm.fusion_fill_agreeing", cfg.dsm.fusion_fill_agreeing,
+                  "must be at least 1 (1 = any group fills a hole)")
     positive = {"bundle.loss_scale_px": cfg.bundle.loss_scale_px, "bundle.max_nfev": cfg.bundle.max_nfev,
                 "bundle.local_max_nfev": cfg.bundle.local_max_nfev, "bundle.rel_tol": cfg.bundle.rel_tol,
                 "bundle.growing_rel_tol": cfg.bundle.growing_rel_tol,

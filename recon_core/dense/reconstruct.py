@@ -345,11 +345,10 @@ def run_job(job: DenseJob) -> DenseResult:
 
 def pair_spread(P1: np.ndarray, P2: np.ndarray) -> float:
     """How far a point triangulated by two affine cameras (2, 4) moves per pixel of image
-    error, along its worst-determined direction: 1 / the smallest singular value of the stacked
-    4 x 3 linear parts. In one affine frame, pairs compare by it (a small intersection angle
-    gives a large spread, mostly in height)."""
-    s = np.linalg.svd(np.vstack([np.asarray(P1)[:2, :3], np.asarray(P2)[:2, :3]]), compute_uv=False)
-    return float(1.0 / s[-1]) if s[-1] > 0 else float("inf")
+    error, along its worst-determined direction (affine.views_spread of the pair). In one
+    affine frame, pairs compare by it (a small intersection angle gives a large spread, mostly
+    in height)."""
+    return affine.views_spread([P1, P2])
 
 
 def _triangulate(pix, cams, best_q, best_cam, max_err, rounds=3, fields=None):

@@ -22,6 +22,7 @@ from recon_core.euclidean.fusion import align_groups
 from recon_core.euclidean.georef import enu_to_output, output_epsg
 from recon_core.events import EventBus
 from recon_core.geometry.enu_map import EnuMap
+from recon_core.geometry import affine
 from recon_core.geometry.affine import apply_affine_3d
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.las import write_las
@@ -43,7 +44,7 @@ def output_grid(site: Site, xyh: np.ndarray, epsg: int, res: float) -> Grid:
 
 def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: LocalFrame, gsd: float,
              cfg: Config, out: OutLayout, bus: EventBus | None = None,
-             quality: dict[int, float] | None = None) -> dict:
+             quality: dict[int, float] | None = None, geometry: dict[int, float] | None = None) -> dict:
     """Write cloud.ply (Euclidean, output CRS), dsm.tif and, with several groups, each group's
     own DSM; return the summary.
 
@@ -56,8 +57,10 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
 
     Fusion of several groups (`fuse_groups`): each group's DSM without the cells only a weak
     pair's two-view points reach (dense `weak` marks); groups ranked by `quality` (their check
-    points' vertical RMSE) and their noise from the groups' disagreement (`group_noise`), ties
-    by their number of precise cells; the best group is the reference, the others are brought
+    points' vertical RMSE) and their noise: with `geometry` (group_geometry), one matching
+    precision fitted to the groups' disagreement times each group's metres per pixel, else a
+    per-group split of the disagreement (noise_from_pairs); ties by their number of precise
+    cells; the best group is the reference, the others are brought
     onto it by a smooth correction and fill its holes, and where they agree within
     fusion_agree_sigmas the cell is their inverse-variance weighted mean. Each group's own DSM
     (written to dsm_groups/) keeps its weak-pair cells.
@@ -130,7 +133,8 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
 
         precise = {g: RowView(grid.shape, precise_rows(g), strip) for g in groups}
         block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
-        noise = group_noise(precise, block)               # {g: None} for one group
+        pairs = pair_disagreement(precise, block)         # [] for one group
+        noise, match_px = noise_from_pairs(groups, pairs, geometry)
         coverage = {g: count_rows(precise[g], np.isfinite, strip) for g in groups}
         order = rank_groups(groups, quality or {}, coverage, noise)
         if len(groups) == 1:
@@ -140,7 +144,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
             fill = [RowView(grid.shape, weak_rows(g), strip) for g in order] if c.fuse_weak_pair_cells else []
             H, source = fuse_groups([precise[g] for g in order] + fill, correct_block=block,
                                     sigmas=[noise[g] for g in order] + [None] * len(fill),
-                                    agree_sigmas=c.fusion_agree_sigmas,
+                                    agree_sigmas=c.fusion_agree_sigmas, fill_agreeing=c.fusion_fill_agreeing,
                                     out=grid_file("fused", np.float32),
                                     source_out=grid_file("source", np.int16), block_rows=strip)
         raw_valid = count_rows(H, np.isfinite, strip) / H.size
@@ -167,6 +171,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
                 n_cells = grid.width * grid.height
                 groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),
                                          "noise_m": noise[g],
+                                         "geometry_m_per_px": (geometry or {}).get(g),
                                          "points": int(len(sources[g])),
                                          "valid_fraction_raw": count_rows(raw[g], np.isfinite, strip) / n_cells,
                                          "precise_fraction": coverage[g] / n_cells,
@@ -182,18 +187,28 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
             "points": int(total), "points_in_grid": int(in_grid), "valid_fraction_raw": raw_valid,
             "valid_fraction": valid, "stat": c.stat, "fusion": fusion,
             "fusion_rule": ("per cell, the best-ranked group with a precise value (ranked by the "
-                            "expected height error: check-point vertical RMSE and the DSM's noise "
-                            "from the groups' disagreement; ties: the group with the most precise "
-                            "cells first)" + (f"; lower-ranked groups brought onto the fused surface "
-                                              f"by a smooth correction ({c.fusion_correction_m:g} m "
-                                              "blocks)" if block else "") +
+                            "expected height error: check-point vertical RMSE and the DSM's noise, "
+                            + ("its geometry times one matching precision fitted to the groups' "
+                               "disagreement" if match_px is not None else
+                               "the groups' disagreement split between them") +
+                            "; ties: the group with the most precise cells first)" +
+                            (f"; lower-ranked groups brought onto the fused surface by a smooth "
+                             f"correction ({c.fusion_correction_m:g} m blocks)" if block else "") +
                             (f"; where groups agree within {c.fusion_agree_sigmas:g} sigma, their "
                              "inverse-variance weighted mean" if c.fusion_agree_sigmas > 0 else "") +
+                            (f"; a hole of the better groups filled only where {c.fusion_fill_agreeing} "
+                             "groups agree" if c.fusion_fill_agreeing > 1 else "") +
                             ("; cells only a weak pair's two-view points reach, last"
                              if c.fuse_weak_pair_cells else "; cells only a weak pair's two-view "
                              "points reach are left out (they stay in each group's own DSM)"))
                            if len(groups) > 1 else "one group",
-            "group_order": order, "groups": groups_report, "gsd_m": gsd}
+            "group_order": order, "groups": groups_report, "gsd_m": gsd,
+            "noise_model": None if len(groups) == 1 else {
+                "matching_precision_px": match_px,
+                "rule": ("each group's geometry (metres per pixel of all its views) times one "
+                         "matching precision fitted to the groups' disagreement") if match_px is not None
+                        else "the groups' disagreement split between them (three-cornered hat)",
+                "pairs": [{"groups": [a, b], "disagreement_nmad_m": float(np.sqrt(v))} for a, b, v in pairs]}}
 
 
 def reserve_disk(path: Path) -> None:
@@ -229,22 +244,41 @@ def rank_groups(groups: list[int], quality: dict[int, float], size: dict[int, in
     return sorted(groups, key=key)
 
 
-def group_noise(dsms: dict[int, np.ndarray], correct_block: int = 0, min_overlap: int = 2000,
-                max_cells: int = 4_000_000) -> dict[int, float | None]:
-    """Each DSM's height noise (metres) from how the groups disagree with one another.
+def group_geometry(models: dict, maps: dict) -> dict[int, float]:
+    """Each group's height precision from its acquisition geometry alone: metres per pixel of
+    matching error (affine.views_spread) of all its images' views together, in the upgraded
+    (metric) frame. One view per image: the median linear part of its registered tiles'
+    cameras, mapped by the group's H_A (its bend warps, smooth and small, left aside). A group
+    of one view, or whose views do not fix a point, is left out."""
+    out = {}
+    for g, m in models.items():
+        if g not in maps:
+            continue
+        M = maps[g]
+        H = np.eye(4)
+        H[:3] = np.asarray(M.H if isinstance(M, EnuMap) else M, np.float64)[:3]
+        Hi = np.linalg.inv(H)
+        per: dict[str, list] = {}
+        for t in np.flatnonzero(m.registered):
+            per.setdefault(m.tiles[t].image, []).append((np.asarray(m.cams[t]) @ Hi)[:2, :3])
+        if len(per) < 2:
+            continue
+        spread = affine.views_spread([np.median(np.stack(v), 0) for v in per.values()])
+        if np.isfinite(spread):
+            out[int(g)] = spread
+    return out
 
-    For each pair sharing >= min_overlap cells: v_ij = (1.4826 MAD of D_i - D_j)^2 after the
-    smooth relative correction (fuse_groups' step 1), the noise of both: v_ij = s_i^2 + s_j^2
-    for independent matchings. Three or more groups: the s_i^2 by least squares over the pairs
-    (a three-cornered hat; floored at a tenth of the mean); two groups cannot be told apart and
-    share v / 2 each. A group that overlaps none gets None. Grids above max_cells are
-    decimated evenly first.
-    """
+
+def pair_disagreement(dsms: dict[int, np.ndarray], correct_block: int = 0, min_overlap: int = 2000,
+                      max_cells: int = 4_000_000) -> list[tuple[int, int, float]]:
+    """(g_a, g_b, v) for each pair of DSMs sharing >= min_overlap cells: v = (1.4826 MAD of
+    D_b - D_a)^2 after the smooth relative correction (fuse_groups' step 1), the variance of
+    their disagreement. Grids above max_cells are decimated evenly first."""
     keys = sorted(dsms)
     step = max(1, int(np.ceil(np.sqrt(next(iter(dsms.values())).size / max_cells)))) if dsms else 1
     small = {g: dsms[g][::step, ::step] for g in keys}
     block = max(1, correct_block // step) if correct_block > 0 else 0
-    rows, vals = [], []
+    out = []
     for a in range(len(keys)):
         for b in range(a + 1, len(keys)):
             A, B = small[keys[a]], small[keys[b]]
@@ -254,30 +288,69 @@ def group_noise(dsms: dict[int, np.ndarray], correct_block: int = 0, min_overlap
             if int(both.sum()) < min_overlap:
                 continue
             d = (B - A)[both].astype(np.float64)
-            v = (1.4826 * np.median(np.abs(d - np.median(d)))) ** 2
-            row = np.zeros(len(keys))
-            row[[a, b]] = 1.0
-            rows.append(row)
-            vals.append(v)
+            out.append((int(keys[a]), int(keys[b]), float((1.4826 * np.median(np.abs(d - np.median(d)))) ** 2)))
+    return out
+
+
+def noise_from_pairs(keys: list[int], pairs: list[tuple[int, int, float]],
+                     geometry: dict[int, float] | None = None) -> tuple[dict[int, float | None], float | None]:
+    """Each group's DSM height noise (metres) from the pairs' disagreement (pair_disagreement).
+    Returns ({group: noise or None}, the matching precision in pixels or None).
+
+    With every overlapping group's geometry (group_geometry, metres per pixel): one matching
+    precision k (pixels) for all, the same sensor and matcher, fitted by least squares to
+    v_ab = k^2 (a_a^2 + a_b^2); each group's noise is k a_g, also for a group that overlaps
+    none. This is the default: a per-group split of the disagreement (below) assumes the
+    groups' errors independent, and they are not (shared occlusions, edges and relief lost
+    by every matcher: correlation 0.5-0.6 between wide3's groups); a group whose errors lie
+    between two others' then agrees best with both and is taken for the most precise.
+
+    Without geometry, the split (a three-cornered hat): v_ab = s_a^2 + s_b^2; three or more
+    groups: the s^2 by least squares over the pairs (floored at a tenth of the mean); two
+    groups share v / 2 each; a group that overlaps none gets None.
+    """
     out: dict[int, float | None] = {g: None for g in keys}
-    if not rows:
-        return out
-    M, v = np.array(rows), np.array(vals)
-    seen = M.any(0)
-    if len(rows) >= 3 and np.linalg.matrix_rank(M[:, seen]) == int(seen.sum()):
-        s2 = np.linalg.lstsq(M[:, seen], v, rcond=None)[0]
+    if not pairs:
+        return out, None
+    geo = geometry or {}
+    seen = sorted({g for a, b, _ in pairs for g in (a, b)})
+    if all(g in geo and np.isfinite(geo[g]) and geo[g] > 0 for g in seen):
+        k2 = sum(v for _, _, v in pairs) / sum(geo[a] ** 2 + geo[b] ** 2 for a, b, _ in pairs)
+        k = float(np.sqrt(k2))
+        for g in keys:
+            if g in geo and np.isfinite(geo[g]) and geo[g] > 0:
+                out[g] = k * float(geo[g])
+        return out, k
+    col = {g: i for i, g in enumerate(seen)}
+    M = np.zeros((len(pairs), len(seen)))
+    for r, (a, b, _) in enumerate(pairs):
+        M[r, [col[a], col[b]]] = 1.0
+    v = np.array([p[2] for p in pairs])
+    if len(pairs) >= 3 and np.linalg.matrix_rank(M) == len(seen):
+        s2 = np.linalg.lstsq(M, v, rcond=None)[0]
         s2 = np.maximum(s2, 0.1 * float(v.mean()) / 2)
     else:                                   # pairs alone: each shares its pairs' mean equally
-        s2 = (M[:, seen] * v[:, None]).sum(0) / M[:, seen].sum(0) / 2
-    for k, g in enumerate(np.array(keys)[seen]):
-        out[int(g)] = float(np.sqrt(s2[k]))
-    return out
+        s2 = (M * v[:, None]).sum(0) / M.sum(0) / 2
+    for g in seen:
+        out[g] = float(np.sqrt(s2[col[g]]))
+    return out, None
+
+
+def group_noise(dsms: dict[int, np.ndarray], correct_block: int = 0, min_overlap: int = 2000,
+                max_cells: int = 4_000_000, geometry: dict[int, float] | None = None
+                ) -> dict[int, float | None]:
+    """Each DSM's height noise (metres) from how the groups disagree with one another
+    (pair_disagreement, then noise_from_pairs: with `geometry`, one matching precision scaled
+    by each group's geometry; without, a per-group split)."""
+    keys = [int(g) for g in sorted(dsms)]
+    return noise_from_pairs(keys, pair_disagreement(dsms, correct_block, min_overlap, max_cells),
+                            geometry)[0]
 
 
 def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
                 sigmas: list[float | None] | None = None, agree_sigmas: float = 2.5,
                 out: np.ndarray | None = None, source_out: np.ndarray | None = None,
-                block_rows: int = 1024) -> tuple[np.ndarray, np.ndarray]:
+                block_rows: int = 1024, fill_agreeing: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Fuse per-group DSMs given best first. Returns (H, index of the DSM each cell's reference
     value came from, -1 where none has one).
 
@@ -293,6 +366,11 @@ def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
        the cell is their inverse-variance weighted mean: independent matchings of the same
        ground average their noise down; a DSM that disagrees (a shadow, a moved car, a
        mismatch) is left out of that cell.
+    3. With `fill_agreeing` > 1 (and step 2's sigmas): a cell filled by a lower-ranked DSM with
+       a noise (not the reference's, not a noiseless fill such as a weak pair's) is kept only
+       where at least that many DSMs with a noise, the filling one included, agree there; the
+       others are left empty (-1 in the source). Cells only one group sees are mostly the hard
+       ones (occlusions, building edges): measured on wide3, 1.1-1.8 m median error.
 
     Works by strips of about `block_rows` rows (a multiple of correct_block): the DSMs (taken as
     float32) may be disk-backed (np.memmap, or RowView), and so may `out` (float32) and
@@ -337,6 +415,7 @@ def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
             s_ref[sb == k] = np.nan if s is None else s
         num = np.zeros(Hb.shape, np.float32)
         den = np.zeros(Hb.shape, np.float32)
+        n_agree = np.zeros(Hb.shape, np.int16)
         for k, s in enumerate(sig):
             if s is None:
                 continue
@@ -346,8 +425,17 @@ def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
             wk = 1.0 / (s * s)
             num[ok] += wk * D[ok]
             den[ok] += wk
+            n_agree[ok] += 1
         avg = den > 0
         Hb[avg] = num[avg] / den[avg]
+        if fill_agreeing > 1:
+            noisy_fill = np.zeros(Hb.shape, bool)
+            for k, s in enumerate(sig):
+                if k > 0 and s is not None:
+                    noisy_fill |= sb == k
+            drop = noisy_fill & (n_agree < fill_agreeing)
+            Hb[drop] = np.nan
+            source[r0:r1][drop] = -1
     return H, source
 
 
@@ -491,7 +579,7 @@ def run(state, bus: EventBus) -> dict:
     ups = up.get("groups", {})
     gsd = min((v["gsd_m"] for v in ups.values() if "gsd_m" in v), default=0.5)
     return make_dsm(state.site, point_sources(state, bus), maps, frame, gsd, state.cfg, state.layout, bus,
-                    quality=group_quality(up))
+                    quality=group_quality(up), geometry=group_geometry(state.models, maps))
 
 
 def load(state) -> None:

@@ -357,6 +357,32 @@ def evaluate_dsm(dsm_path: str | Path, gt_path: str | Path, out_dir: str | Path 
     return result
 
 
+def same_cells(a_path: str | Path, a_align: dict, b_path: str | Path, b_align: dict,
+               gt_path: str | Path, thresh_m: float = THRESH_M) -> dict[str, Any]:
+    """Two DSMs scored on the same cells: those of the valid GT where both have a height, each
+    with its own alignment (evaluate_dsm's "alignment"). Answers "is A better than B where
+    both say something", which their own figures (each over its own cells) do not: a DSM that
+    also covers the hard cells (occlusions, edges) has a larger median there.
+    Returns {"cells": n, "cells_pct_of_gt", "a"/"b": {"median_abs_err_m", "within_pct"}} with
+    within_pct the % of those cells within thresh_m."""
+    gt = read_raster(gt_path, "ground truth")
+    both = np.isfinite(gt.values)
+    errs = []
+    for path, al in ((a_path, a_align), (b_path, b_align)):
+        d = read_raster(path, "DSM")
+        e = resample_onto(d, gt, al["dx_m"], al["dy_m"]) - np.float32(al["dz_m"]) - gt.values
+        both &= np.isfinite(e)
+        errs.append(e)
+    n = int(both.sum())
+    out: dict[str, Any] = {"cells": n, "cells_pct_of_gt": 100.0 * n / max(int(np.isfinite(gt.values).sum()), 1),
+                           "threshold_m": thresh_m}
+    for key, e in zip(("a", "b"), errs):
+        v = np.abs(e[both])
+        out[key] = {"median_abs_err_m": float(np.median(v)) if n else None,
+                    "within_pct": 100.0 * float(np.mean(v < thresh_m)) if n else None}
+    return out
+
+
 def _warnings(al: dict) -> list[str]:
     if al["at_search_limit"]:
         return [f"the best shift ({al['dx_m']:.2f}, {al['dy_m']:.2f}) m lies at the edge of the "

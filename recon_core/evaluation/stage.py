@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from recon_core.errors import AerecError
-from recon_core.evaluation.evaluate import evaluate_dsm
+from recon_core.evaluation.evaluate import evaluate_dsm, same_cells
 from recon_core.events import EventBus
 
 
@@ -23,8 +23,15 @@ def run(state, bus: EventBus) -> dict:
             continue
         groups[str(g)] = {k: {m: r[k][m] for m in ("median_abs_err_m", "completeness_pct", "nmad_m")
                               if m in r[k]} for k in ("aligned", "unaligned")}
+        # the fused DSM against this group on the cells both cover: fusion should not make
+        # the group's own cells worse (its extra cells are mostly the hard ones)
+        sc = same_cells(lay.dsm, res["alignment"], lay.group_dsm(g), r["alignment"], state.site.gt_dsm)
+        groups[str(g)]["fused_vs_group_same_cells"] = sc
+        same = "" if sc["a"]["median_abs_err_m"] is None else \
+            (f"; on the {sc['cells_pct_of_gt']:.1f} % of cells both cover: fused "
+             f"{sc['a']['median_abs_err_m']:.3f} m, group {sc['b']['median_abs_err_m']:.3f} m")
         bus.message(f"group {g} alone vs GT: median |error| {r['aligned']['median_abs_err_m']:.3f} m, "
-                    f"completeness {r['aligned']['completeness_pct']:.1f} % (aligned)")
+                    f"completeness {r['aligned']['completeness_pct']:.1f} % (aligned){same}")
     if groups:
         res["groups"] = groups
     bus.message(f"DSM vs GT: median |error| {a['median_abs_err_m']:.3f} m, completeness "

@@ -999,3 +999,14 @@ def apply_affine_3d(A, X) -> np.ndarray:
     A = np.asarray(A, dtype=np.float64)
     X = np.asarray(X, dtype=np.float64)
     return X @ A[:3, :3].T + A[:3, 3]
+
+
+def views_spread(cams) -> float:
+    """How far a point triangulated by affine cameras (k, 2, >= 3) moves per pixel of image
+    error along its worst-determined direction: 1 / the smallest singular value of their
+    stacked 2k x 3 linear parts (inf when they do not fix a point). In one frame, sets of views
+    compare by it: a small intersection angle gives a large spread, mostly in height; in a
+    metric frame it is metres per pixel."""
+    L = np.concatenate([np.asarray(P, np.float64)[:2, :3] for P in cams])
+    s = np.linalg.svd(L, compute_uv=False)
+    return float(1.0 / s[-1]) if s[-1] > 0 else float("inf")

@@ -35,6 +35,99 @@ def test_group_noise_splits_the_groups_disagreement():
     assert group_noise({0: D[0], 1: D[1], 5: far}, correct_block=32)[5] is None
 
 
+def _tilted_views(theta_deg: float, n: int = 2, gsd: float = 1.0) -> list[np.ndarray]:
+    """n orthographic views (2 x 4, pixels of `gsd` metres) spread evenly over theta degrees of
+    tilt about the x axis: an image pair of intersection angle theta when n = 2."""
+    out = []
+    for phi in np.radians(np.linspace(-theta_deg / 2, theta_deg / 2, n)):
+        out.append(np.array([[1.0, 0, 0, 0], [0, np.cos(phi), np.sin(phi), 0]]) / gsd)
+    return out
+
+
+def test_views_spread_is_the_textbook_height_precision():
+    """Two views of intersection angle theta: a pixel of matching error moves the point by
+    1 / (sqrt(2) sin(theta / 2)) metres along the height (the worst direction); a nadir view
+    between them adds nothing to the height, a third tilted one does; a finer pixel scales it."""
+    from recon_core.geometry.affine import views_spread
+
+    for theta in (6.0, 15.0, 30.0):
+        want = 1.0 / (np.sqrt(2) * np.sin(np.radians(theta / 2)))
+        assert views_spread(_tilted_views(theta)) == pytest.approx(want, rel=1e-9)
+    assert views_spread(_tilted_views(30.0, 3)) == pytest.approx(views_spread(_tilted_views(30.0)))
+    assert views_spread(_tilted_views(30.0) + _tilted_views(20.0)[:1]) < views_spread(_tilted_views(30.0))
+    assert views_spread(_tilted_views(30.0, gsd=0.5)) == pytest.approx(0.5 * views_spread(_tilted_views(30.0)))
+    assert views_spread(_tilted_views(0.0)) == float("inf") or views_spread(_tilted_views(0.0)) > 1e12
+
+
+def test_group_geometry_reads_the_upgraded_views():
+    """A group's geometry is the spread of its images' views (one per image: the median of its
+    tiles' cameras) in the metric frame: the same whatever affine frame the cameras are in,
+    once their H_A maps it; a group of one image is left out."""
+    from types import SimpleNamespace
+
+    from recon_core.euclidean.dsm_stage import group_geometry
+    from recon_core.geometry.affine import views_spread
+
+    rng = np.random.default_rng(1)
+    A = np.eye(4)
+    A[:3] = rng.normal(size=(3, 4))                 # an affine frame: X_aff = A X_metric
+    H = np.linalg.inv(A)                            # the upgrade: X_metric = H X_aff
+
+    def model(theta, images):
+        views = _tilted_views(theta, len(images))
+        tiles, cams = [], []
+        for k, im in enumerate(images):
+            for _ in range(3):                      # three tiles per image, slightly different
+                tiles.append(SimpleNamespace(image=im))
+                P = views[k] + np.r_[0, 0, 0, rng.normal()][None] * [[1], [0]]
+                cams.append(P @ np.linalg.inv(A))   # the same camera seen in the affine frame
+        return SimpleNamespace(registered=np.ones(len(tiles), bool), tiles=tiles, cams=np.array(cams))
+
+    geo = group_geometry({0: model(24.0, ["a", "b", "c"]), 1: model(9.0, ["d", "e"]),
+                          2: model(20.0, ["f"])}, {0: H, 1: H, 2: H})
+    assert set(geo) == {0, 1}
+    assert geo[0] == pytest.approx(views_spread(_tilted_views(24.0, 3)), rel=1e-6)
+    assert geo[1] == pytest.approx(views_spread(_tilted_views(9.0)), rel=1e-6)
+
+
+def test_noise_from_geometry_is_not_fooled_by_a_group_between_two_others():
+    """Group 1's errors are half group 0's and half group 2's (it sees the same hard places as
+    both: errors correlated between groups, as measured on wide3), so it agrees best with both
+    although group 0 is the most precise. A per-group split of the disagreement puts group 1
+    first; one matching precision times each group's geometry (here in the truth's ratio)
+    ranks them as the truth does and recovers the precision. With independent noise
+    proportional to the geometry it finds each group's noise within 10 %, two groups
+    included (a split can only share their disagreement)."""
+    from recon_core.euclidean.dsm_stage import group_noise
+
+    rng = np.random.default_rng(2)
+    yy, xx = np.mgrid[0:300, 0:400].astype(np.float32)
+    truth = 0.01 * xx + 8.0 * (((xx // 40) + (yy // 40)) % 3 == 0)
+    n0, n2 = rng.normal(0, 0.3, truth.shape), rng.normal(0, 0.9, truth.shape)
+    e = {0: n0, 1: 0.5 * n0 + 0.5 * n2, 2: n2}
+    D = {g: (truth + e[g]).astype(np.float32) for g in e}
+    true_sd = {g: float(np.std(e[g])) for g in e}
+    split = group_noise(D, correct_block=32)
+    assert min(split, key=split.get) == 1                 # the split is fooled
+    geo = {0: 1.0, 1: true_sd[1] / true_sd[0], 2: 3.0}
+    model = group_noise(D, correct_block=32, geometry=geo)
+    assert sorted(model, key=model.get) == [0, 1, 2]
+    # independent noise in proportion to the geometry: each found within 10 %
+    k = 0.25
+    geo = {0: 1.0, 1: 1.6, 2: 3.0}
+    D = {g: (truth + rng.normal(0, k * a, truth.shape)).astype(np.float32) for g, a in geo.items()}
+    model = group_noise(D, correct_block=32, geometry=geo)
+    for g, a in geo.items():
+        assert model[g] == pytest.approx(k * a, rel=0.1), model
+    two = group_noise({0: D[0], 2: D[2]}, correct_block=32, geometry=geo)
+    assert two[0] == pytest.approx(k, rel=0.1) and two[2] == pytest.approx(3 * k, rel=0.1)
+    # a group with no overlap still gets its noise from the shared precision
+    far = np.full(truth.shape, np.nan, np.float32)
+    far[:5, :5] = 1.0
+    assert group_noise({0: D[0], 2: D[2], 5: far}, correct_block=32,
+                       geometry={**geo, 5: 2.0})[5] == pytest.approx(2 * k, rel=0.1)
+
+
 def test_rank_and_fuse():
     assert rank_groups([0, 1, 2], {0: 0.8, 2: 0.3}, {0: 10, 1: 99, 2: 5}) == [2, 0, 1]
     assert rank_groups([0, 1], {}, {0: 10, 1: 99}) == [1, 0]
@@ -377,3 +470,27 @@ def test_the_correction_surface_is_the_same_strip_by_strip():
         assert np.array_equal(strips, whole), block
         ref = cv2.resize(coarse, (nb_c * block, nb_r * block), interpolation=cv2.INTER_LINEAR)
         assert np.abs(whole - ref[:h, :w]).max() < 1e-4      # cv2 weights in float32
+
+
+def test_fill_agreeing_keeps_only_the_holes_two_groups_agree_on():
+    """The best group has holes; two worse groups fill them. Where only one worse group sees a
+    hole (and it is often wrong there, as at occlusions), fill_agreeing=2 leaves it empty;
+    where both see it and agree, the hole is filled; the best group's own cells do not change,
+    and fill_agreeing=1 fills everything as before."""
+    rng = np.random.default_rng(5)
+    h, w = 200, 240
+    truth = np.zeros((h, w), np.float32)
+    best = truth + rng.normal(0, 0.1, truth.shape).astype(np.float32)
+    best[:, :120] = np.nan                                   # the left half: a hole
+    g1 = truth + rng.normal(0, 0.2, truth.shape).astype(np.float32)
+    g2 = truth + rng.normal(0, 0.2, truth.shape).astype(np.float32)
+    g2[:100] = np.nan                                        # only g1 sees the top-left quarter
+    g1[:100, :120] += rng.choice([-3.0, 3.0], (100, 120)).astype(np.float32)   # and it is wrong
+    sig = [0.1, 0.2, 0.2]
+    any_fill, _ = fuse_groups([best, g1, g2], sigmas=sig)
+    agreed, src = fuse_groups([best, g1, g2], sigmas=sig, fill_agreeing=2)
+    assert np.isfinite(any_fill[:100, :120]).all()
+    assert np.isnan(agreed[:100, :120]).all() and (src[:100, :120] == -1).all()
+    bottom = agreed[100:, :120]
+    assert np.isfinite(bottom).mean() > 0.95 and np.nanmedian(np.abs(bottom)) < 0.15
+    np.testing.assert_array_equal(agreed[:, 120:], any_fill[:, 120:])

@@ -197,3 +197,32 @@ def test_height_metrics_are_the_plain_formulas():
     assert r["median_abs_err_m"] == np.median(np.abs(e))
     assert r["rmse_m"] == np.sqrt(np.mean(e ** 2)) and r["mean_err_m"] == e.mean()
     assert r["nmad_m"] == NMAD_K * np.median(np.abs(e - med))
+
+
+def test_same_cells_compares_two_dsms_where_both_have_heights(site, tmp_path):
+    """A DSM that fills its void with bad heights has a larger median over its own cells,
+    yet on the cells both cover it is as good as the one with the void: same_cells sees that,
+    each DSM with its own alignment."""
+    from recon_core.evaluation.evaluate import same_cells
+
+    dx0, dy0, res = X0 - 15.25, Y0 + 14.9, 0.5
+    Xd, Yd = centres(dx0, dy0, res, 460, 380)
+    rng = np.random.default_rng(1)
+    base = surface(Xd - SHIFT[0], Yd - SHIFT[1]) + SHIFT[2]
+    full = base + rng.normal(0, 2 * NOISE, Xd.shape)
+    bad = rng.random(Xd.shape) < 0.6                        # 60 % of the cells 3 m off, up or down...
+    holes = (Xd >= X0 + 20) & (Xd < X0 + 120) & (Yd <= Y0 - 20) & (Yd > Y0 - 150)
+    full[bad & holes] += rng.choice([-3.0, 3.0], Xd.shape)[bad & holes]   # ...where the other has none
+    write_tif(tmp_path / "full.tif", full, dx0, dy0, res)
+    holed = np.where(holes, np.nan, base + rng.normal(0, NOISE, Xd.shape))
+    write_tif(tmp_path / "holed.tif", holed, dx0, dy0, res)
+    rf = evaluate_dsm(tmp_path / "full.tif", site / "gt.tif", None)
+    rh = evaluate_dsm(tmp_path / "holed.tif", site / "gt.tif", None)
+    assert rf["aligned"]["median_abs_err_m"] > 2 * rh["aligned"]["median_abs_err_m"]
+    sc = same_cells(tmp_path / "full.tif", rf["alignment"], tmp_path / "holed.tif", rh["alignment"],
+                    site / "gt.tif")
+    assert 0 < sc["cells"] < rh["aligned"]["n_compared"] + 1
+    # on the shared cells: twice the other's noise, whatever the bad cells elsewhere
+    assert sc["a"]["median_abs_err_m"] == pytest.approx(2 * sc["b"]["median_abs_err_m"], rel=0.2)
+    assert sc["b"]["median_abs_err_m"] == pytest.approx(rh["aligned"]["median_abs_err_m"], rel=0.05)
+    assert sc["a"]["within_pct"] > 95 and sc["b"]["within_pct"] > 95
