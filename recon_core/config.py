@@ -182,9 +182,10 @@ class DsmConfig:
                                       # mean (0 = off)
     fusion_fill_agreeing: int = 1     # a hole of the best-ranked groups is filled only where this
                                       # many groups (with the one filling it) have a precise value
-                                      # agreeing within fusion_agree_sigmas; 1 = any (wide3: 0.671 m
-                                      # / 55.8 % with 1, 0.600 m / 50.4 % with 2, best group 0.608
-                                      # m / 47.9 %); a cell two groups share then needs both
+                                      # agreeing within fusion_agree_sigmas; 1 = any. wide3: 0.677 m
+                                      # / 57.6 % with 1, 0.603 m / 53.6 % with 2 (best group 0.613
+                                      # m / 52.0 %); large: 0.261 m / 73.3 % with 1, 0.211 m / 55.7 %
+                                      # with 2 (best group 0.301 m / 64.6 %)
     fuse_weak_pair_cells: bool = False  # the fused DSM also takes cells that only a weak pair's
                                       # two-view points reach (1.2 m median error on `demo`:
                                       # fused 0.179 m / 73.9 % without, 0.202 m / 76.9 % with)
