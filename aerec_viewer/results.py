@@ -286,6 +286,17 @@ def eval_markdown(ev: dict) -> str:
              f"| RMSE | {_f(rmse, '.3f')} m |",
              f"| alignment dx, dy, dz | {_f(al.get('dx_m'))}, {_f(al.get('dy_m'))}, "
              f"{_f(al.get('dz_m'))} m |"]
+    groups = {k: v for k, v in (ev.get("groups") or {}).items() if "aligned" in v}
+    if groups:
+        lines += ["", "| group alone | median, m | complete | fused / group, same cells |",
+                  "|---|---:|---:|---:|"]
+        for k in sorted(groups, key=int):
+            v = groups[k]
+            sc = v.get("fused_vs_group_same_cells") or {}
+            same = (f"{_f(sc['a']['median_abs_err_m'], '.3f')} / {_f(sc['b']['median_abs_err_m'], '.3f')}"
+                    if sc.get("cells") else "")
+            lines.append(f"| {k} | {_f(v['aligned'].get('median_abs_err_m'), '.3f')} | "
+                         f"{_f(v['aligned'].get('completeness_pct'), '.1f')} % | {same} |")
     for w in ev.get("warnings", []):
         lines.append(f"\n**Warning:** {w}")
     return "\n".join(lines)

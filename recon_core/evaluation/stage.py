@@ -5,6 +5,7 @@ from __future__ import annotations
 from recon_core.errors import AerecError
 from recon_core.evaluation.evaluate import evaluate_dsm, same_cells
 from recon_core.events import EventBus
+from recon_core.io.files import write_json
 
 
 def run(state, bus: EventBus) -> dict:
@@ -34,6 +35,8 @@ def run(state, bus: EventBus) -> dict:
                     f"completeness {r['aligned']['completeness_pct']:.1f} % (aligned){same}")
     if groups:
         res["groups"] = groups
+        if res.get("outputs", {}).get("eval.json"):     # the viewer's Results tab reads it
+            write_json(res["outputs"]["eval.json"], res)
     bus.message(f"DSM vs GT: median |error| {a['median_abs_err_m']:.3f} m, completeness "
                 f"{a['completeness_pct']:.1f} % (aligned); unaligned {u['median_abs_err_m']:.3f} m, "
                 f"{u['completeness_pct']:.1f} %")

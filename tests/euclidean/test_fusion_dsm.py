@@ -263,6 +263,18 @@ def test_two_groups_fused_by_quality_with_their_own_dsms_and_scores(tiny2_run):
     assert set(ev["groups"]) == {"0", "1"}
     best_alone = ev["groups"][str(best)]["aligned"]
     assert ev["aligned"]["completeness_pct"] > best_alone["completeness_pct"]
+    # the noise model: each group's geometry from its upgraded views, one matching precision
+    nm = d["noise_model"]
+    geo = {g: v["geometry_m_per_px"] for g, v in d["groups"].items()}
+    assert all(0 < a < 50 for a in geo.values()) and 0 < nm["matching_precision_px"] < 3
+    for g, v in d["groups"].items():
+        assert v["noise_m"] == pytest.approx(nm["matching_precision_px"] * geo[g])
+    # the fused DSM against each group on the cells both cover, also in eval.json (the viewer)
+    on_file = json.loads((lay.eval_dir / "eval.json").read_text())
+    for g in ("0", "1"):
+        sc = ev["groups"][g]["fused_vs_group_same_cells"]
+        assert sc["cells"] > 0 and sc["a"]["median_abs_err_m"] is not None
+        assert on_file["groups"][g]["fused_vs_group_same_cells"] == sc
 
 
 def test_the_icp_reference_is_the_largest_full_cloud_not_the_largest_sample(tmp_path):

@@ -1432,3 +1432,24 @@ def test_dsm_preview_reads_a_big_dsm_through_its_overviews(tmp_path, monkeypatch
     assert img.ndim == 3 and img.shape[2] == 3 and max(img.shape[:2]) <= 640 + 200
     row = img[img.shape[0] // 2, 40:440].astype(float).mean(axis=1)
     assert abs(row[-1] - row[0]) > 5                          # colours follow the height
+
+
+def test_eval_markdown_shows_each_group_and_the_same_cells_comparison():
+    """The Results tab's table: the fused figures, then each date group alone and the fused DSM
+    against it on the cells both cover; an eval without groups (one group, or an old
+    eval.json) shows only the fused figures."""
+    from aerec_viewer.results import eval_markdown
+
+    ev = {"aligned": {"median_abs_err_m": 0.677, "completeness_pct": 57.6, "rmse_m": 5.2},
+          "alignment": {"dx_m": -1.6, "dy_m": 0.7, "dz_m": -0.4},
+          "groups": {"1": {"aligned": {"median_abs_err_m": 0.613, "completeness_pct": 52.0},
+                           "fused_vs_group_same_cells": {"cells": 10, "a": {"median_abs_err_m": 0.606},
+                                                         "b": {"median_abs_err_m": 0.611}}},
+                     "0": {"aligned": {"median_abs_err_m": 0.952, "completeness_pct": 41.9}},
+                     "2": {"error": "too few cells"}}}
+    md = eval_markdown(ev)
+    assert "| 0.677 m |" in md.replace("| median abs. height error ", "")
+    rows = [line for line in md.splitlines() if line.startswith("| 0 |") or line.startswith("| 1 |")]
+    assert rows == ["| 0 | 0.952 | 41.9 % |  |", "| 1 | 0.613 | 52.0 % | 0.606 / 0.611 |"]
+    assert "group alone" in md
+    assert "group alone" not in eval_markdown({k: v for k, v in ev.items() if k != "groups"})
