@@ -256,6 +256,15 @@ def main(argv=None) -> int:
         d = st["dsm"]
         print(f"DSM: {d['width']} x {d['height']} at {d['resolution_m']} m, {d['points']} points, "
               f"valid {100 * d['valid_fraction']:.1f} % ({st['dsm']['seconds']:.1f} s)")
+        nm = (st.get("dsm") or {}).get("noise_model") or {}
+        if nm:
+            print("fusion noise model: " + nm["rule"]
+                  + (f"; matching precision {nm['matching_precision_px']:.3f} px" if nm.get("matching_precision_px") else "")
+                  + "; groups (rank order) " + ", ".join(
+                      f"{g}: noise {st['dsm']['groups'][str(g)]['noise_m']:.3f} m"
+                      + (f" ({st['dsm']['groups'][str(g)]['geometry_m_per_px']:.2f} m/px)"
+                         if st['dsm']['groups'][str(g)].get('geometry_m_per_px') else "")
+                      for g in st["dsm"]["group_order"] if st['dsm']['groups'][str(g)].get('noise_m') is not None))
     if "eval" in st and "aligned" in st["eval"]:
         for k in ("aligned", "unaligned"):
             e = st["eval"][k]
@@ -273,15 +282,6 @@ def main(argv=None) -> int:
                     print(f"fused vs group {g} on the {sc['cells_pct_of_gt']:.1f} % of cells both cover: "
                           f"median |error| {sc['a']['median_abs_err_m']:.3f} m vs {sc['b']['median_abs_err_m']:.3f} m, "
                           f"within 1 m {sc['a']['within_pct']:.1f} % vs {sc['b']['within_pct']:.1f} %")
-        nm = (st.get("dsm") or {}).get("noise_model") or {}
-        if nm:
-            print("fusion noise model: " + nm["rule"]
-                  + (f"; matching precision {nm['matching_precision_px']:.3f} px" if nm.get("matching_precision_px") else "")
-                  + "; groups (rank order) " + ", ".join(
-                      f"{g}: noise {st['dsm']['groups'][str(g)]['noise_m']:.3f} m"
-                      + (f" ({st['dsm']['groups'][str(g)]['geometry_m_per_px']:.2f} m/px)"
-                         if st['dsm']['groups'][str(g)].get('geometry_m_per_px') else "")
-                      for g in st["dsm"]["group_order"] if st['dsm']['groups'][str(g)].get('noise_m') is not None))
         a = st["eval"]["alignment"]
         print(f"alignment (DSM - GT): dx {a['dx_m']:+.2f} dy {a['dy_m']:+.2f} dz {a['dz_m']:+.2f} m")
     if args.reference and (out / "dsm.tif").exists():

@@ -151,6 +151,9 @@ def check_config(cfg: Config) -> None:
     if cfg.dsm.fusion_fill_agreeing < 1:
         raise bad("dsm.fusion_fill_agreeing", cfg.dsm.fusion_fill_agreeing,
                   "must be at least 1 (1 = any group fills a hole)")
+    if cfg.dsm.fusion_fill_agreeing > 1 and cfg.dsm.fusion_agree_sigmas <= 0:
+        raise bad("dsm.fusion_fill_agreeing", cfg.dsm.fusion_fill_agreeing,
+                  "needs dsm.fusion_agree_sigmas > 0 (the agreement it counts)")
     positive = {"bundle.loss_scale_px": cfg.bundle.loss_scale_px, "bundle.max_nfev": cfg.bundle.max_nfev,
                 "bundle.local_max_nfev": cfg.bundle.local_max_nfev, "bundle.rel_tol": cfg.bundle.rel_tol,
                 "bundle.growing_rel_tol": cfg.bundle.growing_rel_tol,

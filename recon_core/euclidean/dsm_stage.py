@@ -197,7 +197,8 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
                             (f"; where groups agree within {c.fusion_agree_sigmas:g} sigma, their "
                              "inverse-variance weighted mean" if c.fusion_agree_sigmas > 0 else "") +
                             (f"; a hole of the better groups filled only where {c.fusion_fill_agreeing} "
-                             "groups agree" if c.fusion_fill_agreeing > 1 else "") +
+                             "groups agree" if c.fusion_fill_agreeing > 1 and
+                             sum(noise[g] is not None for g in groups) >= 2 else "") +
                             ("; cells only a weak pair's two-view points reach, last"
                              if c.fuse_weak_pair_cells else "; cells only a weak pair's two-view "
                              "points reach are left out (they stay in each group's own DSM)"))
@@ -257,13 +258,16 @@ def group_geometry(models: dict, maps: dict) -> dict[int, float]:
         M = maps[g]
         H = np.eye(4)
         H[:3] = np.asarray(M.H if isinstance(M, EnuMap) else M, np.float64)[:3]
-        Hi = np.linalg.inv(H)
-        per: dict[str, list] = {}
-        for t in np.flatnonzero(m.registered):
-            per.setdefault(m.tiles[t].image, []).append((np.asarray(m.cams[t]) @ Hi)[:2, :3])
-        if len(per) < 2:
+        try:
+            Hi = np.linalg.inv(H)
+            per: dict[str, list] = {}
+            for t in np.flatnonzero(m.registered):
+                per.setdefault(m.tiles[t].image, []).append((np.asarray(m.cams[t]) @ Hi)[:2, :3])
+            if len(per) < 2:
+                continue
+            spread = affine.views_spread([np.median(np.stack(v), 0) for v in per.values()])
+        except (np.linalg.LinAlgError, ValueError):      # a degenerate map or cameras: no geometry
             continue
-        spread = affine.views_spread([np.median(np.stack(v), 0) for v in per.values()])
         if np.isfinite(spread):
             out[int(g)] = spread
     return out
@@ -298,9 +302,10 @@ def noise_from_pairs(keys: list[int], pairs: list[tuple[int, int, float]],
     Returns ({group: noise or None}, the matching precision in pixels or None).
 
     With every overlapping group's geometry (group_geometry, metres per pixel): one matching
-    precision k (pixels) for all, the same sensor and matcher, fitted by least squares to
-    v_ab = k^2 (a_a^2 + a_b^2); each group's noise is k a_g, also for a group that overlaps
-    none. This is the default: a per-group split of the disagreement (below) assumes the
+    precision k (pixels) for all, the same sensor and matcher, fitted to v_ab = k^2 (a_a^2 +
+    a_b^2) as the ratio of sums (least squares weighted by 1 / (a_a^2 + a_b^2)); each group's
+    noise is k a_g, also for a group that overlaps none. When any overlapping group lacks a
+    geometry, all fall back to the split below (the report's noise_model says which). This is the default: a per-group split of the disagreement (below) assumes the
     groups' errors independent, and they are not (shared occlusions, edges and relief lost
     by every matcher: correlation 0.5-0.6 between wide3's groups); a group whose errors lie
     between two others' then agrees best with both and is taken for the most precise.
@@ -579,7 +584,13 @@ def run(state, bus: EventBus) -> dict:
     ups = up.get("groups", {})
     gsd = min((v["gsd_m"] for v in ups.values() if "gsd_m" in v), default=0.5)
     return make_dsm(state.site, point_sources(state, bus), maps, frame, gsd, state.cfg, state.layout, bus,
-                    quality=group_quality(up), geometry=group_geometry(state.models, maps))
+                    quality=group_quality(up), geometry=dense_geometry(state, maps))
+
+
+def dense_geometry(state, maps: dict) -> dict[int, float]:
+    """group_geometry of the groups whose DSM comes from their dense cloud: a group that fell
+    back to its sparse points is not the same matcher, and would bias the shared precision."""
+    return {g: a for g, a in group_geometry(state.models, maps).items() if state.dense.get(g) is not None}
 
 
 def load(state) -> None:

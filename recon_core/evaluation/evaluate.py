@@ -369,8 +369,9 @@ def same_cells(a_path: str | Path, a_align: dict, b_path: str | Path, b_align: d
     both = np.isfinite(gt.values)
     errs = []
     for path, al in ((a_path, a_align), (b_path, b_align)):
-        d = read_raster(path, "DSM")
-        e = resample_onto(d, gt, al["dx_m"], al["dy_m"]) - np.float32(al["dz_m"]) - gt.values
+        e = resample_onto(read_raster(path, "DSM"), gt, al["dx_m"], al["dy_m"])
+        e -= np.float32(al["dz_m"])
+        e -= gt.values
         both &= np.isfinite(e)
         errs.append(e)
     n = int(both.sum())

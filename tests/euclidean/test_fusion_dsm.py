@@ -506,3 +506,17 @@ def test_fill_agreeing_keeps_only_the_holes_two_groups_agree_on():
     bottom = agreed[100:, :120]
     assert np.isfinite(bottom).mean() > 0.95 and np.nanmedian(np.abs(bottom)) < 0.15
     np.testing.assert_array_equal(agreed[:, 120:], any_fill[:, 120:])
+
+
+def test_fill_agreeing_without_an_agreement_test_is_refused():
+    """fusion_fill_agreeing counts agreeing groups: with fusion_agree_sigmas = 0 there is no
+    agreement to count, and the configuration is refused before any compute."""
+    from recon_core.config import Config
+    from recon_core.errors import InputError
+    from recon_core.pipeline import check_config
+
+    check_config(Config().with_overrides({"dsm.fusion_fill_agreeing": 2}))
+    with pytest.raises(InputError, match="fusion_agree_sigmas"):
+        check_config(Config().with_overrides({"dsm.fusion_fill_agreeing": 2, "dsm.fusion_agree_sigmas": 0.0}))
+    with pytest.raises(InputError, match="fusion_fill_agreeing"):
+        check_config(Config().with_overrides({"dsm.fusion_fill_agreeing": 0}))
