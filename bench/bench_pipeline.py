@@ -256,15 +256,15 @@ def main(argv=None) -> int:
         d = st["dsm"]
         print(f"DSM: {d['width']} x {d['height']} at {d['resolution_m']} m, {d['points']} points, "
               f"valid {100 * d['valid_fraction']:.1f} % ({st['dsm']['seconds']:.1f} s)")
-        nm = (st.get("dsm") or {}).get("noise_model") or {}
+        nm = d.get("noise_model") or {}
         if nm:
+            ranked = [(g, d["groups"][str(g)]) for g in d["group_order"]]
             print("fusion noise model: " + nm["rule"]
                   + (f"; matching precision {nm['matching_precision_px']:.3f} px" if nm.get("matching_precision_px") else "")
                   + "; groups (rank order) " + ", ".join(
-                      f"{g}: noise {st['dsm']['groups'][str(g)]['noise_m']:.3f} m"
-                      + (f" ({st['dsm']['groups'][str(g)]['geometry_m_per_px']:.2f} m/px)"
-                         if st['dsm']['groups'][str(g)].get('geometry_m_per_px') else "")
-                      for g in st["dsm"]["group_order"] if st['dsm']['groups'][str(g)].get('noise_m') is not None))
+                      f"{g}: noise {r['noise_m']:.3f} m"
+                      + (f" ({r['geometry_m_per_px']:.2f} m/px)" if r.get("geometry_m_per_px") else "")
+                      for g, r in ranked if r.get("noise_m") is not None))
     if "eval" in st and "aligned" in st["eval"]:
         for k in ("aligned", "unaligned"):
             e = st["eval"][k]

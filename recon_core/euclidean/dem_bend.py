@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from recon_core.errors import InputError
-from recon_core.geometry.affine import apply_affine_3d
+from recon_core.geometry.affine import apply_affine_3d, as_4x4
 from recon_core.geometry.enu_map import EnuWarp
 
 CELL_M = 150.0            # cells of the comparison (each holds ~ 25 sparse points on `wide`)
@@ -245,7 +245,7 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
         return fit_surface(Y[:, 0], Y[:, 1], dem.heights(llh[:, 0], llh[:, 1]) - llh[:, 2], centre, half,
                            cell_m, seed, gate=gate)
 
-    Hn, warp, info = _as_4x4(H), None, {}
+    Hn, warp, info = as_4x4(H), None, {}
     for it in range(iters):
         # refused or not on the structure H_A gives once it stops moving (the first H_A, fitted
         # to GCPs on the bent structure, scales its heights wrongly: the cells scatter more)
@@ -253,7 +253,7 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
         if coef is None:
             return None, None, {**info, "applied": False}
         warp = EnuWarp(centre, float(half), np.r_[np.zeros(6), coef])
-        H_new = _as_4x4(refit(warp))
+        H_new = as_4x4(refit(warp))
         moved = float(np.abs(apply_affine_3d(H_new, sample) - apply_affine_3d(Hn, sample)).max())
         Hn = H_new
         info.update(rounds=it + 1, last_move_m=moved)
@@ -266,9 +266,3 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
                 bend_sigma_m=final["bend_sigma_m"], cell_scale_m=final["cell_scale_m"])
     return Hn, warp, info
 
-
-def _as_4x4(H: np.ndarray) -> np.ndarray:
-    """A (3, 4) or (4, 4) affine map as (4, 4)."""
-    out = np.eye(4)
-    out[:3] = np.asarray(H, np.float64)[:3]
-    return out

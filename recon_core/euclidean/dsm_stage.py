@@ -256,10 +256,8 @@ def group_geometry(models: dict, maps: dict) -> dict[int, float]:
         if g not in maps:
             continue
         M = maps[g]
-        H = np.eye(4)
-        H[:3] = np.asarray(M.H if isinstance(M, EnuMap) else M, np.float64)[:3]
         try:
-            Hi = np.linalg.inv(H)
+            Hi = np.linalg.inv(affine.as_4x4(M.H if isinstance(M, EnuMap) else M))
             per: dict[str, list] = {}
             for t in np.flatnonzero(m.registered):
                 per.setdefault(m.tiles[t].image, []).append((np.asarray(m.cams[t]) @ Hi)[:2, :3])

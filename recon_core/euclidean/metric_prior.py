@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from recon_core.geometry.affine import fit_affine_3d, normalize_points
+from recon_core.geometry.affine import as_4x4, fit_affine_3d, normalize_points
 
 SIGMA_COS = 2e-3
 
@@ -91,8 +91,7 @@ def fit_with_metric_prior(X_aff: np.ndarray, X_enu: np.ndarray, sigma_m: float,
 
     sol = least_squares(residuals, h0.ravel(), method="lm", x_scale=1.0, xtol=1e-12, ftol=1e-12,
                         max_nfev=200)
-    h = np.eye(4)
-    h[:3] = sol.x.reshape(3, 4)
+    h = as_4x4(sol.x.reshape(3, 4))
     J = sol.jac
     cov = np.linalg.pinv(J.T @ J)
     return np.linalg.inv(Te) @ h @ Ta, _denormalised_cov(cov, Ta, Te)

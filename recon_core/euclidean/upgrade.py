@@ -45,7 +45,7 @@ import numpy as np
 from recon_core.errors import ReconstructionError
 from recon_core.euclidean.metric_prior import (ImageRows, fit_with_metric_prior, gcp_only_cov,
                                                height_sigma, row_cosines)
-from recon_core.geometry.affine import apply_affine_3d, fit_affine_3d
+from recon_core.geometry.affine import apply_affine_3d, as_4x4, fit_affine_3d
 
 CE90_FACTOR = 2.146
 LE90_FACTOR = 1.645
@@ -124,9 +124,7 @@ def fit_affine_upgrade(X_aff: np.ndarray, X_enu: np.ndarray) -> np.ndarray:
         raise ReconstructionError(f"an affine upgrade needs >= 4 points, got {len(X_aff)}")
     if _rank(X_aff) < 3:
         raise ReconstructionError("the affine points are collinear or coplanar: H_A is undetermined")
-    H = np.eye(4)
-    H[:3] = fit_affine_3d(X_aff, X_enu)                  # normalised linear least squares
-    return H
+    return as_4x4(fit_affine_3d(X_aff, X_enu))          # normalised linear least squares
 
 
 # --------------------------------------------------------------------------------------------

@@ -1001,6 +1001,13 @@ def apply_affine_3d(A, X) -> np.ndarray:
     return X @ A[:3, :3].T + A[:3, 3]
 
 
+def as_4x4(A) -> np.ndarray:
+    """A (3, 4) or (4, 4) affine map as a (4, 4) float64 matrix (last row 0 0 0 1)."""
+    out = np.eye(4)
+    out[:3] = np.asarray(A, np.float64)[:3]
+    return out
+
+
 def views_spread(cams) -> float:
     """How far a point triangulated by affine cameras (k, 2, >= 3) moves per pixel of image
     error along its worst-determined direction: 1 / the smallest singular value of their
