@@ -195,7 +195,10 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
             parts.append(f"Bend not fitted to the GCPs: {gb['reason']}.")
         db = outcome.dem_bend.get(g) or {}
         if db.get("applied"):
-            parts.append(f"Vertical bend taken from the reference DEM ({Path(db['dem']).name}): "
+            kind = {2: "quadratic", 3: "cubic"}.get(db.get("degree", 2), f"degree {db.get('degree')}")
+            fell = "; the cubic asked for fell back to a quadratic: the DEM does not tell it" \
+                if db.get("degrees_refused") else ""
+            parts.append(f"Vertical bend taken from the reference DEM ({Path(db['dem']).name}), {kind}{fell}: "
                          f"{db['bend_range_m']:.2f} m peak to peak over the site, standard error "
                          f"{db['bend_sigma_m']:.2f} m at its edge (in the 3D view, the DSM and cloud.ply alike); "
                          "the horizontal bend stays.")

@@ -3,7 +3,7 @@ against DEMs of several kinds simulated from the site's truth (recon_core.synthe
 prints, per DEM, the bend found, the sparse heights against their truth under the upgrade's own
 map, and the check points. Asserts nothing.
 
-    python bench/bench_dem.py --site /tmp/aerec_bench/wide_s0 --out /tmp/aerec_bench/out_wide_s0
+    python bench/bench_dem.py --site /tmp/aerec_bench/wide_s0 --out /tmp/aerec_bench/out_wide_s0 [--degree 3]
 
 OUT must hold finished sparse and dense stages of SITE (and the GCP roles to use: OUT/gcps.geojson when
 there is one); the upgrade is re-run for each DEM in a scratch copy (OUT/../<name>_dem_bench,
@@ -62,6 +62,7 @@ def main(argv=None) -> int:
     ap.add_argument("--site", type=Path, required=True)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--cases", nargs="*", default=None, help="a subset of the DEMs (their index, from 0)")
+    ap.add_argument("--degree", type=int, default=2, help="upgrade.reference_dem_degree (2 or 3)")
     args = ap.parse_args(argv)
     s = scratch_copy(args.out)
     state = run(args.site, s, Config(), until="sparse", resume=True)
@@ -76,7 +77,7 @@ def main(argv=None) -> int:
             cfg.write_text("")
         else:
             dem = simulate_reference_dem(args.site / "gt_dsm.tif", s / f"dem_{k}.tif", **CASES[name])
-            cfg.write_text(f'[upgrade]\nreference_dem = "{dem}"\n')
+            cfg.write_text(f'[upgrade]\nreference_dem = "{dem}"\nreference_dem_degree = {args.degree}\n')
         p = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_pipeline.py"), "--site", str(args.site),
                             "--out", str(s), "--resume", "--until", "upgrade", "--config", str(cfg)],
                            capture_output=True, text=True)
@@ -86,7 +87,7 @@ def main(argv=None) -> int:
         r = json.loads((s / "upgrade" / "group_0.json").read_text())
         d, c = r.get("dem_bend") or {}, r["stats"]["check"]
         du = (EnuMap.from_record(r)(X) - T)[:, 2] if len(T) == len(X) else np.full(1, np.nan)
-        bend = (f"bend {d['bend_range_m']:.1f} m peak to peak (standard error at the edge {d['bend_sigma_m']:.2f} m, "
+        bend = (f"degree {d.get('degree', 2)} bend {d['bend_range_m']:.1f} m peak to peak (standard error at the edge {d['bend_sigma_m']:.2f} m, "
                 f"cells scatter {d['cell_scale_m']:.2f} m)" if d.get("applied") else
                 f"not applied ({d['reason']})" if d else "no DEM")
         print(f"{name}: {bend}; sparse U vs truth RMS {np.sqrt(np.nanmean(du ** 2)):.2f} m, median abs "

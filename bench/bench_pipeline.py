@@ -243,7 +243,10 @@ def main(argv=None) -> int:
             if db:
                 print(f"group {g} bend from the reference DEM: {'applied' if db.get('applied') else 'not applied'}"
                       + (f" ({db['reason']})" if db.get("reason") else "")
-                      + (f"; {db['cells']} cells of {db['cell_m']:g} m, scatter {db['cell_scale_m']:.2f} m, bend "
+                      + (f"; {db['cells']} cells of {db['cell_m']:g} m, scatter {db['cell_scale_m']:.2f} m, "
+                         f"degree {db.get('degree', 2)}"
+                         + (f" (asked {db['degree_asked']})" if db.get("degree_asked", 2) != db.get("degree", 2) else "")
+                         + ", bend "
                          f"{db['bend_range_m']:.2f} m peak to peak (standard error at the edge {db['bend_sigma_m']:.2f} m), "
                          f"the DEM's offset {db['offset_m']:.2f} m and tilt {db['tilt_m'][0]:.2f} / {db['tilt_m'][1]:.2f} m "
                          "left to the GCPs" if "bend_range_m" in db else ""))

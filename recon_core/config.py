@@ -166,6 +166,11 @@ class UpgradeConfig:
                                       # national DEM; any CRS, geoid or ellipsoid heights) that holds
                                       # the vertical bend the views cannot see when the GCPs do not
                                       # (recon_core.euclidean.dem_bend); "" = none
+    reference_dem_degree: int = 2     # the degree of the vertical bend taken from it: 2 (a dome or a
+                                      # saddle) or 3, for a DEM whose errors do not reach over km
+                                      # (Copernicus GLO-30 class): on `wide` (10 km, one date) 3 gives
+                                      # check U 1.98 m instead of 2.95 m with such a DEM, but 5.69
+                                      # instead of 3.55 m with errors correlated over 1 km (SRTM class)
 
 
 @dataclass

@@ -148,6 +148,9 @@ def check_config(cfg: Config) -> None:
         raise bad("matching.ratio", cfg.matching.ratio, "Lowe's ratio must be in (0, 1]")
     if cfg.dense.step < 1:
         raise bad("dense.step", cfg.dense.step, "must be at least 1")
+    if cfg.upgrade.reference_dem_degree not in (2, 3):
+        raise bad("upgrade.reference_dem_degree", cfg.upgrade.reference_dem_degree,
+                  "choose 2 (a dome or a saddle) or 3 (a cubic, for a DEM whose errors do not reach over km)")
     if cfg.dsm.fusion_fill_agreeing < 1:
         raise bad("dsm.fusion_fill_agreeing", cfg.dsm.fusion_fill_agreeing,
                   "must be at least 1 (1 = any group fills a hole)")

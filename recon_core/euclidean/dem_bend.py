@@ -10,8 +10,9 @@ heights): its cells of 30 m know no building and are metres off each, but over k
 know the shape of the ground.
 
 How: each sparse point's height in the Euclidean frame against the DEM's at its (E, N); the
-median of those differences in cells of `cell_m`; a quadratic surface in (E, N) fitted to the
-cells' medians, robustly (Huber, scale from the median absolute deviation). The fit's constant
+median of those differences in cells of `cell_m`; a polynomial surface in (E, N) fitted to the
+cells' medians, robustly (Huber, scale from the median absolute deviation), of degree 2 (or 3:
+`upgrade.reference_dem_degree`, for a DEM whose errors do not reach over kilometres). The fit's constant
 and tilt are left free and thrown away: they hold the DEM's datum (geoid or ellipsoid), bias and
 tilt, which the GCPs fix better. Its dome or saddle becomes the vertical displacement D of the
 group's map X -> Y + D(Y) (EnuWarp, U only), and H_A is refitted by the upgrade's own fit
@@ -34,11 +35,11 @@ import numpy as np
 
 from recon_core.errors import InputError
 from recon_core.geometry.affine import apply_affine_3d, as_4x4
-from recon_core.geometry.enu_map import EnuWarp
+from recon_core.geometry.enu_map import EnuWarp, monomials, n_monomials
 
 CELL_M = 150.0            # cells of the comparison (each holds ~ 25 sparse points on `wide`)
 MIN_POINTS_PER_CELL = 5   # a cell's median needs this many points
-MIN_CELLS = 50            # the quadratic needs this many cells
+MIN_CELLS = 50            # the surface needs this many cells
 MIN_SPAN = 0.6            # ... spanning this share of the site along E and along N
 MAX_BEND_SIGMA_M = 1.0   # ... and must tell the bend at the site's edge to this standard error,
 MIN_BEND_SNR = 10.0      # or to this fraction of its size (a bend of tens of metres)
@@ -141,22 +142,46 @@ def check_covers(dem: ReferenceDem, llh: np.ndarray) -> None:
                                    "it does not cover the site (or is all nodata there)")
 
 
-def _quadratic_columns(e: np.ndarray, n: np.ndarray) -> np.ndarray:
-    return np.stack([np.ones_like(e), e, n, e * e, e * n, n * n], 1)
+def _columns(e: np.ndarray, n: np.ndarray, degree: int) -> np.ndarray:
+    """1, e, n and the monomials of degree 2 to `degree` (EnuWarp's order)."""
+    return np.concatenate([np.stack([np.ones_like(e), e, n], 1), monomials(e, n, degree)], 1)
+
+
+def _huber_fit(A: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least squares of A x = y with Huber weights (threshold 1.5 x the residuals' MAD scale).
+    Returns (x, the final weights (square roots), the scale)."""
+    w = np.ones(len(y))
+    for _ in range(20):
+        sol = np.linalg.lstsq(A * w[:, None], y * w, rcond=None)[0]
+        res = y - A @ sol
+        scale = max(1.4826 * float(np.median(np.abs(res))), 1e-6)
+        w_new = np.sqrt(np.minimum(1.0, 1.5 * scale / np.maximum(np.abs(res), 1e-12)))
+        if np.allclose(w_new, w, atol=1e-4):
+            break
+        w = w_new
+    return sol, w, scale
 
 
 def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray, half: float,
-                cell_m: float | None = None, seed: int = 0, gate: bool = True) -> tuple[np.ndarray | None, dict]:
-    """The quadratic surface c0 + c1 e + c2 n + a e^2 + b e n + c n^2 (e, n = (E, N - centre) /
-    half) through the medians of r (DEM minus structure height; NaN where the DEM has none) in
-    cells of cell_m (default: CELL_M, or a twentieth of a smaller site). Returns ((a, b, c) in
-    metres at e, n = +-1, summary), or (None, summary with the reason).
+                cell_m: float | None = None, seed: int = 0, gate: bool = True,
+                degree: int = 2) -> tuple[np.ndarray | None, dict]:
+    """The polynomial surface c0 + c1 e + c2 n + (monomials of degree 2 to `degree`) (e, n = (E,
+    N - centre) / half) through the medians of r (DEM minus structure height; NaN where the DEM
+    has none) in cells of cell_m (default: CELL_M, or a twentieth of a smaller site). Returns
+    (the coefficients of the monomials of degree 2 to D in metres at e, n = +-1, EnuWarp's
+    order; summary), or (None, summary with the reason).
 
     Its standard error (`bend_sigma_m`, the largest over the site's rectangle) is a block
     bootstrap over blocks of ~1 km (a fifth of the site when smaller): a DEM's errors are
     correlated over several cells, which a formula for independent cells would not see. With
     `gate`, a bend known no better than MAX_BEND_SIGMA_M and a MIN_BEND_SNR-th of its size is
-    refused."""
+    refused; a cubic that fails it falls back to the quadratic (`degrees_refused`).
+
+    The degree is the user's (upgrade.reference_dem_degree), not the data's: the structure's
+    cubic bend and a DEM's error over kilometres look the same in this comparison. On `wide`,
+    block cross-validation and a bootstrap estimate of each degree's risk preferred the cubic
+    as much for a DEM whose errors are correlated over 1 km (where it is worse) as for one with
+    errors over 300 m (where it is better) (README, "Synthetic `wide`")."""
     fin = np.isfinite(E) & np.isfinite(N)
     E, N, r = E[fin], N[fin], r[fin]
     if len(E) == 0:
@@ -189,37 +214,40 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
     if span < MIN_SPAN:
         return None, {**info, "reason": f"the DEM covers {span:.0%} of the site along one axis, "
                                         f"{MIN_SPAN:.0%} needed to fit its bend"}
-    A = _quadratic_columns(ce, cn)
-    w = np.ones(len(med))
-    for _ in range(20):
-        sol = np.linalg.lstsq(A * w[:, None], med * w, rcond=None)[0]
-        res = med - A @ sol
-        scale = max(1.4826 * float(np.median(np.abs(res))), 1e-6)
-        w_new = np.sqrt(np.minimum(1.0, 1.5 * scale / np.maximum(np.abs(res), 1e-12)))   # Huber
-        if np.allclose(w_new, w, atol=1e-4):
-            break
-        w = w_new
-    # the bend over the site's rectangle (the cells' bounding box)
-    ge, gn = (v.ravel() for v in np.meshgrid(np.linspace(ce.min(), ce.max(), 11), np.linspace(cn.min(), cn.max(), 11)))
-    Q = _quadratic_columns(ge, gn)[:, 3:]
-    surf = Q @ sol[3:]
-    # block bootstrap of the weighted fit (the Huber weights of the final fit kept)
+    # blocks of the bootstrap
     block_m = min(1000.0, extent.min() / 5.0)
     _, blk = np.unique(np.floor(np.stack([cE, cN], 1) / block_m).astype(np.int64), axis=0, return_inverse=True)
     blk = blk.ravel()
     nb = int(blk.max()) + 1
     members = [np.flatnonzero(blk == b) for b in range(nb)]
+    info["degree_asked"] = degree = max(2, int(degree))
+    # each degree up to the one asked that has 4 cells per unknown (a cubic that fails the gate
+    # falls back to the quadratic)
+    fits = {d: _huber_fit(_columns(ce, cn, d), med) for d in range(2, degree + 1)
+            if len(full) >= 4 * (3 + n_monomials(d))}
+    degree = max(fits)
+    # the bend over the site's rectangle (the cells' bounding box)
+    ge, gn = (v.ravel() for v in np.meshgrid(np.linspace(ce.min(), ce.max(), 11), np.linspace(cn.min(), cn.max(), 11)))
     rng = np.random.default_rng(seed)
-    Aw, mw = A * w[:, None], med * w
-    draws = []
-    for _ in range(200):
-        idx = np.concatenate([members[b] for b in rng.integers(0, nb, nb)])
-        draws.append(Q @ np.linalg.lstsq(Aw[idx], mw[idx], rcond=None)[0][3:])
-    sigma = float(np.max(np.std(np.array(draws), axis=0)))
-    info.update(cell_scale_m=scale, offset_m=float(sol[0]), tilt_m=[float(sol[1]), float(sol[2])],
+    draws_idx = [np.concatenate([members[b] for b in rng.integers(0, nb, nb)]) for _ in range(200)]
+    while True:
+        A = _columns(ce, cn, degree)
+        sol, w, scale = fits[degree]
+        Q = monomials(ge, gn, degree)
+        surf = Q @ sol[3:]
+        # block bootstrap of the weighted fit (the Huber weights of the final fit kept)
+        Aw, mw = A * w[:, None], med * w
+        draws = [Q @ np.linalg.lstsq(Aw[idx], mw[idx], rcond=None)[0][3:] for idx in draws_idx]
+        sigma = float(np.max(np.std(np.array(draws), axis=0)))
+        passes = sigma <= max(MAX_BEND_SIGMA_M, float(np.ptp(surf)) / MIN_BEND_SNR)
+        if passes or not gate or degree == 2:
+            break
+        info.setdefault("degrees_refused", []).append({"degree": degree, "bend_sigma_m": sigma})
+        degree -= 1
+    info.update(degree=degree, cell_scale_m=scale, offset_m=float(sol[0]), tilt_m=[float(sol[1]), float(sol[2])],
                 bend_coef_m=[float(v) for v in sol[3:]], bend_range_m=float(np.ptp(surf)),
                 bend_sigma_m=sigma, bootstrap_blocks=nb, block_m=float(block_m))
-    if gate and sigma > max(MAX_BEND_SIGMA_M, info["bend_range_m"] / MIN_BEND_SNR):
+    if gate and not passes:
         return None, {**info, "reason": f"the DEM tells its bend of {info['bend_range_m']:.2f} m to {sigma:.2f} m at "
                                         f"the site's edge (a block bootstrap; its cells scatter by {scale:.2f} m "
                                         f"about the surface): more than {MAX_BEND_SIGMA_M:g} m and a "
@@ -228,7 +256,7 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
 
 
 def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, centre: np.ndarray, half: float,
-                 refit, cell_m: float | None = None, iters: int = 6, seed: int = 0):
+                 refit, cell_m: float | None = None, iters: int = 6, seed: int = 0, degree: int = 2):
     """The vertical bend of the structure X_points (n, 3, in the frame H maps) against the DEM.
 
     refit(warp) -> H: the upgrade's own fit of H_A on the control GCPs, their surveyed positions
@@ -243,7 +271,7 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
         Y = apply_affine_3d(H4, X_points)
         llh = frame.enu_to_geodetic(Y)
         return fit_surface(Y[:, 0], Y[:, 1], dem.heights(llh[:, 0], llh[:, 1]) - llh[:, 2], centre, half,
-                           cell_m, seed, gate=gate)
+                           cell_m, seed, gate=gate, degree=degree)
 
     Hn, warp, info = as_4x4(H), None, {}
     for it in range(iters):
@@ -252,7 +280,7 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
         coef, info = surface(Hn, gate=False)
         if coef is None:
             return None, None, {**info, "applied": False}
-        warp = EnuWarp(centre, float(half), np.r_[np.zeros(6), coef])
+        warp = EnuWarp(centre, float(half), np.r_[np.zeros(2 * len(coef)), coef])
         H_new = as_4x4(refit(warp))
         moved = float(np.abs(apply_affine_3d(H_new, sample) - apply_affine_3d(Hn, sample)).max())
         Hn = H_new
@@ -260,9 +288,18 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
         if moved < 0.01:
             break
     coef, final = surface(Hn, gate=True)
+    if coef is not None and final["degree"] < info["degree"]:
+        # the degree the rounds applied is not told well enough on the final structure: again, lower
+        return fit_dem_bend(H, X_points, frame, dem, centre, half, refit, cell_m, iters, seed, final["degree"])
     if coef is None:
         return None, None, {**final, "applied": False, "rounds": info["rounds"]}
-    info.update(applied=True, final_change_m=float(np.abs(np.subtract(final["bend_coef_m"], info["bend_coef_m"])).max()),
+    g = np.linspace(-1.0, 1.0, 11)
+    ge, gn = (v.ravel() for v in np.meshgrid(g, g))
+
+    def surf(c: list) -> np.ndarray:
+        return monomials(ge, gn, EnuWarp(centre, 1.0, np.zeros(3 * len(c))).degree) @ np.asarray(c)
+
+    info.update(applied=True, final_change_m=float(np.abs(surf(final["bend_coef_m"]) - surf(info["bend_coef_m"])).max()),
                 bend_sigma_m=final["bend_sigma_m"], cell_scale_m=final["cell_scale_m"])
     return Hn, warp, info
 

@@ -287,7 +287,7 @@ def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model,
     basis = bend["basis"]
     try:
         H, warp, info = fit_dem_bend(res.H, model.X[ids], frame, dem, basis["centre_m"], basis["half_width_m"],
-                                     refit, seed=cfg.seed)
+                                     refit, seed=cfg.seed, degree=cfg.upgrade.reference_dem_degree)
     except ReconstructionError as exc:        # e.g. the control GCPs too flat once moved
         return res, None, {"applied": False, "reason": f"H_A refit with the DEM's bend: {exc}"}
     info["dem"] = str(dem.path)
@@ -295,7 +295,8 @@ def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model,
         return res, None, info
     out = fits["res"]
     note = (f"the vertical bend the views cannot see was taken from the reference DEM {dem.path.name}: a "
-            f"quadratic surface of {info['bend_range_m']:.2f} m peak to peak over the site ({info['cells']} cells "
+            f"{ {2: 'quadratic', 3: 'cubic'}.get(info.get('degree', 2), 'polynomial')} "
+            f"surface{' (the cubic asked for fell back: the DEM does not tell it)' if info.get('degrees_refused') else ''} of {info['bend_range_m']:.2f} m peak to peak over the site ({info['cells']} cells "
             f"of {info['cell_m']:.0f} m, scatter {info['cell_scale_m']:.2f} m; standard error at the edge "
             f"{info['bend_sigma_m']:.2f} m by a block bootstrap); H_A refitted on the control GCPs' surveyed "
             f"positions less it (the residuals are against those); the DEM's own offset and tilt "

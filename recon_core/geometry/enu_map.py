@@ -15,24 +15,46 @@ from recon_core.geometry.affine import apply_affine_3d
 from recon_core.geometry.pushbroom import BendWarp
 
 
+def monomials(e: np.ndarray, n: np.ndarray, degree: int) -> np.ndarray:
+    """(len(e), k) monomials of (e, n) of degree 2 to `degree`, by degree, then by falling power
+    of e: e^2, e n, n^2 (degree 2), then e^3, e^2 n, e n^2, n^3, ..."""
+    return np.stack([e ** (d - i) * n ** i for d in range(2, int(degree) + 1) for i in range(d + 1)], 1)
+
+
+def n_monomials(degree: int) -> int:
+    """How many monomials of degree 2 to `degree` there are."""
+    return sum(d + 1 for d in range(2, int(degree) + 1))
+
+
 @dataclass
 class EnuWarp:
-    """A quadratic displacement of local ENU positions: D(Y) = sum_a,m coef[3 a + m] mono_m(e, n)
-    along axis a (E, N, U), mono = (e^2, e n, n^2), e = (E - centre_E) / half, n likewise."""
+    """A polynomial displacement of local ENU positions: D(Y) = sum_a,m coef[k a + m] mono_m(e, n)
+    along axis a (E, N, U), mono the k monomials of degree 2 to `degree` (e^2, e n, n^2, then
+    e^3, e^2 n, ...: `monomials`), e = (E - centre_E) / half, n likewise. The degree follows from
+    the number of coefficients (9: quadratic, as the GCP and metric bends; 21: cubic)."""
 
     centre: np.ndarray    # (2,) E, N (m)
     half: float           # m
-    coef: np.ndarray      # (9,) m at e, n = +-1, a-major
+    coef: np.ndarray      # (3 k,) m at e, n = +-1, a-major
+
+    @property
+    def degree(self) -> int:
+        k, d = len(np.ravel(self.coef)) // 3, 2
+        while n_monomials(d) < k:
+            d += 1
+        if n_monomials(d) != k or 3 * k != len(np.ravel(self.coef)):
+            raise ValueError(f"EnuWarp: {len(np.ravel(self.coef))} coefficients are no polynomial warp's")
+        return d
 
     def mono(self, Y: np.ndarray) -> np.ndarray:
         e = (Y[:, 0] - self.centre[0]) / self.half
         n = (Y[:, 1] - self.centre[1]) / self.half
-        return np.stack([e * e, e * n, n * n], 1)
+        return monomials(e, n, self.degree)
 
     def __call__(self, Y: np.ndarray) -> np.ndarray:
         """(n, 3) displacement of ENU positions Y (n, 3)."""
         Y = np.asarray(Y, dtype=np.float64).reshape(-1, 3)
-        return self.mono(Y) @ self.coef.reshape(3, 3).T
+        return self.mono(Y) @ np.asarray(self.coef, np.float64).reshape(3, -1).T
 
     def record(self) -> dict:
         return {"centre": np.asarray(self.centre).tolist(), "half": float(self.half),

@@ -263,3 +263,62 @@ def test_a_dem_replaced_in_place_makes_the_upgrade_stale(tiny_site, tmp_path):
     os.utime(dem, ns=(1, 1))
     assert stage_hash(cfg, "upgrade", site) != before["upgrade"]
     assert stage_hash(cfg, "sparse", site) == before["sparse"]
+
+
+def test_a_cubic_bend_needs_degree_three_and_a_dem_that_tells_it(tmp_path):
+    """The structure bent by a saddle and a cubic (a pushbroom's bend over 10 km is not only
+    quadratic): with upgrade.reference_dem_degree = 3 the DEM takes both out, the quadratic
+    leaves the cubic, extrapolated. A cubic the DEM cannot tell falls back to the quadratic."""
+    from recon_core.geometry.enu_map import EnuMap, EnuWarp
+
+    frame = LocalFrame(30.0, 31.0, 120.0)
+    T, X = _scene(frame)
+    # and a cubic in its heights: 20 m of e^3 and -15 m of e n^2 at the edges (_scene's affine
+    # frame: its linear part maps the vertical displacement)
+    e, n = T[:, 0] / HALF, T[:, 1] / HALF
+    L = np.linalg.inv(np.array([[0.8, 0.3, 0.1], [-0.2, 1.1, 0.05], [0.25, -0.1, 0.6]]))
+    X = X + np.outer(20.0 * e ** 3 - 15.0 * e * n * n, L[:, 2])
+    dem = open_reference_dem(_write_dem(tmp_path / "dem.tif", frame))
+    # 4 control GCPs 2 km from the centre, two on roofs and two on the ground
+    roof = _roofs(T[:, 0], T[:, 1]) > 0
+    ctrl = [int(np.argmin(np.hypot(T[:, 0] - x, T[:, 1] - y) + 1e6 * (roof != r)))
+            for x, y, r in ((-1500, -1500, True), (1500, -1500, False), (1500, 1500, True), (-1500, 1500, False))]
+    H0 = np.eye(4)
+    H0[:3] = fit_affine_3d(X[ctrl], T[ctrl])
+    rms, shape = {}, {}
+    for degree in (2, 3):
+        H, warp, info = fit_dem_bend(H0, X, frame, dem, np.zeros(2), HALF,
+                                     lambda w: fit_affine_3d(X[ctrl], T[ctrl] - w(T[ctrl])), degree=degree)
+        assert info["applied"] and info["degree"] == degree and warp.degree == degree
+        assert len(warp.coef) == 3 * (3 if degree == 2 else 7) and np.allclose(warp.coef[:2 * len(warp.coef) // 3], 0)
+        Y = apply_affine_3d(H, X)
+        Z = Y + warp(Y)
+        rms[degree] = float(np.sqrt(np.mean((Z - T)[:, 2] ** 2)))
+        shape[degree] = float(np.sqrt(np.mean((apply_affine_3d(fit_affine_3d(Z, T), Z) - T)[:, 2] ** 2)))
+        # the record gives the same map back (the DSM stage and the viewer read it)
+        m = EnuMap(H, None, EnuWarp.from_record(warp.record()))
+        np.testing.assert_allclose(m(X[:100]), Y[:100] + warp(Y[:100]))
+    # the quadratic leaves the cubic's metres, which no affine map takes out; the cubic leaves
+    # the structure's shape within 0.8 m of the truth (the points' 0.3 m, the DEM's 2 m over 150 m
+    # cells), and the heights with the 4 GCPs' affine map extrapolated from their 3 km square
+    assert shape[2] > 2.0 and shape[3] < 0.8, shape
+    assert rms[2] > 3.0 and rms[3] < 0.4 * rms[2], rms
+    # a DEM whose errors reach over kilometres does not tell a small cubic: the quadratic stays
+    rng = np.random.default_rng(3)
+    E, N = rng.uniform(-HALF, HALF, (2, 80000))
+    f = ndimage.gaussian_filter(rng.standard_normal((100, 100)), 6)
+    noise = f[((N + HALF) / 100).astype(int).clip(0, 99), ((E + HALF) / 100).astype(int).clip(0, 99)] / f.std()
+    r = 1.5 * (E / HALF) ** 2 - (N / HALF) ** 2 + 1.5 * noise + rng.normal(0, 2, E.size)
+    coef, info = fit_surface(E, N, r, np.zeros(2), HALF, degree=3)
+    assert coef is not None and info["degree"] == 2 and len(coef) == 3
+    assert info["degrees_refused"][0]["degree"] == 3 and info["degrees_refused"][0]["bend_sigma_m"] > 1.0
+
+
+def test_the_dem_degree_is_checked_before_any_compute():
+    from recon_core.config import Config
+    from recon_core.errors import InputError
+    from recon_core.pipeline import check_config
+
+    check_config(Config().with_overrides({"upgrade.reference_dem_degree": 3}))
+    with pytest.raises(InputError, match="reference_dem_degree"):
+        check_config(Config().with_overrides({"upgrade.reference_dem_degree": 4}))
