@@ -150,6 +150,8 @@ def cmd_run(args) -> int:
         overrides["seed"] = args.seed
     if args.reference_dem is not None:
         overrides["upgrade.reference_dem"] = str(args.reference_dem.expanduser().resolve())
+    if args.reference_dem_degree is not None:
+        overrides["upgrade.reference_dem_degree"] = args.reference_dem_degree
     if args.scheduler:
         overrides["dense.scheduler"] = args.scheduler
     if args.workers:
@@ -333,6 +335,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--reference-dem", type=Path, default=None, metavar="FILE",
                    help="a coarse DEM of the site (GeoTIFF: SRTM, Copernicus GLO-30) that holds the bend "
                         "3 views of one date cannot see over a wide site (upgrade.reference_dem)")
+    s.add_argument("--reference-dem-degree", type=int, choices=(2, 3), default=None,
+                   help="the degree of the bend taken from it: 2 (default) or 3, for a DEM whose errors do "
+                        "not reach over kilometres, such as Copernicus GLO-30 (upgrade.reference_dem_degree)")
     s.add_argument("--seed", type=int, default=None)
     s.add_argument("--workers", type=int, default=None, help="local dense worker processes (default: all cores)")
     s.add_argument("--scheduler", default=None, metavar="ADDRESS",

@@ -237,7 +237,7 @@ def test_aerec_run_says_what_became_of_the_reference_dem(tiny_site, tmp_path, ca
     dem = simulate_reference_dem(tiny_site / "gt_dsm.tif", tmp_path / "srtm.tif", cell_m=10.0, arcsec=0.3)
     out = tmp_path / "out"
     assert main(["run", str(tiny_site), "--out", str(out), "--preset", "tiny", "--stage", "upgrade",
-                 "--reference-dem", str(dem)]) == 0
+                 "--reference-dem", str(dem), "--reference-dem-degree", "3"]) == 0
     cap = capsys.readouterr()
     said = [ln for ln in (cap.out + cap.err).splitlines() if "reference DEM srtm.tif" in ln]
     assert len(said) == 1 and "not used (the site is" in said[0], said
@@ -245,6 +245,7 @@ def test_aerec_run_says_what_became_of_the_reference_dem(tiny_site, tmp_path, ca
     db = report["stages"]["upgrade"]["groups"]["0"]["dem_bend"]
     assert not db["applied"] and "too small to bend" in db["reason"]
     assert report["config"]["upgrade"]["reference_dem"] == str(dem.resolve())
+    assert report["config"]["upgrade"]["reference_dem_degree"] == 3
 
 
 def test_a_dem_replaced_in_place_makes_the_upgrade_stale(tiny_site, tmp_path):
