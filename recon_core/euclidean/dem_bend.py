@@ -35,7 +35,7 @@ import numpy as np
 
 from recon_core.errors import InputError
 from recon_core.geometry.affine import apply_affine_3d, as_4x4
-from recon_core.geometry.enu_map import EnuWarp, monomials, n_monomials
+from recon_core.geometry.enu_map import EnuWarp, monomial_degree, monomials, n_monomials
 
 CELL_M = 150.0            # cells of the comparison (each holds ~ 25 sparse points on `wide`)
 MIN_POINTS_PER_CELL = 5   # a cell's median needs this many points
@@ -262,8 +262,9 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
     refit(warp) -> H: the upgrade's own fit of H_A on the control GCPs, their surveyed positions
     less the warp (the warp moves heights by a function of E and N alone, so Y + warp(Y) = X_enu
     is Y = X_enu - warp(X_enu)); it may raise (e.g. ReconstructionError). The warp is refitted
-    on the structure the new H gives, until H stops moving it. Returns (H (4, 4), EnuWarp,
-    summary) or (None, None, summary with the reason)."""
+    on the structure the new H gives, until H stops moving it. `degree`: the surface's (2 or 3,
+    fit_surface); a cubic the final structure's DEM comparison does not tell is redone as a
+    quadratic. Returns (H (4, 4), EnuWarp, summary) or (None, None, summary with the reason)."""
     centre = np.asarray(centre, np.float64)
     sample = X_points[np.random.default_rng(seed).choice(len(X_points), min(len(X_points), 5000), replace=False)]
 
@@ -290,14 +291,17 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
     coef, final = surface(Hn, gate=True)
     if coef is not None and final["degree"] < info["degree"]:
         # the degree the rounds applied is not told well enough on the final structure: again, lower
-        return fit_dem_bend(H, X_points, frame, dem, centre, half, refit, cell_m, iters, seed, final["degree"])
+        Hn, warp, again = fit_dem_bend(H, X_points, frame, dem, centre, half, refit, cell_m, iters, seed,
+                                       final["degree"])
+        return Hn, warp, {**again, "degree_asked": degree,
+                          "degrees_refused": final.get("degrees_refused", []) + again.get("degrees_refused", [])}
     if coef is None:
         return None, None, {**final, "applied": False, "rounds": info["rounds"]}
     g = np.linspace(-1.0, 1.0, 11)
     ge, gn = (v.ravel() for v in np.meshgrid(g, g))
 
     def surf(c: list) -> np.ndarray:
-        return monomials(ge, gn, EnuWarp(centre, 1.0, np.zeros(3 * len(c))).degree) @ np.asarray(c)
+        return monomials(ge, gn, monomial_degree(len(c))) @ np.asarray(c)
 
     info.update(applied=True, final_change_m=float(np.abs(surf(final["bend_coef_m"]) - surf(info["bend_coef_m"])).max()),
                 bend_sigma_m=final["bend_sigma_m"], cell_scale_m=final["cell_scale_m"])

@@ -26,6 +26,16 @@ def n_monomials(degree: int) -> int:
     return sum(d + 1 for d in range(2, int(degree) + 1))
 
 
+def monomial_degree(k: int) -> int:
+    """The degree D of which there are k monomials of degree 2 to D (ValueError if none)."""
+    d = 2
+    while n_monomials(d) < k:
+        d += 1
+    if n_monomials(d) != k:
+        raise ValueError(f"{k} coefficients per axis are no polynomial warp's (3, 7, 12, ...)")
+    return d
+
+
 @dataclass
 class EnuWarp:
     """A polynomial displacement of local ENU positions: D(Y) = sum_a,m coef[k a + m] mono_m(e, n)
@@ -39,12 +49,10 @@ class EnuWarp:
 
     @property
     def degree(self) -> int:
-        k, d = len(np.ravel(self.coef)) // 3, 2
-        while n_monomials(d) < k:
-            d += 1
-        if n_monomials(d) != k or 3 * k != len(np.ravel(self.coef)):
-            raise ValueError(f"EnuWarp: {len(np.ravel(self.coef))} coefficients are no polynomial warp's")
-        return d
+        n = len(np.ravel(self.coef))
+        if n % 3:
+            raise ValueError(f"EnuWarp: {n} coefficients are not 3 axes' worth")
+        return monomial_degree(n // 3)
 
     def mono(self, Y: np.ndarray) -> np.ndarray:
         e = (Y[:, 0] - self.centre[0]) / self.half

@@ -26,7 +26,7 @@ def _roofs(E, N):
     return 15.0 * k
 
 
-def _write_dem(path, frame, *, noise_m=2.0, offset_m=25.0, tilt=2e-4, seed=0):
+def _write_dem(path, frame, *, noise_m=2.0, offset_m=25.0, tilt=2e-4, seed=0, corr_px=5.0):
     """A 1 arc-second DEM (EPSG:4326) of the scene: the ground plus the buildings' mean share,
     an offset, a tilt and correlated noise."""
     import rasterio
@@ -44,7 +44,7 @@ def _write_dem(path, frame, *, noise_m=2.0, offset_m=25.0, tilt=2e-4, seed=0):
     E, N = enu[:, 0], enu[:, 1]
     z = _ground(E, N) + 5.0 + offset_m + tilt * (E + N)
     rng = np.random.default_rng(seed)
-    noise = ndimage.gaussian_filter(rng.standard_normal((h, w)), 5.0)
+    noise = ndimage.gaussian_filter(rng.standard_normal((h, w)), corr_px)
     z = z.reshape(h, w) + noise * noise_m / noise.std()
     with rasterio.open(path, "w", driver="GTiff", width=w, height=h, count=1, dtype="float32", crs="EPSG:4326",
                        transform=from_origin(lon0, lat1, d, d)) as dst:
@@ -278,7 +278,7 @@ def test_a_cubic_bend_needs_degree_three_and_a_dem_that_tells_it(tmp_path):
     # frame: its linear part maps the vertical displacement)
     e, n = T[:, 0] / HALF, T[:, 1] / HALF
     L = np.linalg.inv(np.array([[0.8, 0.3, 0.1], [-0.2, 1.1, 0.05], [0.25, -0.1, 0.6]]))
-    X = X + np.outer(20.0 * e ** 3 - 15.0 * e * n * n, L[:, 2])
+    X0, X = X, X + np.outer(20.0 * e ** 3 - 15.0 * e * n * n, L[:, 2])
     dem = open_reference_dem(_write_dem(tmp_path / "dem.tif", frame))
     # 4 control GCPs 2 km from the centre, two on roofs and two on the ground
     roof = _roofs(T[:, 0], T[:, 1]) > 0
@@ -313,6 +313,15 @@ def test_a_cubic_bend_needs_degree_three_and_a_dem_that_tells_it(tmp_path):
     coef, info = fit_surface(E, N, r, np.zeros(2), HALF, degree=3)
     assert coef is not None and info["degree"] == 2 and len(coef) == 3
     assert info["degrees_refused"][0]["degree"] == 3 and info["degrees_refused"][0]["bend_sigma_m"] > 1.0
+    # the same through fit_dem_bend, on the structure with the saddle alone: the rounds apply the
+    # cubic asked for, the final structure's comparison refuses it (6 m of DEM error over ~1 km),
+    # and it is redone as a quadratic
+    dem = open_reference_dem(_write_dem(tmp_path / "dem_srtm.tif", frame, noise_m=6.0, corr_px=30.0))
+    H0[:3] = fit_affine_3d(X0[ctrl], T[ctrl])
+    H, warp, info = fit_dem_bend(H0, X0, frame, dem, np.zeros(2), HALF,
+                                 lambda w: fit_affine_3d(X0[ctrl], T[ctrl] - w(T[ctrl])), degree=3)
+    assert info["applied"] and info["degree"] == 2 and warp.degree == 2 and info["degree_asked"] == 3
+    assert [r["degree"] for r in info["degrees_refused"]] == [3]
 
 
 def test_the_dem_degree_is_checked_before_any_compute():
