@@ -68,15 +68,19 @@ def _scene(frame, n=60000, seed=1):
     return T, X
 
 
+def _control(T):
+    """4 control GCPs 2 km from the centre, two on roofs and two on the ground (non-coplanar, as
+    an operator picks them), among the points T."""
+    roof = _roofs(T[:, 0], T[:, 1]) > 0
+    return [int(np.argmin(np.hypot(T[:, 0] - x, T[:, 1] - y) + 1e6 * (roof != r)))
+            for x, y, r in ((-1500, -1500, True), (1500, -1500, False), (1500, 1500, True), (-1500, 1500, False))]
+
+
 def test_a_dem_takes_out_the_saddle_four_gcps_leave(tmp_path):
     frame = LocalFrame(30.0, 31.0, 120.0)
     T, X = _scene(frame)
     dem = open_reference_dem(_write_dem(tmp_path / "dem.tif", frame))
-    # 4 control GCPs 2 km from the centre, two on roofs and two on the ground (non-coplanar, as
-    # an operator picks them), among the points
-    roof = _roofs(T[:, 0], T[:, 1]) > 0
-    ctrl = [int(np.argmin(np.hypot(T[:, 0] - x, T[:, 1] - y) + 1e6 * (roof != r)))
-            for x, y, r in ((-1500, -1500, True), (1500, -1500, False), (1500, 1500, True), (-1500, 1500, False))]
+    ctrl = _control(T)
     H0 = np.eye(4)
     H0[:3] = fit_affine_3d(X[ctrl], T[ctrl])
     before = apply_affine_3d(H0, X) - T
@@ -280,10 +284,7 @@ def test_a_cubic_bend_needs_degree_three_and_a_dem_that_tells_it(tmp_path):
     L = np.linalg.inv(np.array([[0.8, 0.3, 0.1], [-0.2, 1.1, 0.05], [0.25, -0.1, 0.6]]))
     X0, X = X, X + np.outer(20.0 * e ** 3 - 15.0 * e * n * n, L[:, 2])
     dem = open_reference_dem(_write_dem(tmp_path / "dem.tif", frame))
-    # 4 control GCPs 2 km from the centre, two on roofs and two on the ground
-    roof = _roofs(T[:, 0], T[:, 1]) > 0
-    ctrl = [int(np.argmin(np.hypot(T[:, 0] - x, T[:, 1] - y) + 1e6 * (roof != r)))
-            for x, y, r in ((-1500, -1500, True), (1500, -1500, False), (1500, 1500, True), (-1500, 1500, False))]
+    ctrl = _control(T)
     H0 = np.eye(4)
     H0[:3] = fit_affine_3d(X[ctrl], T[ctrl])
     rms, shape = {}, {}
