@@ -300,6 +300,14 @@ def eval_markdown(ev: dict) -> str:
                     if sc.get("cells") else "")
             lines.append(f"| {k} | {_f(v['aligned'].get('median_abs_err_m'), '.3f')} | "
                          f"{_f(v['aligned'].get('completeness_pct'), '.1f')} % | {same} |")
+    classes = (ev.get("by_agreement") or {}).get("classes") or {}
+    if classes:
+        lines += ["", "| groups agreeing | share of GT cells | median, m | within 1 m |",
+                  "|---|---:|---:|---:|"]
+        for k in sorted(classes, key=int):
+            v = classes[k]
+            lines.append(f"| {k if k != '0' else '0 (weak pair, filled)'} | {_f(v['cells_pct_of_gt'], '.1f')} % | "
+                         f"{_f(v['median_abs_err_m'], '.3f')} | {_f(v['within_pct'], '.1f')} % |")
     for w in ev.get("warnings", []):
         lines.append(f"\n**Warning:** {w}")
     return "\n".join(lines)
@@ -309,8 +317,15 @@ def evaluate_now(out: Path, gt: Path) -> dict:
     """Run recon_core.evaluation.evaluate.evaluate_dsm(OUT/dsm.tif, gt) into OUT/eval."""
     from recon_core.evaluation.evaluate import evaluate_dsm
 
+    from recon_core.evaluation.evaluate import by_class
+    from recon_core.io.files import write_json
+
     lay = OutLayout(out)
-    return evaluate_dsm(lay.dsm, gt, lay.eval_dir)
+    res = evaluate_dsm(lay.dsm, gt, lay.eval_dir)
+    if lay.dsm_agreement.exists():          # the DSM scored by how many date groups agree
+        res["by_agreement"] = by_class(lay.dsm, res["alignment"], lay.dsm_agreement, gt)
+        write_json(res["outputs"]["eval.json"], res)
+    return res
 
 
 def load_eval(p: DsmProducts) -> dict | None:

@@ -285,6 +285,11 @@ def main(argv=None) -> int:
                     print(f"fused vs group {g} on the {sc['cells_pct_of_gt']:.1f} % of cells both cover: "
                           f"median |error| {sc['a']['median_abs_err_m']:.3f} m vs {sc['b']['median_abs_err_m']:.3f} m, "
                           f"within 1 m {sc['a']['within_pct']:.1f} % vs {sc['b']['within_pct']:.1f} %")
+        classes = (st["eval"].get("by_agreement") or {}).get("classes") or {}
+        if classes:
+            print("fused DSM by date groups agreeing (aligned): " + "; ".join(
+                f"{k}: {v['cells_pct_of_gt']:.1f} % of GT cells, median |error| {v['median_abs_err_m']:.3f} m, "
+                f"within 1 m {v['within_pct']:.1f} %" for k, v in sorted(classes.items(), key=lambda kv: int(kv[0]))))
         a = st["eval"]["alignment"]
         print(f"alignment (DSM - GT): dx {a['dx_m']:+.2f} dy {a['dy_m']:+.2f} dz {a['dz_m']:+.2f} m")
     if args.reference and (out / "dsm.tif").exists():

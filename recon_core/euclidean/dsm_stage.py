@@ -29,7 +29,7 @@ from recon_core.io.las import write_las
 from recon_core.io.layout import OutLayout
 from recon_core.io.models import PointSource
 from recon_core.io.ply import PlyWriter
-from recon_core.io.raster import Grid, write_dsm
+from recon_core.io.raster import Grid, write_dsm, write_geotiff
 from recon_core.io.site import Site
 
 
@@ -137,16 +137,19 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
         noise, match_px = noise_from_pairs(groups, pairs, geometry)
         coverage = {g: count_rows(precise[g], np.isfinite, strip) for g in groups}
         order = rank_groups(groups, quality or {}, coverage, noise)
+        agree = None
         if len(groups) == 1:
             H, source = raw[groups[0]], None              # source: only reported for several
         else:
+            agree = grid_file("agree", np.float32)
             # every group's precise cells first; a weak pair's cells only where none has any
             fill = [RowView(grid.shape, weak_rows(g), strip) for g in order] if c.fuse_weak_pair_cells else []
             H, source = fuse_groups([precise[g] for g in order] + fill, correct_block=block,
                                     sigmas=[noise[g] for g in order] + [None] * len(fill),
                                     agree_sigmas=c.fusion_agree_sigmas, fill_agreeing=c.fusion_fill_agreeing,
                                     out=grid_file("fused", np.float32),
-                                    source_out=grid_file("source", np.int16), block_rows=strip)
+                                    source_out=grid_file("source", np.int16), block_rows=strip,
+                                    agree_out=agree)
         raw_valid = count_rows(H, np.isfinite, strip) / H.size
         filled_buf = grid_file("filled", np.float32)
 
@@ -157,6 +160,13 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
         H = filled(H)
         valid = count_rows(H, np.isfinite, strip) / H.size
         write_dsm(out.dsm, H, grid)
+        agreement = agreement_layer(agree, H, strip) if agree is not None else None
+        if agreement is not None:
+            write_geotiff(out.dsm_agreement, agree, grid.transform, grid.crs, resampling="nearest",
+                          description="date groups agreeing on the height of dsm.tif (0: a weak pair's "
+                                      "two-view points or a filled small hole)")
+        elif out.dsm_agreement.exists():              # a previous run's: it would not match
+            out.dsm_agreement.unlink()
         if c.laz:
             write_las(out.cloud, out.cloud_laz, epsg)
         elif out.cloud_laz.exists():                 # a previous run's: it would not match
@@ -181,7 +191,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
     finally:
         # let go of the memmaps (also those a traceback would keep) before removing their files
         raw.clear(), weak.clear()
-        H = source = filled_buf = None
+        H = source = filled_buf = agree = None
         work.cleanup()
     return {"crs_epsg": epsg, "resolution_m": res, "width": grid.width, "height": grid.height,
             "points": int(total), "points_in_grid": int(in_grid), "valid_fraction_raw": raw_valid,
@@ -203,13 +213,40 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
                              if c.fuse_weak_pair_cells else "; cells only a weak pair's two-view "
                              "points reach are left out (they stay in each group's own DSM)"))
                            if len(groups) > 1 else "one group",
-            "group_order": order, "groups": groups_report, "gsd_m": gsd,
+            "group_order": order, "groups": groups_report, "gsd_m": gsd, "agreement": agreement,
             "noise_model": None if len(groups) == 1 else {
                 "matching_precision_px": match_px,
                 "rule": ("each group's geometry (metres per pixel of all its views) times one "
                          "matching precision fitted to the groups' disagreement") if match_px is not None
                         else "the groups' disagreement split between them (three-cornered hat)",
                 "pairs": [{"groups": [a, b], "disagreement_nmad_m": float(np.sqrt(v))} for a, b, v in pairs]}}
+
+
+def agreement_layer(agree: np.ndarray, H: np.ndarray, block_rows: int = 1024) -> dict | None:
+    """Complete fuse_groups' agreement counts (in place, by strips) for the final DSM H: 0 where
+    H got a height after the fusion (a small hole filled), NaN where it has none. Returns the
+    share of H's cells per count ({"0": f0, "1": f1, ...}, the layer's summary), or None when
+    no cell has a count (no agreement test ran: no layer)."""
+    counts: dict[int, int] = {}
+    n_valid = 0
+    for r0 in range(0, H.shape[0], max(1, int(block_rows))):
+        r1 = min(H.shape[0], r0 + max(1, int(block_rows)))
+        a = np.array(agree[r0:r1], dtype=np.float32)
+        h = np.isfinite(np.asarray(H[r0:r1]))
+        a[h & ~np.isfinite(a)] = 0.0
+        a[~h] = np.nan
+        agree[r0:r1] = a
+        v = a[h].astype(np.int64)
+        n_valid += len(v)
+        for k, c in zip(*np.unique(v, return_counts=True)):
+            counts[int(k)] = counts.get(int(k), 0) + int(c)
+    if not any(k > 0 for k in counts):
+        return None
+    return {"file": "dsm_agreement.tif",
+            "meaning": "per cell of dsm.tif, the number of date groups whose precise DSM agrees with its "
+                       "height (within dsm.fusion_agree_sigmas); 0: a weak pair's two-view points or a filled "
+                       "small hole",
+            "fraction_of_valid_cells": {str(k): c / max(n_valid, 1) for k, c in sorted(counts.items())}}
 
 
 def reserve_disk(path: Path) -> None:
@@ -353,7 +390,8 @@ def group_noise(dsms: dict[int, np.ndarray], correct_block: int = 0, min_overlap
 def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
                 sigmas: list[float | None] | None = None, agree_sigmas: float = 2.5,
                 out: np.ndarray | None = None, source_out: np.ndarray | None = None,
-                block_rows: int = 1024, fill_agreeing: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                block_rows: int = 1024, fill_agreeing: int = 1,
+                agree_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fuse per-group DSMs given best first. Returns (H, index of the DSM each cell's reference
     value came from, -1 where none has one).
 
@@ -374,6 +412,10 @@ def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
        where at least that many DSMs with a noise, the filling one included, agree there; the
        others are left empty (-1 in the source). Cells only one group sees are mostly the hard
        ones (occlusions, building edges): measured on wide3, 1.1-1.8 m median error.
+    With `agree_out` (float32, the grid's shape, may be disk-backed): per cell of H, how many
+    DSMs with a noise agree there in step 2 (the reference's own included: >= 1; 0 where the
+    value is a noiseless fill's, such as a weak pair's), NaN where H has none; all NaN when
+    step 2 does not run (no agreement test).
 
     Works by strips of about `block_rows` rows (a multiple of correct_block): the DSMs (taken as
     float32) may be disk-backed (np.memmap, or RowView), and so may `out` (float32) and
@@ -391,6 +433,8 @@ def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
     for r0, r1 in spans:
         H[r0:r1] = np.nan
         source[r0:r1] = -1
+        if agree_out is not None:
+            agree_out[r0:r1] = np.nan
     coarse: list[np.ndarray | None] = [None] * len(dsms)
 
     def corrected(k: int, r0: int, r1: int) -> np.ndarray:
@@ -439,6 +483,8 @@ def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
             drop = noisy_fill & (n_agree < fill_agreeing)
             Hb[drop] = np.nan
             source[r0:r1][drop] = -1
+        if agree_out is not None:
+            agree_out[r0:r1] = np.where(np.isfinite(Hb), n_agree, np.nan)
     return H, source
 
 

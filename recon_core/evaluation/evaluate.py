@@ -369,9 +369,7 @@ def same_cells(a_path: str | Path, a_align: dict, b_path: str | Path, b_align: d
     both = np.isfinite(gt.values)
     errs = []
     for path, al in ((a_path, a_align), (b_path, b_align)):
-        e = resample_onto(read_raster(path, "DSM"), gt, al["dx_m"], al["dy_m"])
-        e -= np.float32(al["dz_m"])
-        e -= gt.values
+        e = aligned_error(path, al, gt)
         both &= np.isfinite(e)
         errs.append(e)
     n = int(both.sum())
@@ -381,6 +379,42 @@ def same_cells(a_path: str | Path, a_align: dict, b_path: str | Path, b_align: d
         v = np.abs(e[both])
         out[key] = {"median_abs_err_m": float(np.median(v)) if n else None,
                     "within_pct": 100.0 * float(np.mean(v < thresh_m)) if n else None}
+    return out
+
+
+def aligned_error(path: str | Path, align: dict, gt: Raster) -> np.ndarray:
+    """DSM - GT on the GT grid, the DSM shifted by its alignment (evaluate_dsm's "alignment":
+    dx, dy, dz in metres); NaN where either has no height. float32."""
+    e = resample_onto(read_raster(path, "DSM"), gt, align["dx_m"], align["dy_m"])
+    e -= np.float32(align["dz_m"])
+    e -= gt.values
+    return e
+
+
+def by_class(dsm_path: str | Path, align: dict, class_path: str | Path, gt_path: str | Path,
+             thresh_m: float = THRESH_M) -> dict[str, Any]:
+    """The DSM's errors (with its alignment) split by the integer classes of a layer on the
+    DSM's grid (e.g. dsm_agreement.tif: how many date groups agree at each cell), sampled at the
+    same shifted positions (nearest). Per class: its share of the GT's cells, the median
+    absolute error and the % within thresh_m of its cells, and its share of the completeness
+    (cells within thresh_m, in % of the GT's cells). Tells which cells of the DSM to trust."""
+    gt = read_raster(gt_path, "ground truth")
+    n_gt = max(int(np.isfinite(gt.values).sum()), 1)
+    e = aligned_error(dsm_path, align, gt)
+    layer = read_raster(class_path, "class layer")
+    cls = np.full(gt.values.shape, np.nan, dtype=np.float32)
+    reproject(source=layer.values, destination=cls, src_transform=layer.transform, src_crs=layer.crs,
+              src_nodata=np.nan, dst_transform=Affine.translation(align["dx_m"], align["dy_m"]) @ gt.transform,
+              dst_crs=gt.crs, dst_nodata=np.nan, resampling=Resampling.nearest)
+    ok = np.isfinite(e) & np.isfinite(cls)
+    v, c = np.abs(e[ok]), cls[ok].astype(np.int64)
+    out: dict[str, Any] = {"threshold_m": thresh_m, "classes": {}}
+    for k in np.unique(c):
+        a = v[c == k]
+        out["classes"][str(int(k))] = {"cells_pct_of_gt": 100.0 * len(a) / n_gt,
+                                       "median_abs_err_m": float(np.median(a)),
+                                       "within_pct": 100.0 * float(np.mean(a < thresh_m)),
+                                       "completeness_share_pct": 100.0 * float(np.sum(a < thresh_m)) / n_gt}
     return out
 
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from recon_core.errors import AerecError
-from recon_core.evaluation.evaluate import evaluate_dsm, same_cells
+from recon_core.evaluation.evaluate import by_class, evaluate_dsm, same_cells
 from recon_core.events import EventBus
 from recon_core.io.files import write_json
 
@@ -35,8 +35,14 @@ def run(state, bus: EventBus) -> dict:
                     f"completeness {r['aligned']['completeness_pct']:.1f} % (aligned){same}")
     if groups:
         res["groups"] = groups
-        if res.get("outputs", {}).get("eval.json"):     # the viewer's Results tab reads it
-            write_json(res["outputs"]["eval.json"], res)
+    if lay.dsm_agreement.exists():          # which cells to trust: scored by agreement count
+        ag = by_class(lay.dsm, res["alignment"], lay.dsm_agreement, state.site.gt_dsm)
+        res["by_agreement"] = ag
+        bus.message("DSM vs GT by how many date groups agree (aligned): " + "; ".join(
+            f"{k}: {v['cells_pct_of_gt']:.1f} % of the GT's cells, median |error| {v['median_abs_err_m']:.3f} m"
+            for k, v in ag["classes"].items()))
+    if (groups or "by_agreement" in res) and res.get("outputs", {}).get("eval.json"):
+        write_json(res["outputs"]["eval.json"], res)      # the viewer's Results tab reads it
     bus.message(f"DSM vs GT: median |error| {a['median_abs_err_m']:.3f} m, completeness "
                 f"{a['completeness_pct']:.1f} % (aligned); unaligned {u['median_abs_err_m']:.3f} m, "
                 f"{u['completeness_pct']:.1f} %")

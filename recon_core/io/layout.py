@@ -14,6 +14,9 @@
       cloud.laz                        the same as LAS 1.4 with its CRS (dsm.laz)
       dsm.tif                          the DSM (date groups fused)
       dsm_groups/group_<k>.tif         each date group's own DSM, when there are several
+      dsm_agreement.tif                per cell of dsm.tif, how many date groups agree on its
+                                       height (0: a weak pair's or a filled small hole), when
+                                       there are several
       eval/                            eval.json, height_error.tif/.png, dsm_vs_gt.png
 """
 
@@ -89,6 +92,11 @@ class OutLayout:
     def dsm(self) -> Path:
         return self.root / "dsm.tif"
 
+    @property
+    def dsm_agreement(self) -> Path:
+        """Per cell of the fused DSM, the number of date groups that agree on its height."""
+        return self.root / "dsm_agreement.tif"
+
     def group_dsm(self, g: int) -> Path:
         """The DSM of one date group alone (written when there are several)."""
         return self.root / "dsm_groups" / f"group_{g}.tif"
@@ -126,7 +134,7 @@ class OutLayout:
         elif stage == "upgrade":
             found = [self.root / "upgrade"]
         elif stage == "dsm":
-            found = [self.dsm, self.root / "dsm_groups", self.cloud, self.cloud_laz]
+            found = [self.dsm, self.root / "dsm_groups", self.dsm_agreement, self.cloud, self.cloud_laz]
         elif stage == "eval":
             found = [self.eval_dir]
         else:

@@ -275,6 +275,19 @@ def test_two_groups_fused_by_quality_with_their_own_dsms_and_scores(tiny2_run):
         sc = ev["groups"][g]["fused_vs_group_same_cells"]
         assert sc["cells"] > 0 and sc["a"]["median_abs_err_m"] is not None
         assert on_file["groups"][g]["fused_vs_group_same_cells"] == sc
+    # the agreement layer: on dsm.tif's grid, a count where it has a height (0, 1 or 2 groups),
+    # its shares in the report, and the DSM scored by count in the evaluation (and eval.json)
+    A, grid_a = read_dsm(lay.dsm_agreement)
+    assert grid_a == grid
+    np.testing.assert_array_equal(np.isnan(A), np.isnan(H))
+    assert set(np.unique(A[np.isfinite(A)]).tolist()) <= {0.0, 1.0, 2.0} and np.any(A == 2)
+    frac = d["agreement"]["fraction_of_valid_cells"]
+    for k, f in frac.items():
+        assert f == pytest.approx(np.mean(A[np.isfinite(A)] == float(k)))
+    ba = ev["by_agreement"]["classes"]
+    assert set(ba) <= {"0", "1", "2"} and "2" in ba and on_file["by_agreement"] == ev["by_agreement"]
+    assert sum(v["completeness_share_pct"] for v in ba.values()) == pytest.approx(
+        ev["aligned"]["completeness_pct"], abs=1.0)
 
 
 def test_the_icp_reference_is_the_largest_full_cloud_not_the_largest_sample(tmp_path):
@@ -506,6 +519,24 @@ def test_fill_agreeing_keeps_only_the_holes_two_groups_agree_on():
     bottom = agreed[100:, :120]
     assert np.isfinite(bottom).mean() > 0.95 and np.nanmedian(np.abs(bottom)) < 0.15
     np.testing.assert_array_equal(agreed[:, 120:], any_fill[:, 120:])
+    # the agreement layer says which cells to trust: in the bottom right all three agree (all but
+    # the rare noise outliers), in the top right and the bottom left two, in the top left only the
+    # wrong one; NaN where the fused DSM has no height; a noiseless fill counts 0
+    agree = np.empty((h, w), np.float32)
+    fuse_groups([best, g1, g2], sigmas=sig, agree_out=agree)
+    assert np.mean(agree[100:, 120:] == 3) > 0.95
+    assert np.mean(agree[:100, 120:] == 2) > 0.95 and np.mean(agree[100:, :120] == 2) > 0.95
+    assert np.all(agree[:100, :120] == 1)
+    np.testing.assert_array_equal(np.isnan(agree), np.isnan(any_fill))
+    fuse_groups([best, g1, g2], sigmas=sig, fill_agreeing=2, agree_out=agree)
+    np.testing.assert_array_equal(np.isnan(agree), np.isnan(agreed))
+    weak = np.where(np.isnan(g1) | np.isnan(best), truth, np.nan)     # a weak pair's cells: no noise
+    g1[:100, :120] = np.nan
+    fuse_groups([best, g1, g2, weak], sigmas=sig + [None], agree_out=agree)
+    assert np.all(agree[:100, :120] == 0)
+    # without an agreement test there are no counts
+    fuse_groups([best, g1, g2], sigmas=sig, agree_sigmas=0, agree_out=agree)
+    assert np.isnan(agree).all()
 
 
 def test_fill_agreeing_without_an_agreement_test_is_refused():

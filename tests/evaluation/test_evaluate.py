@@ -226,3 +226,30 @@ def test_same_cells_compares_two_dsms_where_both_have_heights(site, tmp_path):
     assert sc["a"]["median_abs_err_m"] == pytest.approx(2 * sc["b"]["median_abs_err_m"], rel=0.2)
     assert sc["b"]["median_abs_err_m"] == pytest.approx(rh["aligned"]["median_abs_err_m"], rel=0.05)
     assert sc["a"]["within_pct"] > 95 and sc["b"]["within_pct"] > 95
+
+
+def test_by_class_scores_the_cells_of_each_class_apart(site, tmp_path):
+    """A DSM whose cells of class 1 are 3 m off and class 2 exact (to the noise), the class
+    layer on the DSM's grid: by_class finds each class's error and share of the GT's cells,
+    with the DSM's alignment applied to both."""
+    from recon_core.evaluation.evaluate import by_class
+
+    dx0, dy0, res = X0 - 15.25, Y0 + 14.9, 0.5
+    Xd, Yd = centres(dx0, dy0, res, 460, 380)
+    rng = np.random.default_rng(2)
+    H = surface(Xd - SHIFT[0], Yd - SHIFT[1]) + SHIFT[2] + rng.normal(0, NOISE, Xd.shape)
+    cls = np.where(Xd < X0 + 60, 1.0, 2.0).astype(np.float32)
+    bad = (cls == 1) & (Yd > np.median(Yd))                    # half of class 1, in one piece
+    H[bad] += 3.0
+    write_tif(tmp_path / "dsm.tif", H, dx0, dy0, res)
+    write_tif(tmp_path / "cls.tif", cls, dx0, dy0, res)
+    r = evaluate_dsm(tmp_path / "dsm.tif", site / "gt.tif", None)
+    out = by_class(tmp_path / "dsm.tif", r["alignment"], tmp_path / "cls.tif", site / "gt.tif")
+    c1, c2 = out["classes"]["1"], out["classes"]["2"]
+    # half of class 1 is 3 m off: its cells within 1 m are about half; class 2 all of them
+    assert c1["within_pct"] == pytest.approx(50, abs=5) and c2["within_pct"] > 95
+    assert c2["median_abs_err_m"] < 3 * NOISE
+    # the classes' shares add up to the cells compared, and their completeness to the DSM's
+    assert c1["cells_pct_of_gt"] + c2["cells_pct_of_gt"] == pytest.approx(r["aligned"]["coverage_pct"], abs=0.5)
+    assert c1["completeness_share_pct"] + c2["completeness_share_pct"] == pytest.approx(
+        r["aligned"]["completeness_pct"], abs=0.5)

@@ -1453,3 +1453,12 @@ def test_eval_markdown_shows_each_group_and_the_same_cells_comparison():
     assert rows == ["| 0 | 0.952 | 41.9 % |  |", "| 1 | 0.613 | 52.0 % | 0.606 / 0.611 |"]
     assert "group alone" in md
     assert "group alone" not in eval_markdown({k: v for k, v in ev.items() if k != "groups"})
+    # the DSM scored by how many date groups agree at each cell
+    assert "groups agreeing" not in md
+    ev["by_agreement"] = {"classes": {"2": {"cells_pct_of_gt": 30.1, "median_abs_err_m": 0.41, "within_pct": 88.0},
+                                      "0": {"cells_pct_of_gt": 2.0, "median_abs_err_m": 1.9, "within_pct": 25.0},
+                                      "1": {"cells_pct_of_gt": 25.5, "median_abs_err_m": 1.25, "within_pct": 41.0}}}
+    md = eval_markdown(ev)
+    rows = md.split("groups agreeing")[1].splitlines()[2:5]
+    assert rows == ["| 0 (weak pair, filled) | 2.0 % | 1.900 | 25.0 % |", "| 1 | 25.5 % | 1.250 | 41.0 % |",
+                    "| 2 | 30.1 % | 0.410 | 88.0 % |"]
