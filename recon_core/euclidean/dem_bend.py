@@ -175,7 +175,11 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
     bootstrap over blocks of ~1 km (a fifth of the site when smaller): a DEM's errors are
     correlated over several cells, which a formula for independent cells would not see. With
     `gate`, a bend known no better than MAX_BEND_SIGMA_M and a MIN_BEND_SNR-th of its size is
-    refused; a cubic that fails it falls back to the quadratic (`degrees_refused`).
+    refused; a cubic that fails it falls back to the quadratic (`degrees_refused`). Over a wide
+    site the gate seldom refuses a cubic: a cubic that fits a DEM's kilometre-scale errors also
+    makes the surface larger, and the gate is relative to that size (on `wide` a cubic with a
+    standard error of 6 m at the edge passed): the fallback catches a DEM that tells nothing,
+    not one whose errors look like a cubic.
 
     The degree is the user's (upgrade.reference_dem_degree), not the data's: the structure's
     cubic bend and a DEM's error over kilometres look the same in this comparison. On `wide`,
@@ -289,10 +293,10 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
         if moved < 0.01:
             break
     coef, final = surface(Hn, gate=True)
-    if coef is not None and final["degree"] < info["degree"]:
+    if degree > 2 and (final.get("degrees_refused") or (coef is not None and final["degree"] < info["degree"])):
         # the degree the rounds applied is not told well enough on the final structure: again, lower
         Hn, warp, again = fit_dem_bend(H, X_points, frame, dem, centre, half, refit, cell_m, iters, seed,
-                                       final["degree"])
+                                       min(final.get("degree", 2), degree - 1))
         return Hn, warp, {**again, "degree_asked": degree,
                           "degrees_refused": final.get("degrees_refused", []) + again.get("degrees_refused", [])}
     if coef is None:
