@@ -152,6 +152,9 @@ def cmd_run(args) -> int:
         overrides["upgrade.reference_dem"] = str(args.reference_dem.expanduser().resolve())
     if args.reference_dem_degree is not None:
         overrides["upgrade.reference_dem_degree"] = args.reference_dem_degree
+        if args.reference_dem is None and not cfg.upgrade.reference_dem:
+            print("aerec: warning: --reference-dem-degree has no effect without a reference DEM "
+                  "(--reference-dem FILE)", file=sys.stderr)
     if args.scheduler:
         overrides["dense.scheduler"] = args.scheduler
     if args.workers:

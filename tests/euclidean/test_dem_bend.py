@@ -325,6 +325,14 @@ def test_a_cubic_bend_needs_degree_three_and_a_dem_that_tells_it(tmp_path):
     assert [r["degree"] for r in info["degrees_refused"]] == [3]
 
 
+def test_a_dem_degree_without_a_dem_is_said_to_do_nothing(tiny_site, tmp_path, capsys):
+    from recon_core.cli import main
+
+    assert main(["run", str(tiny_site), "--out", str(tmp_path / "out"), "--preset", "tiny", "--stage", "sparse",
+                 "--reference-dem-degree", "3", "--quiet"]) == 0
+    assert "--reference-dem-degree has no effect without a reference DEM" in capsys.readouterr().err
+
+
 def test_the_dem_degree_is_checked_before_any_compute():
     from recon_core.config import Config
     from recon_core.errors import InputError
