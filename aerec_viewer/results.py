@@ -18,6 +18,7 @@ import numpy as np
 
 from recon_core.config import Config
 from recon_core.errors import ReconstructionError
+from recon_core.euclidean.dem_bend import bend_kind
 from recon_core.euclidean.upgrade_stage import Upgrade, upgrade_models
 from recon_core.io.gcps import read_gcps_geojson
 from recon_core.io.layout import OutLayout
@@ -195,7 +196,7 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
             parts.append(f"Bend not fitted to the GCPs: {gb['reason']}.")
         db = outcome.dem_bend.get(g) or {}
         if db.get("applied"):
-            kind = {2: "quadratic", 3: "cubic"}.get(db.get("degree", 2), f"degree {db.get('degree')}")
+            kind = bend_kind(db.get("degree", 2))
             fell = "; the cubic asked for fell back to a quadratic: the DEM does not tell it" \
                 if db.get("degrees_refused") else ""
             parts.append(f"Vertical bend taken from the reference DEM ({Path(db['dem']).name}), {kind}{fell}: "
@@ -316,14 +317,12 @@ def eval_markdown(ev: dict) -> str:
 def evaluate_now(out: Path, gt: Path) -> dict:
     """Run recon_core.evaluation.evaluate.evaluate_dsm(OUT/dsm.tif, gt) into OUT/eval."""
     from recon_core.evaluation.evaluate import evaluate_dsm
-
-    from recon_core.evaluation.evaluate import by_class
+    from recon_core.evaluation.stage import score_agreement
     from recon_core.io.files import write_json
 
     lay = OutLayout(out)
     res = evaluate_dsm(lay.dsm, gt, lay.eval_dir)
-    if lay.dsm_agreement.exists():          # the DSM scored by how many date groups agree
-        res["by_agreement"] = by_class(lay.dsm, res["alignment"], lay.dsm_agreement, gt)
+    if score_agreement(lay, res, gt) is not None:      # the DSM by how many date groups agree
         write_json(res["outputs"]["eval.json"], res)
     return res
 

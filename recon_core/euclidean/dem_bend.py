@@ -142,6 +142,11 @@ def check_covers(dem: ReferenceDem, llh: np.ndarray) -> None:
                                    "it does not cover the site (or is all nodata there)")
 
 
+def bend_kind(degree: int) -> str:
+    """The bend's name for a surface of this degree (the report's note, the viewer)."""
+    return {2: "quadratic", 3: "cubic"}.get(int(degree), f"degree {degree}")
+
+
 def _columns(e: np.ndarray, n: np.ndarray, degree: int) -> np.ndarray:
     """1, e, n and the monomials of degree 2 to `degree` (EnuWarp's order)."""
     return np.concatenate([np.stack([np.ones_like(e), e, n], 1), monomials(e, n, degree)], 1)

@@ -228,9 +228,9 @@ def agreement_layer(agree: np.ndarray, H: np.ndarray, block_rows: int = 1024) ->
     share of H's cells per count ({"0": f0, "1": f1, ...}, the layer's summary), or None when
     no cell has a count (no agreement test ran: no layer)."""
     counts: dict[int, int] = {}
-    n_valid = 0
-    for r0 in range(0, H.shape[0], max(1, int(block_rows))):
-        r1 = min(H.shape[0], r0 + max(1, int(block_rows)))
+    n_valid, step = 0, max(1, int(block_rows))
+    for r0 in range(0, H.shape[0], step):
+        r1 = min(H.shape[0], r0 + step)
         a = np.array(agree[r0:r1], dtype=np.float32)
         h = np.isfinite(np.asarray(H[r0:r1]))
         a[h & ~np.isfinite(a)] = 0.0

@@ -14,7 +14,7 @@ import numpy as np
 
 from recon_core.config import Config
 from recon_core.errors import ReconstructionError
-from recon_core.euclidean.dem_bend import fit_dem_bend, open_reference_dem
+from recon_core.euclidean.dem_bend import bend_kind, fit_dem_bend, open_reference_dem
 from recon_core.euclidean.gcp_bend import fit_gcp_bend, rescore
 from recon_core.euclidean.georef import GcpAffine, frame_for, upgrade_group
 from recon_core.euclidean.metric_bend import metric_bend, warped_model
@@ -295,7 +295,7 @@ def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model,
         return res, None, info
     out = fits["res"]
     note = (f"the vertical bend the views cannot see was taken from the reference DEM {dem.path.name}: a "
-            f"{ {2: 'quadratic', 3: 'cubic'}.get(info.get('degree', 2), 'polynomial')} "
+            f"{bend_kind(info.get('degree', 2))} "
             f"surface{' (the cubic asked for fell back: the DEM does not tell it)' if info.get('degrees_refused') else ''} of {info['bend_range_m']:.2f} m peak to peak over the site ({info['cells']} cells "
             f"of {info['cell_m']:.0f} m, scatter {info['cell_scale_m']:.2f} m; standard error at the edge "
             f"{info['bend_sigma_m']:.2f} m by a block bootstrap); H_A refitted on the control GCPs' surveyed "

@@ -100,15 +100,17 @@ def _fmt_b(b) -> str:
     return "[" + ", ".join(f"{v:.1f}" for v in b) + "]"
 
 
-def resample_onto(dsm: Raster, gt: Raster, dx: float = 0.0, dy: float = 0.0) -> np.ndarray:
-    """DSM values at the GT cell centres displaced by (dx, dy) (GT CRS metres); bilinear, NaN out.
+def resample_onto(dsm: Raster, gt: Raster, dx: float = 0.0, dy: float = 0.0,
+                  resampling: Resampling = Resampling.bilinear) -> np.ndarray:
+    """DSM values at the GT cell centres displaced by (dx, dy) (GT CRS metres); bilinear (or
+    `resampling`, e.g. nearest for a class layer), NaN out.
 
     Returns (h, w) float32 on the GT grid: out[i] = DSM(centre_i + (dx, dy)).
     """
     out = np.full(gt.values.shape, np.nan, dtype=np.float32)
     reproject(source=dsm.values, destination=out, src_transform=dsm.transform, src_crs=dsm.crs,
               src_nodata=np.nan, dst_transform=Affine.translation(dx, dy) @ gt.transform,
-              dst_crs=gt.crs, dst_nodata=np.nan, resampling=Resampling.bilinear)
+              dst_crs=gt.crs, dst_nodata=np.nan, resampling=resampling)
     return out
 
 
@@ -401,11 +403,7 @@ def by_class(dsm_path: str | Path, align: dict, class_path: str | Path, gt_path:
     gt = read_raster(gt_path, "ground truth")
     n_gt = max(int(np.isfinite(gt.values).sum()), 1)
     e = aligned_error(dsm_path, align, gt)
-    layer = read_raster(class_path, "class layer")
-    cls = np.full(gt.values.shape, np.nan, dtype=np.float32)
-    reproject(source=layer.values, destination=cls, src_transform=layer.transform, src_crs=layer.crs,
-              src_nodata=np.nan, dst_transform=Affine.translation(align["dx_m"], align["dy_m"]) @ gt.transform,
-              dst_crs=gt.crs, dst_nodata=np.nan, resampling=Resampling.nearest)
+    cls = resample_onto(read_raster(class_path, "class layer"), gt, align["dx_m"], align["dy_m"], Resampling.nearest)
     ok = np.isfinite(e) & np.isfinite(cls)
     v, c = np.abs(e[ok]), cls[ok].astype(np.int64)
     out: dict[str, Any] = {"threshold_m": thresh_m, "classes": {}}

@@ -35,9 +35,8 @@ def run(state, bus: EventBus) -> dict:
                     f"completeness {r['aligned']['completeness_pct']:.1f} % (aligned){same}")
     if groups:
         res["groups"] = groups
-    if lay.dsm_agreement.exists():          # which cells to trust: scored by agreement count
-        ag = by_class(lay.dsm, res["alignment"], lay.dsm_agreement, state.site.gt_dsm)
-        res["by_agreement"] = ag
+    ag = score_agreement(lay, res, state.site.gt_dsm)
+    if ag is not None:
         bus.message("DSM vs GT by how many date groups agree (aligned): " + "; ".join(
             f"{k}: {v['cells_pct_of_gt']:.1f} % of the GT's cells, median |error| {v['median_abs_err_m']:.3f} m"
             for k, v in ag["classes"].items()))
@@ -47,6 +46,16 @@ def run(state, bus: EventBus) -> dict:
                 f"{a['completeness_pct']:.1f} % (aligned); unaligned {u['median_abs_err_m']:.3f} m, "
                 f"{u['completeness_pct']:.1f} %")
     return res
+
+
+def score_agreement(lay, res: dict, gt_path) -> dict | None:
+    """The fused DSM's errors by how many date groups agree at each cell (evaluate.by_class on
+    OUT/dsm_agreement.tif, with the DSM's alignment in `res`, evaluate_dsm's result), put in
+    res["by_agreement"]; None when the run wrote no agreement layer (one group)."""
+    if not lay.dsm_agreement.exists():
+        return None
+    res["by_agreement"] = by_class(lay.dsm, res["alignment"], lay.dsm_agreement, gt_path)
+    return res["by_agreement"]
 
 
 def load(state) -> None:
