@@ -8,9 +8,14 @@ at 4 heights spanning the scene, in the scene's local ENU frame; models fitted b
   LP          Gupta & Hartley's linear pushbroom (row linear in X, column a ratio of affine)
   LP+row3     LP plus cubic polynomials of the row in both coordinates (attitude drift)
   quadratic   affine plus every quadratic monomial of X (the dome-as-gauge family)
+  straight    this project's image model without its focal-plane terms (a straight line array)
   pushbroom   this project's image model (recon_core.sparse.image_model)
 
+A site of another simulator whose images carry RPCs fitted to its true cameras (omaha_3dates) is
+read with --site: the RPCs stand for the true cameras.
+
     python bench/bench_image_model.py --preset large
+    python bench/bench_image_model.py --site ../shared/data/omaha_3dates
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from scipy.optimize import least_squares
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recon_core.geometry.geodesy import LocalFrame
-from recon_core.sparse.image_model import col_basis, row_basis
+from recon_core.geometry.pushbroom import STRAIGHT_LINE_TERMS, col_basis, row_basis
 from recon_core.synthetic.generator import design_cameras
 
 
@@ -63,16 +68,46 @@ def lp_fit(X, uv, drift_degree=0):
     return np.linalg.norm(model(p) - uv, axis=1)
 
 
+class _RPCCamera:
+    """An image's RPC standing for its true camera (a simulator's site: omaha_3dates)."""
+
+    def __init__(self, path):
+        import rasterio
+
+        from recon_core.synthetic.rpc import RPCModel
+
+        with rasterio.open(path) as src:
+            self.rpc, self.width, self.height = RPCModel.from_rasterio(src.rpcs), src.width, src.height
+
+    def localize(self, cr, h):
+        return self.rpc.localize(cr, h)
+
+
+def site_cameras(site: Path):
+    """(frame, heights, {name: camera}) of a site whose images' RPCs are its true cameras."""
+    cams = {p.name: _RPCCamera(p) for p in sorted((site / "images").glob("*.tif"))}
+    rpc = next(iter(cams.values())).rpc
+    frame = LocalFrame(rpc.long_off, rpc.lat_off, rpc.height_off)
+    return frame, np.linspace(rpc.height_off - 0.4 * rpc.height_scale, rpc.height_off + 0.4 * rpc.height_scale, 4), cams
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--preset", default="large")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--site", type=Path, default=None, help="a site whose images' RPCs are its true cameras")
     a = ap.parse_args(argv)
-    scene, cams = design_cameras(a.preset, a.seed)
-    frame = LocalFrame(scene.lon0, scene.lat0, scene.h0)
-    heights = np.linspace(*scene.height_bounds(), 4)
-    print(f"{a.preset} seed {a.seed}: RMS / max error over each whole image (px)")
-    print(f"{'image':<12}{'size':>11}  {'affine':>13}{'LP':>13}{'LP+row3':>13}{'quadratic':>13}{'pushbroom':>13}")
+    if a.site:
+        frame, heights, cams = site_cameras(a.site)
+        print(f"{a.site.name} (the RPCs as true cameras): RMS / max error over each whole image (px)")
+    else:
+        scene, cams = design_cameras(a.preset, a.seed)
+        frame = LocalFrame(scene.lon0, scene.lat0, scene.h0)
+        heights = np.linspace(*scene.height_bounds(), 4)
+        print(f"{a.preset} seed {a.seed}: RMS / max error over each whole image (px)")
+    cols = ("affine", "LP", "LP+row3", "quadratic", "straight", "pushbroom")
+    print(f"{'image':<12}{'size':>11}  " + "".join(f"{c:>13}" for c in cols))
+    nr, nc = STRAIGHT_LINE_TERMS
     for name, cam in cams.items():
         X, uv = grid(cam, frame, heights)
         one = np.ones((len(X), 1))
@@ -83,9 +118,11 @@ def main(argv=None) -> int:
         r, c = (p[:, 1] - p0[1]) / ps, (p[:, 0] - p0[0]) / ps
         Xn = (X - X.mean(0)) / float(np.sqrt(((X - X.mean(0)) ** 2).sum(1).mean()))
         quad = np.stack([Xn[:, i] * Xn[:, j] for i in range(3) for j in range(i, 3)], -1)
+        Br, Bc = row_basis(Xn, r, c), col_basis(Xn, r, c)
         errs = {"affine": linear_lsq(Xh, Xh, uv), "LP": lp_fit(X, uv), "LP+row3": lp_fit(X, uv, 3),
                 "quadratic": linear_lsq(np.hstack([Xh, quad]), np.hstack([Xh, quad]), uv),
-                "pushbroom": linear_lsq(row_basis(Xn, r), col_basis(Xn, r, c), uv)}
+                "straight": linear_lsq(Br[:, :nr], Bc[:, :nc], uv),
+                "pushbroom": linear_lsq(Br, Bc, uv)}
         cells = "".join(f"{np.sqrt((e ** 2).mean()):>7.3f}/{e.max():<5.2f}" for e in errs.values())
         print(f"{name:<12}{cam.width:>5}x{cam.height:<5}  {cells}")
     return 0

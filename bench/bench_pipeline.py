@@ -79,12 +79,14 @@ def ensure_site(preset: str, seed: int, root: Path) -> Path:
     return site
 
 
-def truth_figures(site: Path, state) -> dict:
+def truth_figures(site: Path, state, rpc_truth: bool = False) -> dict:
     from recon_core.euclidean.georef import frame_for
     from recon_core.euclidean.metric_bend import warped_model
     from recon_core.evaluation.truth import sparse_vs_truth
 
-    if not (site / "truth" / "cameras.json").exists():
+    from recon_core.evaluation.truth import has_truth_cameras
+
+    if not has_truth_cameras(site, rpc_truth):
         return {}
     from recon_core.evaluation.colormap import save_png
     from recon_core.evaluation.truth import residual_map
@@ -124,6 +126,9 @@ def main(argv=None) -> int:
     ap.add_argument("--config", type=Path, default=None, help="a TOML configuration (as `aerec config` writes)")
     ap.add_argument("--reference", type=Path, default=None, help="reference DSM to compare with (aerec eval)")
     ap.add_argument("--root", type=Path, default=Path("/tmp/aerec_bench"))
+    ap.add_argument("--rpc-truth", action="store_true",
+                    help="the images' RPCs are the true cameras (a simulator's site such as "
+                         "omaha_3dates): score the sparse structure against them")
     ap.add_argument("--log", action="store_true", help="print progress lines with timestamps as it runs")
     ap.add_argument("--redo-from", default=None, help="with --resume: recompute this stage and every later one")
     ap.add_argument("--resume", action="store_true",
@@ -196,7 +201,7 @@ def main(argv=None) -> int:
               f"(RMS {s['rms_reproj_px']:.3f})")
     print(f"bundle adjustment: {ba['seconds']:.1f} s in {ba['runs']} runs (inside SfM; global "
           f"{ba.get('global', 0.0):.1f} s, local {ba.get('local', 0.0):.1f} s)")
-    for g, f in truth_figures(site, state).items():
+    for g, f in truth_figures(site, state, args.rpc_truth).items():
         print(f"group {g} sparse vs truth (one best-fit affine map): RMS {f['sparse_affine_rms_m']:.3f} m "
               f"(E/N/U {', '.join(f'{v:.3f}' for v in f['sparse_rms_xyz_m'])}), p95 {f['sparse_p95_m']:.3f} m, "
               f"{f['n']} points")

@@ -122,7 +122,7 @@ def cmd_info(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from recon_core.config import PRESETS, preset
+    from recon_core.config import METHODS, PRESETS, preset
     from recon_core.errors import InputError
     from recon_core.events import EventBus, Message
     from recon_core.pipeline import check_config, preflight, run
@@ -143,7 +143,7 @@ def cmd_run(args) -> int:
         from recon_core.config import config_from_toml
 
         cfg = config_from_toml(args.config)
-    overrides = {}
+    overrides = dict(METHODS[args.method])
     if args.tile_size:
         overrides["tiling.tile_size"] = args.tile_size
     if args.seed is not None:
@@ -282,7 +282,7 @@ def cmd_config(args) -> int:
 
     if args.preset not in PRESETS:
         raise InputError(None, f"unknown --preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}")
-    print(config_to_toml(preset(args.preset)), end="")
+    print(config_to_toml(preset(args.preset, args.method)), end="")
     return 0
 
 
@@ -334,6 +334,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--config", type=Path, default=None, metavar="FILE",
                    help="parameters from a TOML file (see `aerec config --dump`); replaces --preset; "
                         "the options below override it")
+    s.add_argument("--method", choices=("default", "paper"), default="default",
+                   help="paper: the paper's plain path, every correction beyond it off (the "
+                        "baseline of the accuracy figures; applied over --preset and --config)")
     s.add_argument("--tile-size", type=int, default=None, help="tile side d in pixels (default 1000)")
     s.add_argument("--reference-dem", type=Path, default=None, metavar="FILE",
                    help="a coarse DEM of the site (GeoTIFF: SRTM, Copernicus GLO-30) that holds the bend "
@@ -353,6 +356,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("config", help="print the parameters of a run (TOML, each with its comment)")
     s.add_argument("--dump", action="store_true", help="print the defaults (or --preset's)")
     s.add_argument("--preset", default="default")
+    s.add_argument("--method", choices=("default", "paper"), default="default",
+                   help="paper: the paper's plain path (every correction beyond it off)")
     s.set_defaults(func=cmd_config)
 
     s = sub.add_parser("gcps", help="convert a GCP list between gcps.geojson and CSV")

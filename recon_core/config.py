@@ -81,17 +81,12 @@ class SfmConfig:
                                       # of several dates (one pass's views cannot see the vertical
                                       # warps it would free) (0 = none; each round more lowers
                                       # the bend further and costs one global adjustment)
-    correction_extrapolation: float = 1.0  # without the bend step only: from the second round
+    correction_extrapolation: float = 1.0  # from the second round
                                       # on, each round's correction is pushed this many times its
                                       # change since the round before, g + w (g - g_prev): plain
                                       # rounds converge slowly, each removing less of the bend
                                       # (0 = plain rounds; at most 1: 2 diverged; README,
                                       # "Extrapolated rounds")
-    bend_step: bool = True            # each correction round starts by estimating the quadratic
-                                      # warp of the structure the views see from every image's
-                                      # model at once and taking it out, and the last adjustment
-                                      # is followed by one (README, "The bend step"); false with
-                                      # correction_rounds = 2: the former extrapolated rounds
 
 
 @dataclass
@@ -245,6 +240,10 @@ LEGACY_KEYS = {f"dense.{k}": f"sgbm.{k}" for k in ("block_size", "p1", "p2", "un
 # parameters that no longer exist and never changed a result: read from older files and skipped
 # (bundle.smoothness_weight was read by nothing)
 REMOVED_KEYS = {"bundle.smoothness_weight"}
+# parameters that were removed because they did harm: read from older files only with the value
+# that does what the code now does (any other value is refused, saying why)
+RETIRED_KEYS = {"sfm.bend_step": (False, "the bend step was removed: on sensors whose focal plane "
+                                  "is not one straight line (every real one) it bent the structure")}
 # parameters that change how a stage runs, not what it computes: not part of a stage's hash
 # (bundle.solver: the dense and block-sparse reduced systems take the same steps to rounding,
 # not bitwise: `demo`'s cameras and points differ by ~5e-10, no decision of the SfM changes)
@@ -267,6 +266,10 @@ def config_from_dict(d: dict, *, unknown: list[str] | None = None) -> Config:
         key = LEGACY_KEYS.get(key, key)
         if key in REMOVED_KEYS:
             continue
+        if key in RETIRED_KEYS:
+            if v != RETIRED_KEYS[key][0]:
+                raise KeyError(f"{key} = {v!r} is no longer possible: {RETIRED_KEYS[key][1]}")
+            continue
         if isinstance(v, list):
             v = tuple(v)
         try:
@@ -285,10 +288,30 @@ PRESETS: dict[str, dict] = {
 }
 
 
-def preset(name: str) -> Config:
+# What runs beyond the paper's method, each switched off by --method paper: the paper's plain
+# path (tiles, SIFT, incremental affine SfM with BA per date group, SGM, H_A fitted on the GCPs
+# alone, ICP fusion, DSM), kept runnable as the baseline every accuracy figure is compared with.
+BEYOND_PAPER = {
+    "features.refine_half_px": 0,          # tie points refined by patch matching
+    "sfm.joint_groups": False,             # all date groups in one affine frame
+    "sfm.tie_sigma_px": 0.0,               # the per-image pushbroom tie
+    "sfm.correction_rounds": 0,            # the within-tile correction
+    "upgrade.metric_prior_sigma_cos": 0.0,  # the cameras' metric constraint in H_A's fit
+    "upgrade.metric_bend": False,          # the metric bend step
+    "upgrade.gcp_bend": False,             # the bend fitted to >= 9 control GCPs
+    "upgrade.reference_dem": "",           # the vertical bend from a reference DEM
+}
+METHODS: dict[str, dict] = {"default": {}, "paper": BEYOND_PAPER}
+
+
+def preset(name: str, method: str = "default") -> Config:
+    """The parameters of a preset (test or production sizes) under a method: "default" (what
+    AE-Rec runs) or "paper" (the paper's plain path, BEYOND_PAPER switched off)."""
     if name not in PRESETS:
         raise KeyError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
-    return Config().with_overrides(PRESETS[name])
+    if method not in METHODS:
+        raise KeyError(f"unknown method {method!r}; choose from {sorted(METHODS)}")
+    return Config().with_overrides(PRESETS[name]).with_overrides(METHODS[method])
 
 
 def config_to_toml(cfg: Config) -> str:

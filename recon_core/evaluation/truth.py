@@ -29,18 +29,57 @@ def intersect_rays(origins: np.ndarray, dirs: np.ndarray, pt: np.ndarray, n: int
     return affine.solve3x3(A.reshape(n, 3, 3), b)
 
 
+def has_truth_cameras(site_dir: str | Path, rpc_truth: bool = False) -> bool:
+    """The site has true cameras for evaluation: this project's generator's (truth/cameras.json)
+    or, with `rpc_truth` (a site of another simulator whose RPCs were fitted to its true
+    cameras, such as omaha_3dates: never a real product's RPC), every image's RPC."""
+    site_dir = Path(site_dir)
+    if (site_dir / "truth" / "cameras.json").exists():
+        return True
+    return rpc_truth and bool(_rpc_rays(site_dir))
+
+
+def _rpc_rays(site_dir: Path) -> dict:
+    """name -> rays function (n, 2) pixels -> (origins, unit directions) ECEF from the image's
+    RPC (two localisations at heights apart); {} unless every image has an RPC."""
+    import rasterio
+
+    from recon_core.geometry.geodesy import geodetic_to_ecef
+    from recon_core.synthetic.rpc import RPCModel
+
+    out = {}
+    for p in sorted((site_dir / "images").glob("*.tif")):
+        with rasterio.open(p) as src:
+            if src.rpcs is None:
+                return {}
+            rpc = RPCModel.from_rasterio(src.rpcs)
+
+        def rays(xy, rpc=rpc):
+            lo = geodetic_to_ecef(rpc.localize(xy, rpc.height_off - 0.5 * rpc.height_scale))
+            hi = geodetic_to_ecef(rpc.localize(xy, rpc.height_off + 0.5 * rpc.height_scale))
+            return hi, hi - lo
+        out[p.name] = rays
+    return out
+
+
 def true_points_enu(site_dir: str | Path, frame: LocalFrame, img_names: list[str], obs_img: np.ndarray,
                     obs_pt: np.ndarray, obs_xy: np.ndarray, n: int) -> np.ndarray:
-    """Triangulate observations (image index, point index, pixel) with the TRUE cameras -> ENU."""
-    from recon_core.synthetic.generator import load_truth_cameras
+    """Triangulate observations (image index, point index, pixel) with the TRUE cameras -> ENU:
+    the generator's (truth/cameras.json) or, without them, the images' RPCs (the caller has
+    checked that they are true cameras: has_truth_cameras)."""
+    site_dir = Path(site_dir)
+    if (site_dir / "truth" / "cameras.json").exists():
+        from recon_core.synthetic.generator import load_truth_cameras
 
-    cams = load_truth_cameras(site_dir)
+        rays = {name: cam.ray for name, cam in load_truth_cameras(site_dir).items()}
+    else:
+        rays = _rpc_rays(site_dir)
     O = np.zeros((len(obs_pt), 3))
     D = np.zeros((len(obs_pt), 3))
     for k, name in enumerate(img_names):
         sel = obs_img == k
         if sel.any():
-            O[sel], D[sel] = cams[name].ray(obs_xy[sel])
+            O[sel], D[sel] = rays[name](obs_xy[sel])
     # work relative to the frame origin for conditioning
     X = intersect_rays(O - frame.origin_ecef, D, obs_pt, n) + frame.origin_ecef
     return frame.ecef_to_enu(X)

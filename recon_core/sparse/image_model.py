@@ -157,7 +157,7 @@ def image_tie(cams: np.ndarray, samples: list[np.ndarray], tile_index: np.ndarra
         scale = np.sqrt(8.0 / max(len(S), 1))        # each tile weighs as 8 points
         E = Sh * scale                               # (m, 4): affine parameters -> values at S
         E_blocks.append(E)
-        G_row.append(E @ F @ row_basis(Xn, r))
+        G_row.append(E @ F @ row_basis(Xn, r, c))
         G_col.append(E @ F @ col_basis(Xn, r, c))
     rows = np.cumsum([0] + [len(E) for E in E_blocks])
     row_tile = np.repeat(np.arange(len(E_blocks)), np.diff(rows))

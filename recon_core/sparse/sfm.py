@@ -28,7 +28,8 @@ from recon_core.model.sparse_model import Observations, SparseModel, images_per_
 from recon_core.model.tiling import Tile
 from recon_core.sparse.bundle import bundle_adjust
 from recon_core.sparse.features import ImageFeatures
-from recon_core.geometry.pushbroom import (MIN_TILES_FOR_CORRECTION, correction_size, estimate_bend,
+from recon_core.geometry.pushbroom import (MAX_MODEL_MISFIT_PX, MIN_POINTS_PER_IMAGE,
+                                          MIN_TILES_FOR_CORRECTION, correction_size, model_misfit,
                                           tile_corrections)
 from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.matching import PairMatches
@@ -145,6 +146,8 @@ class IncrementalSfM:
         self._few_points: dict[str, int] = {}    # tile id -> correspondences it was registered from
         self._counts: np.ndarray | None = None     # _counts_now's
         self._correction_info: dict = {}
+        self._unexplained: set[int] = set()     # images whose model misses them (_check_image_models)
+        self._model_check: dict = {}
         self._corr_prev: np.ndarray | None = None  # the last round's fitted correction (all obs;
         #                                            NaN where it was not fitted)
 
@@ -243,24 +246,14 @@ class IncrementalSfM:
         # correction refitted to the tied structure (the last one converged to rel_tol). Only
         # with views of several dates: one pass's views (2-3, scanned alike) leave the vertical
         # warps invisible, and the correction would only move the structure along them
-        # (README, "What the views can see")
-        # Each round starts with the bend step, and the last adjustment is followed by one: the
-        # quadratic warp the views see, estimated from every image's model at once and taken out
-        # of the structure (README, "The bend step").
+        # (docs: "What the views can see"). Both stand aside for an image its model does not
+        # explain (_check_image_models).
         rounds = self.cfg.correction_rounds if self.n_dates > 1 else 0
-        bend = []
+        self._check_image_models()
         for k in range(1 + max(rounds, 1)):
             self._filter_outliers()
-            if k > 0 and rounds > 0 and self.cfg.bend_step:
-                bend.append(self._bend_step(apply=True))
             self._bundle("global", final=True, correct=k > 0 and rounds > 0,
                          converge=rounds <= 0 or k == rounds)
-        if bend:
-            # the last adjustment slides back part of the way (its minimum is flat along these
-            # warps: the tile cameras follow them); the step taken once more, after it, costs
-            # nothing in reprojection (the cameras follow: what is left is the warp's curvature
-            # over a tile, far below a pixel)
-            bend.append(self._bend_step(apply=True))
         self._emit_model()
         counts = self._correspondence_counts()
         reasons = {}
@@ -277,7 +270,7 @@ class IncrementalSfM:
                    "within_tile_correction": {"images": [m.images[i] for i in self._correction_info.get("images", [])],
                                               "rms_px": self._correction_info.get("rms_px", 0.0),
                                               "max_px": self._correction_info.get("max_px", 0.0)},
-                   "bend_steps": bend,
+                   "image_models": self._model_check,
                    "seconds": time.time() - t0}
         return m
 
@@ -529,6 +522,26 @@ class IncrementalSfM:
                 m.has_point[ids] &= cond[ids] >= self.cfg.min_triangulation_ratio * ref
                 self._cond_ref = float(ref)
 
+    # -- the image models -----------------------------------------------------------------------
+    def _check_image_models(self) -> None:
+        """Which images the pushbroom family explains (pushbroom.model_misfit, on the grown
+        structure, before any closing adjustment): the tie and the within-tile correction stand
+        aside for an image it does not (its model's own error would be read as a bend of the
+        structure and put into it); said in the report and on the console."""
+        m = self.m
+        misfit = {}
+        for i, k in m.views_per_image(min_points=MIN_POINTS_PER_IMAGE, min_tiles=MIN_TILES_FOR_CORRECTION):
+            misfit[m.images[i]] = round(model_misfit(m.X[m.obs.track[k]], m.obs.xy[k]), 4)
+        bad = sorted(name for name, v in misfit.items() if v > MAX_MODEL_MISFIT_PX)
+        self._unexplained = {m.images.index(name) for name in bad}
+        self._model_check = {"misfit_px": misfit, "max_misfit_px": MAX_MODEL_MISFIT_PX, "unexplained": bad}
+        if bad:
+            worst = max(bad, key=misfit.get)
+            self.bus.message(
+                f"group {m.group}: the pushbroom model does not explain {len(bad)} of {len(misfit)} images "
+                f"({worst}: {misfit[worst]:.2f} px > {MAX_MODEL_MISFIT_PX} px, systematic): the tie and "
+                "the within-tile correction stand aside for them", "warning", m.group)
+
     # -- bundle adjustment --------------------------------------------------------------------
     def _image_ties(self, idx: np.ndarray) -> list:
         """One pushbroom tie per image with >= 4 registered tiles (recon_core.sparse.image_model),
@@ -544,9 +557,9 @@ class IncrementalSfM:
         rng = np.random.default_rng(0)
         track_of, bounds = m.tracks_by_tile(idx)      # the points of every tile, one sort
         ties = []
-        for name in m.images:
+        for i, name in enumerate(m.images):
             tids = np.array([t for t in np.flatnonzero(m.registered) if m.tiles[t].image == name], np.int64)
-            if len(tids) < 4:
+            if len(tids) < 4 or i in self._unexplained:
                 continue
             samples = []
             for t in tids:
@@ -564,9 +577,10 @@ class IncrementalSfM:
         at every global adjustment of the growing model, the correction leaves the warps no
         view sees free to wander (README, "The within-tile correction")."""
         o = self.m.obs
+        idx = idx[~np.isin(o.img[idx], list(self._unexplained))]
         corr, info = tile_corrections(self.m.X[o.track[idx]], o.xy[idx], o.tile[idx], o.img[idx])
         fitted = corr.copy()
-        w = 0.0 if self.cfg.bend_step else self.cfg.correction_extrapolation
+        w = self.cfg.correction_extrapolation
         if w and self._corr_prev is not None:
             # one step further along the change since the last round, for the observations
             # fitted both times (README, "Extrapolated rounds")
@@ -604,54 +618,6 @@ class IncrementalSfM:
             return (f"{lost} of its tracks are seen by registered tiles of other images but have no 3D point "
                     "(dropped: views too close in angle, sfm.min_triangulation_ratio, or a poor reprojection)")
         return "too little overlap with the registered tiles, or too little texture"
-
-    def _bend_step(self, apply: bool) -> dict:
-        """The bend step (recon_core.geometry.pushbroom, "the bend step"): the visible quadratic
-        warp of the structure, estimated from every image's observations (each point once per
-        image, images with enough tiles to fit their model) and, when `apply`, taken out: the
-        points move by it and each registered tile camera follows its local linear part, so
-        that the cameras still see the points where they did. Returns the estimate's summary."""
-        m = self.m
-        pts, images = m.point_views(min_tiles=MIN_TILES_FOR_CORRECTION)
-        if len(images) < 2:
-            return {"images": len(images), "applied": False}
-        warp, info = estimate_bend(m.X[pts], images)
-        info = {"applied": bool(apply and info["warps_seen"] > 0), **info}
-        if not info["applied"]:
-            return info
-        # each registered tile camera follows the warp at its points' centre (a tile without
-        # active observations: at the structure's centre)
-        reg = np.flatnonzero(m.registered)
-        held = m.cams[m.fixed].copy()
-        m.cams[reg] = warp.follow(m.cams[reg], m.tile_centres()[reg])
-        m.X[pts] += warp(m.X[pts])
-        self._restore_gauge(held)
-        self.bus.message(f"group {m.group}: bend step: {info['warps_seen']} of 9 quadratic warps seen, "
-                         f"the structure unbent by {info['warp_rms_px']:.2f} px RMS", "info", m.group)
-        return info
-
-    def _restore_gauge(self, held: np.ndarray) -> None:
-        """Put the held camera entries (m.fixed: the initial pair's canonical frame) back to their
-        values `held` after the bend step moved them, by one 3D affine change of frame of every
-        camera and point (the structure's shape is unchanged: only its affine frame). The gauge
-        holds whole rows (2 of the first tile, 1 of the second): 12 numbers, one affine map."""
-        m = self.m
-        rows = np.argwhere(m.fixed.all(axis=2))                # (t, row) fully held
-        if len(rows) != 3:
-            return
-        new = m.cams[rows[:, 0], rows[:, 1]]                    # (3, 4)
-        old = held.reshape(-1, 4) if held.size == 12 else None
-        if old is None:
-            return
-        R = new[:, :3]
-        if abs(np.linalg.det(R)) < 1e-12 * max(np.abs(R).max(), 1e-300) ** 3:
-            return
-        # x = row . [X, 1]; with X = M X' + t the rows become [row[:3] M, row[:3] t + row[3]]
-        M = np.linalg.solve(R, old[:, :3])
-        t = np.linalg.solve(R, old[:, 3] - new[:, 3])
-        m.cams[:, :, :3], m.cams[:, :, 3] = m.cams[:, :, :3] @ M, m.cams[:, :, :3] @ t + m.cams[:, :, 3]
-        pts = m.point_ids()
-        m.X[pts] = (m.X[pts] - t) @ np.linalg.inv(M).T
 
     def _bundle(self, scope: str, around: int | None = None, final: bool = False,
                 correct: bool = False, converge: bool | None = None) -> None:

@@ -86,6 +86,7 @@ class SynthPreset:
         grid (finer sampling = tighter bounds = faster rendering, slower set-up).
     n_gcps: number of GCPs. block_rows: rows rendered per block.
     drift: scale of the attitude drift (1 = a few microradians over a 0.8 s acquisition).
+    bow_px, distortion_px: a focal plane that is not one straight, undistorted line (0: it is).
     scene: overrides of the procedural scene (scene_model.scene_params: park, open, tall, terrain).
     """
 
@@ -108,6 +109,9 @@ class SynthPreset:
     drift: float = 1.0
     year: int = 2021
     scene: tuple[tuple[str, float], ...] = ()   # scene_model.scene_params overrides
+    bow_px: float = 0.0           # focal plane (PushbroomCamera): each image's line bowed by
+    distortion_px: float = 0.0    # 0.5-1 times this many rows at its ends, its across-track
+                                  # distortion 0.5-1 times this many columns (either sign)
 
     @property
     def n_images(self) -> int:
@@ -122,6 +126,12 @@ PRESETS: dict[str, SynthPreset] = {
                          n_gcps=12, block_rows=64),
     "demo": SynthPreset(name="demo", groups=(3, 3), group_months=(3, 8),
                         image_size=(2000, 2000), n_gcps=16),
+    # sensors as real ones are, and as an independent simulator makes them (omaha_3dates): a
+    # bowed, distorted focal plane and an attitude drift of pixels; `tiny2`'s and `demo`'s layouts
+    "tiny2fp": SynthPreset(name="tiny2fp", groups=(2, 2), group_months=(4, 9), image_size=(400, 400),
+                           n_gcps=12, block_rows=64, bow_px=1.0, distortion_px=3.0, drift=10.0),
+    "demofp": SynthPreset(name="demofp", groups=(3, 3), group_months=(3, 8), image_size=(2000, 2000),
+                          n_gcps=16, bow_px=1.0, distortion_px=3.0, drift=10.0),
     # the viewer's first demo: `demo`'s layout on 1200 px images rendered with one ray per
     # pixel (11x fewer rays): generated in seconds, first points within a minute
     "quick": SynthPreset(name="quick", groups=(3, 3), group_months=(3, 8),
@@ -248,7 +258,11 @@ class PushbroomCamera:
       (columns to the right, rows forward in time: the image is not mirrored), then rotated by
       the attitude perturbation exp([w(tau)]x) (camera frame), w = drift polynomial
       sum_n drift[:, n] tau^n plus jitter sinusoids (axis, amplitude rad, frequency Hz, phase).
-    * Column c looks along R(tau) @ normalize([(c - c0) * ifov, 0, 1]), c0 = (width - 1) / 2.
+    * Column c looks along R(tau) @ normalize([(c - c0) * ifov, 0, 1]), c0 = (width - 1) / 2,
+      for a straight, undistorted line array. A real focal plane is neither (``bow_px``,
+      ``distortion_px``, both 0 by default): with n = (c - c0) / c0 the detector of column c
+      sits at [(c - c0 + distortion_px * n^3) * ifov, bow_px * n^2 * ifov, 1] (across-track
+      distortion, cubic, and a bowed line, its ends bow_px rows off its centre).
     """
 
     name: str
@@ -266,6 +280,8 @@ class PushbroomCamera:
     drift: np.ndarray = field(default_factory=lambda: np.zeros((3, 4)))
     jitter: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     earth_rate: float = OMEGA_EARTH
+    bow_px: float = 0.0
+    distortion_px: float = 0.0
 
     def __post_init__(self):
         for k in ("s0", "v0", "target0", "scan_dir"):
@@ -325,6 +341,26 @@ class PushbroomCamera:
         S, R = self.rotation(rows)
         return np.einsum("nji,nj->ni", R, X - S)
 
+    @property
+    def straight(self) -> bool:
+        return self.bow_px == 0.0 and self.distortion_px == 0.0
+
+    def detector(self, cols: np.ndarray) -> np.ndarray:
+        """(n, 3) the focal-plane direction [x, y, 1] of columns cols (n,) (class docstring)."""
+        cols = np.asarray(cols, dtype=np.float64)
+        n = (cols - self.c0) / max(self.c0, 1.0)
+        return np.stack([(cols - self.c0 + self.distortion_px * n ** 3) * self.ifov,
+                         self.bow_px * n ** 2 * self.ifov, np.ones_like(cols)], axis=-1)
+
+    def _column_of(self, x: np.ndarray) -> np.ndarray:
+        """The column whose detector has focal-plane x (n,) (Newton on the cubic)."""
+        c = self.c0 + x / self.ifov
+        for _ in range(8):
+            n = (c - self.c0) / max(self.c0, 1.0)
+            f = c - self.c0 + self.distortion_px * n ** 3 - x / self.ifov
+            c = c - f / (1.0 + 3.0 * self.distortion_px * n ** 2 / max(self.c0, 1.0))
+        return c
+
     # ---- projection and rays
     def project_ecef(self, X: np.ndarray, tol: float = 1e-9, max_iter: int = 30) -> np.ndarray:
         """ECEF points (n, 3) -> (n, 2) (col, row): secant solve of camera y = 0 for the row."""
@@ -348,7 +384,33 @@ class PushbroomCamera:
             if not act.any():
                 break
         col = self.c0 + (q1[:, 0] / q1[:, 2]) / self.ifov
+        if not self.straight:
+            col, r1 = self._project_focal_plane(X, col, r1, tol, max_iter)
         return np.stack([col, r1], axis=-1)
+
+    def _project_focal_plane(self, X, col, row, tol, max_iter):
+        """Projection onto a bowed, distorted line (class docstring), from the straight line's
+        solution (col, row): the row where the point crosses the detector of the column it is
+        seen at, f(r) = y / z - bow(col(x / z)) = 0, by secant."""
+        def f(Xa, r):
+            q = self._cam(Xa, r)
+            c = self._column_of(q[:, 0] / q[:, 2])
+            return q[:, 1] / q[:, 2] - self.detector(c)[:, 1], c
+
+        r0, r1 = row.copy(), row + 1.0
+        (f0, _), (f1, c1) = f(X, r0), f(X, r1)
+        act = np.ones(len(X), bool)
+        for _ in range(max_iter):
+            den = f1[act] - f0[act]
+            ok = np.abs(den) > 0
+            step = np.where(ok, f1[act] * (r1[act] - r0[act]) / np.where(ok, den, 1.0), 0.0)
+            r0[act], f0[act] = r1[act], f1[act]
+            r1[act] = r1[act] - step
+            f1[act], c1[act] = f(X[act], r1[act])
+            act[act] = np.abs(step) > tol          # a point stops once converged (round-off
+            if not act.any():                      # would make its secant wander)
+                break
+        return c1, r1
 
     def project(self, llh: np.ndarray) -> np.ndarray:
         """(n, 3) lon, lat, ellipsoidal h -> (n, 2) col, row (pixel-centre convention)."""
@@ -358,17 +420,14 @@ class PushbroomCamera:
         """(n, 2) col, row -> (origin (n, 3) ECEF, unit direction (n, 3) ECEF)."""
         colrow = np.atleast_2d(np.asarray(colrow, dtype=np.float64))
         S, R = self.rotation(colrow[:, 1])
-        d = np.stack([(colrow[:, 0] - self.c0) * self.ifov, np.zeros(len(colrow)),
-                      np.ones(len(colrow))], axis=-1)
-        d = _unit(d)
+        d = _unit(self.detector(colrow[:, 0]))
         return S, np.einsum("nij,nj->ni", R, d)
 
     def rays_grid(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rays of a (rows x cols) grid: origins (m, 3), directions (m, k, 3)."""
         S, R = self.rotation(np.asarray(rows, dtype=np.float64))
         cols = np.asarray(cols, dtype=np.float64)
-        d = _unit(np.stack([(cols - self.c0) * self.ifov, np.zeros(len(cols)),
-                            np.ones(len(cols))], axis=-1))
+        d = _unit(self.detector(cols))
         return S, np.einsum("mij,kj->mki", R, d)
 
     def localize(self, colrow: np.ndarray, h: np.ndarray | float) -> np.ndarray:
@@ -592,11 +651,17 @@ def make_camera(acq: Acquisition, scene: SceneModel, preset: SynthPreset,
                            rng.uniform(0, 2 * np.pi)])
     h = acq.size[1]
     t_mid = acq.when
+    fp = {}
+    if preset.bow_px or preset.distortion_px:
+        # its own stream: the other draws, and every preset without a focal plane, unchanged
+        frng = np.random.default_rng([int(acq.when.timestamp()), int(acq.off_nadir * 1000), 5011])
+        fp = {k: float(v * frng.uniform(0.5, 1.0) * frng.choice([-1.0, 1.0]))
+              for k, v in (("bow_px", preset.bow_px), ("distortion_px", preset.distortion_px))}
     return PushbroomCamera(name=acq.name, width=acq.size[0], height=h,
                            t_mid=t_mid.strftime("%Y-%m-%dT%H:%M:%SZ"), line_period=line_period,
                            ifov=ifov, orbit_radius=rs, s0=S0, v0=v0, target0=G0,
                            scan_dir=scan, gsd_row=preset.gsd, drift=drift,
-                           jitter=np.array(jitter))
+                           jitter=np.array(jitter), **fp)
 
 
 def design_cameras(preset: str | SynthPreset = "tiny", seed: int = 0

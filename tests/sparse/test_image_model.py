@@ -46,7 +46,7 @@ def _model_function(samples, theta_r, theta_c):
         r, c = (uv[:, 1] - p0[1]) / ps, (uv[:, 0] - p0[0]) / ps
         Xn = (S - x0) / xs
         return np.column_stack([uv[:, 0] + col_basis(Xn, r, c) @ theta_c,
-                                uv[:, 1] + row_basis(Xn, r) @ theta_r])
+                                uv[:, 1] + row_basis(Xn, r, c) @ theta_r])
     return fn
 
 
@@ -58,8 +58,10 @@ def _tie_rms(cams, samples):
 def test_tie_is_free_inside_the_pushbroom_family_and_costs_outside():
     rng = np.random.default_rng(0)
     samples = _tiles(rng)
-    theta_r = np.r_[np.zeros(4), 0.8, -0.5, 0.3, 0.6]          # view plane turning, pitch drift
-    theta_c = np.r_[np.zeros(4), 0.4, 0.7, -0.2, 0.9, -0.5]    # 1D perspective, roll drift
+    # view plane turning, pitch drift; the focal plane: a bowed line (c^2, c^3), yaw drift (r^2 c)
+    theta_r = np.r_[np.zeros(4), 0.8, -0.5, 0.3, 0.6, 0.3, -0.2, 0.1]
+    # 1D perspective, roll drift; the focal plane: across-track distortion (c^3), scale drift (r^2 c)
+    theta_c = np.r_[np.zeros(4), 0.4, 0.7, -0.2, 0.9, -0.5, 0.25, -0.15]
     inside = _affine_fits(_model_function(samples, theta_r, theta_c), samples)
     free = _tie_rms(inside, samples)
     # (not exactly 0: the tie normalises r, c by the image's own mean camera, which the second-
@@ -75,7 +77,9 @@ def test_tie_is_free_inside_the_pushbroom_family_and_costs_outside():
         Z[:, 2] += k * ((S[:, 0] - 1500) ** 2 + (S[:, 1] - 1500) ** 2)
         return np.hstack([Z, np.ones((len(S), 1))]) @ P.T
     bent = _affine_fits(domed, samples)
-    assert _tie_rms(bent, samples) > 50 * free
+    # (one image: the bowed line's c^2 in the row takes the dome's across-track part; what
+    # several views' directions still see of it is warp_observability's)
+    assert _tie_rms(bent, samples) > 10 * free
 
 
 def test_tie_follows_the_affine_gauge():
@@ -83,8 +87,8 @@ def test_tie_follows_the_affine_gauge():
     unchanged: the model's family is closed under affine maps."""
     rng = np.random.default_rng(1)
     samples = _tiles(rng, n_side=3)
-    fn = _model_function(samples, np.r_[np.zeros(4), 0.5, 0.2, -0.4, 0.3],
-                         np.r_[np.zeros(4), -0.3, 0.5, 0.1, 0.4, 0.2])
+    fn = _model_function(samples, np.r_[np.zeros(4), 0.5, 0.2, -0.4, 0.3, 0.2, -0.1, 0.05],
+                         np.r_[np.zeros(4), -0.3, 0.5, 0.1, 0.4, 0.2, 0.1, -0.05])
     cams = _affine_fits(fn, samples) + rng.normal(0, 1e-3, (len(samples), 2, 4))
     G = np.eye(4)
     G[:3, :3] += rng.normal(0, 0.2, (3, 3))
@@ -103,8 +107,8 @@ def test_bundle_adjustment_honours_the_tie():
     the reported cost includes the penalty."""
     rng = np.random.default_rng(2)
     samples = _tiles(rng, n_side=3, pts=40)
-    fn = _model_function(samples, np.r_[np.zeros(4), 0.5, 0.2, -0.4, 0.3],
-                         np.r_[np.zeros(4), -0.3, 0.5, 0.1, 0.4, 0.2])
+    fn = _model_function(samples, np.r_[np.zeros(4), 0.5, 0.2, -0.4, 0.3, 0.2, -0.1, 0.05],
+                         np.r_[np.zeros(4), -0.3, 0.5, 0.1, 0.4, 0.2, 0.1, -0.05])
     X = np.concatenate(samples)
     oc = np.repeat(np.arange(len(samples)), [len(s) for s in samples])
     op = np.arange(len(X))
@@ -144,7 +148,7 @@ def test_the_factored_tie_is_the_projection_penalty():
             Sh = np.hstack([S, np.ones((len(S), 1))])
             uv = Sh @ mean_cam.T
             r, c = (uv[:, 1] - p0[1]) / ps, (uv[:, 0] - p0[0]) / ps
-            B = col_basis((S - x0) / xs, r, c) if coord == 0 else row_basis((S - x0) / xs, r)
+            B = col_basis((S - x0) / xs, r, c) if coord == 0 else row_basis((S - x0) / xs, r, c)
             E = Sh * np.sqrt(8.0 / len(S))
             Ds.append(E)
             Gs.append(E @ np.linalg.pinv(Sh) @ B)

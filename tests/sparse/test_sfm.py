@@ -78,7 +78,7 @@ def test_extrapolated_correction_rounds(tiny_site, tmp_path, monkeypatch):
     monkeypatch.setattr(sfm_mod, "tile_corrections", spy)
     monkeypatch.setattr(sfm_class, "_refresh_corrections", refresh)
     cfg = preset("tiny")
-    cfg.sfm.correction_rounds, cfg.sfm.correction_extrapolation, cfg.sfm.bend_step = 2, 1.0, False
+    cfg.sfm.correction_rounds, cfg.sfm.correction_extrapolation = 2, 1.0
     state = run(tiny_site, tmp_path / "out", cfg, until="sparse", resume=False)
     m = state.models[0]
     assert len(fits) == len(rounds) == 2       # one fit per correction round
@@ -322,37 +322,6 @@ def test_correspondence_counts_kept_up_to_date_equal_a_full_count(tiny_site, tmp
     for g in state.models:
         a, b = state.models[g], ref.models[g]
         assert np.array_equal(a.registered, b.registered) and np.array_equal(a.X, b.X)
-
-
-def test_bend_step_in_the_closing_rounds(tiny_site, tmp_path, monkeypatch):
-    """With views of several dates, the correction round starts with the bend step: its summary
-    is in the model's stats (estimated and applied, before the round and once more after its
-    adjustment), the structure still equals the truth up to one affine map, and the tile cameras
-    followed the warp (the reprojection error stays at the noise level). `tiny`'s one date
-    stands in for several; its 3 views of one pass see few of the warps."""
-    from recon_core.sparse import stage
-
-    sfm_class = stage.IncrementalSfM
-    monkeypatch.setattr(stage, "IncrementalSfM", lambda *a, **k: sfm_class(*a, **{**k, "n_dates": 2}))
-    held, real_step = [], sfm_class._bend_step
-
-    def spy(self, apply):
-        held.append(self.m.cams[self.m.fixed].copy())
-        return real_step(self, apply)
-
-    monkeypatch.setattr(sfm_class, "_bend_step", spy)
-    state = run(tiny_site, tmp_path / "out", preset("tiny"), until="sparse", resume=False)
-    m = state.models[0]
-    # the gauge (the initial pair's canonical frame) is where it was before the steps
-    assert len(held) == 2 and m.fixed.sum() == 12
-    np.testing.assert_allclose(m.cams[m.fixed], held[0], atol=1e-9)
-    steps = m.stats["bend_steps"]
-    assert len(steps) == 2 and all(st["applied"] for st in steps)
-    assert steps[0]["images"] == len(m.images) and 0 < steps[0]["warps_seen"] < 9
-    assert steps[1]["warp_rms_px"] < max(steps[0]["warp_rms_px"], 0.05)
-    assert m.stats["mean_reproj_px"] < 0.5
-    r = sparse_vs_truth(tiny_site, m, frame_for(state.gcps))
-    assert r["rms_m"] < 0.5, r
 
 
 def test_an_unregistered_tile_says_why_it_has_too_few_correspondences():

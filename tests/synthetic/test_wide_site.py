@@ -77,45 +77,25 @@ def test_within_tile_correction_is_zero_for_affine_data():
     assert info["images"] == [] and not corr.any()
 
 
-def test_per_image_tie_holds_a_nine_view_wide_site():
-    """What the pipeline's joint reconstruction of the date groups relies on: with the `large`
-    preset's nine views (three dates) in one adjustment, the per-image pushbroom tie halves
-    the structure's departure from the truth; without it, the bend stays (README, "Scale")."""
-    site = make_wide_site("large", 0, n_points=6000, noise_px=0.1, d=2000)
-    base = site.adjust(site.best_tile_cameras(site.X_true), site.X_true, max_nfev=50)
-    untied = structure_vs_truth(base.X, site.X_true)
-    w = (max(base.rms_px / np.sqrt(2), 0.02) / 0.01) ** 2
-    res = site.adjust(base.cams, base.X, ties=image_ties(site, base.cams, base.X, w), max_nfev=20)
-    tied = structure_vs_truth(res.X, site.X_true)
-    assert untied["rms_m"] > 0.9 and untied["quadratic_range_m"] > 3.5
-    assert tied["rms_m"] < 0.65 and tied["quadratic_range_m"] < 2.8
-    assert res.rms_px < 1.2 * base.rms_px                # the tie costs the data almost nothing
-
-
-def test_what_three_views_of_one_kind_cannot_see():
-    """The pushbroom model's ambiguity, worked out (README, "What the views can see"): with
-    the `flat` preset's 3 views, 6 of the 9 quadratic warps of the structure move the images
-    by less than a thousandth of a pixel per metre once each image's model re-fits, and the
-    weakest are mostly vertical: a dome that no adjustment can find and 4 GCPs do not fix.
-    With `large`'s 9 views of three dates the vertical warps are seen (the weakest at ~0.01 px
-    per metre); what stays free is horizontal: the two warps of a plane's projective map."""
+def test_what_the_views_can_see_of_a_bend():
+    """The image model's ambiguity, worked out (docs: "The image model and the bend"): a
+    quadratic warp of the structure moves each image's pixels; what its model re-fits is
+    invisible. With models that cover a real focal plane (a bowed line's c^2 in the row), no
+    warp moves the pixels of `flat`'s 3 views or of `large`'s 9 views of three dates by more
+    than 3 thousandths of a pixel per metre: a dome or a saddle cannot be read from the images
+    through their models, only held by what is known outside them (GCPs, a reference DEM).
+    Once H_A gives metres and each image's 1D perspective is known by physics (its depth term
+    fixed), 3 of `flat`'s warps are seen, none of them vertical."""
     site = make_wide_site("flat", 0, n_points=6000, noise_px=0.0, d=1000)
-    flat = observability(site)
-    s = np.array(flat["singular_px_per_m"])
-    vertical = np.linalg.norm(flat["warps"][:, 6:], axis=1)       # u components of each warp
-    assert np.sum(s < 1e-3) == 6 and s[2] > 0.05
-    assert vertical[-1] > 0.8 and vertical[-2] > 0.8
-    # the 1D perspective's depth term fixed by physics (known only after an upgrade) still
-    # leaves 3 warps invisible, the weakest vertical: 3 such views cannot pin a dome
+    s = np.array(observability(site)["singular_px_per_m"])
+    assert s.max() < 2e-3
     phys = observability(site, altitude_m=660e3)
     sp = np.array(phys["singular_px_per_m"])
-    assert np.sum(sp < 1e-3) == 3 and sp[5] > 0.02
-    assert np.linalg.norm(phys["warps"][-1, 6:]) > 0.9
+    assert np.sum(sp > 0.05) == 3 and sp[3] < 2e-3
+    assert np.all(np.linalg.norm(phys["warps"][:3, 6:], axis=1) < 0.4)        # seen: horizontal
+    assert np.all(np.linalg.norm(phys["warps"][-3:, 6:], axis=1) > 0.9)       # unseen: vertical
     large = observability(make_wide_site("large", 0, n_points=6000, noise_px=0.0, d=2000))
-    s9 = np.array(large["singular_px_per_m"])
-    v9 = np.linalg.norm(large["warps"][:, 6:], axis=1)
-    assert np.sum(s9 < 2e-3) == 2 and np.all(v9[-2:] < 0.1)      # horizontal only
-    assert s9[-3] > 4e-3 and s9[-3] > 10 * s[-3]
+    assert np.max(large["singular_px_per_m"]) < 3e-3
 
 
 @pytest.fixture(scope="module")
@@ -132,12 +112,14 @@ def _domed(X, e_m: float = 0.5, n_m: float = 0.25, en_m: float = -0.3):
     return out
 
 
-def test_bend_step_finds_a_dome_in_any_affine_frame(large_views):
-    """The bend step (pushbroom.estimate_bend) against the truth: `large`'s 9 views, the true
-    structure domed by 0.9 m peak to peak, then put in an arbitrary affine frame (the SfM's
-    frame is one). The warp found unbends it to within 0.15 m peak to peak of the truth (the
-    models' own error and the pixel noise), the same in a metric and in an affine frame (the
-    shares are frame-invariant), and the horizontal projective pair is not estimated."""
+def test_a_bend_is_what_a_bowed_focal_plane_looks_like(large_views):
+    """Why the bend step was removed (docs: "The image model and the bend"): `large`'s 9 views,
+    the true structure domed by 0.9 m peak to peak and put in an arbitrary affine frame. Through
+    image models that cover a real focal plane (a bowed line: the row's c^2), no warp of the
+    structure moves the pixels beyond what each image's model re-fits: every share is below
+    0.01 (before the focal-plane terms the weakest of 7 seen was 0.027), so nothing can tell a
+    dome from the sensors' own bows, and estimate_bend leaves the structure as it is. The
+    shares are the same in a metric and in an affine frame."""
     from recon_core.geometry.pushbroom import estimate_bend
 
     site = large_views
@@ -151,22 +133,10 @@ def test_bend_step_finds_a_dome_in_any_affine_frame(large_views):
     for F, shift in ((np.eye(3), 0.0), (A, np.array([40.0, -300.0, 7.0]))):
         Xf = bent @ F.T + shift
         warp, info = estimate_bend(Xf, site.views_per_image())
-        s = structure_vs_truth(Xf + warp(Xf), Xt)
-        assert s["quadratic_range_m"] < 0.15, s
-        assert info["warps_seen"] == 7
+        assert info["warps_seen"] == 0 and max(info["warp_shares"]) < 0.01
+        assert np.abs(warp(Xf)).max() == 0.0
         shares.append(info["warp_shares"])
     np.testing.assert_allclose(shares[0], shares[1], rtol=1e-6, atol=1e-9)
-    assert shares[0][6] > 0.02 > 5 * shares[0][7]       # the weakest seen, far from the pair
-    # an image with too few points (its model and mean camera underdetermined) is left out,
-    # not allowed to skew the frame's whitening
-    views = site.views_per_image()
-    few = (views[0][0][:3], views[0][1][:3] + [5000.0, 0.0])
-    warp, info = estimate_bend(bent, views + [few])
-    assert info["images"] == len(views) and info["warps_seen"] == 7
-    assert structure_vs_truth(bent + warp(bent), Xt)["quadratic_range_m"] < 0.15
-    # the truth itself is left nearly alone: what is found there is the models' error and noise
-    warp, info = estimate_bend(Xt, site.views_per_image())
-    assert structure_vs_truth(Xt + warp(Xt), Xt)["quadratic_range_m"] < 0.15
 
 
 def test_bend_step_read_by_chunks_is_the_same_estimate(large_views):
@@ -180,10 +150,11 @@ def test_bend_step_read_by_chunks_is_the_same_estimate(large_views):
     assert max(len(p) for p, _ in views) > 5 * 997
     flat = site.X_true.copy()
     flat[:, 2] = 0.0
-    for X in (_domed(site.X_true), flat):
-        one, i1 = estimate_bend(X, views, chunk=10 ** 7)
-        many, i2 = estimate_bend(X, views, chunk=997)
-        assert i1["warps_seen"] == i2["warps_seen"] > 0
+    for X, seen in ((_domed(site.X_true), 9), (flat, 0)):
+        # (a low min_share: every warp the views see at all is estimated, however weakly)
+        one, i1 = estimate_bend(X, views, chunk=10 ** 7, min_share=1e-4)
+        many, i2 = estimate_bend(X, views, chunk=997, min_share=1e-4)
+        assert i1["warps_seen"] == i2["warps_seen"] and (i1["warps_seen"] > 0) == (seen > 0)
         np.testing.assert_allclose(many(X), one(X), atol=1e-9 * np.abs(one(X)).max())
         np.testing.assert_allclose(i2["warp_shares"], i1["warp_shares"], rtol=1e-6, atol=1e-7)
         assert abs(i2["residual_rms_px"] - i1["residual_rms_px"]) < 1e-9
