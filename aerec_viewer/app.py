@@ -111,6 +111,24 @@ def label_offset(r: float, on_plane: bool) -> np.ndarray:
     return np.array([r, r, 0.0]) if on_plane else np.array([r, 0.0, r])
 
 
+class _OneLine(logging.Filter):
+    """A client's malformed handshake or frame is the client's problem: one line on the console,
+    not a traceback (the server goes on either way)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and record.exc_info[1] is not None:
+            record.msg = f"{record.getMessage()}: {type(record.exc_info[1]).__name__}: {record.exc_info[1]}"
+            record.args, record.exc_info, record.exc_text = (), None, None
+        return True
+
+
+def quiet_protocol_errors() -> None:
+    for name in ("websockets.server", "websockets.asyncio.server", "websockets.protocol"):
+        lg = logging.getLogger(name)
+        if not any(isinstance(f, _OneLine) for f in lg.filters):
+            lg.addFilter(_OneLine())
+
+
 class ViewerApp:
     """The AE-Rec viewer around one reconstruction.
 
@@ -208,6 +226,7 @@ class ViewerApp:
         return f"http://{host}:{self.port}"
 
     def start(self) -> "ViewerApp":
+        quiet_protocol_errors()
         # warm the shared tone curve (reads every image's overview) before the first tiles
         threading.Thread(target=lambda: self.images.tone, name="aerec-tone", daemon=True).start()
         self.worker.start()

@@ -239,6 +239,7 @@ def cmd_view(args) -> int:
 
     from .app import ViewerApp
 
+    check_view_options(args)
     prep = None
     demo_preset()                             # an unknown AEREC_DEMO_PRESET: one line, now
     if args.target is None and args.site is None and not demo_cached():
@@ -288,6 +289,29 @@ def cmd_view(args) -> int:
     finally:
         app.stop()
     return 0
+
+
+def check_view_options(args) -> None:
+    """The viewer's options, before anything starts: one line naming the option (a port out of
+    range, a tile size or preset the pipeline refuses, an output folder that is a file)."""
+    from recon_core.config import PRESETS, preset
+    from recon_core.errors import InputError
+    from recon_core.pipeline import check_config
+
+    if not 0 <= args.port <= 65535:
+        raise InputError(None, f"--port {args.port}: a port is 0-65535 (0: any free one)")
+    if args.preset is not None and args.preset not in PRESETS:
+        raise InputError(None, f"--preset {args.preset!r}: choose one of {', '.join(sorted(PRESETS))}")
+    if args.tile_size is not None:
+        try:
+            check_config(preset(args.preset or "default").with_overrides({"tiling.tile_size": args.tile_size}))
+        except InputError as exc:
+            raise InputError(None, f"--tile-size {args.tile_size}: {exc.problem.split(': ', 1)[-1]}") from None
+    for opt, path in (("--out", args.out), ("--site", args.site)):
+        if path is not None and path.exists() and not path.is_dir():
+            raise InputError(path, f"{opt} names a file; it must be a folder")
+    if args.target is not None and not args.target.exists():
+        raise InputError(args.target, "no such site or output folder")
 
 
 def register(subparsers) -> None:

@@ -125,6 +125,7 @@ def cmd_run(args) -> int:
     from recon_core.config import METHODS, PRESETS, preset
     from recon_core.errors import InputError
     from recon_core.events import EventBus, Message
+    from recon_core.io.lock import out_lock
     from recon_core.pipeline import check_config, preflight, run
 
     if args.preset not in PRESETS:
@@ -170,12 +171,14 @@ def cmd_run(args) -> int:
     prog = ProgressPrinter(not args.quiet)
     for w in preflight(args.site, args.out, cfg, until=args.stage, redo_from=args.redo_from):
         prog(Message("warning", w))
-    t0 = time.time()
-    try:
-        state = run(args.site, args.out, cfg, until=args.stage, bus=EventBus(prog), resume=not args.restart,
-                    redo_from=args.redo_from)
-    finally:
-        prog.close()
+    # one job per output folder (recon_core.io.lock): another one is refused before any compute
+    with out_lock(args.out, wait=args.wait, on_wait=lambda text: print(f"aerec: {text}", file=sys.stderr)):
+        t0 = time.time()
+        try:
+            state = run(args.site, args.out, cfg, until=args.stage, bus=EventBus(prog),
+                        resume=not args.restart, redo_from=args.redo_from)
+        finally:
+            prog.close()
     print_summary(state.report)
     print(f"done in {time.time() - t0:.1f} s; outputs in {args.out} (report.json)")
     return 0
@@ -349,6 +352,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="send dense tile-pair work to a Dask distributed scheduler (tcp://host:8786)")
     s.add_argument("--restart", action="store_true", help="ignore finished stages and recompute")
+    s.add_argument("--wait", action="store_true",
+                   help="another job using the output folder: wait for it to end instead of refusing")
     s.add_argument("--redo-from", default=None, metavar="STAGE",
                    help="recompute this stage and the later ones (sparse, dense, upgrade, dsm, eval)")
     s.add_argument("--quiet", action="store_true", help="no progress bars")

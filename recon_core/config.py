@@ -5,75 +5,136 @@ Named presets (`PRESETS`) tune them for test-size and production-size inputs.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Any
+
+
+# -- the schema: every field's type (its annotation) and its rule, checked in one pass ---------
+@dataclass(frozen=True)
+class Rule:
+    """What a field's value may be, besides its type: a range (numbers, each element of a
+    tuple; finite always), a choice among names (a tuple, or a key of CHOICES whose names come
+    from the module that owns them), odd."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple | str | None = None
+    odd: bool = False
+
+    def problem(self, v: Any) -> str | None:
+        """Why v breaks the rule (None: it does not)."""
+        if v is None or isinstance(v, bool):
+            return None
+        if self.choices is not None:
+            names = _choices(self.choices)
+            return None if v in names else "choose one of " + ", ".join(map(str, names))
+        for x in (v if isinstance(v, (tuple, list)) else (v,)):
+            if isinstance(x, str):
+                continue
+            if not math.isfinite(x):
+                return "must be a finite number"
+            if self.lo is not None and (x < self.lo or (self.lo_open and x == self.lo)):
+                return f"must be {'>' if self.lo_open else '>='} {self.lo:g}" + (
+                    f" and {'<' if self.hi_open else '<='} {self.hi:g}" if self.hi is not None else "")
+            if self.hi is not None and (x > self.hi or (self.hi_open and x == self.hi)):
+                return f"must be {'<' if self.hi_open else '<='} {self.hi:g}"
+            if self.odd and int(x) % 2 == 0:
+                return "must be odd"
+        return None
+
+
+def _choices(key) -> tuple:
+    if not isinstance(key, str):
+        return tuple(key)
+    if key == "dense.matchers":
+        from recon_core.dense.matchers import MATCHERS
+        return tuple(sorted(MATCHERS))
+    if key == "bundle.losses":
+        from recon_core.sparse.bundle import LOSSES
+        return tuple(LOSSES)
+    if key == "bundle.solvers":
+        from recon_core.sparse.bundle import SOLVERS
+        return tuple(SOLVERS)
+    if key == "dsm.stats":
+        from recon_core.euclidean.dsm import STATS
+        return tuple(STATS)
+    raise KeyError(key)
+
+
+def _p(default, **rule):
+    """A parameter: its default and its Rule (the schema lives beside each field)."""
+    return field(default=default, metadata={"rule": Rule(**rule)})
 
 
 @dataclass
 class GroupingConfig:
-    max_gap_days: float = 15.0        # images closer in time than this share a date group
-    max_span_days: float | None = 30.0  # cap on a chained group's total span (None = no cap)
+    max_gap_days: float = _p(15.0, lo=0, lo_open=True, hi=3660)  # images closer in time than this share a date group
+    max_span_days: float | None = _p(30.0, lo=0, lo_open=True, hi=36600)  # cap on a chained group's total span (None = no cap)
 
 
 @dataclass
 class TilingConfig:
-    tile_size: int = 1000             # d: tile side in pixels (pushbroom ~ affine on a tile)
-    overlap: int | None = None        # overlap between neighbouring tiles; None = d // 3
+    tile_size: int = _p(1000, lo=64, hi=20000)  # d: tile side in pixels (pushbroom ~ affine on a tile)
+    overlap: int | None = _p(None, lo=0)  # overlap between neighbouring tiles; None = d // 3
 
 
 @dataclass
 class FeatureConfig:
-    max_features_per_mpx: int = 30000  # SIFT keypoints kept per megapixel (strongest first)
-    contrast_threshold: float = 0.01  # SIFT contrast threshold on the 8-bit detection image
-    detect_block: int = 2048          # images are read by window of this many pixels
-    stretch_percentiles: tuple[float, float] = (0.5, 99.5)  # uint16 -> 8-bit robust stretch
-    refine_half_px: int = 7           # tie points refined by least-squares patch matching on
+    max_features_per_mpx: int = _p(30000, lo=100, hi=1_000_000)  # SIFT keypoints kept per megapixel (strongest first)
+    contrast_threshold: float = _p(0.01, lo=0, lo_open=True, hi=1)  # SIFT contrast threshold on the 8-bit detection image
+    detect_block: int = _p(2048, lo=256, hi=65536)  # images are read by window of this many pixels
+    stretch_percentiles: tuple[float, float] = _p((0.5, 99.5), lo=0, hi=100)  # uint16 -> 8-bit robust stretch
+    refine_half_px: int = _p(7, lo=0, hi=32)  # tie points refined by least-squares patch matching on
                                       # (2 h + 1)^2 px patches against a view of their track
                                       # of the same date
                                       # (SIFT's own positions are off by ~0.35 px); 0 = off
-    refine_min_ncc: float = 0.7       # a refined position needs this patch correlation
+    refine_min_ncc: float = _p(0.7, lo=-1, hi=1)  # a refined position needs this patch correlation
 
 
 @dataclass
 class MatchingConfig:
-    ratio: float = 0.8                # Lowe's ratio test
-    mutual: bool = True               # keep only mutual nearest neighbours
-    fa_thresh_px: float = 1.5         # RANSAC threshold of the affine fundamental matrix (px)
-    fa_ransac_iters: int = 500        # cap on its RANSAC samples (adaptive below it)
-    min_inliers: int = 30             # a tile pair with fewer verified matches is dropped
-    coarse_factor: int = 8            # downsampling of the whole-image overview match
-    k_partners: int = 6               # match each image with its k best partners only
-    min_parallax_ratio: float = 0.0   # sigma3/sigma4 guard; 0 = adaptive (see sfm)
+    ratio: float = _p(0.8, lo=0, lo_open=True, hi=1)  # Lowe's ratio test
+    mutual: bool = _p(True)           # keep only mutual nearest neighbours
+    fa_thresh_px: float = _p(1.5, lo=0, lo_open=True, hi=100)  # RANSAC threshold of the affine fundamental matrix (px)
+    fa_ransac_iters: int = _p(500, lo=1, hi=1_000_000)  # cap on its RANSAC samples (adaptive below it)
+    min_inliers: int = _p(30, lo=4, hi=1_000_000)  # a tile pair with fewer verified matches is dropped
+    coarse_factor: int = _p(8, lo=1, hi=64)  # downsampling of the whole-image overview match
+    k_partners: int = _p(6, lo=1, hi=1000)  # match each image with its k best partners only
+    min_parallax_ratio: float = _p(0.0, lo=0, hi=1e6)  # sigma3/sigma4 guard; 0 = adaptive (see sfm)
 
 
 @dataclass
 class SfmConfig:
-    resect_thresh_px: float = 2.0     # RANSAC threshold for tile resection
-    resect_ransac_iters: int = 500    # cap on its RANSAC samples (adaptive below it)
-    image_camera_thresh_factor: float = 4.0  # one camera fitted to a whole image (the prior of a
+    resect_thresh_px: float = _p(2.0, lo=0, lo_open=True, hi=100)  # RANSAC threshold for tile resection
+    resect_ransac_iters: int = _p(500, lo=1, hi=1_000_000)  # cap on its RANSAC samples (adaptive below it)
+    image_camera_thresh_factor: float = _p(4.0, lo=1, hi=100)  # one camera fitted to a whole image (the prior of a
                                       # flat tile) departs from the pushbroom by a few pixels:
                                       # its RANSAC threshold is this many times resect_thresh_px
-    resect_min_inliers: int = 12      # a tile needs this many 2D-3D inliers to register
-    max_reproj_px: float = 2.0        # triangulated points with a larger error are dropped
-    min_points_conditioning: float = 0.01  # resection points flatter than this are regularised
-    min_triangulation_ratio: float = 0.3  # drop points whose conditioning (~ B/H of their views) is below
+    resect_min_inliers: int = _p(12, lo=4, hi=100_000)  # a tile needs this many 2D-3D inliers to register
+    max_reproj_px: float = _p(2.0, lo=0, lo_open=True, hi=100)  # triangulated points with a larger error are dropped
+    min_points_conditioning: float = _p(0.01, lo=0, hi=1)  # resection points flatter than this are regularised
+    min_triangulation_ratio: float = _p(0.3, lo=0, hi=1)  # drop points whose conditioning (~ B/H of their views) is below
                                       # this fraction of the model's 90th percentile (0 = off)
-    init_min_parallax: float = 3.0    # sigma3/sigma4 of an initial tile pair's matches below
+    init_min_parallax: float = _p(3.0, lo=0, hi=1e6)  # sigma3/sigma4 of an initial tile pair's matches below
                                       # this: no usable parallax (the measurement matrix is near rank 2)
-    init_min_inliers: int = 60        # the initial tile pair needs at least this many verified matches
-    global_ba_growth: float = 0.15    # run a global BA when tiles grew by this fraction
-    local_ba_window: int = 6          # cameras refined in a local BA after each registration
-    joint_groups: bool = True         # reconstruct all date groups in one affine frame when their
+    init_min_inliers: int = _p(60, lo=4, hi=1_000_000)  # the initial tile pair needs at least this many verified matches
+    global_ba_growth: float = _p(0.15, lo=0, lo_open=True, hi=100)  # run a global BA when tiles grew by this fraction
+    local_ba_window: int = _p(6, lo=1, hi=1000)  # cameras refined in a local BA after each registration
+    joint_groups: bool = _p(True)     # reconstruct all date groups in one affine frame when their
                                       # images match across dates (each group keeps its tiles and
                                       # points): all views hold the structure against bending;
                                       # falls back to one reconstruction per group otherwise
-    joint_min_matches: int = 200      # verified matches an image needs with the other groups'
+    joint_min_matches: int = _p(200, lo=1, hi=10_000_000)  # verified matches an image needs with the other groups'
                                       # images for the joint reconstruction
-    joint_partners: int = 2           # images of other groups each image is matched with
-    tie_sigma_px: float = 0.01        # the per-image pushbroom tie (recon_core.sparse.image_model)
+    joint_partners: int = _p(2, lo=1, hi=1000)  # images of other groups each image is matched with
+    tie_sigma_px: float = _p(0.01, lo=0, hi=100)  # the per-image pushbroom tie (recon_core.sparse.image_model)
                                       # in the final global adjustments: the model's error against
                                       # a pushbroom, px, for a model of 3 images; n > 3 images
                                       # scale it by 3 / n (more views check the tie) (0 = off)
-    correction_rounds: int = 1        # closing global adjustments after the first tied one, each
+    correction_rounds: int = _p(1, lo=0, hi=20)  # closing global adjustments after the first tied one, each
                                       # with the within-tile correction refitted (each image's
                                       # pushbroom model's departure from affine inside a tile
                                       # taken out of its observations: what drives the bend;
@@ -81,7 +142,7 @@ class SfmConfig:
                                       # of several dates (one pass's views cannot see the vertical
                                       # warps it would free) (0 = none; each round more lowers
                                       # the bend further and costs one global adjustment)
-    correction_extrapolation: float = 1.0  # from the second round
+    correction_extrapolation: float = _p(1.0, lo=0, hi=1)  # from the second round
                                       # on, each round's correction is pushed this many times its
                                       # change since the round before, g + w (g - g_prev): plain
                                       # rounds converge slowly, each removing less of the bend
@@ -91,77 +152,77 @@ class SfmConfig:
 
 @dataclass
 class BundleConfig:
-    loss: str = "huber"               # robust loss of scipy.optimize.least_squares
-    loss_scale_px: float = 1.0        # f_scale of the robust loss, pixels
-    max_nfev: int = 50                # LM iteration cap of a global adjustment
-    local_max_nfev: int = 10          # LM iteration cap of a local adjustment (after each tile)
-    rel_tol: float = 1e-6             # an adjustment stops when an iteration lowers the robust
+    loss: str = _p("huber", choices='bundle.losses')  # robust loss of scipy.optimize.least_squares
+    loss_scale_px: float = _p(1.0, lo=0, lo_open=True, hi=1000)  # f_scale of the robust loss, pixels
+    max_nfev: int = _p(50, lo=1, hi=100_000)  # LM iteration cap of a global adjustment
+    local_max_nfev: int = _p(10, lo=1, hi=100_000)  # LM iteration cap of a local adjustment (after each tile)
+    rel_tol: float = _p(1e-6, lo=0, lo_open=True, hi=1, hi_open=True)  # an adjustment stops when an iteration lowers the robust
                                       # cost by less than this fraction of it ...
-    growing_rel_tol: float = 1e-5     # ... and this one while the model grows (local and
+    growing_rel_tol: float = _p(1e-5, lo=0, lo_open=True, hi=1, hi_open=True)  # ... and this one while the model grows (local and
                                       # intermediate global adjustments): the final global
                                       # adjustments converge to rel_tol from there
-    solver: str = "auto"              # reduced camera system: dense (Cholesky), sparse (8 x 8
+    solver: str = _p("auto", choices='bundle.solvers')  # reduced camera system: dense (Cholesky), sparse (8 x 8
                                       # blocks, SuperLU: 10-20 km sites) or auto (sparse from
                                       # 1,500 camera unknowns)
 
 
 @dataclass
 class DenseConfig:
-    step: int = 1                     # stride of the reference-pixel grid (1 = every pixel)
-    matcher: str = "sgbm"             # stereo matcher (recon_core.dense.matchers.MATCHERS); its
+    step: int = _p(1, lo=1, hi=64)    # stride of the reference-pixel grid (1 = every pixel)
+    matcher: str = _p("sgbm", choices='dense.matchers')  # stereo matcher (recon_core.dense.matchers.MATCHERS); its
                                       # parameters are the config section of the same name
-    disp_margin_px: float = 8.0       # margin added around the sparse disparity percentiles
-    disp_margin_frac: float = 0.25    # ... plus this fraction of the percentile range
-    min_pair_matches: int = 20        # a tile pair needs this many sparse matches to be matched
-    min_parallax_ratio: float = 3.0   # sigma3/sigma4 of the pair's sparse matches (baseline test)
-    max_two_view_spread: float = 2.0  # a two-view point whose pair triangulates more than this
+    disp_margin_px: float = _p(8.0, lo=0, hi=10_000)  # margin added around the sparse disparity percentiles
+    disp_margin_frac: float = _p(0.25, lo=0, hi=100)  # ... plus this fraction of the percentile range
+    min_pair_matches: int = _p(20, lo=4, hi=1_000_000)  # a tile pair needs this many sparse matches to be matched
+    min_parallax_ratio: float = _p(3.0, lo=0, hi=1e6)  # sigma3/sigma4 of the pair's sparse matches (baseline test)
+    max_two_view_spread: float = _p(2.0, lo=0, hi=1e6)  # a two-view point whose pair triangulates more than this
                                       # many times less precisely than the group's best pair is
                                       # marked weak: a DSM cell uses it only when no other point
                                       # falls there (0 = mark none)
-    core_margin_px: int = 48          # context matched around the part of a tile it owns (px)
-    ncc_radius: int = 2               # photometric check patch radius (5 x 5 patches)
-    min_ncc: float = 0.3              # links with a lower NCC are dropped
-    max_reproj_px: float = 1.0        # views with a larger error are dropped from a track
-    view_drop_rounds: int = 3         # rounds of dropping a track's worst view and re-triangulating
-    workers: int | None = None        # local worker processes (None = all cores, 1 = serial)
-    scheduler: str | None = None      # dask.distributed scheduler address (None = local pool)
+    core_margin_px: int = _p(48, lo=0, hi=10_000)  # context matched around the part of a tile it owns (px)
+    ncc_radius: int = _p(2, lo=1, hi=15)  # photometric check patch radius (5 x 5 patches)
+    min_ncc: float = _p(0.3, lo=-1, hi=1)  # links with a lower NCC are dropped
+    max_reproj_px: float = _p(1.0, lo=0, lo_open=True, hi=100)  # views with a larger error are dropped from a track
+    view_drop_rounds: int = _p(3, lo=0, hi=100)  # rounds of dropping a track's worst view and re-triangulating
+    workers: int | None = _p(None, lo=1, hi=1024)  # local worker processes (None = all cores, 1 = serial)
+    scheduler: str | None = _p(None)  # dask.distributed scheduler address (None = local pool)
 
 
 @dataclass
 class SgbmConfig:
     """OpenCV StereoSGBM (3-way) with a true left-right check (a second run on the mirrored pair)."""
 
-    block_size: int = 5               # matching block (odd)
-    p1: int = 8                       # smoothness penalty P1, times block_size^2
-    p2: int = 32                      # smoothness penalty P2, times block_size^2
-    uniqueness: int = 10              # uniqueness ratio (%)
-    speckle_window: int = 100         # speckle filter: max region size (px) to remove
-    speckle_range: int = 2            # speckle filter: max disparity variation (px)
-    lr_max_diff_px: float = 1.0       # left-right consistency tolerance (px)
+    block_size: int = _p(5, lo=1, hi=31, odd=True)  # matching block (odd)
+    p1: int = _p(8, lo=0, hi=10_000)  # smoothness penalty P1, times block_size^2
+    p2: int = _p(32, lo=0, hi=100_000)  # smoothness penalty P2, times block_size^2
+    uniqueness: int = _p(10, lo=0, hi=100)  # uniqueness ratio (%)
+    speckle_window: int = _p(100, lo=0, hi=100_000)  # speckle filter: max region size (px) to remove
+    speckle_range: int = _p(2, lo=0, hi=1000)  # speckle filter: max disparity variation (px)
+    lr_max_diff_px: float = _p(1.0, lo=0, hi=1000)  # left-right consistency tolerance (px)
 
 
 @dataclass
 class UpgradeConfig:
-    ransac_thresh_m: float = 2.0      # GCP inlier threshold of the H_A RANSAC (metres)
-    allow_flat_gcps: bool = False     # go on when the control GCPs of a group are (nearly) on one
+    ransac_thresh_m: float = _p(2.0, lo=0, lo_open=True, hi=10_000)  # GCP inlier threshold of the H_A RANSAC (metres)
+    allow_flat_gcps: bool = _p(False)  # go on when the control GCPs of a group are (nearly) on one
                                       # plane: expected height error > 10 m on a 40 m structure
-    metric_prior_sigma_cos: float = 2e-3  # the cameras' metric constraint in the fit of H_A: the
+    metric_prior_sigma_cos: float = _p(2e-3, lo=0, hi=1)  # the cameras' metric constraint in the fit of H_A: the
                                       # cosine between a tile camera's rows in metres, per image
                                       # (recon_core.euclidean.metric_prior; 0 = GCPs only)
-    metric_bend: bool = True          # the metric bend step (recon_core.euclidean.metric_bend): the
+    metric_bend: bool = _p(True)      # the metric bend step (recon_core.euclidean.metric_bend): the
                                       # horizontal warp no affine frame lets the views see, found once
                                       # H_A gives metres, each image's 1D perspective from its orbit
-    gcp_bend: bool = True             # fit the bend the views cannot see to >= 9 control GCPs
+    gcp_bend: bool = _p(True)         # fit the bend the views cannot see to >= 9 control GCPs
                                       # (recon_core.euclidean.gcp_bend): kept only when it
                                       # predicts each control GCP left out better than H_A alone
-    orbit_altitude_km: float = 694.0  # its start: the orbit's altitude (Pleiades, SPOT 6/7: 694;
+    orbit_altitude_km: float = _p(694.0, lo=100, hi=50_000)  # its start: the orbit's altitude (Pleiades, SPOT 6/7: 694;
                                       # Pleiades Neo, WorldView-3: ~620); the step then estimates one
                                       # common change of the ranges from the data (10 % off: harmless)
-    reference_dem: str = ""           # a coarse DEM of the site (GeoTIFF: SRTM, Copernicus GLO-30, a
+    reference_dem: str = _p("")       # a coarse DEM of the site (GeoTIFF: SRTM, Copernicus GLO-30, a
                                       # national DEM; any CRS, geoid or ellipsoid heights) that holds
                                       # the vertical bend the views cannot see when the GCPs do not
                                       # (recon_core.euclidean.dem_bend); "" = none
-    reference_dem_degree: int = 2     # the degree of the vertical bend taken from it: 2 (a dome or a
+    reference_dem_degree: int = _p(2, choices=(2, 3))  # the degree of the vertical bend taken from it: 2 (a dome or a
                                       # saddle) or 3, for a DEM whose errors do not reach over km
                                       # (Copernicus GLO-30 class): on `wide` (10 km, one date) 3 gives
                                       # check U 1.98 m instead of 2.95 m with such a DEM, but 5.69
@@ -170,36 +231,36 @@ class UpgradeConfig:
 
 @dataclass
 class DsmConfig:
-    resolution_m: float | None = None  # output cell size; None = site.json's, else the GSD
-    stat: str = "median"              # per-cell statistic: median | upper_median | max
-    fill_holes_px: int = 2            # fill only holes this small (radius, cells) with support
-    laz: bool = True                  # also write cloud.laz (LAS 1.4 with the CRS) from cloud.ply
-    fusion_correction_m: float = 32.0  # a lower-ranked group is brought onto the fused surface by
+    resolution_m: float | None = _p(None, lo=0.01, hi=1000)  # output cell size; None = site.json's, else the GSD
+    stat: str = _p("median", choices='dsm.stats')  # per-cell statistic: median | upper_median | max
+    fill_holes_px: int = _p(2, lo=0, hi=1000)  # fill only holes this small (radius, cells) with support
+    laz: bool = _p(True)              # also write cloud.laz (LAS 1.4 with the CRS) from cloud.ply
+    fusion_correction_m: float = _p(32.0, lo=0, hi=1e6)  # a lower-ranked group is brought onto the fused surface by
                                       # a smooth correction (medians of the difference in blocks
                                       # of this size) before it fills holes; 0 = off
-    fusion_agree_sigmas: float = 2.5   # cells where groups agree within this many sigma (each DSM's
+    fusion_agree_sigmas: float = _p(2.5, lo=0, hi=1000)  # cells where groups agree within this many sigma (each DSM's
                                       # noise from the groups' disagreement) take their weighted
                                       # mean (0 = off)
-    fusion_fill_agreeing: int = 1     # a hole of the best-ranked groups is filled only where this
+    fusion_fill_agreeing: int = _p(1, lo=1, hi=1000)  # a hole of the best-ranked groups is filled only where this
                                       # many groups (with the one filling it) have a precise value
                                       # agreeing within fusion_agree_sigmas; 1 = any. wide3: 0.677 m
                                       # / 57.6 % with 1, 0.603 m / 53.6 % with 2 (best group 0.613
                                       # m / 52.0 %); large: 0.261 m / 73.3 % with 1, 0.211 m / 55.7 %
                                       # with 2 (best group 0.301 m / 64.6 %)
-    fuse_weak_pair_cells: bool = False  # the fused DSM also takes cells that only a weak pair's
+    fuse_weak_pair_cells: bool = _p(False)  # the fused DSM also takes cells that only a weak pair's
                                       # two-view points reach (1.2 m median error on `demo`:
                                       # fused 0.179 m / 73.9 % without, 0.202 m / 76.9 % with)
-    icp_max_corr_m: float = 3.0       # ICP correspondence distance when fusing date groups
-    icp_voxel_m: float = 1.0          # both clouds are reduced to voxel centroids of this size
-    icp_max_iter: int = 60            # ICP iteration cap (it stops earlier when converged)
-    icp_max_source: int = 200_000     # ICP keeps at most this many moving points (6 unknowns)
-    icp_max_target: int = 500_000     # ... and this many reference points (after voxels)
-    icp_min_fitness: float = 0.3      # below this fraction of matched points a group keeps its
+    icp_max_corr_m: float = _p(3.0, lo=0, lo_open=True, hi=1e4)  # ICP correspondence distance when fusing date groups
+    icp_voxel_m: float = _p(1.0, lo=0, lo_open=True, hi=1e4)  # both clouds are reduced to voxel centroids of this size
+    icp_max_iter: int = _p(60, lo=1, hi=100_000)  # ICP iteration cap (it stops earlier when converged)
+    icp_max_source: int = _p(200_000, lo=100, hi=1e9)  # ICP keeps at most this many moving points (6 unknowns)
+    icp_max_target: int = _p(500_000, lo=100, hi=1e9)  # ... and this many reference points (after voxels)
+    icp_min_fitness: float = _p(0.3, lo=0, hi=1)  # below this fraction of matched points a group keeps its
                                       # GCP-based position (too little overlap to trust ICP)
-    icp_sample_points: int = 3_000_000  # evenly spread points per group given to ICP and to
+    icp_sample_points: int = _p(3_000_000, lo=1000, hi=1e10)  # evenly spread points per group given to ICP and to
                                       # the grid extent (the clouds themselves are streamed)
-    chunk_points: int = 4_000_000     # points per chunk when streaming clouds into the DSM
-    spill_above_points: int = 20_000_000  # above this many points the DSM accumulates on disk
+    chunk_points: int = _p(4_000_000, lo=1000, hi=1e10)  # points per chunk when streaming clouds into the DSM
+    spill_above_points: int = _p(20_000_000, lo=0, hi=1e12)  # above this many points the DSM accumulates on disk
 
 
 @dataclass
@@ -214,7 +275,7 @@ class Config:
     sgbm: SgbmConfig = field(default_factory=SgbmConfig)
     upgrade: UpgradeConfig = field(default_factory=UpgradeConfig)
     dsm: DsmConfig = field(default_factory=DsmConfig)
-    seed: int = 0                     # seeds every random choice (RANSAC, sampling)
+    seed: int = _p(0, lo=0, hi=2**63 - 1)  # seeds every random choice (RANSAC, sampling)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -355,6 +416,9 @@ def config_to_toml(cfg: Config) -> str:
     return "\n".join(top) + "\n\n" + "\n\n".join(parts) + "\n"
 
 
+MAX_CONFIG_BYTES = 1 << 20
+
+
 def config_from_toml(path) -> Config:
     """A Config from a TOML file of the config_to_toml form (any subset of its fields)."""
     import tomllib
@@ -364,14 +428,22 @@ def config_from_toml(path) -> Config:
 
     path = Path(path)
     try:
-        doc = tomllib.loads(path.read_text())
+        if not path.is_file():
+            raise InputError(path, "not a configuration file (a TOML file, as `aerec config --dump` "
+                                   "writes)" if path.exists() else "no such file")
+        if path.stat().st_size > MAX_CONFIG_BYTES:
+            raise InputError(path, f"{path.stat().st_size:,} bytes: not a configuration file "
+                                   f"(a TOML file of a few KB)")
+        doc = tomllib.loads(path.read_bytes().decode("utf-8"))
     except OSError as exc:
         raise InputError(path, f"cannot read the configuration ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise InputError(path, "not a text file: a configuration is TOML (`aerec config --dump`)") from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(path, f"malformed TOML ({exc})") from None
     try:
         cfg = config_from_dict(doc)
-        check_types(cfg)
+        validate(cfg)
         if cfg.upgrade.reference_dem:         # a relative path is the TOML file's
             dem = Path(cfg.upgrade.reference_dem).expanduser()
             cfg = cfg.with_overrides({"upgrade.reference_dem": str((path.parent / dem).resolve())})
@@ -379,7 +451,71 @@ def config_from_toml(path) -> Config:
     except KeyError as exc:
         raise InputError(path, str(exc).strip("'\"")) from None
     except (TypeError, ValueError) as exc:
-        raise InputError(path, f"bad value ({exc})") from None
+        raise InputError(path, str(exc)) from None
+
+
+def rule_of(section: str | None, name: str) -> Rule:
+    """The Rule of field `section.name` (or of a top-level field with section None)."""
+    cls = Config if section is None else type(getattr(Config(), section))
+    f = {f.name: f for f in fields(cls)}[name]
+    return f.metadata.get("rule", Rule())
+
+
+def schema() -> dict[str, tuple[str, Rule]]:
+    """'section.field' (or 'field') -> (its type annotation, its Rule), for every field."""
+    out = {}
+    for f in fields(Config):
+        v = getattr(Config(), f.name)
+        if hasattr(v, "__dataclass_fields__"):
+            for g in fields(v):
+                out[f"{f.name}.{g.name}"] = (str(g.type), g.metadata.get("rule", Rule()))
+        else:
+            out[f.name] = (str(f.type), f.metadata.get("rule", Rule()))
+    return out
+
+
+# relations between fields: (fields named, broken when, what is needed)
+RELATIONS = (
+    (("tiling.overlap", "tiling.tile_size"), lambda c: c.tiling.overlap is not None
+     and c.tiling.overlap >= c.tiling.tile_size, "the overlap must be smaller than the tile size"),
+    (("features.stretch_percentiles",), lambda c: not (len(c.features.stretch_percentiles) == 2
+     and c.features.stretch_percentiles[0] < c.features.stretch_percentiles[1]),
+     "two percentiles, the lower first"),
+    (("sgbm.p2", "sgbm.p1"), lambda c: c.sgbm.p2 < c.sgbm.p1, "P2 must be >= P1 (SGM's penalties)"),
+    (("dense.max_two_view_spread",), lambda c: 0 < c.dense.max_two_view_spread < 1,
+     "must be 0 (mark no two-view point weak) or at least 1"),
+    (("dense.core_margin_px", "tiling.tile_size"), lambda c: c.dense.core_margin_px * 2 >= c.tiling.tile_size,
+     "the context around a tile's core must be less than half the tile size"),
+    (("dense.step", "tiling.tile_size"), lambda c: c.dense.step * 8 > c.tiling.tile_size,
+     "the stride must leave at least 8 reference pixels per tile side"),
+    (("dsm.fusion_fill_agreeing", "dsm.fusion_agree_sigmas"),
+     lambda c: c.dsm.fusion_fill_agreeing > 1 and c.dsm.fusion_agree_sigmas <= 0,
+     "needs dsm.fusion_agree_sigmas > 0 (the agreement it counts)"),
+    (("bundle.growing_rel_tol", "bundle.rel_tol"), lambda c: c.bundle.growing_rel_tol < c.bundle.rel_tol,
+     "the growing model's tolerance must not be tighter than the final one"),
+)
+
+
+def validate(cfg: Config) -> None:
+    """Every field against its type and its Rule, then the relations between fields, in one
+    pass before any compute. Raises ValueError 'field = value: what is needed' (the caller names
+    the file or option the value came from)."""
+    check_types(cfg)
+    for name, (_, rule) in schema().items():
+        sec, _, fld = name.rpartition(".")
+        v = getattr(getattr(cfg, sec), fld) if sec else getattr(cfg, fld)
+        why = rule.problem(v)
+        if why:
+            raise ValueError(f"{name} = {v!r}: {why}")
+    for names, broken, need in RELATIONS:
+        if broken(cfg):
+            vals = ", ".join(f"{n} = {_get(cfg, n)!r}" for n in names)
+            raise ValueError(f"{vals}: {need}")
+
+
+def _get(cfg: Config, name: str):
+    sec, _, fld = name.rpartition(".")
+    return getattr(getattr(cfg, sec), fld) if sec else getattr(cfg, fld)
 
 
 def check_types(cfg: Config) -> None:

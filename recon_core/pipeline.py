@@ -26,6 +26,7 @@ from recon_core.events import EventBus, Message, ModelsReady, StageDone, StageSt
 from recon_core.io.files import writable_folder, write_json
 from recon_core.io.gcps import read_gcps_geojson, working_gcp_file
 from recon_core.io.layout import OutLayout
+from recon_core.io.lock import out_lock
 from recon_core.io.site import Site, load_site, refuse_blank
 from recon_core.model.grouping import group_by_date
 from recon_core.sparse import stage as sparse_stage
@@ -72,13 +73,15 @@ def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None,
 
 
 def site_fingerprint(site: Site) -> dict:
-    """What identifies a site's inputs for resume: each image's name, size and modification
-    time, and site.json's hints (another image, another folder's images, or a changed
-    resolution_m make every stage stale)."""
+    """What identifies a site's inputs for resume: each image's name, size, modification time
+    and acquisition time (a sidecar added or edited regroups the dates), and site.json's hints
+    (another image, another folder's images, another time or a changed resolution_m make every
+    stage stale). The configuration enters through its values, the GCP file from the upgrade on."""
     imgs = []
     for im in site.images:
         st = Path(im.path).stat()
-        imgs.append([im.name, st.st_size, st.st_mtime_ns])
+        when = None if im.acquired is None else im.acquired.isoformat()
+        imgs.append([im.name, st.st_size, st.st_mtime_ns, when, im.time_source])
     return {"images": imgs, "site_json": site.hints}
 
 
@@ -105,6 +108,7 @@ def _open(site_path, out, until, redo_from) -> tuple[Site, Path]:
             raise InputError(None, f"unknown stage {name!r}; stages are {', '.join(STAGES)}")
     site = load_site(site_path)
     out = Path(out)
+    refuse_nested(site.root, out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "output path exists and is not a folder")
     try:
@@ -114,84 +118,44 @@ def _open(site_path, out, until, redo_from) -> tuple[Site, Path]:
     return site, out
 
 
+def refuse_nested(site_root: Path, out: Path) -> None:
+    """An output folder inside the site (its products would become inputs: a DSM in images/
+    breaks every later run of the site) or a site inside the output folder: refused, naming
+    both, before anything is written."""
+    site_r, out_r = Path(site_root).resolve(), Path(out).resolve()
+    if out_r == site_r or out_r.is_relative_to(site_r):
+        raise InputError(out, f"is inside the site {site_root}: outputs would mix with its inputs; "
+                              "choose an output folder outside it")
+    if site_r.is_relative_to(out_r):
+        raise InputError(out, f"holds the site {site_root}: a run writes and removes files in its "
+                              "output folder; choose one that does not contain the site")
+
+
 def check_config(cfg: Config) -> None:
-    """The parameters' values, before any compute (types are checked where a file is read):
-    sizes and counts positive, choices among what exists. Raises InputError naming the field
+    """Every parameter against the schema (recon_core.config.validate: type, range, finiteness,
+    choices, relations between fields), before any compute. Raises InputError naming the field
     (without a file: the caller names where the value came from)."""
-    from recon_core.dense.matchers import MATCHERS
-    from recon_core.euclidean.dsm import STATS
-    from recon_core.sparse.bundle import LOSSES, SOLVERS
+    from recon_core.config import validate
 
-    def bad(field: str, value, need: str) -> InputError:
-        return InputError(None, f"{field} = {value!r}: {need}")
-
-    t = cfg.tiling
-    if t.tile_size < 64:
-        raise bad("tiling.tile_size", t.tile_size, "must be at least 64 px")
-    if t.overlap is not None and not 0 <= t.overlap < t.tile_size:
-        raise bad("tiling.overlap", t.overlap, f"must be >= 0 and smaller than the tile size {t.tile_size}")
-    if cfg.seed < 0:
-        raise bad("seed", cfg.seed, "must be >= 0")
-    if cfg.bundle.loss not in LOSSES:
-        raise bad("bundle.loss", cfg.bundle.loss, f"choose one of {', '.join(LOSSES)}")
-    if cfg.bundle.solver not in SOLVERS:
-        raise bad("bundle.solver", cfg.bundle.solver, f"choose one of {', '.join(SOLVERS)}")
-    if cfg.dense.matcher not in MATCHERS:
-        raise bad("dense.matcher", cfg.dense.matcher, f"choose one of {', '.join(sorted(MATCHERS))}")
-    if cfg.dsm.stat not in STATS:
-        raise bad("dsm.stat", cfg.dsm.stat, f"choose one of {', '.join(STATS)}")
-    if cfg.dense.workers is not None and cfg.dense.workers < 1:
-        raise bad("dense.workers", cfg.dense.workers, "must be at least 1 (or absent: all cores)")
-    if cfg.dsm.resolution_m is not None and not (np.isfinite(cfg.dsm.resolution_m) and cfg.dsm.resolution_m > 0):
-        raise bad("dsm.resolution_m", cfg.dsm.resolution_m, "must be a positive number of metres")
-    if not 0 < cfg.matching.ratio <= 1:
-        raise bad("matching.ratio", cfg.matching.ratio, "Lowe's ratio must be in (0, 1]")
-    if cfg.dense.step < 1:
-        raise bad("dense.step", cfg.dense.step, "must be at least 1")
-    if cfg.upgrade.reference_dem_degree not in (2, 3):
-        raise bad("upgrade.reference_dem_degree", cfg.upgrade.reference_dem_degree,
-                  "choose 2 (a dome or a saddle) or 3 (a cubic, for a DEM whose errors do not reach over km)")
-    if cfg.dsm.fusion_fill_agreeing < 1:
-        raise bad("dsm.fusion_fill_agreeing", cfg.dsm.fusion_fill_agreeing,
-                  "must be at least 1 (1 = any group fills a hole)")
-    if cfg.dsm.fusion_fill_agreeing > 1 and cfg.dsm.fusion_agree_sigmas <= 0:
-        raise bad("dsm.fusion_fill_agreeing", cfg.dsm.fusion_fill_agreeing,
-                  "needs dsm.fusion_agree_sigmas > 0 (the agreement it counts)")
-    positive = {"bundle.loss_scale_px": cfg.bundle.loss_scale_px, "bundle.max_nfev": cfg.bundle.max_nfev,
-                "bundle.local_max_nfev": cfg.bundle.local_max_nfev, "bundle.rel_tol": cfg.bundle.rel_tol,
-                "bundle.growing_rel_tol": cfg.bundle.growing_rel_tol,
-                "sfm.resect_thresh_px": cfg.sfm.resect_thresh_px, "sfm.max_reproj_px": cfg.sfm.max_reproj_px,
-                "matching.fa_thresh_px": cfg.matching.fa_thresh_px,
-                "upgrade.ransac_thresh_m": cfg.upgrade.ransac_thresh_m,
-                "upgrade.orbit_altitude_km": cfg.upgrade.orbit_altitude_km,
-                "features.max_features_per_mpx": cfg.features.max_features_per_mpx,
-                "features.detect_block": cfg.features.detect_block,
-                "dsm.chunk_points": cfg.dsm.chunk_points, "dsm.icp_voxel_m": cfg.dsm.icp_voxel_m,
-                "grouping.max_gap_days": cfg.grouping.max_gap_days}
-    for name, v in positive.items():
-        if not (np.isfinite(v) and v > 0):
-            raise bad(name, v, "must be positive")
-    tv = cfg.dense.max_two_view_spread
-    if not (np.isfinite(tv) and (tv == 0 or tv >= 1)):
-        raise bad("dense.max_two_view_spread", tv, "must be 0 (mark no two-view point weak) or at least 1")
-    if cfg.sfm.correction_rounds < 0:
-        raise bad("sfm.correction_rounds", cfg.sfm.correction_rounds, "must be >= 0 (0 = no within-tile correction)")
-    ce = cfg.sfm.correction_extrapolation
-    if not (np.isfinite(ce) and 0 <= ce <= 1):
-        raise bad("sfm.correction_extrapolation", ce, "must be in [0, 1] (0 = plain rounds; 2 diverged)")
-    if cfg.features.refine_half_px < 0:
-        raise bad("features.refine_half_px", cfg.features.refine_half_px, "must be >= 0 (0 = no refinement)")
-    if not -1 <= cfg.features.refine_min_ncc <= 1:
-        raise bad("features.refine_min_ncc", cfg.features.refine_min_ncc, "a correlation: must be in [-1, 1]")
-    sb = cfg.sgbm.block_size
-    if sb < 1 or sb % 2 == 0:
-        raise bad("sgbm.block_size", sb, "must be odd and positive")
+    try:
+        validate(cfg)
+    except ValueError as exc:
+        raise InputError(None, str(exc)) from None
 
 
 def check_images(site: Site) -> None:
-    """What the images can be refused for before any compute beyond opening them (a blank one)."""
+    """What the images can be refused for before any compute beyond opening them: a blank one,
+    and two that are one image (the same pixels where sampled: a copy under another name, which
+    would end after the matching in a degenerate geometry that blamed neither)."""
+    seen: dict[bytes, str] = {}
     for im in site.images:
-        refuse_blank(im)
+        v = refuse_blank(im)
+        key = hashlib.sha1(np.ascontiguousarray(v, np.float64).tobytes()
+                           + f"{im.width}x{im.height}".encode()).digest()
+        if key in seen:
+            raise InputError(im.path, f"is the same image as {seen[key]} (the same pixels): two views of "
+                                      "one acquisition give no parallax; keep one of them")
+        seen[key] = im.name
 
 
 def _remove(paths: list[Path]) -> None:
@@ -338,18 +302,25 @@ def _mark_done(state: RunState, stage: str, summary: dict) -> None:
 
 def run(site_path: str | Path, out: str | Path, cfg: Config | None = None, *,
         until: str | None = None, bus: EventBus | None = None, resume: bool = True,
-        redo_from: str | None = None) -> RunState:
+        redo_from: str | None = None, wait: bool = False) -> RunState:
     """Run the pipeline on a site up to and including stage `until` (default: all).
 
     Finished stages are reloaded when `resume` (unless what they depend on changed);
-    `redo_from` recomputes that stage and every later one.
+    `redo_from` recomputes that stage and every later one. The run holds OUT's lock
+    (recon_core.io.lock): another job on OUT is refused, or with `wait` waited for.
     """
     cfg = cfg or Config()
     bus = bus or EventBus()
     site, out = _open(site_path, out, until, redo_from)
+    with out_lock(out, wait=wait, on_wait=lambda text: bus.emit(Message("warning", text))):
+        return _run_locked(site, out, cfg, until, bus, resume, redo_from)
+
+
+def _run_locked(site: Site, out: Path, cfg: Config, until, bus: EventBus, resume: bool,
+                redo_from) -> RunState:
     lay = OutLayout(out)
     swept = lay.scratch()
-    _remove(swept)                             # an interrupted run's leftovers
+    _remove(swept)                             # a dead job's leftovers (this job holds OUT's lock)
     if swept:
         bus.emit(Message("info", f"removed {len(swept)} scratch file(s) of an interrupted run from {out}"))
     gcp_path = working_gcp_file(site.root, out)

@@ -264,7 +264,7 @@ def test_gcps_seen_across_date_groups_count_when_the_groups_are_reconstructed_jo
 
 
 @pytest.mark.parametrize("body, words", [
-    ("[tiling]\ntile_size = -5\n", "tiling.tile_size = -5: must be at least 64 px"),
+    ("[tiling]\ntile_size = -5\n", "tiling.tile_size = -5: must be >= 64"),
     ("[tiling]\noverlap = 5000\n", "tiling.overlap = 5000"),
     ("seed = -3\n", "seed = -3: must be >= 0"),
     ("[bundle]\nloss = 'bogus'\n", "bundle.loss = 'bogus': choose one of linear, huber, cauchy"),
@@ -272,12 +272,12 @@ def test_gcps_seen_across_date_groups_count_when_the_groups_are_reconstructed_jo
     ("[dense]\nworkers = -1\n", "dense.workers = -1"),
     ("[dense]\nmatcher = 'nope'\n", "dense.matcher = 'nope': choose one of sgbm"),
     ("[dsm]\nstat = 'foo'\n", "dsm.stat = 'foo'"),
-    ("[dsm]\nresolution_m = -1.0\n", "dsm.resolution_m = -1.0: must be a positive number"),
+    ("[dsm]\nresolution_m = -1.0\n", "dsm.resolution_m = -1.0: must be >= 0.01"),
     ("[matching]\nratio = 5.0\n", "matching.ratio = 5.0"),
     ("[sgbm]\nblock_size = 4\n", "sgbm.block_size = 4: must be odd"),
     ("[sfm]\ncorrection_rounds = -1\n", "sfm.correction_rounds = -1: must be >= 0"),
-    ("[sfm]\ncorrection_extrapolation = 2.0\n", "sfm.correction_extrapolation = 2.0: must be in [0, 1]"),
-    ("[upgrade]\norbit_altitude_km = 0.0\n", "upgrade.orbit_altitude_km = 0.0: must be positive"),
+    ("[sfm]\ncorrection_extrapolation = 2.0\n", "sfm.correction_extrapolation = 2.0: must be <= 1"),
+    ("[upgrade]\norbit_altitude_km = 0.0\n", "upgrade.orbit_altitude_km = 0.0: must be >= 100"),
 ], ids=lambda v: v.split("\n")[0] if "\n" in v else None)
 def test_config_values_are_checked_before_any_compute(body, words, small_site, tmp_path, capsys):
     """Each of these reached a stage and ended in a traceback there (some after sparse, dense and

@@ -25,7 +25,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         yield tmp_path
         os.replace(tmp_path, path)
     except OSError as exc:
-        if exc.filename == str(tmp_path):      # say the file the user knows, not the temporary
+        # say the file the user knows, not the temporary; and say one at all (GDAL's "a write
+        # failed (N requested and M written)" on a full disk names none)
+        if exc.filename is None or exc.filename == str(tmp_path):
             exc.filename = str(path)
         raise
     finally:

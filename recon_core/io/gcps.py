@@ -71,10 +71,15 @@ def read_gcps_geojson(path: Path, images: dict[str, ImageInfo] | None = None) ->
     gcps: list[GCP] = []
     for k, feat in enumerate(doc["features"]):
         gcps.append(_parse_feature(path, k, feat, epsg, images))
-    ids = [g.id for g in gcps]
-    dup = {i for i in ids if ids.count(i) > 1}
+    if epsg is not None and gcps:            # projected x, y: converted in one call
+        llh = projected_to_geodetic(np.array([[g.lon, g.lat, g.h] for g in gcps], float), int(epsg))
+        for g, (lon, lat, h) in zip(gcps, llh):
+            g.lon, g.lat, g.h = float(lon), float(lat), float(h)
+    seen, dup = set(), set()
+    for g in gcps:
+        (dup if g.id in seen else seen).add(g.id)
     if dup:
-        raise InputError(path, f"duplicate GCP ids {sorted(dup)}")
+        raise InputError(path, f"duplicate GCP ids {sorted(dup)[:10]}" + (" ..." if len(dup) > 10 else ""))
     return gcps
 
 
@@ -93,12 +98,9 @@ def _parse_feature(path: Path, k: int, feat, epsg, images) -> GCP:
         raise InputError(path, f"{where}: coordinates must be [lon, lat, h] (3 numbers)")
     gid = str(props.get("id", f"GCP-{k + 1:02d}"))
     where = f"GCP {gid}"
-    if epsg is None:
-        lon, lat, h = (float(c) for c in coords)
-        if not (-180 <= lon <= 180 and -90 <= lat <= 90):
-            raise InputError(path, f"{where}: lon/lat {lon}, {lat} out of range")
-    else:
-        lon, lat, h = (float(c) for c in projected_to_geodetic(np.array(coords, float), int(epsg)))
+    lon, lat, h = (float(c) for c in coords)           # projected x, y: converted by the caller
+    if epsg is None and not (-180 <= lon <= 180 and -90 <= lat <= 90):
+        raise InputError(path, f"{where}: lon/lat {lon}, {lat} out of range")
     role = props.get("role", "control")
     if role not in ("control", "check"):
         raise InputError(path, f"{where}: role must be 'control' or 'check', not {role!r}")

@@ -9,6 +9,7 @@ A site is a folder with `images/*.tif[f]`, `gcps.geojson`, optional `gt_dsm.tif`
 from __future__ import annotations
 
 import json
+import stat
 import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -26,6 +27,7 @@ IMAGE_SUFFIXES = (".tif", ".tiff", ".vrt", ".jp2")      # compared in lower case
 # what GDAL must read them as: GeoTIFF, a VRT (mosaics, band subsets, products delivered as
 # several tiles) or JPEG 2000 (how Pleiades and other products are often delivered)
 IMAGE_DRIVERS = {"GTiff": "a GeoTIFF", "VRT": "a GDAL VRT", "JP2OpenJPEG": "a JPEG 2000 image"}
+MAX_IMAGE_PIXELS = 4e9          # 63,000 px a side: refused with its size (it would not fit)
 
 
 @dataclass
@@ -89,38 +91,62 @@ def _tiff_datetime(tags: dict) -> datetime | None:
     return t.replace(tzinfo=timezone.utc)
 
 
+FIRST_YEAR, LAST_YEAR = 1957, 2100      # an acquisition time outside these years is an error
+
+
 def _acquisition_time(path: Path, tags: dict) -> tuple[datetime | None, str]:
     sidecar = path.with_suffix(".json")
-    if sidecar.exists():
+    if sidecar.exists() or sidecar.is_symlink():
+        if not sidecar.is_file():
+            raise InputError(sidecar, "the image's time sidecar is not a file (a folder, a FIFO, a "
+                                      "device or a broken link)")
+        if sidecar.stat().st_size > 1 << 20:
+            raise InputError(sidecar, f"{sidecar.stat().st_size:,} bytes: not a time sidecar "
+                                      "({\"acquired\": ISO time})")
         try:
-            meta = json.loads(sidecar.read_text())
-            return parse_iso_time(meta["acquired"]), "sidecar"
+            meta = json.loads(sidecar.read_bytes().decode("utf-8"))
+            t, source = parse_iso_time(meta["acquired"]), "sidecar"
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
             raise InputError(sidecar, f"sidecar must hold {{\"acquired\": ISO time}} ({exc})") from None
-    try:
-        t = _tiff_datetime(tags)
-    except ValueError:
-        raise InputError(path, f"TIFFTAG_DATETIME {tags.get('TIFFTAG_DATETIME')!r} is not "
-                               "'YYYY:MM:DD HH:MM:SS'") from None
-    return (t, "TIFFTAG_DATETIME") if t else (None, "none")
+        except OSError as exc:
+            raise InputError(sidecar, f"cannot read the time sidecar ({exc.strerror or exc})") from None
+        where = sidecar
+    else:
+        try:
+            t = _tiff_datetime(tags)
+        except ValueError:
+            raise InputError(path, f"TIFFTAG_DATETIME {tags.get('TIFFTAG_DATETIME')!r} is not "
+                                   "'YYYY:MM:DD HH:MM:SS'") from None
+        if t is None:
+            return None, "none"
+        source, where = "TIFFTAG_DATETIME", path
+    if not FIRST_YEAR <= t.year <= LAST_YEAR:
+        raise InputError(where, f"acquisition time {iso_utc(t) if t.year > 1 else t.isoformat()} is "
+                                f"not a plausible date (years {FIRST_YEAR}-{LAST_YEAR})")
+    return t, source
 
 
-def refuse_blank(image: "ImageInfo") -> None:
+def refuse_blank(image: "ImageInfo") -> np.ndarray:
     """A blank image (one value everywhere: a failed export, an all-black product) gives no
     feature and ended, after sparse and dense, in an error that blamed the GCPs. 3 x 3 windows
     of 32 px and the last rows all one value (nodata aside): InputError naming it. `aerec run`
-    checks this before any compute (the reconstruction itself copes with textureless tiles)."""
+    checks this before any compute (the reconstruction itself copes with textureless tiles).
+    Returns the values sampled."""
     path = image.path
     try:
-        v, nodata = _sample_values(path)
+        v, nodata = sample_values(path)
     except (RasterioIOError, rasterio.errors.RasterioError) as exc:
         raise InputError(path, f"unreadable block ({str(exc).splitlines()[0]})") from None
-    if len(v) and v.min() == v.max():
+    if not len(v):
+        raise InputError(path, "is empty: every pixel sampled is NaN, infinite or nodata (nothing "
+                               "to match in it; check the export)")
+    if v.min() == v.max():
         raise InputError(path, f"is blank: every pixel sampled has the value {v[0]:g} (nothing to "
                                "match in it; check the export)")
+    return v
 
 
-def _sample_values(path: Path) -> tuple[np.ndarray, float | None]:
+def sample_values(path: Path) -> tuple[np.ndarray, float | None]:
     """Finite, non-nodata values of 3 x 3 windows of 32 px and the last rows of band 1."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
@@ -151,6 +177,11 @@ def open_image(path: Path) -> ImageInfo:
                 if ds.count not in (1, 3):
                     raise InputError(path, f"has {ds.count} bands; expected 1 (panchromatic) or 3 (RGB)")
                 dtype = ds.dtypes[0]
+                if ds.width * ds.height > MAX_IMAGE_PIXELS:
+                    raise InputError(path, f"{ds.width:,} x {ds.height:,} px: larger than any satellite "
+                                           f"product this project reads ({MAX_IMAGE_PIXELS / 1e9:g} "
+                                           "Gpx; a full Pleiades or WorldView scene is 0.4-1.6 Gpx): "
+                                           "cut it into the part to reconstruct (a VRT window)")
                 if dtype not in ("uint8", "uint16", "float32"):
                     raise InputError(path, f"pixel type {dtype}; expected uint8, uint16 or float32")
                 # Read the last block row: a truncated file fails here, not deep in a stage.
@@ -176,8 +207,18 @@ def list_image_files(images_dir: Path) -> list[Path]:
         raise InputError(images_dir, "no images/ folder (see SITE_FORMAT.md)")
     # hidden files are not images of the site: e.g. the temporary file of an interrupted
     # atomic write (.img_00.tif.XXXX.tif) or macOS's ._img_00.tif
-    files = sorted(p for p in images_dir.iterdir()
-                   if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file() and not p.name.startswith("."))
+    named = sorted(p for p in images_dir.iterdir()
+                   if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
+    for p in named:
+        try:
+            st = p.stat()                      # follows links: a loop or a dangling one raises
+        except OSError as exc:
+            raise InputError(p, f"a broken or looping link ({exc.strerror or exc})") from None
+        if not stat.S_ISREG(st.st_mode):
+            kind = ("a folder" if stat.S_ISDIR(st.st_mode) else "a FIFO" if stat.S_ISFIFO(st.st_mode)
+                    else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else "not a file")
+            raise InputError(p, f"is {kind}, not an image file: remove it from images/ or rename it")
+    files = named
     if not files:
         raise InputError(images_dir, "no .tif, .tiff, .vrt or .jp2 image in the folder")
     stems: dict[str, Path] = {}
@@ -229,6 +270,9 @@ def load_site(root: str | Path, *, require_times: bool = True, read_gcps: bool =
     return site
 
 
+SITE_JSON_KEYS = ("name", "crs_epsg", "resolution_m", "bounds")
+
+
 def read_site_json(path: Path) -> dict:
     """site.json's hints, validated: name (text), crs_epsg (a projected CRS pyproj knows),
     resolution_m (a positive number), bounds ([xmin, ymin, xmax, ymax] numbers, in that CRS)."""
@@ -236,12 +280,23 @@ def read_site_json(path: Path) -> dict:
         return {}
     if not path.is_file():
         raise InputError(path, "is not a file")
+    if path.stat().st_size > 1 << 20:
+        raise InputError(path, f"{path.stat().st_size:,} bytes: not a site.json (a few hints)")
     try:
-        d = json.loads(path.read_text())
-    except ValueError as exc:
+        d = json.loads(path.read_bytes().decode("utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
         raise InputError(path, f"malformed JSON ({exc})") from None
     if not isinstance(d, dict):
         raise InputError(path, "must hold a JSON object")
+    for k in d:
+        if k not in SITE_JSON_KEYS:
+            import difflib
+
+            near = difflib.get_close_matches(k, SITE_JSON_KEYS, n=1, cutoff=0.5)
+            raise InputError(path, f"unknown key {k!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
+                                   + f"; site.json holds {', '.join(SITE_JSON_KEYS)}")
+    if "name" in d and not isinstance(d["name"], str):
+        raise InputError(path, f"name must be text, not {d['name']!r}")
     if "crs_epsg" in d:
         d["crs_epsg"] = projected_epsg(d["crs_epsg"], path, "crs_epsg")
     if "resolution_m" in d:
@@ -309,13 +364,15 @@ def to_gray_float(a: np.ndarray) -> np.ndarray:
 
 
 def read_window(image: ImageInfo, col0: int, row0: int, width: int, height: int, *,
-                out_shape: tuple[int, int] | None = None, mask_nodata: bool = True) -> np.ndarray:
+                out_shape: tuple[int, int] | None = None, mask_nodata: bool = True,
+                nearest: bool = False) -> np.ndarray:
     """Read a window as float32 (h, w), RGB reduced to luminance; pixels equal to nodata become
     NaN. With out_shape (h, w) the window is decimated by averaging (GDAL's overview-style read):
     the one window reader of the project (features, dense matching, the viewer's textures)."""
     from rasterio.enums import Resampling
 
-    kw = {} if out_shape is None else {"out_shape": None, "resampling": Resampling.average}
+    kw = {} if out_shape is None else {"out_shape": None, "resampling": Resampling.nearest if nearest
+                                       else Resampling.average}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
@@ -328,10 +385,21 @@ def read_window(image: ImageInfo, col0: int, row0: int, width: int, height: int,
     out = to_gray_float(a)
     if mask_nodata and image.nodata is not None and not np.isnan(image.nodata):
         out[np.any(a == image.nodata, axis=0)] = np.nan
+    if out.dtype.kind == "f" and image.dtype == "float32":
+        out[np.isinf(out)] = np.nan                 # an infinite pixel is no measurement either
     return out
 
 
 def read_downsampled(image: ImageInfo, factor: int) -> np.ndarray:
-    """Whole image decimated by an integer factor (averaging); nodata is not masked."""
+    """Whole image decimated by an integer factor (averaging); nodata is not masked. A float
+    image's NaN or infinite pixels would make every cell they fall in NaN (GDAL's average takes
+    them in): those cells are read again by nearest sampling, which takes one pixel of the cell."""
     w, h = max(1, image.width // factor), max(1, image.height // factor)
-    return read_window(image, 0, 0, image.width, image.height, out_shape=(h, w), mask_nodata=False)
+    out = read_window(image, 0, 0, image.width, image.height, out_shape=(h, w), mask_nodata=False)
+    bad = ~np.isfinite(out)
+    if bad.any() and image.dtype == "float32":
+        near = read_window(image, 0, 0, image.width, image.height, out_shape=(h, w), mask_nodata=False,
+                           nearest=True)
+        out[bad] = near[bad]
+        out[~np.isfinite(out)] = np.nan
+    return out

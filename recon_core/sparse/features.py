@@ -71,9 +71,17 @@ def tone_curve_for(images: list[ImageInfo], percentiles=(0.5, 99.5), factor: int
 
 
 def _overview_values(im: ImageInfo, factor: int = 8) -> np.ndarray:
+    """The image's values for its tone curve, from its overview (finite ones; the full-resolution
+    sample windows of the blank check when the overview has too few: a float image with NaN or
+    infinite pixels scattered everywhere)."""
     f = max(1, min(factor, min(im.width, im.height) // 64))
     ov = read_downsampled(im, f)
-    return ov[np.isfinite(ov)].ravel()
+    v = ov[np.isfinite(ov)].ravel()
+    if len(v) < 0.05 * ov.size:
+        from recon_core.io.site import sample_values
+
+        v = sample_values(im.path)[0]
+    return v if len(v) else np.zeros(1)
 
 
 def _curve_of(vals: list[np.ndarray], percentiles) -> ToneCurve:

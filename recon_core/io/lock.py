@@ -1,0 +1,126 @@
+"""One job per output folder: an advisory lock held for the whole of a run.
+
+Two jobs writing into one OUT destroy each other (the second one's start-up removes the first
+one's live scratch; both write the same products). Every job that writes into OUT (`aerec run`,
+the viewer's worker, the pipeline called from Python) holds OUT/.aerec.lock, an exclusive
+`flock` that the kernel releases when the holder ends, however it ends (kill -9 included): a
+lock left by a dead job never blocks. The lock file says who holds it (PID, command, since when)
+so a refused job can name the holder.
+
+The lock is re-entrant within a process (the viewer's worker runs the pipeline, which takes it
+again), and a job that holds it knows that any scratch it finds in OUT is a dead job's.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import sys
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Iterator
+
+from recon_core.errors import InputError
+
+LOCK_NAME = ".aerec.lock"
+_held: dict[str, list] = {}            # real path of OUT -> [fd, depth]
+_guard = threading.Lock()
+
+
+def holder(out: str | Path) -> dict | None:
+    """Who holds OUT's lock as its file says ({} when unreadable), or None when no one does."""
+    path = Path(out) / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                return json.loads(os.pread(fd, 4096, 0).decode() or "{}")
+            except (ValueError, UnicodeDecodeError):
+                return {}
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+def describe(info: dict | None) -> str:
+    """'PID 1234, `aerec run site --out out`, since 10:02:03' (what is known of it)."""
+    if not info:
+        return "another job"
+    parts = [f"PID {info['pid']}" if "pid" in info else "another job"]
+    if info.get("command"):
+        parts.append(f"`{info['command']}`")
+    if info.get("since"):
+        parts.append("since " + time.strftime("%H:%M:%S", time.localtime(info["since"])))
+    return ", ".join(parts)
+
+
+@contextmanager
+def out_lock(out: str | Path, wait: bool = False,
+             on_wait: Callable[[str], None] | None = None) -> Iterator[None]:
+    """Hold OUT's lock for the block (OUT must exist). Another job holding it: InputError naming
+    it, or, with `wait`, wait for it (on_wait is told whom once)."""
+    out = Path(out)
+    key = os.path.realpath(out)
+    with _guard:
+        if key in _held:
+            _held[key][1] += 1
+            fd = None
+        else:
+            fd = _acquire(out, wait, on_wait)
+            _held[key] = [fd, 1]
+    try:
+        yield
+    finally:
+        with _guard:
+            entry = _held[key]
+            entry[1] -= 1
+            if entry[1] == 0:
+                del _held[key]
+                try:
+                    os.ftruncate(entry[0], 0)
+                except OSError:
+                    pass
+                os.close(entry[0])                # releases the flock
+
+
+def _acquire(out: Path, wait: bool, on_wait) -> int:
+    path = out / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise InputError(out, f"cannot write this folder ({exc.strerror or exc})") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        who = describe(holder(out))
+        if not wait:
+            os.close(fd)
+            raise InputError(out, f"in use by {who}; one job per output folder: wait for it to end "
+                                  "(or pass --wait), or choose another --out") from None
+        if on_wait is not None:
+            on_wait(f"{out}: in use by {who}; waiting for it to end")
+        fcntl.flock(fd, fcntl.LOCK_EX)
+    info = {"pid": os.getpid(), "command": " ".join(_command()), "since": time.time()}
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, json.dumps(info).encode(), 0)
+    return fd
+
+
+def _command() -> list[str]:
+    argv = list(sys.argv)
+    if argv and argv[0].endswith(("/aerec", "aerec")):
+        argv[0] = "aerec"
+    return argv[:8] + (["..."] if len(argv) > 8 else [])
+
+
+def is_locked_by_me(out: str | Path) -> bool:
+    return os.path.realpath(out) in _held

@@ -1,0 +1,100 @@
+"""One job per output folder (recon_core.io.lock), and outputs never inside the site."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from recon_core.cli import main
+from recon_core.io.lock import holder, out_lock
+
+HOLD = textwrap.dedent("""
+    import sys, time
+    from pathlib import Path
+    from recon_core.io.lock import out_lock
+    out = Path(sys.argv[1])
+    with out_lock(out):
+        # a live job's scratch, as the dense stage leaves it while it runs
+        (out / ".dense_parts_live1234").mkdir(exist_ok=True)
+        print("held", flush=True)
+        time.sleep(float(sys.argv[2]))
+""")
+
+
+def _holder(out, seconds: float) -> subprocess.Popen:
+    p = subprocess.Popen([sys.executable, "-c", HOLD, str(out), str(seconds)], stdout=subprocess.PIPE,
+                         text=True, cwd=os.getcwd())
+    assert p.stdout.readline().strip() == "held"
+    return p
+
+
+def test_a_second_job_is_refused_and_the_first_keeps_its_scratch(tiny_site, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    p = _holder(out, 30)
+    try:
+        info = holder(out)
+        assert info["pid"] == p.pid
+        code = main(["run", str(tiny_site), "--out", str(out), "--stage", "sparse", "--quiet"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, err
+        assert f"PID {p.pid}" in err[0] and "--wait" in err[0]
+        assert (out / ".dense_parts_live1234").is_dir()       # the live job's scratch is untouched
+        assert not (out / "stages").exists()                    # nothing computed
+    finally:
+        p.kill()
+        p.wait()
+
+
+def test_a_dead_holder_never_blocks_and_wait_waits(tiny_site, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    p = _holder(out, 60)
+    os.kill(p.pid, signal.SIGKILL)                               # the kernel drops its flock
+    p.wait()
+    assert holder(out) is None
+    p = _holder(out, 3)
+    t0 = time.time()
+    code = main(["run", str(tiny_site), "--out", str(out), "--stage", "sparse", "--quiet", "--wait"])
+    p.wait()
+    assert code == 0 and time.time() - t0 >= 1.5
+    assert "waiting for it to end" in capsys.readouterr().err
+    assert not (out / ".dense_parts_live1234").exists()          # a dead job's scratch is swept
+    assert holder(out) is None                                   # released at the end
+
+
+def test_the_lock_is_reentrant_in_one_process(tmp_path):
+    with out_lock(tmp_path):
+        with out_lock(tmp_path):
+            assert holder(tmp_path)["pid"] == os.getpid()
+        assert holder(tmp_path)["pid"] == os.getpid()
+    assert holder(tmp_path) is None
+
+
+@pytest.mark.parametrize("where", ["images", ".", "sub/deeper"])
+def test_an_output_folder_inside_the_site_is_refused_before_any_write(tiny_site, tmp_path, capsys, where):
+    import shutil
+
+    site = tmp_path / "site"
+    shutil.copytree(tiny_site, site)
+    before = sorted(str(p) for p in site.rglob("*"))
+    code = main(["run", str(site), "--out", str(site / where), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "inside the site" in err[0], err
+    assert sorted(str(p) for p in site.rglob("*")) == before
+
+
+def test_a_site_inside_the_output_folder_is_refused(tiny_site, tmp_path, capsys):
+    import shutil
+
+    site = tmp_path / "runs" / "site"
+    shutil.copytree(tiny_site, site)
+    code = main(["run", str(site), "--out", str(tmp_path / "runs"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "holds the site" in err[0], err
