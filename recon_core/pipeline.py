@@ -103,6 +103,12 @@ def finished_stages(out: Path, cfg: Config, site: Site) -> set[str]:
 
 def _open(site_path, out, until, redo_from) -> tuple[Site, Path]:
     """The checked stage names, the loaded site and the output folder (created)."""
+    site, out = _load(site_path, out, until, redo_from)
+    return site, _make_out(out)
+
+
+def _load(site_path, out, until, redo_from) -> tuple[Site, Path]:
+    """The checked stage names and the loaded site; the output folder checked, not created."""
     for name in (until, redo_from):
         if name is not None and name not in STAGES:
             raise InputError(None, f"unknown stage {name!r}; stages are {', '.join(STAGES)}")
@@ -111,11 +117,15 @@ def _open(site_path, out, until, redo_from) -> tuple[Site, Path]:
     refuse_nested(site.root, out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "output path exists and is not a folder")
+    return site, out
+
+
+def _make_out(out: Path) -> Path:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(out, f"cannot create the output folder ({exc.strerror or exc})") from None
-    return site, out
+    return out
 
 
 def refuse_nested(site_root: Path, out: Path) -> None:
@@ -174,8 +184,13 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     least one date group must have >= 4 control GCPs observed in >= 2 of its images (or picked
     on its cloud). Raises InputError; returns warnings (a group that will not be upgraded)."""
     check_config(cfg)
-    site, out = _open(site_path, out, until, redo_from)
+    site, out = _load(site_path, out, until, redo_from)
     check_images(site)
+    if cfg.dsm.resolution_m and site.hints.get("bounds"):
+        from recon_core.io.site import check_grid_size
+
+        check_grid_size(None, site.hints["bounds"], cfg.dsm.resolution_m)
+    out = _make_out(out)
     writable_folder(out, create=False)
     if STAGES.index(until or STAGES[-1]) < STAGES.index("upgrade"):
         return []

@@ -89,6 +89,7 @@ def test_two_identical_images_are_refused(small_site, tmp_path, capsys):
         ds.update_tags(TIFFTAG_DATETIME="2020:01:04 10:00:00")
     assert _run(small_site, tmp_path, "--stage", "sparse") == 2
     _one_line(capsys, "c.tif", "same image as a.tif")
+    assert not (tmp_path / "o").exists()
 
 
 def test_a_product_too_large_is_refused_with_its_size(small_site, tmp_path, capsys):
@@ -111,6 +112,16 @@ def test_bad_time_sidecars(make, words, small_site, tmp_path, capsys):
     for argv in (["run", str(small_site), "--out", str(tmp_path / "o"), "--quiet"], ["info", str(small_site)]):
         assert main(argv) == 2
         _one_line(capsys, "a.json", words)
+
+
+def test_a_dsm_grid_that_cannot_fit_is_refused(small_site, tmp_path, capsys):
+    (small_site / "site.json").write_text(json.dumps({"crs_epsg": 32632, "resolution_m": 0.01,
+                                                      "bounds": [500000, 4980000, 501000, 4981000]}))
+    assert main(["info", str(small_site)]) == 2
+    _one_line(capsys, "site.json", "would not fit")
+    (small_site / "site.json").write_text(json.dumps({"resolution_m": 0.001}))
+    assert _run(small_site, tmp_path) == 2
+    _one_line(capsys, "site.json", "resolution_m must be")
 
 
 @pytest.mark.parametrize("key, words", [("resolution", "did you mean 'resolution_m'"),

@@ -271,6 +271,17 @@ def load_site(root: str | Path, *, require_times: bool = True, read_gcps: bool =
 
 
 SITE_JSON_KEYS = ("name", "crs_epsg", "resolution_m", "bounds")
+MIN_RESOLUTION_M = 0.01        # a finer DSM cell than any satellite resolves
+MAX_DSM_CELLS = 1.5e9          # the DSM stage holds a few grids of float32 (6 GB each at this size)
+
+
+def check_grid_size(where, bounds, res: float) -> None:
+    """A DSM grid over `bounds` at `res` that cannot fit is refused before any compute."""
+    cells = ((bounds[2] - bounds[0]) / res) * ((bounds[3] - bounds[1]) / res)
+    if cells > MAX_DSM_CELLS:
+        raise InputError(where, f"a DSM of {(bounds[2] - bounds[0]) / res:,.0f} x {(bounds[3] - bounds[1]) / res:,.0f} "
+                                f"cells at {res:g} m: more than {MAX_DSM_CELLS:.2g} cells would not fit; "
+                                "choose a coarser resolution_m or smaller bounds")
 
 
 def read_site_json(path: Path) -> dict:
@@ -300,8 +311,9 @@ def read_site_json(path: Path) -> dict:
     if "crs_epsg" in d:
         d["crs_epsg"] = projected_epsg(d["crs_epsg"], path, "crs_epsg")
     if "resolution_m" in d:
-        if not (_finite_number(d["resolution_m"]) and d["resolution_m"] > 0):
-            raise InputError(path, f"resolution_m must be a positive number of metres, not {d['resolution_m']!r}")
+        if not (_finite_number(d["resolution_m"]) and MIN_RESOLUTION_M <= d["resolution_m"] <= 1000):
+            raise InputError(path, f"resolution_m must be a number of metres from {MIN_RESOLUTION_M} "
+                                   f"to 1000, not {d['resolution_m']!r}")
     if "bounds" in d:
         b = d["bounds"]
         if not (isinstance(b, list) and len(b) == 4 and all(_finite_number(v) for v in b)
@@ -311,6 +323,7 @@ def read_site_json(path: Path) -> dict:
         if "crs_epsg" not in d:
             raise InputError(path, "bounds need crs_epsg (the projected CRS they are in)")
         res = float(d.get("resolution_m", 0.5))
+        check_grid_size(path, b, res)
         if min(b[2] - b[0], b[3] - b[1]) < 4 * res:
             raise InputError(path, f"bounds span {b[2] - b[0]:g} x {b[3] - b[1]:g} units of EPSG:"
                                    f"{d['crs_epsg']} (metres): under 4 cells; degrees given for a "
