@@ -297,7 +297,11 @@ def cmd_eval(args) -> int:
 
 
 def print_summary(report: dict) -> None:
-    sparse = report.get("stages", {}).get("sparse", {})
+    """What a user looks for at the end of a run: per date group the tiles and points, then the
+    accuracy at the check points, the DSM, and its scores against the ground truth or another
+    tool's DSM when the site has one."""
+    st = report.get("stages", {})
+    sparse = st.get("sparse", {})
     for g, s in sparse.get("groups", {}).items():
         if "error" in s:
             print(f"group {g}: FAILED: {s['error']}")
@@ -306,6 +310,35 @@ def print_summary(report: dict) -> None:
         print(f"group {g}: tiles registered {s['tiles_registered']}/{s['tiles_total']}, "
               f"points {s['points']}, mean reprojection error {s['mean_reproj_px']:.3f} px; "
               + ", ".join(f"{k} {v:.1f} s" for k, v in t.items()))
+    told = {}
+    for g, u in st.get("upgrade", {}).get("groups", {}).items():
+        if "error" in u:
+            print(f"group {g}: not upgraded: {u['error']}")
+            continue
+        c = (u.get("stats") or {}).get("check") or {}
+        line = (f"{u.get('n_control_used', '?')} control GCPs; " + (
+            f"{c['n']} check points: RMSE E {c['rmse_E_m']:.3f} N {c['rmse_N_m']:.3f} U {c['rmse_U_m']:.3f} m, "
+            f"CE90 {c['ce90_m']:.2f} m, LE90 {c['le90_m']:.2f} m" if c.get("n") else
+            "no check point (give some GCPs \"role\": \"check\" to measure the accuracy)"))
+        told.setdefault(line, []).append(g)
+    for line, gs in told.items():
+        who = f"group {gs[0]}" if len(gs) == 1 else f"groups {', '.join(gs)} (one joint upgrade)"
+        print(f"{who}: {line}")
+    d = st.get("dsm", {})
+    if d.get("width"):
+        print(f"DSM: {d['width']} x {d['height']} cells at {d['resolution_m']:g} m, "
+              f"{100 * d.get('valid_fraction', 0):.1f} % valid")
+    ev = st.get("eval", {})
+    for k in ("aligned", "unaligned"):
+        if k in ev:
+            e = ev[k]
+            print(f"DSM vs ground truth ({k}): median |error| {e['median_abs_err_m']:.3f} m, "
+                  f"within 1 m {e['completeness_pct']:.1f} %")
+    for name, r in (ev.get("references") or {}).items():
+        a, u = r["aligned"], r["unaligned"]
+        print(f"DSM vs {name} (agreement with another tool, not accuracy): median |diff| "
+              f"{a['median_abs_err_m']:.3f} m, within 1 m {a['completeness_pct']:.1f} % (aligned); "
+              f"{u['median_abs_err_m']:.3f} m, {u['completeness_pct']:.1f} % (unaligned)")
 
 
 def _version() -> str:

@@ -60,6 +60,8 @@ def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None,
     blob = {k: ({f: v for f, v in d[k].items() if f"{k}.{f}" not in NOT_IN_STAGE_HASH}
                 if isinstance(d[k], dict) else d[k]) for k in keys}
     blob["inputs"] = site_fingerprint(site)
+    if stage == "eval":
+        blob["scored_against"] = scored_against(site)
     if STAGES.index(stage) >= STAGES.index("upgrade"):
         if gcp_text is None:
             gcp_file = working_gcp_file(site.root, out) if out is not None else site.root / "gcps.geojson"
@@ -83,6 +85,14 @@ def site_fingerprint(site: Site) -> dict:
         when = None if im.acquired is None else im.acquired.isoformat()
         imgs.append([im.name, st.st_size, st.st_mtime_ns, when, im.time_source])
     return {"images": imgs, "site_json": site.hints}
+
+
+def scored_against(site: Site) -> list:
+    """What the evaluation stage reads besides OUT: the ground truth and other tools' DSMs."""
+    from recon_core.evaluation.stage import reference_dsms
+
+    scored = [p for p in [site.gt_dsm, *reference_dsms(site.root)] if p is not None]
+    return [[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in scored]
 
 
 def stage_done(out: Path, stage: str, cfg: Config, site: Site, gcp_text: str | None = None) -> bool:

@@ -8,9 +8,46 @@ from recon_core.events import EventBus
 from recon_core.io.files import write_json
 
 
+def reference_dsms(site_root) -> list:
+    """Other tools' DSMs of the site (SITE/ref_dsm*.tif, e.g. s2p's): scored for agreement with
+    them, which is not accuracy (they are not ground truth)."""
+    from pathlib import Path
+
+    return sorted(p for p in Path(site_root).glob("ref_dsm*.tif") if p.is_file())
+
+
 def run(state, bus: EventBus) -> dict:
+    refs = _score_references(state, bus)
     if state.site.gt_dsm is None:
-        return {"skipped": "the site has no gt_dsm.tif"}
+        out = {"skipped": "the site has no gt_dsm.tif"}
+        if refs:
+            out["references"] = refs
+        return out
+    res = _score_truth(state, bus)
+    if refs:
+        res["references"] = refs
+    return res
+
+
+def _score_references(state, bus: EventBus) -> dict:
+    lay = state.layout
+    out = {}
+    for ref in reference_dsms(state.site.root):
+        try:
+            r = evaluate_dsm(lay.dsm, ref, lay.eval_dir / ref.stem)
+        except AerecError as exc:
+            bus.message(f"{ref.name} not compared: {exc}", "warning")
+            continue
+        out[ref.name] = {k: {m: r[k][m] for m in ("median_abs_err_m", "completeness_pct", "rmse_m")
+                             if m in r[k]} for k in ("aligned", "unaligned")}
+        a, u = r["aligned"], r["unaligned"]
+        bus.message(f"DSM vs {ref.name} (another tool's DSM: agreement, not accuracy): median |diff| "
+                    f"{a['median_abs_err_m']:.3f} m, within 1 m {a['completeness_pct']:.1f} % (aligned); "
+                    f"unaligned {u['median_abs_err_m']:.3f} m, {u['completeness_pct']:.1f} %")
+    return out
+
+
+def _score_truth(state, bus: EventBus) -> dict:
     lay = state.layout
     res = evaluate_dsm(lay.dsm, state.site.gt_dsm, lay.eval_dir)
     a, u = res["aligned"], res["unaligned"]
