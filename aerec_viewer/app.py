@@ -29,7 +29,7 @@ from recon_core.errors import AerecError
 from recon_core.io.gcps import picked_positions
 from recon_core.model.tiling import Window
 
-from .display import COLOR_MODES, DisplayTransform, image_footprint
+from .display import COLOR_MODES, DisplayTransform, euclidean_display_transform, image_footprint
 from .gcp_panel import GcpPanel, PickPlane, layout_pick_plane, pixel_from_ray
 from .gcp_session import (
     GcpError,
@@ -184,6 +184,7 @@ class ViewerApp:
         self.last_click: tuple | None = None          # (gcp id, image, col, row) of the last pick
         self.update_hz = update_hz
         self._euclid: dict[int, DisplayTransform] = {}
+        self._auto_frame_tried = False
         self._shifted: dict = {}
         self._offsets: dict[int, float] = {}
         self._queue: queue.Queue = queue.Queue()
@@ -294,6 +295,15 @@ class ViewerApp:
     def _tick(self) -> int | None:
         """Apply the newest worker state; returns the number of points sent (None: no change)."""
         snap = self.worker.snapshot()
+        if snap.status in ("done", "reopened") and not self._auto_frame_tried:
+            # a finished run that holds an upgrade opens in metres (the affine frame "may be
+            # depth-reversed": a skewed slab), once; the Frame dropdown goes back
+            self._auto_frame_tried = True
+            if not self._euclid and self._load_saved_upgrade():
+                self.note("showing the Euclidean frame (metres, from OUT/upgrade/); Frame in the "
+                          "Results tab switches to the affine one")
+                self.set_frame("euclidean")
+                return None
         if self.worker.models_version != self._models_version:
             self._models_version = self.worker.models_version
             self.models = dict(self.worker.models)
@@ -1096,6 +1106,22 @@ class ViewerApp:
                       "working GCP set (as `aerec run --redo-from upgrade`)")
         else:
             self.note(f"the DSM is not recomputed from this upgrade: {why}", "warning")
+
+    def _load_saved_upgrade(self) -> bool:
+        """The display transforms of the upgrade OUT holds (OUT/upgrade/), if any."""
+        from recon_core.io.models import load_upgrade
+
+        try:
+            saved = load_upgrade(self.out)
+        except (OSError, ValueError, KeyError):
+            return False
+        if not saved or not saved[0]:
+            return False
+        maps, frame = saved
+        self._euclid = {g: euclidean_display_transform(m.H, frame.origin_llh, m.warp, m.enu_warp)
+                        for g, m in maps.items()}
+        self.g_frame_sel.disabled = False
+        return True
 
     def set_frame(self, frame: str) -> None:
         if frame == "euclidean" and not self._euclid:

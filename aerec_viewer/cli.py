@@ -281,14 +281,62 @@ def cmd_view(args) -> int:
         print("  Ctrl-C to quit; picked GCPs are saved to "
               f"{app.session.path} after every change.")
     sys.stdout.flush()
+    console = ConsoleProgress(app.worker, out)
     try:
         while True:
             time.sleep(1.0)
+            console.poll()
     except KeyboardInterrupt:
         print("aerec view: stopping", file=sys.stderr)
     finally:
         app.stop()
     return 0
+
+
+class ConsoleProgress:
+    """What the reconstruction does, told on the terminal too (the page is not the only place
+    a user looks): each stage as it starts and ends, the first points, and one closing line with
+    where the outputs are and what to do next."""
+
+    def __init__(self, worker, out: Path):
+        self.worker, self.out = worker, out
+        self.stage: str | None = None
+        self.finished: set[str] = set()
+        self.first_told = False
+        self.status_told: str | None = None
+
+    def poll(self) -> None:
+        snap = self.worker.snapshot()
+        t = time.time() - snap.t_start
+        if snap.t_first_points is not None and not self.first_told:
+            self.first_told = True
+            self._say(f"first points at {snap.t_first_points - snap.t_start:.1f} s")
+        for stage, seconds in snap.stages_finished.items():
+            if stage not in self.finished:
+                self.finished.add(stage)
+                self._say(f"{stage} done ({seconds:.0f} s)")
+        if snap.stage and snap.stage != self.stage and snap.stage not in self.finished \
+                and snap.status == "running":
+            self.stage = snap.stage
+            self._say(f"{snap.stage}: running ({t:.0f} s since the start)")
+        if snap.status in ("done", "failed", "reopened", "stopped") and snap.status != self.status_told:
+            self.status_told = snap.status
+            if snap.status == "done" and snap.awaiting_gcps:
+                self._say(f"affine reconstruction finished in {t:.0f} s; outputs in {self.out}")
+                self._say("next: place 4 control GCPs in the GCP tab of the page (each in 2 images), "
+                          "then press Upgrade")
+            elif snap.status == "done":
+                self._say(f"finished in {t:.0f} s; outputs in {self.out}")
+            elif snap.status == "failed":
+                self._say(f"stopped in the {snap.failed_stage or 'run'}: {snap.error}")
+                if snap.hint:
+                    self._say(f"next: {snap.hint}")
+            elif snap.status == "reopened":
+                self._say(f"reopened {self.out}")
+
+    @staticmethod
+    def _say(text: str) -> None:
+        print(f"aerec view: {text}", flush=True)
 
 
 def check_view_options(args) -> None:

@@ -220,6 +220,7 @@ class DisplaySnapshot:
     t_first_points: float | None
     failed_stage: str | None = None    # the pipeline stage that was running when the run failed
     hint: str | None = None            # one line: what to do about the failure
+    awaiting_gcps: bool = False        # the run stopped after the dense stage: no 4 control GCPs yet
 
     @property
     def n_points(self) -> int:
@@ -264,6 +265,7 @@ class ReconWorker:
         self._messages: deque[tuple[str, str]] = deque(maxlen=40)
         self._t_start = time.time()
         self._t_first_points: float | None = None
+        self._awaiting_gcps = False
         self._resume_gate = threading.Event()
         self._resume_gate.set()
         self._cancel = False
@@ -443,7 +445,7 @@ class ReconWorker:
             return DisplaySnapshot(self._version, self._status, self._error, st[0], st[1], st[2],
                                    st[3], st[4], dict(self._finished), groups,
                                    tuple(self._messages), self._t_start, self._t_first_points,
-                                   self._failed_stage, self._hint)
+                                   self._failed_stage, self._hint, self._awaiting_gcps)
 
     def _set_status(self, status: str, error: str | None = None, hint: str | None = None) -> None:
         with self._lock:
@@ -495,7 +497,16 @@ class ReconWorker:
             pipeline.check_images(site)
         if "sparse" in done:
             self._replay_saved(dense="dense" in done)
-        state = pipeline.run(self.site, self.out, cfg, until=self.until,
+        until = self.until
+        self._awaiting_gcps = False
+        if (until is None or pipeline.STAGES.index(until) > pipeline.STAGES.index("dense")) \
+                and not upgradable(site, self.out, cfg):
+            # no 4 control GCPs yet (a first demo, a site without a GCP file): the affine
+            # reconstruction runs to the end, and the operator places them next
+            until, self._awaiting_gcps = "dense", True
+            self.message("no 4 control GCPs observed in 2 images yet: the reconstruction stops after "
+                         "the dense stage; place them in the GCP tab, then press Upgrade")
+        state = pipeline.run(self.site, self.out, cfg, until=until,
                              bus=EventBus(self.handle), resume=True, redo_from=self.redo_from)
         self.models = dict(state.models)
         self.models_version += 1
@@ -520,6 +531,21 @@ class ReconWorker:
             n_dense = replay_dense(lay, g, self.handle) if dense else 0
             self.message(f"group {g}: loaded the saved model from {lay.group_dir(g)}"
                          + (f" ({n_dense} dense points)" if n_dense else ""))
+
+
+def upgradable(site, out: Path, cfg) -> bool:
+    """Does the working GCP set give some date group the 4 control GCPs the upgrade needs?"""
+    from recon_core import pipeline
+    from recon_core.io.gcps import read_gcps_geojson, working_gcp_file
+    from recon_core.model.grouping import group_by_date
+
+    path = working_gcp_file(site.root, out)
+    try:
+        gcps = read_gcps_geojson(path, {im.name: im for im in site.images}) if path.exists() else []
+    except InputError:
+        return True                           # let the run say what is wrong with the file
+    groups = group_by_date(site.images, cfg.grouping.max_gap_days, cfg.grouping.max_span_days)
+    return any(level in ("ok", "joint", "error") for level, _, _ in pipeline.gcp_findings(groups, gcps, cfg))
 
 
 def raise_missing(out: Path) -> None:

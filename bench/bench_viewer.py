@@ -7,7 +7,7 @@ client) and timestamps every frame it receives. With --browser, headless Chromiu
 connected and the time until the first points are rendered on its screen is measured.
 
     python bench/bench_viewer.py                      # the demo site (generated on first use)
-    python bench/bench_viewer.py --site /work/shared/data/reunion_pair --tile-size 400
+    python bench/bench_viewer.py --site ../shared/data/reunion_pair --tile-size 400
     python bench/bench_viewer.py --cold               # `aerec view` from a bare cache
 """
 

@@ -352,16 +352,14 @@ PRESETS: dict[str, dict] = {
 # What runs beyond the paper's method, each switched off by --method paper: the paper's plain
 # path (tiles, SIFT, incremental affine SfM with BA per date group, SGM, H_A fitted on the GCPs
 # alone, ICP fusion, DSM), kept runnable as the baseline every accuracy figure is compared with.
-BEYOND_PAPER = {
-    "features.refine_half_px": 0,          # tie points refined by patch matching
-    "sfm.joint_groups": False,             # all date groups in one affine frame
-    "sfm.tie_sigma_px": 0.0,               # the per-image pushbroom tie
-    "sfm.correction_rounds": 0,            # the within-tile correction
-    "upgrade.metric_prior_sigma_cos": 0.0,  # the cameras' metric constraint in H_A's fit
-    "upgrade.metric_bend": False,          # the metric bend step
-    "upgrade.gcp_bend": False,             # the bend fitted to >= 9 control GCPs
-    "upgrade.reference_dem": "",           # the vertical bend from a reference DEM
-}
+# The steps and their switches are declared once, in recon_core.method.CHAIN.
+def _beyond_paper() -> dict:
+    from recon_core.method import beyond_paper
+
+    return beyond_paper()
+
+
+BEYOND_PAPER = _beyond_paper()
 METHODS: dict[str, dict] = {"default": {}, "paper": BEYOND_PAPER}
 
 

@@ -1,6 +1,6 @@
 """The affine camera of a tile: x = M X + t, a full-image pixel (col, row) of a 3D point X.
 
-The parameters are one (2, 4) array P = [M | t] (SITE_FORMAT's pixel convention: the centre of
+The parameters are one (2, 4) array P = [M | t] (the site format's pixel convention: the centre of
 the top-left pixel is (0, 0)). Stacks of tile cameras stay (n, 2, 4) arrays for the vectorised
 algebra (recon_core.geometry.affine) and the bundle adjustment; everything else that needs one
 camera's projection, linear part or a window-relative version goes through `AffineCamera`, so a

@@ -1,4 +1,4 @@
-"""GCP files: SITE_FORMAT's gcps.geojson, read and written here only, and the working set.
+"""GCP files: the site format's gcps.geojson, read and written here only, and the working set.
 
 Besides the site's own gcps.geojson there is a *working set*, OUT/gcps.geojson: the viewer's
 edits (clicked observations, roles, new points, positions picked on a group's affine cloud in

@@ -7,7 +7,7 @@ One row per observation (a GCP without observation: one row with empty image, co
     GCP-01,control,55.4524110,-20.9047210,98.312,4979,,img_01.tif,1012.75,95.00
 
 x, y: longitude and latitude in degrees when epsg is 4326 or 4979 (or empty), else easting and
-northing in that projected EPSG; h: ellipsoidal height in metres (SITE_FORMAT); col, row:
+northing in that projected EPSG; h: ellipsoidal height in metres (docs: site-format.md); col, row:
 full-image pixel, centre of the top-left pixel = (0, 0). Columns may come in any order; id, x, y,
 h are required, role defaults to control. Every row of one id must give the same ground
 coordinates, role and sigma. gcps.geojson stays the site's format: `aerec gcps convert` turns one

@@ -1,6 +1,6 @@
 """The Euclidean cloud as LAS/LAZ with its CRS, for PDAL, QGIS, CloudCompare and lidar tools.
 
-`cloud.ply` stays the project's own copy (SITE_FORMAT); `cloud.laz` is written from it by
+`cloud.ply` stays the project's own copy (docs: site-format.md); `cloud.laz` is written from it by
 chunks after the DSM stage: LAS 1.4, point format 7 (x, y, z, RGB), coordinates in millimetres
 (scale 0.001 m) with the offset at the cloud's first chunk, the horizontal CRS as an OGC WKT
 VLR, and heights above the WGS84 ellipsoid (said in the header's system identifier and in a

@@ -209,7 +209,7 @@ def write_dsm(path: str | Path, H: np.ndarray, grid: Grid) -> Path:
                          description="height above the WGS84 ellipsoid", units="metre")
 
 
-# GDAL metadata of every DSM this project writes: the vertical reference (SITE_FORMAT: heights
+# GDAL metadata of every DSM this project writes: the vertical reference (docs: site-format.md; heights
 # are ellipsoidal), so that tools do not take them for orthometric (geoid) heights.
 DSM_TAGS = {"AREA_OR_POINT": "Area", "VERTICAL_DATUM": "WGS84 ellipsoid (EPSG:4979 heights)",
             "VERTICAL_UNITS": "metre", "PRODUCER": "AE-Rec"}

@@ -1,4 +1,4 @@
-"""Reading and writing sites in the layout of SITE_FORMAT.md.
+"""Reading and writing sites in the layout of docs/site-format.md.
 
 A site is a folder with `images/*.tif[f]`, `gcps.geojson`, optional `gt_dsm.tif` and optional
 `site.json`. Pixel coordinates are (col, row) of the full image, centre of the top-left pixel at
@@ -204,7 +204,7 @@ def open_image(path: Path) -> ImageInfo:
 
 def list_image_files(images_dir: Path) -> list[Path]:
     if not images_dir.is_dir():
-        raise InputError(images_dir, "no images/ folder (see SITE_FORMAT.md)")
+        raise InputError(images_dir, "no images/ folder (see docs/site-format.md)")
     # hidden files are not images of the site: e.g. the temporary file of an interrupted
     # atomic write (.img_00.tif.XXXX.tif) or macOS's ._img_00.tif
     named = sorted(p for p in images_dir.iterdir()

@@ -10,7 +10,7 @@ import numpy as np
 @dataclass(frozen=True)
 class Window:
     """A window of one image in full-image pixels: columns col0 .. col0 + width - 1, rows
-    row0 .. row0 + height - 1 (SITE_FORMAT: the centre of the top-left pixel is (0, 0))."""
+    row0 .. row0 + height - 1 (docs: site-format.md; the centre of the top-left pixel is (0, 0))."""
 
     image: str
     col0: int

@@ -1,7 +1,7 @@
 """Synthetic satellite sites: a procedural city rendered by true pushbroom cameras.
 
 :func:`generate_site` writes a complete site folder in the project's site format
-(``/work/shared/SITE_FORMAT.md``) and returns the truth (:class:`SynthTruth`)::
+(docs: site-format.md) and returns the truth (:class:`SynthTruth`)::
 
     SITE/
       images/img_XX.tif    uint16 11-bit panchromatic, tiled GeoTIFF, TIFFTAG_DATETIME (UTC),

@@ -1,0 +1,133 @@
+"""The reference pages of the docs, generated from the code (docs/hooks.py puts them in place):
+every parameter with its default, rule and comment; every command with its options; the
+method's chain. Generated, so they cannot go stale."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import re
+
+
+def field_comments(cls) -> dict[str, str]:
+    """A config dataclass's fields -> their whole comment (the field line's and the comment
+    lines under it)."""
+    out, cur = {}, None
+    for line in inspect.getsource(cls).splitlines():
+        s = line.strip()
+        m = re.match(r"(\w+): [^=]+=.*?#\s?(.*)$", s)
+        if m:
+            cur = m.group(1)
+            out[cur] = m.group(2).strip()
+        elif re.match(r"(\w+): [^=]+=", s):
+            cur = None
+        elif s.startswith("#") and cur:
+            out[cur] += " " + s.lstrip("#").strip()
+        elif s:
+            cur = None
+    return out
+
+
+def _rule_text(rule) -> str:
+    if rule.choices is not None:
+        from recon_core.config import _choices
+
+        return "one of " + ", ".join(f"`{c}`" for c in _choices(rule.choices))
+    parts = []
+    if rule.lo is not None:
+        parts.append(f"{'>' if rule.lo_open else '>='} {rule.lo:g}")
+    if rule.hi is not None:
+        parts.append(f"{'<' if rule.hi_open else '<='} {rule.hi:g}")
+    if rule.odd:
+        parts.append("odd")
+    return ", ".join(parts)
+
+
+def _value(v) -> str:
+    if v is None:
+        return "(none)"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return f'"{v}"'
+    if isinstance(v, tuple):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def config_reference() -> str:
+    """Every parameter as `aerec config --dump` writes it, by section, with its rule."""
+    from recon_core.config import RELATIONS, Config
+
+    cfg = Config()
+    lines = []
+    top = [f for f in dataclasses.fields(cfg) if not dataclasses.is_dataclass(getattr(cfg, f.name))]
+    for f in dataclasses.fields(cfg):
+        sec = getattr(cfg, f.name)
+        if not dataclasses.is_dataclass(sec):
+            continue
+        com = field_comments(type(sec))
+        lines += [f"### [{f.name}]", ""]
+        doc = inspect.getdoc(type(sec))
+        if doc and not doc.startswith(type(sec).__name__ + "("):
+            lines += [doc, ""]
+        lines += ["| parameter | default | allowed | what it does |", "|---|---|---|---|"]
+        for g in dataclasses.fields(sec):
+            rule = g.metadata.get("rule")
+            allowed = _rule_text(rule) if rule else ""
+            text = com.get(g.name, "").replace("|", "\\|")
+            lines.append(f"| `{g.name}` | `{_value(getattr(sec, g.name))}` | {allowed} | {text} |")
+        lines.append("")
+    if top:
+        lines += ["### top level", "", "| parameter | default | allowed | what it does |", "|---|---|---|---|"]
+        com = field_comments(Config)
+        for g in top:
+            rule = g.metadata.get("rule")
+            lines.append(f"| `{g.name}` | `{_value(getattr(cfg, g.name))}` | "
+                         f"{_rule_text(rule) if rule else ''} | {com.get(g.name, '')} |")
+        lines.append("")
+    lines += ["### Relations between parameters", ""]
+    lines += [f"- {', '.join(f'`{n}`' for n in names)}: {need}" for names, _, need in RELATIONS]
+    return "\n".join(lines) + "\n"
+
+
+def cli_reference() -> str:
+    """Every `aerec` command and its options, from the parser the command line uses."""
+    import argparse
+
+    from recon_core.cli import build_parser
+
+    parser = build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    helps = {a.dest: a.help for a in subs._choices_actions}
+    lines = []
+    for name, sp in subs.choices.items():
+        lines += [f"### `aerec {name}`", "", helps.get(name) or "", "", "```text",
+                  sp.format_usage().replace("usage: ", "").strip(), "```", ""]
+        rows = []
+        for a in sp._actions:
+            if isinstance(a, argparse._HelpAction):
+                continue
+            flag = ", ".join(a.option_strings) or a.dest
+            h = (a.help or "").replace("|", "\\|")
+            if a.choices and not isinstance(a, argparse._SubParsersAction):
+                h += f" (one of {', '.join(map(str, a.choices))})"
+            if a.default not in (None, False, argparse.SUPPRESS) and a.option_strings:
+                h += f" (default `{a.default}`)"
+            rows.append(f"| `{flag}` | {h} |")
+        if rows:
+            lines += ["| argument | meaning |", "|---|---|", *rows, ""]
+    return "\n".join(lines) + "\n"
+
+
+def method_chain() -> str:
+    """The method as it runs (recon_core.method.CHAIN), as a table."""
+    from recon_core.method import CHAIN
+
+    lines = ["| # | step | the paper's? | what it does | switched off by | stands aside by itself when |",
+             "|---|---|---|---|---|---|"]
+    for k, s in enumerate(CHAIN, 1):
+        off = f"`{s.switch} = {_value(s.off)}`" if s.switch else ("always on" if not s.paper else "")
+        lines.append(f"| {k} | {s.name} | {'yes' if s.paper else 'no'} | {s.what} (`{s.module}`) | "
+                     f"{off} | {s.stands_aside} |")
+    return "\n".join(lines) + "\n"
