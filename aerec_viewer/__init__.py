@@ -2,7 +2,7 @@
 
 The core never imports this package; `aerec view` reaches it through the `aerec.commands`
 entry point, so importing the package stays cheap: the public names below load on first use.
-See README.md in this folder.
+docs/viewer.md describes it.
 """
 
 from importlib import import_module

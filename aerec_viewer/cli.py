@@ -264,6 +264,21 @@ def cmd_view(args) -> int:
                 printer.close()
         args.port = prep.port                 # the viewer takes over the page's address
     mode, site, out = resolve_target(args.target, args.out, args.site)
+    # the viewer writes into OUT (its GCP set, the upgrade, the DSM): it holds OUT's lock for
+    # its whole session, so a second job on OUT is refused naming it (recon_core.io.lock)
+    from recon_core.errors import InputError
+    from recon_core.io.lock import out_lock
+
+    if site is not None:
+        from recon_core.pipeline import refuse_nested
+
+        refuse_nested(site, out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(out, f"cannot create the output folder ({exc.strerror or exc})") from None
+    lock = out_lock(out)
+    lock.__enter__()
     cfg = None
     if mode == "run" or args.preset or args.tile_size:
         cfg = preset(args.preset or "default")
@@ -290,6 +305,7 @@ def cmd_view(args) -> int:
         print("aerec view: stopping", file=sys.stderr)
     finally:
         app.stop()
+        lock.__exit__(None, None, None)
     return 0
 
 

@@ -6,8 +6,9 @@ this project did not make. Prints one table; asserts nothing.
     python bench/bench_accuracy.py --table-only            # reprint the table from results.json
 
 Configurations: `paper` (recon_core.config.BEYOND_PAPER switched off: the baseline), `default`
-(what AE-Rec runs), `paper+NAME` (the paper with one correction on, with what it needs) and
-`default-NAME` (the defaults with one correction off). NAME is one of CORRECTIONS.
+(what AE-Rec runs), `paper+NAME` (the paper with one correction on, with what it needs),
+`default-NAME` (the defaults with one correction off) and `default+NAME` (the defaults with one
+they leave off switched on). NAME is one of CORRECTIONS.
 
 Sites: `omaha` (../shared/data/omaha_3dates: an independent pushbroom simulator, 3 dates, a
 ground-truth DSM), `gizeh` (d = 300), `reunion` (d = 400) (real Pleiades pairs, scored for agreement with
@@ -40,14 +41,15 @@ REAL = {"omaha": ("omaha_3dates", None, None),
         "gizeh": ("gizeh_pair", 300, "ref_dsm_s2p.tif"),
         "reunion": ("reunion_pair", 400, "ref_dsm_s2p.tif")}
 
-# each correction: the keys it owns, and what it needs switched on with it
+# each correction: the keys it owns, what it needs switched on with it, and the value that
+# switches it on when the defaults leave it off
 CORRECTIONS = {
-    "refine": (["features.refine_half_px"], []),
-    "joint": (["sfm.joint_groups"], []),
-    "tie": (["sfm.tie_sigma_px"], []),
-    "within": (["sfm.correction_rounds"], ["sfm.joint_groups"]),
-    "prior": (["upgrade.metric_prior_sigma_cos"], []),
-    "metric_bend": (["upgrade.metric_bend"], []),
+    "refine": (["features.refine_half_px"], [], {}),
+    "joint": (["sfm.joint_groups"], [], {}),
+    "tie": (["sfm.tie_sigma_px"], [], {"sfm.tie_sigma_px": 0.01}),
+    "within": (["sfm.correction_rounds"], ["sfm.joint_groups"], {}),
+    "prior": (["upgrade.metric_prior_sigma_cos"], [], {"upgrade.metric_prior_sigma_cos": 2e-3}),
+    "metric_bend": (["upgrade.metric_bend"], [], {}),
 }
 
 
@@ -57,21 +59,29 @@ def _default(key: str):
 
 
 def overrides_for(name: str) -> dict:
-    """The overrides of a configuration name (module docstring)."""
+    """The overrides of a configuration name (module docstring; `default+X`: the defaults with
+    X switched on, for a correction they leave off)."""
     if name == "default":
         return {}
     if name == "paper":
         return dict(BEYOND_PAPER)
-    base, sign, corr = name.partition("+") if "+" in name else name.partition("-")
-    if base not in ("paper", "default") or corr not in CORRECTIONS:
+    for sign in "+-":
+        base, s, corr = name.partition(sign)
+        if s and base in ("paper", "default") and corr in CORRECTIONS:
+            break
+    else:
         raise SystemExit(f"unknown configuration {name!r}")
-    keys, needs = CORRECTIONS[corr]
-    if sign == "+":
-        ov = dict(BEYOND_PAPER)
-        for k in keys + needs:
-            ov.pop(k, None)
-        return ov
-    return {k: BEYOND_PAPER[k] for k in keys}
+    keys, needs, on = CORRECTIONS[corr]
+    if sign == "-":
+        return {k: BEYOND_PAPER[k] for k in keys}
+    ov = dict(BEYOND_PAPER) if base == "paper" else {}
+    for k in keys + needs:
+        ov.pop(k, None)
+        if k in on:
+            ov[k] = on[k]
+        elif _default(k) == BEYOND_PAPER.get(k):      # off by default: nothing to switch on
+            raise SystemExit(f"{name}: {k} has no value that switches it on")
+    return ov
 
 
 def site_for(name: str, root: Path, seed: int):

@@ -134,8 +134,8 @@ def cmd_run(args) -> int:
         raise InputError(None, f"--tile-size must be at least 64 px, not {args.tile_size}")
     if args.workers is not None and args.workers < 1:
         raise InputError(None, f"--workers must be at least 1, not {args.workers}")
-    if args.seed is not None and args.seed < 0:
-        raise InputError(None, f"--seed must be >= 0, not {args.seed}")
+    if args.seed is not None and not 0 <= args.seed < 2 ** 63:
+        raise InputError(None, f"--seed must be >= 0 and < 2^63, not {args.seed}")
     if not str(args.out).strip():
         raise InputError(None, "--out is empty: name the output folder")
     args.out = Path(args.out)
@@ -244,6 +244,10 @@ def cmd_gcps(args) -> int:
             raise InputError(p, "must end in .csv, .geojson or .json")
     if args.src.resolve() == args.dst.resolve():
         raise InputError(args.dst, "is the input file; write to another file")
+    if args.epsg is not None and args.epsg not in (4326, 4979):
+        from recon_core.io.site import projected_epsg
+
+        projected_epsg(args.epsg, None, "--epsg")    # E, N need a projected CRS in metres
     images = None
     if args.site is not None:
         from recon_core.io.site import load_site
@@ -479,6 +483,11 @@ def main(argv: list[str] | None = None) -> int:
     global _INTERRUPTED
     _INTERRUPTED = False
     args = build_parser().parse_args(argv)
+    import warnings
+
+    # an image without a geotransform (sensor geometry, as every raw product) is the norm here
+    warnings.filterwarnings("ignore", message=".*not georeferenced.*")
+    warnings.filterwarnings("ignore", message=".*no geotransform.*")
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
         signal.signal(signal.SIGINT, _terminate)
@@ -498,21 +507,38 @@ def main(argv: list[str] | None = None) -> int:
         except OSError:
             pass
         return 0
+    except OSError as exc:
+        if exc.errno in _PATH_ERRNOS and not _disk_full(exc):
+            # a path the system cannot take (a name too long, a loop of links, a file where a
+            # folder is needed): the input's problem, one line
+            where = f"{exc.filename}: " if exc.filename else ""
+            print(f"aerec: error: {where}{exc.strerror or exc}", file=sys.stderr)
+            return 2
+        return _last_resort(exc)
     except Exception as exc:
-        if _INTERRUPTED:
-            # the signal arrived inside compiled code (numba re-raises it as a SystemError)
-            print("aerec: interrupted", file=sys.stderr)
-            return 130
-        if not _disk_full(exc):
-            raise
-        # the machine, not the input: a full disk, a quota, a file system gone read-only.
-        # Outputs are written atomically, so nothing half-written is left; finished stages
-        # are reused by the next run.
-        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        what = getattr(exc, "strerror", None) or f"a write failed ({exc}): is the disk full?"
-        print(f"aerec: error: {where}{what} (nothing half-written was kept; "
-              "free space or fix the folder, then rerun: finished stages are reused)", file=sys.stderr)
-        return 1
+        return _last_resort(exc)
+
+
+_PATH_ERRNOS = {errno.ENAMETOOLONG, errno.ELOOP, errno.ENOTDIR, errno.EISDIR, errno.ENOENT}
+
+
+def _last_resort(exc: BaseException) -> int:
+    """An unexpected exception: an interrupt that arrived inside compiled code, or the machine
+    failing a write (one line, exit 1); anything else is a bug and keeps its traceback."""
+    if _INTERRUPTED:
+        # the signal arrived inside compiled code (numba re-raises it as a SystemError)
+        print("aerec: interrupted", file=sys.stderr)
+        return 130
+    if not _disk_full(exc):
+        raise exc
+    # the machine, not the input: a full disk, a quota, a file system gone read-only.
+    # Outputs are written atomically, so nothing half-written is left; finished stages
+    # are reused by the next run.
+    where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+    what = getattr(exc, "strerror", None) or f"a write failed ({exc}): is the disk full?"
+    print(f"aerec: error: {where}{what} (nothing half-written was kept; "
+          "free space or fix the folder, then rerun: finished stages are reused)", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

@@ -34,7 +34,11 @@ class Rule:
         for x in (v if isinstance(v, (tuple, list)) else (v,)):
             if isinstance(x, str):
                 continue
-            if not math.isfinite(x):
+            try:
+                finite = math.isfinite(x)
+            except OverflowError:           # an integer no float holds
+                finite = False
+            if not finite:
                 return "must be a finite number"
             if self.lo is not None and (x < self.lo or (self.lo_open and x == self.lo)):
                 return f"must be {'>' if self.lo_open else '>='} {self.lo:g}" + (
@@ -130,10 +134,12 @@ class SfmConfig:
     joint_min_matches: int = _p(200, lo=1, hi=10_000_000)  # verified matches an image needs with the other groups'
                                       # images for the joint reconstruction
     joint_partners: int = _p(2, lo=1, hi=1000)  # images of other groups each image is matched with
-    tie_sigma_px: float = _p(0.01, lo=0, hi=100)  # the per-image pushbroom tie (recon_core.sparse.image_model)
+    tie_sigma_px: float = _p(0.0, lo=0, hi=100)  # the per-image pushbroom tie (recon_core.sparse.image_model)
                                       # in the final global adjustments: the model's error against
                                       # a pushbroom, px, for a model of 3 images; n > 3 images
-                                      # scale it by 3 / n (more views check the tie) (0 = off)
+                                      # scale it by 3 / n (0 = off, the default: with the focal
+                                      # plane in the model it holds no bend and changed no
+                                      # reference's DSM; docs: accuracy.md)
     correction_rounds: int = _p(1, lo=0, hi=20)  # closing global adjustments after the first tied one, each
                                       # with the within-tile correction refitted (each image's
                                       # pushbroom model's departure from affine inside a tile
@@ -146,7 +152,7 @@ class SfmConfig:
                                       # on, each round's correction is pushed this many times its
                                       # change since the round before, g + w (g - g_prev): plain
                                       # rounds converge slowly, each removing less of the bend
-                                      # (0 = plain rounds; at most 1: 2 diverged; README,
+                                      # (0 = plain rounds; at most 1: 2 diverged; docs: research-notes.md,
                                       # "Extrapolated rounds")
 
 
@@ -206,9 +212,11 @@ class UpgradeConfig:
     ransac_thresh_m: float = _p(2.0, lo=0, lo_open=True, hi=10_000)  # GCP inlier threshold of the H_A RANSAC (metres)
     allow_flat_gcps: bool = _p(False)  # go on when the control GCPs of a group are (nearly) on one
                                       # plane: expected height error > 10 m on a 40 m structure
-    metric_prior_sigma_cos: float = _p(2e-3, lo=0, hi=1)  # the cameras' metric constraint in the fit of H_A: the
+    metric_prior_sigma_cos: float = _p(0.0, lo=0, hi=1)  # the cameras' metric constraint in the fit of H_A: the
                                       # cosine between a tile camera's rows in metres, per image
-                                      # (recon_core.euclidean.metric_prior; 0 = GCPs only)
+                                      # (recon_core.euclidean.metric_prior; 0 = GCPs only, the
+                                      # default: it moved every independent reference's check
+                                      # points horizontally; 2e-3 for groups reconstructed apart)
     metric_bend: bool = _p(True)      # the metric bend step (recon_core.euclidean.metric_bend): the
                                       # horizontal warp no affine frame lets the views see, found once
                                       # H_A gives metres, each image's 1D perspective from its orbit
@@ -322,6 +330,9 @@ def config_from_dict(d: dict, *, unknown: list[str] | None = None) -> Config:
             flat.update({f"{k}.{kk}": vv for kk, vv in v.items()})
         else:
             flat[k] = v
+    for old, new in LEGACY_KEYS.items():
+        if old in flat and new in flat:
+            raise KeyError(f"{old} and {new} are one parameter (its new name is {new}): give it once")
     cfg = Config()
     for key, v in flat.items():
         key = LEGACY_KEYS.get(key, key)

@@ -124,10 +124,14 @@ def method_chain() -> str:
     """The method as it runs (recon_core.method.CHAIN), as a table."""
     from recon_core.method import CHAIN
 
-    lines = ["| # | step | the paper's? | what it does | switched off by | stands aside by itself when |",
-             "|---|---|---|---|---|---|"]
+    from recon_core.config import Config, _get
+
+    cfg = Config()
+    lines = ["| # | step | the paper's? | by default | what it does | switched off by | stands aside by "
+             "itself when |", "|---|---|---|---|---|---|---|"]
     for k, s in enumerate(CHAIN, 1):
         off = f"`{s.switch} = {_value(s.off)}`" if s.switch else ("always on" if not s.paper else "")
-        lines.append(f"| {k} | {s.name} | {'yes' if s.paper else 'no'} | {s.what} (`{s.module}`) | "
+        on = "on" if s.paper or not s.switch or _get(cfg, s.switch) != s.off else "**off**"
+        lines.append(f"| {k} | {s.name} | {'yes' if s.paper else 'no'} | {on} | {s.what} (`{s.module}`) | "
                      f"{off} | {s.stands_aside} |")
     return "\n".join(lines) + "\n"

@@ -70,7 +70,8 @@ def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None,
         dem = cfg.upgrade.reference_dem
         if dem:                     # a DEM replaced in place makes the upgrade stale
             st = Path(dem).stat() if Path(dem).is_file() else None
-            blob["reference_dem"] = None if st is None else [st.st_size, st.st_mtime_ns]
+            blob["reference_dem"] = None if st is None else [st.st_size, st.st_mtime_ns,
+                                                             _pixel_sample_hash(Path(dem), st)]
     return hashlib.sha1(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
@@ -83,8 +84,29 @@ def site_fingerprint(site: Site) -> dict:
     for im in site.images:
         st = Path(im.path).stat()
         when = None if im.acquired is None else im.acquired.isoformat()
-        imgs.append([im.name, st.st_size, st.st_mtime_ns, when, im.time_source])
+        # and a hash of sampled pixels: pixels rewritten in place with the modification time put
+        # back (touch -r) are other inputs (a copied site keeps its fingerprint)
+        imgs.append([im.name, st.st_size, st.st_mtime_ns, _pixel_sample_hash(Path(im.path), st),
+                     when, im.time_source])
     return {"images": imgs, "site_json": site.hints}
+
+
+_SAMPLE_HASHES: dict[tuple, str] = {}
+
+
+def _pixel_sample_hash(path: Path, st) -> str:
+    """A hash of the pixels the blank check samples (3 x 3 windows and the last rows): cheap,
+    read once per version of the file in a process."""
+    key = (str(path), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)   # ctime: any write
+    if key not in _SAMPLE_HASHES:
+        from recon_core.io.site import sample_values
+
+        try:
+            v = sample_values(path)[0]
+            _SAMPLE_HASHES[key] = hashlib.sha1(np.ascontiguousarray(v, np.float64).tobytes()).hexdigest()[:12]
+        except Exception:                   # unreadable now: the checks say so elsewhere
+            _SAMPLE_HASHES[key] = "unreadable"
+    return _SAMPLE_HASHES[key]
 
 
 def scored_against(site: Site) -> list:
@@ -92,7 +114,7 @@ def scored_against(site: Site) -> list:
     from recon_core.evaluation.stage import reference_dsms
 
     scored = [p for p in [site.gt_dsm, *reference_dsms(site.root)] if p is not None]
-    return [[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in scored]
+    return [[p.name, p.stat().st_size, p.stat().st_mtime_ns, _pixel_sample_hash(p, p.stat())] for p in scored]
 
 
 def stage_done(out: Path, stage: str, cfg: Config, site: Site, gcp_text: str | None = None) -> bool:
@@ -142,7 +164,10 @@ def refuse_nested(site_root: Path, out: Path) -> None:
     """An output folder inside the site (its products would become inputs: a DSM in images/
     breaks every later run of the site) or a site inside the output folder: refused, naming
     both, before anything is written."""
-    site_r, out_r = Path(site_root).resolve(), Path(out).resolve()
+    try:
+        site_r, out_r = Path(site_root).resolve(), Path(out).resolve()
+    except (RuntimeError, OSError) as exc:          # a symlink loop, a name too long
+        raise InputError(out, f"cannot resolve the path ({getattr(exc, 'strerror', None) or exc})") from None
     if out_r == site_r or out_r.is_relative_to(site_r):
         raise InputError(out, f"is inside the site {site_root}: outputs would mix with its inputs; "
                               "choose an output folder outside it")
@@ -167,8 +192,13 @@ def check_images(site: Site) -> None:
     """What the images can be refused for before any compute beyond opening them: a blank one,
     and two that are one image (the same pixels where sampled: a copy under another name, which
     would end after the matching in a degenerate geometry that blamed neither)."""
+    from recon_core.io.site import MIN_IMAGE_SIDE
+
     seen: dict[bytes, str] = {}
     for im in site.images:
+        if min(im.width, im.height) < MIN_IMAGE_SIDE:
+            raise InputError(im.path, f"{im.width} x {im.height} px: too small to match (at least "
+                                      f"{MIN_IMAGE_SIDE} px a side)")
         v = refuse_blank(im)
         key = hashlib.sha1(np.ascontiguousarray(v, np.float64).tobytes()
                            + f"{im.width}x{im.height}".encode()).digest()
@@ -196,6 +226,7 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     check_config(cfg)
     site, out = _load(site_path, out, until, redo_from)
     check_images(site)
+    early = check_groups(site, cfg)
     if cfg.dsm.resolution_m and site.hints.get("bounds"):
         from recon_core.io.site import check_grid_size
 
@@ -203,11 +234,12 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     out = _make_out(out)
     writable_folder(out, create=False)
     if STAGES.index(until or STAGES[-1]) < STAGES.index("upgrade"):
-        return []
+        return early
     gcp_path = working_gcp_file(site.root, out)
     gcps = site.gcps if gcp_path == site.root / "gcps.geojson" else read_gcps_geojson(
         gcp_path, {im.name: im for im in site.images})
-    notes = [] if (w := gcp_file_note(site.root, out)) is None else [w]
+    refuse_far_gcps(gcp_path, gcps)
+    notes = early + ([] if (w := gcp_file_note(site.root, out)) is None else [w])
     if not gcps:
         csv = sorted(site.root.glob("*.csv"))
         hint = (f"; {csv[0].name} is not read: `aerec gcps convert {csv[0]} {site.root / 'gcps.geojson'}`"
@@ -239,6 +271,41 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
         check_covers(open_reference_dem(cfg.upgrade.reference_dem),
                      np.array([g.llh for g in gcps if g.role == "control" and g.enabled]).reshape(-1, 3))
     return notes + warnings
+
+
+MAX_GCP_SPREAD_M = 100_000.0     # a scene of any satellite is smaller: a GCP farther from the others
+                                 # has wrong coordinates (a sign, a digit, a swapped lon/lat)
+
+
+def refuse_far_gcps(path: Path, gcps: list) -> None:
+    """A GCP far from the others (more than any scene spans) is refused, naming it: its
+    coordinates are wrong, and a DSM fitted to it would lie elsewhere."""
+    from recon_core.euclidean.georef import frame_for
+
+    used = [g for g in gcps if g.enabled]
+    if len(used) < 2:
+        return
+    enu = frame_for(used).geodetic_to_enu(np.array([g.llh for g in used]))
+    d = np.linalg.norm(enu[:, :2] - np.median(enu[:, :2], axis=0), axis=1)
+    k = int(np.argmax(d))
+    if d[k] > MAX_GCP_SPREAD_M:
+        raise InputError(path, f"GCP {used[k].id} is {d[k] / 1000:,.0f} km from the others (lon "
+                               f"{used[k].lon:.6f}, lat {used[k].lat:.6f}): its coordinates are wrong "
+                               "(a sign, a digit, lon and lat swapped?)")
+
+
+def check_groups(site: Site, cfg: Config) -> list[str]:
+    """Date groups of one image cannot be reconstructed (no parallax within a date): refused
+    when every group is one, else a warning naming them."""
+    groups = group_by_date(site.images, cfg.grouping.max_gap_days, cfg.grouping.max_span_days)
+    single = [g for g in groups if len(g.images) < 2]
+    if single and len(single) == len(groups):
+        raise InputError(site.root / "images", f"{'the site has one image' if len(site.images) < 2 else 'every date group has one image'}"
+                                               f" ({', '.join(im.name for im in site.images[:6])}"
+                                               f"{', ...' if len(site.images) > 6 else ''}): the method needs 2 "
+                                               "or more views of one date (grouping.max_gap_days, max_span_days)")
+    return [f"group {g.index} ({g.images[0].name}) has one image: it will not be reconstructed "
+            "(one view has no parallax)" for g in single]
 
 
 def gcp_findings(groups, gcps, cfg: Config) -> list[tuple[str, int, str]]:
@@ -384,11 +451,20 @@ def _run_locked(site: Site, out: Path, cfg: Config, until, bus: EventBus, resume
         if stage == "sparse":
             bus.emit(ModelsReady(dict(state.models)))
     if first_redo <= last:
-        _drop_later_products(state, STAGES[last + 1:], STAGES[first_redo], bus)
+        _drop_later_products(state, STAGES[last + 1:], f"{STAGES[first_redo]} was recomputed and the "
+                             f"run stopped before {STAGES[last + 1] if last + 1 < len(STAGES) else 'the end'}", bus)
+    else:
+        # nothing recomputed, but an input of a later stage may have changed (the GCP file before
+        # `--stage dense`): its products no longer match this run's inputs
+        stale = [s for s in STAGES[last + 1:] if lay.stage_record(s).exists()
+                 and not stage_done(out, s, cfg, site, gcp_text)]
+        if stale:
+            _drop_later_products(state, STAGES[STAGES.index(stale[0]):],
+                                 f"an input of the {stale[0]} stage changed since it ran", bus)
     return state
 
 
-def _drop_later_products(state: RunState, later: list[str], recomputed: str, bus: EventBus) -> None:
+def _drop_later_products(state: RunState, later: list[str], why: str, bus: EventBus) -> None:
     """A run that recomputed `recomputed` and stopped before `later`: what those stages wrote
     came from other inputs (another site, other images, other GCPs): remove their products,
     records and report entries, so OUT holds only what this run's report describes."""
@@ -402,6 +478,5 @@ def _drop_later_products(state: RunState, later: list[str], recomputed: str, bus
         state.report.get("stages", {}).pop(stage, None)
     if gone:
         write_json(lay.report, state.report)
-        bus.emit(Message("warning", f"{recomputed} was recomputed and the run stopped before "
-                                    f"{later[0]}: removed what the later stages had written from "
+        bus.emit(Message("warning", f"{why}: removed what the later stages had written from "
                                     f"other inputs ({', '.join(gone)}); run them to make it again"))

@@ -161,3 +161,131 @@ def test_a_sidecar_added_after_sparse_makes_it_stale(tiny_site, tmp_path):
     name = sorted((site / "images").glob("*.tif"))[0].stem
     (site / "images" / f"{name}.json").write_text(json.dumps({"acquired": "2019-01-01T10:00:00Z"}))
     assert not stage_done(out, "sparse", cfg, load_site(site))
+
+
+# -- cases a hostile tester found (2026-11-27) ---------------------------------------------------
+@pytest.mark.parametrize("write", [
+    lambda s: (s / "c.toml").write_text("seed = 1" + "0" * 400 + "\n"),
+    lambda s: (s / "site.json").write_text('{"resolution_m": 1' + "0" * 400 + "}"),
+    lambda s: (s / "site.json").write_text('{"crs_epsg": NaN}'),
+    lambda s: (s / "images" / "a.json").write_text('{"acquired": "9999-12-31T23:59:59-01:00"}'),
+    lambda s: (s / "images" / "a.json").write_text('{"acquired": "2020-01-01T00:00:00Z", '
+                                                    '"acquired": "2021-01-01T00:00:00Z"}'),
+], ids=["huge-seed", "huge-resolution", "nan-epsg", "far-future-with-zone", "duplicate-key"])
+def test_numbers_and_times_no_float_holds(write, small_site, tmp_path, capsys):
+    write(small_site)
+    extra = ["--config", str(small_site / "c.toml")] if (small_site / "c.toml").exists() else []
+    assert _run(small_site, tmp_path, *extra) == 2
+    _one_line(capsys)
+
+
+def _gcp_file(site, coords_list, crs=None):
+    from tests.conftest import gcp_feature
+
+    feats = [gcp_feature(f"G{k}", *c, {"a.tif": [3.0, 4.0], "b.tif": [5.0, 6.0]}) for k, c in enumerate(coords_list)]
+    doc = {"type": "FeatureCollection", "features": feats}
+    if crs:
+        doc["crs_epsg"] = crs
+    (site / "gcps.geojson").write_text(json.dumps(doc))
+
+
+def test_gcps_that_are_not_on_earth_or_far_from_the_others(small_site, tmp_path, capsys):
+    _gcp_file(small_site, [(10.0, 45.0, 1e300)])
+    assert _run(small_site, tmp_path) == 2
+    _one_line(capsys, "not on the Earth's surface")
+    _gcp_file(small_site, [(500000.0, 4980000.0, 100.0), (1e30, 1e30, 100.0)], crs=32632)
+    assert _run(small_site, tmp_path) == 2
+    _one_line(capsys, "G1")
+    _gcp_file(small_site, [(10.0, 45.0, 100.0), (10.001, 45.0, 100.0), (10.0, 45.001, 120.0),
+                           (20.0, 45.0, 100.0)])
+    assert _run(small_site, tmp_path) == 2
+    _one_line(capsys, "G3", "km from the others")
+
+
+def test_a_site_of_one_image_per_date(small_site, tmp_path, capsys):
+    with rasterio.open(small_site / "images" / "b.tif", "r+") as ds:
+        ds.update_tags(TIFFTAG_DATETIME="2020:06:03 10:00:00")
+    assert _run(small_site, tmp_path, "--stage", "sparse") == 2
+    _one_line(capsys, "every date group has one image")
+
+
+def test_pixels_rewritten_with_the_time_put_back_are_other_inputs(tiny_site, tmp_path):
+    from recon_core.config import preset
+    from recon_core.io.site import load_site
+    from recon_core.pipeline import run, stage_done
+
+    site = tmp_path / "site"
+    shutil.copytree(tiny_site, site)
+    out = tmp_path / "out"
+    cfg = preset("tiny")
+    img = sorted((site / "images").glob("*.tif"))[0]
+    with rasterio.open(img) as src:          # uncompressed: a rewrite in place keeps the size
+        prof, a, tags = src.profile, src.read(), src.tags()
+    prof.update(compress=None, tiled=False)
+    with rasterio.open(img, "w", **prof) as dst:
+        dst.write(a)
+        dst.update_tags(**tags)
+    run(site, out, cfg, until="sparse")
+    st = img.stat()
+    with rasterio.open(img, "r+") as ds:
+        a = ds.read(1)
+        ds.write(np.roll(a, 6, axis=1), 1)
+    os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert img.stat().st_size == st.st_size and img.stat().st_mtime_ns == st.st_mtime_ns
+    assert not stage_done(out, "sparse", cfg, load_site(site))
+
+
+def test_other_writers_into_a_run_folder(tiny_site, small_site, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["run", str(tiny_site), "--out", str(out), "--stage", "sparse", "--quiet", "--preset", "tiny"]) == 0
+    capsys.readouterr()
+    gt = small_site / "gt_dsm.tif"
+    write_tiff(gt, np.ones((8, 8), np.float32))
+    assert main(["eval", str(gt), str(gt), "--out", str(out / "eval")]) == 2
+    _one_line(capsys, "inside the output folder")
+    assert main(["gcps", "convert", str(tiny_site / "gcps.geojson"), str(tmp_path / "g.csv"),
+                 "--epsg", "4269"]) == 2
+    _one_line(capsys, "not a projected CRS")
+
+
+def test_the_viewer_is_refused_on_a_folder_another_job_holds(tiny_site, tmp_path, capsys):
+    import subprocess
+    import sys
+    import textwrap
+
+    out = tmp_path / "out"
+    out.mkdir()
+    code = textwrap.dedent("""
+        import sys, time
+        from recon_core.io.lock import out_lock
+        with out_lock(sys.argv[1]):
+            print("held", flush=True)
+            time.sleep(30)
+    """)
+    p = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "held"
+        assert main(["view", str(tiny_site), "--out", str(out), "--port", "0", "--no-browser-hint"]) == 2
+        _one_line(capsys, f"PID {p.pid}")
+        assert not (out / "gcps.geojson").exists()
+    finally:
+        p.kill()
+        p.wait()
+
+
+def test_a_partial_run_after_the_gcps_changed_drops_the_stale_products(tiny_run, tmp_path):
+    from recon_core.config import preset
+    from recon_core.io.layout import OutLayout
+    from recon_core.pipeline import run
+
+    state, _ = tiny_run
+    site, out = tmp_path / "site", tmp_path / "out"
+    shutil.copytree(state.site.root, site)
+    shutil.copytree(state.out, out)
+    doc = json.loads((site / "gcps.geojson").read_text())
+    doc["features"] = doc["features"][:-1]
+    (site / "gcps.geojson").write_text(json.dumps(doc))
+    run(site, out, preset("tiny"), until="dense")
+    lay = OutLayout(out)
+    assert not lay.dsm.exists() and not lay.stage_record("upgrade").exists()
+    assert lay.dense_ply(0).exists()

@@ -3,7 +3,7 @@
 Three views of one date over 10 km leave quadratic warps of the structure that move no pixel
 once every image's pushbroom model re-fits (upgrade_stage.bend_observability); 4 GCPs fix an
 affine map, not a bend: on the `wide` site the heights away from 4 GCPs were off by 28 m RMS
-(README, "Synthetic `wide`"). Nine or more control GCPs can hold it (recon_core.euclidean.gcp_bend);
+(docs: research-notes.md, "One date over 10 km: what 4 GCPs leave"). Nine or more control GCPs can hold it (recon_core.euclidean.gcp_bend);
 so can a global DEM that every site has (SRTM, Copernicus GLO-30, a national DEM), the way other
 satellite pipelines lean on one (s2p and CARS for their height range, ASP for its initial
 heights): its cells of 30 m know no building and are metres off each, but over kilometres they
@@ -110,8 +110,12 @@ def open_reference_dem(path: str | Path) -> ReferenceDem:
     from rasterio.errors import RasterioIOError
 
     p = Path(path).expanduser()
-    if not p.is_file():
-        raise InputError(p, "upgrade.reference_dem: no such file")
+    try:
+        kind = "a folder" if p.is_dir() else None if p.is_file() else "no such file"
+    except OSError as exc:                         # a name too long
+        kind = exc.strerror or str(exc)
+    if kind:
+        raise InputError(p, f"upgrade.reference_dem: {kind}" + (", not a DEM file" if kind == "a folder" else ""))
     try:
         with rasterio.open(p) as src:
             if src.crs is None:
@@ -190,7 +194,7 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
     cubic bend and a DEM's error over kilometres look the same in this comparison. On `wide`,
     block cross-validation and a bootstrap estimate of each degree's risk preferred the cubic
     as much for a DEM whose errors are correlated over 1 km (where it is worse) as for one with
-    errors over 300 m (where it is better) (README, "Synthetic `wide`")."""
+    errors over 300 m (where it is better) (docs: research-notes.md, "The vertical bend from a reference DEM")."""
     fin = np.isfinite(E) & np.isfinite(N)
     E, N, r = E[fin], N[fin], r[fin]
     if len(E) == 0:

@@ -4,7 +4,7 @@ Three views of one date leave up to six quadratic warps of the structure that mo
 once every image's pushbroom model re-fits (upgrade_stage.bend_observability: a warp of 1 m at
 the site's edge moves them by < 1e-3 px). No adjustment finds them and 4 GCPs fix an affine map,
 not a bend: on a 10 km site of one date the heights away from 4 central GCPs were off by 30 m
-RMS (README, "A 10 km site of one date"). Control GCPs beyond the four can: this module fits,
+RMS (docs: research-notes.md, "One date over 10 km: what 4 GCPs leave"). Control GCPs beyond the four can: this module fits,
 on the control GCPs H_A used, an affine correction of H_A together with those invisible warps
 (in the metric frame, as displacements of ENU positions), and keeps the fit only when it
 predicts each control GCP left out better than H_A alone does (leave-one-out over the same

@@ -4,18 +4,17 @@ the upgrade gives a metric frame.
 Every image's pushbroom model (recon_core.geometry.pushbroom) has a 1D perspective across
 track, col = ... + (u_c - p_c)(s . X): the column's offset from its centre scales with 1 / range.
 In an affine frame s is unknown, so it is free, and with it the two warps of a projective map
-of the ground plane, X -> X (1 + a . X), are invisible: each image's free s absorbs them. The SfM's
-bend step cannot see them and they grow with the site (README: ~1 m RMS at 7.5 km).
+of the ground plane, X -> X (1 + a . X), are invisible: each image's free s absorbs them, and
+they grow with the site (~1 m RMS at 7.5 km: docs: research-notes.md, "The metric bend step").
 
 After the upgrade the frame is metric, and physics knows s: -v / R, v the image's viewing
 direction (its mean camera through H_A) and R the slant range of an orbit at its altitude
 (`physical_depth`). With s known, the images see the pair, and this step estimates it
 (pushbroom.estimate_bend with `depth` and `pair`):
-- only the projective pair of the upgrade's ground plane (east, north): the other warps are
-  the affine bend step's, which needs no assumed altitude. Estimated here too, the vertical
-  ones take up the error of the assumed altitude, and on a two-view crop of 0.5 km the weakly
-  seen horizontal ones took up the images' own departure from the model (a warp of 1.9 m: README
-  "The metric bend step");
+- only the projective pair of the upgrade's ground plane (east, north): estimated here too,
+  the vertical warps take up the error of the assumed altitude, and on a two-view crop of 0.5 km
+  the weakly seen horizontal ones took up the images' own departure from the model (a warp of
+  1.9 m);
 - one common relative change of every depth is estimated with them, so the configured altitude
   is only a start: the data say how far the orbit is (`range_change`). Where it says the
   columns' perspective is far from any orbit's (|change| > MAX_RANGE_CHANGE, a range outside

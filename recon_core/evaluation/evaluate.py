@@ -519,7 +519,12 @@ def run_cli(a) -> int:
         raise InputError(a.out, "--out must be a folder (it exists and is a file)")
     if a.out is not None:
         from recon_core.io.files import writable_folder
+        from recon_core.io.layout import OutLayout
 
+        for parent in Path(a.out).resolve().parents:
+            if OutLayout(parent).is_output():
+                raise InputError(a.out, f"is inside the output folder {parent} of a run (whose eval/ "
+                                        "it would overwrite): choose a folder outside it")
         writable_folder(a.out)
     if a.max_shift < 0 or (a.step is not None and a.step <= 0):
         raise InputError(None, "--max-shift must be >= 0 and --step > 0")

@@ -62,19 +62,17 @@ def col_basis_known_depth(X: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.nda
 # What drives the bend is the pushbroom's departure from affine inside each tile: an affine tile
 # camera cannot reproduce it, and a smooth warp of the structure that makes every image's
 # projection a little more affine on every tile lowers the reprojection error (the data prefer
-# the bend: README, "What was tried against the bend"). The tie above only restricts the tile
-# cameras; the observations still carry that departure, and on 3 views a bend inside the model's
-# family still lowers it. The correction removes the departure from the observations instead:
+# the bend: docs: research-notes.md, "What the views can see"). The tie only restricts the tile
+# cameras; the observations still carry that departure. The correction removes the departure from the observations instead:
 # each image's model is fitted to its observations, and every observation is moved by the
 # model's own departure from its best affine approximation over the observation's tile,
 #     corr = model(X) - A_t [X, 1],        pixel seen by the affine tile camera = xy - corr,
 # so that an affine camera per tile sees affine data and nothing pushes the structure into a
-# bend. It is a pixel field of a few hundredths of a pixel (0.12 px at most on `flat`). Where the
-# views see a warp (warp_observability), the adjustment then finds the unbent structure; where
-# they do not (3 views of one kind: the vertical bends), nothing holds it, and a correction
-# refitted again and again lets the structure wander along those warps with the points' noise
-# (each refit takes the last displacement as the new reference). So the SfM refits it only in
-# its closing adjustments, after the tie has held the structure once (SfmConfig.correction_rounds).
+# bend. It is a pixel field of a few tenths of a pixel (0.17 px RMS on omaha_3dates). Nothing
+# holds the bends the views cannot see (warp_observability: through models of real focal
+# planes, none), so a correction refitted again and again would let the structure wander along
+# them with the points' noise (each refit takes the last displacement as the new reference):
+# the SfM refits it only in its closing adjustments (SfmConfig.correction_rounds).
 
 MIN_TILES_FOR_CORRECTION = 4
 
@@ -276,13 +274,9 @@ def physical_depth(P: np.ndarray, altitude_m: float) -> np.ndarray:
     return -v / R
 
 
-# -- the bend step: the visible quadratic warp of a structure, estimated and removed -----------
-# The closing rounds remove a bend slowly: a correction fitted on a bent structure is the
-# pushbroom's departure from affine *in the bent frame*, so it nearly sustains the bend, and
-# each round frees only what the tile-level residual cannot absorb (README, "The bend step").
-# The images' own models are much stiffer than that: a quadratic warp of the structure moves
-# each image's pixels in a way its model can only partly re-fit (warp_observability). So the
-# warp is estimated directly, by linear least squares over all images at once: the pixels'
+# -- the visible quadratic warp of a structure, estimated (the metric bend step's estimator) ----
+# A quadratic warp of the structure moves each image's pixels in a way its model can only partly
+# re-fit (warp_observability). The warp is estimated directly, by linear least squares over all images at once: the pixels'
 # residual against every image's model fitted to the structure, explained by the motion each
 # warp leaves once every model has re-fitted. Only warps the views see are estimated: a warp
 # whose remaining motion is a small share of all it moves (the horizontal projective pair on
@@ -301,12 +295,11 @@ MIN_POINTS_PER_IMAGE = 50   # an image with fewer distinct points is left out of
                             # (its model and its mean camera, which whitens the frame, would be
                             # fitted to too little: the model has 11 terms per equation)
 MIN_WARP_SHARE = 0.02   # a warp is estimated when at least this share of the pixel motion it
-                        # causes is beyond what every image's model can re-fit. Measured
-                        # (render-free harness, from the truth without noise: the estimate's
-                        # bias from the models' own error): `large`'s 9 views see 7 warps, the
-                        # weakest at 0.027 (bias 0.1 m), and leave the projective pair at
-                        # 0.002 and 0.001; `demo`'s 6 views see 0.027, 0.014, 0.010, ..., and the
-                        # warps from 0.014 down carry 0.9-1.2 m of the models' error.
+                        # causes is beyond what every image's model can re-fit (below it, the
+                        # warp would be found from the models' own error, not from the data).
+                        # Through models of real focal planes no quadratic warp of an affine
+                        # frame reaches it (every share < 0.01 on `large`'s 9 views): only the
+                        # metric bend step, with each image's depth known, finds one
 
 
 @dataclass
@@ -389,7 +382,7 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     the data's depths are (1 + k) times the given ones). Its "share" is px of motion per unit
     of relative change, an absolute measure that grows with the site, not a share of its own
     motion as the warps' are. A change per image instead would
-    absorb the projective pair again (tried: README).
+    absorb the projective pair again (tried: docs: research-notes.md, "The metric bend step").
     directions: (k, 3) the displacement directions in X's frame the warp may take (e.g. the
     upgrade's east and north: a horizontal warp only); default any.
     pair: with two `directions`, (2, 3) the linear functions of X that are the ground

@@ -47,8 +47,17 @@ class GCP:
         return np.array([self.lon, self.lat, self.h])
 
 
+MAX_ABS_HEIGHT_M = 12_000.0      # ellipsoidal heights of the Earth's surface lie within this
+
+
 def _finite_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    """A JSON number that is a finite float (an integer of 400 digits is not: no float holds it)."""
+    if not isinstance(v, (int, float)) or isinstance(v, bool):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:
+        return False
 
 
 def read_gcps_geojson(path: Path, images: dict[str, ImageInfo] | None = None) -> list[GCP]:
@@ -74,6 +83,9 @@ def read_gcps_geojson(path: Path, images: dict[str, ImageInfo] | None = None) ->
     if epsg is not None and gcps:            # projected x, y: converted in one call
         llh = projected_to_geodetic(np.array([[g.lon, g.lat, g.h] for g in gcps], float), int(epsg))
         for g, (lon, lat, h) in zip(gcps, llh):
+            if not (np.isfinite(lon) and np.isfinite(lat) and -180 <= lon <= 180 and -90 <= lat <= 90):
+                raise InputError(path, f"GCP {g.id}: x, y {g.lon:g}, {g.lat:g} are not a place of "
+                                       f"EPSG:{epsg} on Earth")
             g.lon, g.lat, g.h = float(lon), float(lat), float(h)
     seen, dup = set(), set()
     for g in gcps:
@@ -101,6 +113,9 @@ def _parse_feature(path: Path, k: int, feat, epsg, images) -> GCP:
     lon, lat, h = (float(c) for c in coords)           # projected x, y: converted by the caller
     if epsg is None and not (-180 <= lon <= 180 and -90 <= lat <= 90):
         raise InputError(path, f"{where}: lon/lat {lon}, {lat} out of range")
+    if not -MAX_ABS_HEIGHT_M <= h <= MAX_ABS_HEIGHT_M:
+        raise InputError(path, f"{where}: ellipsoidal height {h:g} m is not on the Earth's surface "
+                               f"(|h| <= {MAX_ABS_HEIGHT_M:g} m)")
     role = props.get("role", "control")
     if role not in ("control", "check"):
         raise InputError(path, f"{where}: role must be 'control' or 'check', not {role!r}")

@@ -27,6 +27,7 @@ IMAGE_SUFFIXES = (".tif", ".tiff", ".vrt", ".jp2")      # compared in lower case
 # what GDAL must read them as: GeoTIFF, a VRT (mosaics, band subsets, products delivered as
 # several tiles) or JPEG 2000 (how Pleiades and other products are often delivered)
 IMAGE_DRIVERS = {"GTiff": "a GeoTIFF", "VRT": "a GDAL VRT", "JP2OpenJPEG": "a JPEG 2000 image"}
+MIN_IMAGE_SIDE = 32            # a smaller image cannot hold a patch of features
 MAX_IMAGE_PIXELS = 4e9          # 63,000 px a side: refused with its size (it would not fit)
 
 
@@ -91,6 +92,14 @@ def _tiff_datetime(tags: dict) -> datetime | None:
     return t.replace(tzinfo=timezone.utc)
 
 
+def _unique_keys(pairs):
+    keys = [k for k, _ in pairs]
+    dup = sorted({k for k in keys if keys.count(k) > 1})
+    if dup:
+        raise ValueError(f"the key {dup[0]!r} is given twice")
+    return dict(pairs)
+
+
 FIRST_YEAR, LAST_YEAR = 1957, 2100      # an acquisition time outside these years is an error
 
 
@@ -104,7 +113,7 @@ def _acquisition_time(path: Path, tags: dict) -> tuple[datetime | None, str]:
             raise InputError(sidecar, f"{sidecar.stat().st_size:,} bytes: not a time sidecar "
                                       "({\"acquired\": ISO time})")
         try:
-            meta = json.loads(sidecar.read_bytes().decode("utf-8"))
+            meta = json.loads(sidecar.read_bytes().decode("utf-8"), object_pairs_hook=_unique_keys)
             t, source = parse_iso_time(meta["acquired"]), "sidecar"
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
             raise InputError(sidecar, f"sidecar must hold {{\"acquired\": ISO time}} ({exc})") from None
@@ -121,7 +130,7 @@ def _acquisition_time(path: Path, tags: dict) -> tuple[datetime | None, str]:
             return None, "none"
         source, where = "TIFFTAG_DATETIME", path
     if not FIRST_YEAR <= t.year <= LAST_YEAR:
-        raise InputError(where, f"acquisition time {iso_utc(t) if t.year > 1 else t.isoformat()} is "
+        raise InputError(where, f"acquisition time {t.isoformat()} is "
                                 f"not a plausible date (years {FIRST_YEAR}-{LAST_YEAR})")
     return t, source
 
@@ -197,6 +206,11 @@ def open_image(path: Path) -> ImageInfo:
         msg = str(exc).split("\n")[0]
         if "not recognized as" in msg or "not a supported file format" in msg:
             raise InputError(path, "not a GeoTIFF, VRT or JPEG 2000 (GDAL cannot read it)") from None
+        if path.suffix.lower() == ".vrt":
+            missing = [f for f in _vrt_sources(path) if not Path(f).is_file()]
+            if missing:
+                raise InputError(path, f"a VRT whose source {missing[0]} is missing") from None
+            raise InputError(path, f"a VRT that GDAL cannot read through ({msg})") from None
         raise InputError(path, f"unreadable or truncated image ({msg})") from None
     info.acquired, info.time_source = _acquisition_time(path, tags)
     return info
@@ -231,6 +245,22 @@ def list_image_files(images_dir: Path) -> list[Path]:
         if p.suffix.lower() == ".vrt":
             _check_vrt_sources(p, files)
     return files
+
+
+def _vrt_sources(vrt: Path) -> list[str]:
+    """The source files a VRT names (from its XML: what GDAL would open), absolute."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(vrt).getroot()
+    except (ET.ParseError, OSError):
+        return []
+    out = []
+    for el in root.iter("SourceFilename"):
+        name = (el.text or "").strip()
+        rel = el.get("relativeToVRT", "0") == "1"
+        out.append(str((vrt.parent / name) if rel else Path(name)))
+    return out
 
 
 def _check_vrt_sources(vrt: Path, files: list[Path]) -> None:
@@ -336,7 +366,9 @@ def projected_epsg(value, path: Path, what: str) -> int:
     from pyproj import CRS
     from pyproj.exceptions import CRSError
 
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value:
+    from recon_core.io.gcps import _finite_number
+
+    if not _finite_number(value) or int(value) != value or not 1024 <= value <= 999_999:
         raise InputError(path, f"{what} must be an EPSG code (an integer), not {value!r}")
     try:
         crs = CRS.from_epsg(int(value))

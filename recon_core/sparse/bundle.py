@@ -241,7 +241,7 @@ class _BlockSystem:
     by the compiled per-point pass (ba_kernels.schur_blocks), put in a nested-dissection order
     of the cameras by their ground position (`_dissection_order`) and factored by one dense
     front per leaf and separator of that dissection (frontal.FrontalCholesky). Figures:
-    bench/bench_ba_scale.py, README "Toward a full scene".
+    bench/bench_ba_scale.py, docs: research-notes.md, "Bundle adjustment at scale".
 
     The per-image ties. Their Q = blockdiag(DtD) - L L^T (image_model.Tie) would couple all
     tiles of an image: a dense block of (8 x tiles)^2. Its block-diagonal part goes into S's

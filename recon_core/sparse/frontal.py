@@ -7,7 +7,7 @@ unknowns) couples only to a set of later unknowns (its *boundary*). Factoring ch
 each as one dense front [own | boundary] with LAPACK and BLAS-3 (the children's Schur
 complements added in first), costs the dense kernels' speed instead of a general sparse LU's:
 on a 7.5 km site seen by 9 images (23,476 unknowns, 15 % fill) SciPy's SuperLU, whose kernels
-use no optimised BLAS, takes 24-27 s where this takes 9 s (README, "Toward a full scene";
+use no optimised BLAS, takes 24-27 s where this takes 9 s (docs: research-notes.md, "Bundle adjustment at scale";
 bench/bench_ba_scale.py --solvers superlu sparse for 3 images).
 
 Chunks may be any partition of the order into consecutive ranges: a chunk's boundary is the

@@ -11,8 +11,8 @@ instant) lie on a plane, and along that line the column is a 1D perspective. Wit
 attitude and orbit, to second order in the affine frame X of the reconstruction, with r, c the
 image's own row and column (its mean affine camera, normalised):
 
-    row(X) = a . [X, 1] + r * (s_r . X) + k_r r^3
-    col(X) = b . [X, 1] + c * (s_c . X) + k_2 r^2 + k_3 r^3
+    row(X) = a . [X, 1] + r * (s_r . X) + k_r r^3 + (the focal plane: c^2, c^3, r^2 c)
+    col(X) = b . [X, 1] + c * (s_c . X) + k_2 r^2 + k_3 r^3 + (the focal plane: c^3, r^2 c)
 
 r * (s_r . X): the instantaneous view plane turns while it sweeps (agile steering, pitch and yaw
 rates), so the row is a ratio of affine functions of X; c * (s_c . X): the 1D perspective
@@ -22,13 +22,14 @@ affine maps of the frame (r, c follow the cameras), so the gauge stays the 12-do
 On this project's synthetic cameras (orbit, Earth rotation, agile steering, attitude drift),
 the model fits the true projection of whole images of 5000-8192 px to 0.003-0.096 px RMS
 (`bench/bench_image_model.py`), where a single affine camera is off by 0.4-3.6 px RMS and a
-general quadratic in X by 0.06-0.9 px.
+general quadratic in X by 0.06-0.9 px. The focal plane's terms (recon_core.geometry.pushbroom:
+a bowed, distorted line array, yaw and scale drifting) make it fit an independent simulator's
+cameras too (omaha_3dates: 0.11-0.23 px RMS without them, 0.001 px with them).
 
-What it cannot absorb: a bend. A dome z += k (x^2 + y^2) moves image i by A_i[:, z] k (x^2 +
-y^2); in the row equation only products with r are allowed, so its across-track part (x^2, ~c^2)
-is visible in every image with along-track parallax, in proportion to that parallax. Its
-along-track part (y^2 ~ r^2) can still be absorbed by the drift terms: that direction stays
-weakly determined, but nothing drives it once the model fits the pushbroom.
+A bend. A dome z += k (x^2 + y^2) moves image i by A_i[:, z] k (x^2 + y^2). Without the focal
+plane's terms, its across-track part (x^2 ~ c^2) was visible in the row of every image with
+along-track parallax; a bowed line is exactly such a c^2, so with them no image shows a bend
+through its model, and no correction can read one there.
 
 How it enters the adjustment. Per tile t, the model's best affine approximation over the tile's
 points is linear in the model parameters theta: L_t theta. The tie residual is the difference
@@ -44,12 +45,11 @@ sigma_tie the model's error against a true pushbroom (SfmConfig.tie_sigma_px and
 views: sfm.tie_sigma; bench/bench_bend.py tries others). Each tile counts as 8 points (the
 corners of its volume), whatever its number of observations.
 
-Status: the tie holds every closing global adjustment of the SfM. It discriminates (the truth
-costs 0.01 px against the model, a bent solution 0.03-0.12 px) and holds a joint adjustment of
-9 views (`large`: bend 4.6 -> 1.1 m peak to peak), but on a group of 3 views the bend moves
-inside the model's family (README, "What was tried against the bend"). What the views can see
-of a bend at all is `recon_core.geometry.pushbroom.warp_observability`; what drives it is removed by
-the within-tile correction (`pushbroom.tile_corrections`), in the closing adjustments after the first.
+Status (2026-11-27): off by default (SfmConfig.tie_sigma_px = 0). With the model's focal-plane
+terms, which a real sensor needs, a bend of the structure is inside the model's family in every
+image (the row's c^2 is what a bowed line makes): the tie no longer holds a bend, and on every
+reference it left the DSM as it was (docs: accuracy.md). It stays an option; it stands aside for
+an image its model does not explain (pushbroom.model_misfit).
 """
 
 from __future__ import annotations

@@ -45,7 +45,7 @@ def point_conditioning(cams: np.ndarray, obs_cam: np.ndarray, obs_pt: np.ndarray
     sin(angle / 2), about B/H / 2 (0 for identical views); repeated views do not change it. The
     affine frame distorts it, and not by one global factor: differently for baselines in
     different directions (on `large`, a pair of true B/H 0.23 scores above one of B/H 0.49;
-    README, "Why group 1 stays at 0.42 m"). So it is compared with the model's own best points
+    docs: research-notes.md, "The affine frame cannot rank pairs by angle"). So it is compared with the model's own best points
     (90th percentile), never with an absolute threshold, and it catches near-identical views,
     not the weaker of two reasonable pairs; not with the median either, which a weak pair's
     many matches can own.
@@ -86,7 +86,7 @@ def build_observations(tiles: list[Tile], image_names: list[str], feats: list[Im
 TIE_REFERENCE_VIEWS = 3
 # a tile with fewer 2D-3D correspondences than sfm.resect_min_inliers (a corner of the images'
 # overlap) is registered from its image's camera as a prior when at least this many of them
-# agree with it: 8 unknowns, 2 conditions per point, and the prior (README, "How it works")
+# agree with it: 8 unknowns, 2 conditions per point, and the prior (docs: method.md)
 MIN_WITH_PRIOR = 6
 # ... and the prior weighs a hundredth of the points in what they fix (the 2D part), while it
 # still sets what a flat set of points cannot (the response to height)
@@ -95,12 +95,8 @@ FEW_PRIOR_WEIGHT = 0.1
 
 def tie_sigma(sigma_px: float, n_views: int) -> float:
     """The per-image tie's sigma for a model of n_views images: sigma_px for a group of 3,
-    scaled by 3 / n_views (its weight by (n_views / 3)^2). Every view adds conditions on the
-    warps the tie must discriminate (README, "What was tried against the bend"): with 3 views
-    a family of warps stays inside the pushbroom model, and a tight tie only moves the bend
-    into it (`flat`: 0.004 px is worse than 0.01 px); with 9 the family is pinned but for a
-    warp along the common scan direction, and a tighter tie holds more of it (`large`, and the
-    render-free harness: 0.29 m at 0.01 px, 0.25 m at 0.004 px)."""
+    scaled by 3 / n_views (its weight by (n_views / 3)^2): every view adds conditions on what
+    the tie must discriminate (docs: research-notes.md, "The image model and the bend")."""
     return sigma_px * TIE_REFERENCE_VIEWS / max(n_views, TIE_REFERENCE_VIEWS)
 
 
@@ -575,7 +571,7 @@ class IncrementalSfM:
         idx (recon_core.geometry.pushbroom, "the within-tile correction"); the others get none.
         Only in the closing adjustments, after the tie has held the structure once: refitted
         at every global adjustment of the growing model, the correction leaves the warps no
-        view sees free to wander (README, "The within-tile correction")."""
+        view sees free to wander (docs: research-notes.md, "The within-tile correction needs several dates")."""
         o = self.m.obs
         idx = idx[~np.isin(o.img[idx], list(self._unexplained))]
         corr, info = tile_corrections(self.m.X[o.track[idx]], o.xy[idx], o.tile[idx], o.img[idx])
@@ -583,7 +579,7 @@ class IncrementalSfM:
         w = self.cfg.correction_extrapolation
         if w and self._corr_prev is not None:
             # one step further along the change since the last round, for the observations
-            # fitted both times (README, "Extrapolated rounds")
+            # fitted both times (docs: research-notes.md, "Superseded: the bend step and the extrapolated rounds")
             prev = self._corr_prev[idx]
             both = ~np.isnan(prev[:, 0])
             corr[both] += w * (fitted[both] - prev[both])
