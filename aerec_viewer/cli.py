@@ -39,15 +39,17 @@ def _remove_stale_tmp(site: Path) -> None:
             pass
 
 
-# The demo `aerec view` generates on first use: `quick` (6 images of 1200 px in two date groups,
-# one ray per pixel) renders in ~11 s on 2 cores where `demo` (2000 px, 4 rays per pixel) took
-# ~2 min, and its reconstruction is as good (every tile registered; fused DSM 0.23 m median
-# error, 73 % complete, against `demo`'s 0.24 m, 76 %; the whole run 64 s).
-DEFAULT_DEMO = "quick"
+# The demo of `aerec view`: the `mini` preset (6 images of 800 px in two date groups), shipped
+# in assets/demo_site (6 MB) so that nothing is generated or compiled before the first points;
+# generated on first use (10 s) when the assets are not there (an install from a wheel).
+# Tiles of DEMO_TILE_SIZE px: 9 per image, registered one by one on the page.
+DEFAULT_DEMO = "mini"
+DEMO_TILE_SIZE = 400
+ASSET_DEMO = Path(__file__).resolve().parents[1] / "assets" / "demo_site"
 
 
 def demo_preset() -> str:
-    """The synthetic preset of the demo: `quick`, or $AEREC_DEMO_PRESET (`demo` for the larger
+    """The synthetic preset of the demo: `mini`, or $AEREC_DEMO_PRESET (`demo` for a larger
     one, `tiny2` for a toy in seconds)."""
     from recon_core.errors import InputError
     from recon_core.synthetic.generator import PRESETS
@@ -60,6 +62,8 @@ def demo_preset() -> str:
 
 
 def _demo_dir() -> Path:
+    if demo_preset() == DEFAULT_DEMO and (ASSET_DEMO / "images").is_dir():
+        return ASSET_DEMO
     name = "demo_site" if demo_preset() == DEFAULT_DEMO else f"demo_site_{demo_preset()}"
     return cache_dir() / name
 
@@ -70,6 +74,24 @@ _WARMUP = ("import sys\n"
            "print('render', flush=True)\n"
            "from recon_core.sparse.bundle import warm_compiled_kernels\n"
            "warm_compiled_kernels()\n")
+
+
+_WARM_BA = "from recon_core.sparse.bundle import warm_compiled_kernels\nwarm_compiled_kernels()\n"
+
+
+def _start_ba_warmup():
+    """A second process compiling the bundle adjustment's kernels into numba's cache while this
+    one detects and matches features (a few seconds each): on a fresh machine the first
+    adjustment then loads them instead of compiling them on the way. A no-op when cached."""
+    import subprocess
+    import threading
+
+    try:
+        p = subprocess.Popen([sys.executable, "-c", _WARM_BA], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+    except OSError:
+        return
+    threading.Thread(target=p.wait, daemon=True, name="aerec-ba-warmup-reaper").start()
 
 
 def _start_warmup():
@@ -206,8 +228,11 @@ def is_out_folder(p: Path) -> bool:
 
 
 def default_out(site: Path) -> Path:
-    """<site>/../<name>_aerec_out, or the cache when the site's parent is not writable."""
+    """<site>/../<name>_aerec_out, or the cache when the site's parent is not writable (and for
+    the shipped demo: its outputs do not belong in the repository)."""
     site = site.resolve()
+    if site == ASSET_DEMO.resolve():
+        return cache_dir() / "runs" / "demo_aerec_out"
     cand = site.parent / f"{site.name}_aerec_out"
     if os.access(site.parent, os.W_OK) or (cand.exists() and os.access(cand, os.W_OK)):
         return cand
@@ -279,11 +304,15 @@ def cmd_view(args) -> int:
         raise InputError(out, f"cannot create the output folder ({exc.strerror or exc})") from None
     lock = out_lock(out)
     lock.__enter__()
+    if mode == "run":
+        _start_ba_warmup()
     cfg = None
     if mode == "run" or args.preset or args.tile_size:
         cfg = preset(args.preset or "default")
-        if args.tile_size:
-            cfg = cfg.with_overrides({"tiling.tile_size": args.tile_size})
+        tile = args.tile_size or (DEMO_TILE_SIZE if args.target is None and args.site is None
+                                  and demo_preset() == DEFAULT_DEMO else None)
+        if tile:
+            cfg = cfg.with_overrides({"tiling.tile_size": tile})
     app = ViewerApp(out, site, cfg, mode=mode, host=args.host, port=args.port)
     app.start()
     what = "reopening" if mode == "reopen" else "reconstructing"

@@ -194,10 +194,12 @@ class IncrementalSfM:
         m.has_point[common] = True
         self._triangulate_new()
         self._filter_outliers()
-        self._bundle("global")
+        # the pair's structure is shown at once (the first adjustment follows, and the viewer
+        # takes its result as a model update)
         for k, t in enumerate((ta, tb)):
             self._emit_tile(t, int(np.sum(o.tile[m.active_obs()] == t)), order=k)
         self._emit_points()
+        self._bundle("global")
         info["init_points"] = int(m.has_point.sum())
         return info
 

@@ -134,6 +134,9 @@ PRESETS: dict[str, SynthPreset] = {
                           n_gcps=16, bow_px=1.0, distortion_px=3.0, drift=10.0),
     # the viewer's first demo: `demo`'s layout on 1200 px images rendered with one ray per
     # pixel (11x fewer rays): generated in seconds, first points within a minute
+    # the demo shipped in assets/ (a few MB): `demo`'s layout on 800 px images, one ray per pixel
+    "mini": SynthPreset(name="mini", groups=(3, 3), group_months=(3, 8), image_size=(800, 800),
+                        supersample=1, n_gcps=12),
     "quick": SynthPreset(name="quick", groups=(3, 3), group_months=(3, 8),
                          image_size=(1200, 1200), supersample=1, n_gcps=16),
     # a flat suburb of ~2.5 km seen by 3 views (one pair with a small angle): low buildings,
