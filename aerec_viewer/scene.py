@@ -111,15 +111,19 @@ class SceneView:
         self._newest_nodes: dict[int, tuple[object, object]] = {}
         self._tile_mode = self.settings.tiles
         self.finished = False
+        self._slack = 1.5
         self.sent_log: list[dict] = []    # one entry per point chunk sent (for the bench)
         self.image_index = {name: k for k, name in enumerate(sorted(images.images))}
 
     # -- points -------------------------------------------------------------------------------
     def sync(self, snap: DisplaySnapshot, transforms: dict[int, DisplayTransform | None]) -> int:
-        """Apply a snapshot; returns the number of points sent."""
+        """Apply a snapshot; returns the number of points sent. While the cloud grows, its
+        display is thinned again only when the budget is overshot by half (each rebuild resends
+        it); once the run is over, the display holds the budget."""
         total = sum(g.sparse.n + (g.dense.n if self.settings.show_dense else 0)
                     for g in snap.groups.values())
         frac = display_fraction(total, self.settings.budget)
+        self._slack = 1.02 if snap.status in ("done", "reopened", "failed", "stopped") else 1.5
         sent = 0
         for g, gs in snap.groups.items():
             T = transforms.get(g)
@@ -139,7 +143,7 @@ class SceneView:
         st = self._clouds.setdefault(key, _Cloud())
         visible = self.settings.show_sparse if kind == "sparse" else self.settings.show_dense
         rebuild = (st.generation != cloud.generation or st.transform is not T
-                   or frac < st.fraction / 1.5 or (frac > st.fraction * 1.5 and st.fraction < 1.0)
+                   or frac < st.fraction / self._slack or (frac > st.fraction * 1.5 and st.fraction < 1.0)
                    or len(st.chunks) > MAX_CHUNKS or len(cloud.batches) < st.n_batches)
         if rebuild:
             return self._rebuild(key, st, cloud, T, frac, visible)

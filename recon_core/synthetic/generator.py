@@ -245,6 +245,27 @@ def _write_json(path: Path, obj) -> None:
 # Pushbroom camera
 
 
+def _secant_rows(f, X: np.ndarray, r0: np.ndarray, tol: float, max_iter: int):
+    """Solve f(X, row)[0] = 0 for each point's row by secant from r0 and r0 + 1; f also returns
+    each point's column. A point stops once its step is below tol (round-off would make its
+    secant wander). Returns (columns, rows)."""
+    r0 = np.array(r0, dtype=np.float64)
+    r1 = r0 + 1.0
+    (f0, _), (f1, c1) = f(X, r0), f(X, r1)
+    act = np.ones(len(X), bool)
+    for _ in range(max_iter):
+        den = f1[act] - f0[act]
+        ok = np.abs(den) > 0
+        step = np.where(ok, f1[act] * (r1[act] - r0[act]) / np.where(ok, den, 1.0), 0.0)
+        r0[act], f0[act] = r1[act], f1[act]
+        r1[act] = r1[act] - step
+        f1[act], c1[act] = f(X[act], r1[act])
+        act[act] = np.abs(step) > tol
+        if not act.any():
+            break
+    return c1, r1
+
+
 @dataclass
 class PushbroomCamera:
     """Physical camera of one image: a linear array on a circular orbit with agile steering.
@@ -366,54 +387,26 @@ class PushbroomCamera:
 
     # ---- projection and rays
     def project_ecef(self, X: np.ndarray, tol: float = 1e-9, max_iter: int = 30) -> np.ndarray:
-        """ECEF points (n, 3) -> (n, 2) (col, row): secant solve of camera y = 0 for the row."""
+        """ECEF points (n, 3) -> (n, 2) (col, row): the row where the point crosses the line
+        array, by secant (camera y / z = 0); on a bowed, distorted line (class docstring), from
+        that solution, the row where it crosses the detector of the column it is seen at,
+        y / z = bow(col(x / z))."""
         X = np.atleast_2d(np.asarray(X, dtype=np.float64))
-        r0 = self.r_mid + ((X - self.target0) @ self.scan_dir) / self.gsd_row
-        q0 = self._cam(X, r0)
-        f0 = q0[:, 1] / q0[:, 2]
-        r1 = r0 + 1.0
-        q1 = self._cam(X, r1)
-        f1 = q1[:, 1] / q1[:, 2]
-        act = np.ones(len(X), bool)
-        for _ in range(max_iter):
-            den = f1[act] - f0[act]
-            ok = np.abs(den) > 0
-            step = np.where(ok, f1[act] * (r1[act] - r0[act]) / np.where(ok, den, 1.0), 0.0)
-            r0[act], f0[act] = r1[act], f1[act]
-            r1[act] = r1[act] - step
-            q1[act] = self._cam(X[act], r1[act])
-            f1[act] = q1[act, 1] / q1[act, 2]
-            act[act] = np.abs(step) > tol
-            if not act.any():
-                break
-        col = self.c0 + (q1[:, 0] / q1[:, 2]) / self.ifov
-        if not self.straight:
-            col, r1 = self._project_focal_plane(X, col, r1, tol, max_iter)
-        return np.stack([col, r1], axis=-1)
 
-    def _project_focal_plane(self, X, col, row, tol, max_iter):
-        """Projection onto a bowed, distorted line (class docstring), from the straight line's
-        solution (col, row): the row where the point crosses the detector of the column it is
-        seen at, f(r) = y / z - bow(col(x / z)) = 0, by secant."""
-        def f(Xa, r):
+        def straight(Xa, r):
+            q = self._cam(Xa, r)
+            return q[:, 1] / q[:, 2], self.c0 + (q[:, 0] / q[:, 2]) / self.ifov
+
+        def bowed(Xa, r):
             q = self._cam(Xa, r)
             c = self._column_of(q[:, 0] / q[:, 2])
             return q[:, 1] / q[:, 2] - self.detector(c)[:, 1], c
 
-        r0, r1 = row.copy(), row + 1.0
-        (f0, _), (f1, c1) = f(X, r0), f(X, r1)
-        act = np.ones(len(X), bool)
-        for _ in range(max_iter):
-            den = f1[act] - f0[act]
-            ok = np.abs(den) > 0
-            step = np.where(ok, f1[act] * (r1[act] - r0[act]) / np.where(ok, den, 1.0), 0.0)
-            r0[act], f0[act] = r1[act], f1[act]
-            r1[act] = r1[act] - step
-            f1[act], c1[act] = f(X[act], r1[act])
-            act[act] = np.abs(step) > tol          # a point stops once converged (round-off
-            if not act.any():                      # would make its secant wander)
-                break
-        return c1, r1
+        r0 = self.r_mid + ((X - self.target0) @ self.scan_dir) / self.gsd_row
+        col, row = _secant_rows(straight, X, r0, tol, max_iter)
+        if not self.straight:
+            col, row = _secant_rows(bowed, X, row, tol, max_iter)
+        return np.stack([col, row], axis=-1)
 
     def project(self, llh: np.ndarray) -> np.ndarray:
         """(n, 3) lon, lat, ellipsoidal h -> (n, 2) col, row (pixel-centre convention)."""
