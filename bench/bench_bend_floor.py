@@ -43,7 +43,7 @@ def main(argv=None) -> int:
 
     from recon_core.config import preset as make_preset
     from recon_core.euclidean.georef import frame_for
-    from recon_core.evaluation.truth import bend_report, true_points_enu
+    from recon_core.synthetic.truth import bend_report, true_points_enu
     from recon_core.geometry import affine
     from recon_core.model.sparse_model import merge_joint
     from recon_core.pipeline import run

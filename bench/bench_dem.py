@@ -53,7 +53,7 @@ def scratch_copy(out: Path) -> Path:
 def main(argv=None) -> int:
     from recon_core.config import Config
     from recon_core.euclidean.georef import frame_for
-    from recon_core.evaluation.truth import sparse_vs_truth
+    from recon_core.synthetic.truth import sparse_vs_truth
     from recon_core.geometry.enu_map import EnuMap
     from recon_core.pipeline import run
     from recon_core.synthetic.ref_dem import simulate_reference_dem

@@ -43,7 +43,7 @@ def main() -> None:
         print(f"{label}: {len(m.images)} images, {int(m.registered.sum())} tiles")
         A_true = None
         if truth:
-            from recon_core.evaluation.truth import sparse_vs_truth
+            from recon_core.synthetic.truth import sparse_vs_truth
             A_true = sparse_vs_truth(args.site, m, frame)["A"]
         for s in args.sigma:
             res, _, _ = upgrade_group(m, gcps, frame, sigma_cos=s)

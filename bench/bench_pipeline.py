@@ -82,14 +82,14 @@ def ensure_site(preset: str, seed: int, root: Path) -> Path:
 def truth_figures(site: Path, state, rpc_truth: bool = False) -> dict:
     from recon_core.euclidean.georef import frame_for
     from recon_core.euclidean.metric_bend import warped_model
-    from recon_core.evaluation.truth import sparse_vs_truth
+    from recon_core.synthetic.truth import sparse_vs_truth
 
-    from recon_core.evaluation.truth import has_truth_cameras
+    from recon_core.synthetic.truth import has_truth_cameras
 
     if not has_truth_cameras(site, rpc_truth):
         return {}
     from recon_core.evaluation.colormap import save_png
-    from recon_core.evaluation.truth import residual_map
+    from recon_core.synthetic.truth import residual_map
 
     from recon_core.model.sparse_model import merge_joint
 

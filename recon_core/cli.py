@@ -245,7 +245,7 @@ def cmd_gcps(args) -> int:
     if args.src.resolve() == args.dst.resolve():
         raise InputError(args.dst, "is the input file; write to another file")
     if args.epsg is not None and args.epsg not in (4326, 4979):
-        from recon_core.io.site import projected_epsg
+        from recon_core.io.checks import projected_epsg
 
         projected_epsg(args.epsg, None, "--epsg")    # E, N need a projected CRS in metres
     images = None

@@ -14,14 +14,14 @@ from typing import Any
 @dataclass(frozen=True)
 class Rule:
     """What a field's value may be, besides its type: a range (numbers, each element of a
-    tuple; finite always), a choice among names (a tuple, or a key of CHOICES whose names come
-    from the module that owns them), odd."""
+    tuple; finite always), a choice among names (the modules that implement them hold the same
+    names: tests/test_config_schema.py), odd."""
 
     lo: float | None = None
     hi: float | None = None
     lo_open: bool = False
     hi_open: bool = False
-    choices: tuple | str | None = None
+    choices: tuple | None = None
     odd: bool = False
 
     def problem(self, v: Any) -> str | None:
@@ -51,21 +51,7 @@ class Rule:
 
 
 def _choices(key) -> tuple:
-    if not isinstance(key, str):
-        return tuple(key)
-    if key == "dense.matchers":
-        from recon_core.dense.matchers import MATCHERS
-        return tuple(sorted(MATCHERS))
-    if key == "bundle.losses":
-        from recon_core.sparse.bundle import LOSSES
-        return tuple(LOSSES)
-    if key == "bundle.solvers":
-        from recon_core.sparse.bundle import SOLVERS
-        return tuple(SOLVERS)
-    if key == "dsm.stats":
-        from recon_core.euclidean.dsm import STATS
-        return tuple(STATS)
-    raise KeyError(key)
+    return tuple(key)
 
 
 def _p(default, **rule):
@@ -158,7 +144,7 @@ class SfmConfig:
 
 @dataclass
 class BundleConfig:
-    loss: str = _p("huber", choices='bundle.losses')  # robust loss of scipy.optimize.least_squares
+    loss: str = _p("huber", choices=("linear", "huber", "cauchy"))  # robust loss of scipy.optimize.least_squares
     loss_scale_px: float = _p(1.0, lo=0, lo_open=True, hi=1000)  # f_scale of the robust loss, pixels
     max_nfev: int = _p(50, lo=1, hi=100_000)  # LM iteration cap of a global adjustment
     local_max_nfev: int = _p(10, lo=1, hi=100_000)  # LM iteration cap of a local adjustment (after each tile)
@@ -167,7 +153,7 @@ class BundleConfig:
     growing_rel_tol: float = _p(1e-5, lo=0, lo_open=True, hi=1, hi_open=True)  # ... and this one while the model grows (local and
                                       # intermediate global adjustments): the final global
                                       # adjustments converge to rel_tol from there
-    solver: str = _p("auto", choices='bundle.solvers')  # reduced camera system: dense (Cholesky), sparse (8 x 8
+    solver: str = _p("auto", choices=("auto", "dense", "sparse"))  # reduced camera system: dense (Cholesky), sparse (8 x 8
                                       # blocks, SuperLU: 10-20 km sites) or auto (sparse from
                                       # 1,500 camera unknowns)
 
@@ -175,7 +161,7 @@ class BundleConfig:
 @dataclass
 class DenseConfig:
     step: int = _p(1, lo=1, hi=64)    # stride of the reference-pixel grid (1 = every pixel)
-    matcher: str = _p("sgbm", choices='dense.matchers')  # stereo matcher (recon_core.dense.matchers.MATCHERS); its
+    matcher: str = _p("sgbm", choices=("sgbm",))  # stereo matcher (recon_core.dense.matchers.MATCHERS); its
                                       # parameters are the config section of the same name
     disp_margin_px: float = _p(8.0, lo=0, hi=10_000)  # margin added around the sparse disparity percentiles
     disp_margin_frac: float = _p(0.25, lo=0, hi=100)  # ... plus this fraction of the percentile range
@@ -240,7 +226,7 @@ class UpgradeConfig:
 @dataclass
 class DsmConfig:
     resolution_m: float | None = _p(None, lo=0.01, hi=1000)  # output cell size; None = site.json's, else the GSD
-    stat: str = _p("median", choices='dsm.stats')  # per-cell statistic: median | upper_median | max
+    stat: str = _p("median", choices=("median", "upper_median", "max", "min", "mean"))  # per-cell statistic: median | upper_median | max
     fill_holes_px: int = _p(2, lo=0, hi=1000)  # fill only holes this small (radius, cells) with support
     laz: bool = _p(True)              # also write cloud.laz (LAS 1.4 with the CRS) from cloud.ply
     fusion_correction_m: float = _p(32.0, lo=0, hi=1e6)  # a lower-ranked group is brought onto the fused surface by

@@ -125,3 +125,14 @@ def test_a_config_that_is_not_one(make, words, small_site, tmp_path, capsys):
 def test_dev_zero_is_refused_without_reading_it(small_site, tmp_path, capsys):
     assert main(["run", str(small_site), "--out", str(tmp_path / "o"), "--config", "/dev/zero", "--quiet"]) == 2
     assert "not a configuration file" in capsys.readouterr().err
+
+
+def test_the_choices_are_what_the_modules_implement():
+    from recon_core.config import rule_of
+    from recon_core.dense.matchers import MATCHERS
+    from recon_core.euclidean.dsm import STATS
+    from recon_core.sparse.bundle import LOSSES, SOLVERS
+
+    for (sec, name), impl in {("bundle", "loss"): LOSSES, ("bundle", "solver"): SOLVERS,
+                              ("dense", "matcher"): MATCHERS, ("dsm", "stat"): STATS}.items():
+        assert set(rule_of(sec, name).choices) == set(impl), (sec, name)

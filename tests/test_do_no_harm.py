@@ -14,7 +14,7 @@ import pytest
 
 from recon_core.config import preset
 from recon_core.euclidean.georef import frame_for
-from recon_core.evaluation.truth import sparse_vs_truth
+from recon_core.synthetic.truth import sparse_vs_truth
 from recon_core.model.sparse_model import merge_joint
 from recon_core.pipeline import run
 

@@ -18,10 +18,11 @@ import numpy as np
 
 from recon_core.errors import InputError
 from recon_core.geometry.geodesy import projected_to_geodetic
+from recon_core.io.checks import finite_number, projected_epsg
 from recon_core.io.files import atomic_path
 
 if TYPE_CHECKING:
-    from recon_core.io.site import ImageInfo
+    from recon_core.model.images import ImageInfo
 
 
 @dataclass
@@ -50,16 +51,6 @@ class GCP:
 MAX_ABS_HEIGHT_M = 12_000.0      # ellipsoidal heights of the Earth's surface lie within this
 
 
-def _finite_number(v) -> bool:
-    """A JSON number that is a finite float (an integer of 400 digits is not: no float holds it)."""
-    if not isinstance(v, (int, float)) or isinstance(v, bool):
-        return False
-    try:
-        return math.isfinite(v)
-    except OverflowError:
-        return False
-
-
 def read_gcps_geojson(path: Path, images: dict[str, ImageInfo] | None = None) -> list[GCP]:
     """Read GCPs; coordinates converted to geodetic (lon, lat, h). Validates observations."""
     path = Path(path)
@@ -74,8 +65,6 @@ def read_gcps_geojson(path: Path, images: dict[str, ImageInfo] | None = None) ->
         raise InputError(path, "malformed GeoJSON: expected a FeatureCollection with a features list")
     epsg = doc.get("crs_epsg")
     if epsg is not None:
-        from recon_core.io.site import projected_epsg
-
         epsg = projected_epsg(epsg, path, "crs_epsg")
     gcps: list[GCP] = []
     for k, feat in enumerate(doc["features"]):
@@ -106,7 +95,7 @@ def _parse_feature(path: Path, k: int, feat, epsg, images) -> GCP:
         coords = geom["coordinates"]
     except (TypeError, KeyError, AttributeError):
         raise InputError(path, f"malformed GeoJSON: {where} has no Point geometry") from None
-    if not (isinstance(coords, list) and len(coords) == 3 and all(_finite_number(c) for c in coords)):
+    if not (isinstance(coords, list) and len(coords) == 3 and all(finite_number(c) for c in coords)):
         raise InputError(path, f"{where}: coordinates must be [lon, lat, h] (3 numbers)")
     gid = str(props.get("id", f"GCP-{k + 1:02d}"))
     where = f"GCP {gid}"
@@ -124,13 +113,13 @@ def _parse_feature(path: Path, k: int, feat, epsg, images) -> GCP:
         raise InputError(path, f"{where}: observations must map image names to [col, row]")
     obs: dict[str, tuple[float, float]] = {}
     for name, xy in obs_in.items():
-        if not (isinstance(xy, list) and len(xy) == 2 and all(_finite_number(v) for v in xy)):
+        if not (isinstance(xy, list) and len(xy) == 2 and all(finite_number(v) for v in xy)):
             raise InputError(path, f"{where}: observation in {name} must be [col, row]")
         if images is not None:
             check_observation(path, where, name, xy, images)
         obs[name] = (float(xy[0]), float(xy[1]))
     sigma = props.get("sigma_m")
-    if sigma is not None and not (_finite_number(sigma) and sigma > 0):
+    if sigma is not None and not (finite_number(sigma) and sigma > 0):
         raise InputError(path, f"{where}: sigma_m must be a positive number of metres, not {sigma!r}")
     enabled = props.get("enabled", True)
     if not isinstance(enabled, bool):
@@ -160,7 +149,7 @@ def _parse_picked(path: Path, where: str, picked) -> dict[int, np.ndarray]:
     out = {}
     for grp, xyz in picked.items():
         if not (str(grp).isdigit() and isinstance(xyz, list) and len(xyz) == 3
-                and all(_finite_number(v) for v in xyz)):
+                and all(finite_number(v) for v in xyz)):
             raise InputError(path, f"{where}: affine_picked[{grp!r}] must be [x, y, z] for a group index")
         out[int(grp)] = np.array(xyz, dtype=np.float64)
     return out

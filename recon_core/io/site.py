@@ -21,7 +21,9 @@ from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 from rasterio.windows import Window
 
 from recon_core.errors import InputError
-from recon_core.io.gcps import GCP, _finite_number, read_gcps_geojson
+from recon_core.io.checks import finite_number, projected_epsg  # noqa: F401 (projected_epsg re-exported)
+from recon_core.io.gcps import GCP, read_gcps_geojson
+from recon_core.model.images import ImageInfo, iso_utc  # noqa: F401 (re-exported)
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".vrt", ".jp2")      # compared in lower case
 # what GDAL must read them as: GeoTIFF, a VRT (mosaics, band subsets, products delivered as
@@ -29,28 +31,6 @@ IMAGE_SUFFIXES = (".tif", ".tiff", ".vrt", ".jp2")      # compared in lower case
 IMAGE_DRIVERS = {"GTiff": "a GeoTIFF", "VRT": "a GDAL VRT", "JP2OpenJPEG": "a JPEG 2000 image"}
 MIN_IMAGE_SIDE = 32            # a smaller image cannot hold a patch of features
 MAX_IMAGE_PIXELS = 4e9          # 63,000 px a side: refused with its size (it would not fit)
-
-
-@dataclass
-class ImageInfo:
-    """One acquisition: file, size, radiometry and acquisition time (UTC)."""
-
-    name: str
-    path: Path
-    width: int
-    height: int
-    bands: int
-    dtype: str
-    nodata: float | None
-    acquired: datetime | None
-    time_source: str
-    has_rpc: bool
-
-    def to_dict(self) -> dict:
-        return {"name": self.name, "width": self.width, "height": self.height,
-                "bands": self.bands, "dtype": self.dtype, "nodata": self.nodata,
-                "acquired": None if self.acquired is None else iso_utc(self.acquired),
-                "time_source": self.time_source, "has_rpc": self.has_rpc}
 
 
 @dataclass
@@ -72,10 +52,6 @@ class Site:
     @property
     def name(self) -> str:
         return str(self.hints.get("name") or self.root.name)
-
-
-def iso_utc(t: datetime) -> str:
-    return t.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def parse_iso_time(text: str) -> datetime:
@@ -341,12 +317,12 @@ def read_site_json(path: Path) -> dict:
     if "crs_epsg" in d:
         d["crs_epsg"] = projected_epsg(d["crs_epsg"], path, "crs_epsg")
     if "resolution_m" in d:
-        if not (_finite_number(d["resolution_m"]) and MIN_RESOLUTION_M <= d["resolution_m"] <= 1000):
+        if not (finite_number(d["resolution_m"]) and MIN_RESOLUTION_M <= d["resolution_m"] <= 1000):
             raise InputError(path, f"resolution_m must be a number of metres from {MIN_RESOLUTION_M} "
                                    f"to 1000, not {d['resolution_m']!r}")
     if "bounds" in d:
         b = d["bounds"]
-        if not (isinstance(b, list) and len(b) == 4 and all(_finite_number(v) for v in b)
+        if not (isinstance(b, list) and len(b) == 4 and all(finite_number(v) for v in b)
                 and b[0] < b[2] and b[1] < b[3]):
             raise InputError(path, "bounds must be [xmin, ymin, xmax, ymax], four numbers with "
                                    "xmin < xmax and ymin < ymax")
@@ -359,28 +335,6 @@ def read_site_json(path: Path) -> dict:
                                    f"{d['crs_epsg']} (metres): under 4 cells; degrees given for a "
                                    "projected CRS?")
     return d
-
-
-def projected_epsg(value, path: Path, what: str) -> int:
-    """An EPSG code of a projected CRS in metres that pyproj knows, else an InputError."""
-    from pyproj import CRS
-    from pyproj.exceptions import CRSError
-
-    from recon_core.io.gcps import _finite_number
-
-    if not _finite_number(value) or int(value) != value or not 1024 <= value <= 999_999:
-        raise InputError(path, f"{what} must be an EPSG code (an integer), not {value!r}")
-    try:
-        crs = CRS.from_epsg(int(value))
-    except CRSError:
-        raise InputError(path, f"{what} {int(value)} is not an EPSG code pyproj knows") from None
-    if not crs.is_projected:
-        raise InputError(path, f"{what} {int(value)} ({crs.name}) is not a projected CRS: outputs "
-                               "need x, y in metres (e.g. a UTM zone)")
-    unit = crs.axis_info[0].unit_name if crs.axis_info else "metre"
-    if unit not in ("metre", "meter"):
-        raise InputError(path, f"{what} {int(value)} ({crs.name}) has units of {unit}, not metres")
-    return int(value)
 
 
 def check_bounds_hold_gcps(site: "Site") -> None:

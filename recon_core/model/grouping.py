@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from recon_core.errors import InputError
-from recon_core.io.site import ImageInfo, iso_utc
+from recon_core.model.images import ImageInfo, iso_utc
 
 
 @dataclass

@@ -210,12 +210,12 @@ class GroupRouter(EventBus):
         self._tile_group = {t.id: self.image_group[t.image] for t in model.tiles}
         self._tiles_of = {g: sum(v == g for v in self._tile_group.values()) for g in self.groups}
 
-    def _sees(self, ids: np.ndarray) -> dict[int, np.ndarray]:
-        """Per group, a mask over ids: the points its images observe (one pass over the
-        observations of these points only). Shown live in every group that sees them: the
-        initial pair is often one image of each date, whose points belong to neither group's
-        own model (>= 2 of its images, split_model) until more tiles register; the models
-        themselves are split at the end."""
+    def _sees(self, ids: np.ndarray, model_update: bool = False) -> dict[int, np.ndarray]:
+        """Per group, a mask over ids: the points observed in >= 2 of its images (its own model's,
+        as split_model keeps them), one pass over the observations of these points only. New
+        points, and a model update of a group that has none of its own yet, go to every group
+        with an image that observes them: the initial pair is often one image of each date,
+        whose points would belong to neither group until more tiles register."""
         m = self.model
         idx = m.active_obs()
         want = np.zeros(len(m.X), bool)
@@ -224,7 +224,12 @@ class GroupRouter(EventBus):
         n_img = len(m.images)
         key = np.unique(m.obs.track[idx] * n_img + m.obs.img[idx])     # (track, image) pairs
         track, group = key // n_img, self._img_group[key % n_img]
-        return {g: np.bincount(track[group == g], minlength=len(m.X))[ids] >= 1 for g in self.groups}
+        out = {}
+        for g in self.groups:
+            count = np.bincount(track[group == g], minlength=len(m.X))[ids]
+            own = count >= 2
+            out[g] = own if model_update and own.any() else count >= 1
+        return out
 
     def emit(self, ev: object) -> None:
         if getattr(ev, "group", None) != JOINT:
@@ -241,7 +246,7 @@ class GroupRouter(EventBus):
             for k, g in enumerate(self.groups):
                 self.up.emit(replace(ev, group=g, repeat=k > 0))
         elif isinstance(ev, (PointsAdded, ModelUpdated)) and self.model is not None:
-            sees = self._sees(np.asarray(ev.ids, dtype=np.int64))
+            sees = self._sees(np.asarray(ev.ids, dtype=np.int64), isinstance(ev, ModelUpdated))
             for g in self.groups:
                 k = sees[g]
                 arrays = {f: np.asarray(getattr(ev, f))[k] for f in ("ids", "xyz", "rgb", "n_views", "reproj_px")}

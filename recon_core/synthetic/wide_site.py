@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from recon_core.evaluation.truth import bend_report
+from recon_core.synthetic.truth import bend_report
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.model.tiling import Tile, tile_image
 from recon_core.sparse.bundle import BAResult, bundle_adjust

@@ -134,7 +134,7 @@ def test_dense_tiny_against_truth(tiny_run, tiny_site):
 
     from recon_core.euclidean.dsm import rasterize
     from recon_core.euclidean.georef import frame_for
-    from recon_core.evaluation.truth import sparse_vs_truth
+    from recon_core.synthetic.truth import sparse_vs_truth
     from recon_core.geometry.geodesy import geodetic_to_projected
     from recon_core.io.models import load_dense
     from recon_core.io.raster import Grid
@@ -197,7 +197,7 @@ def test_weak_pair_points_are_the_imprecise_ones_and_only_fill(tiny_run, tiny_si
 
     from recon_core.euclidean.dsm import DsmAccumulator
     from recon_core.euclidean.georef import frame_for
-    from recon_core.evaluation.truth import sparse_vs_truth
+    from recon_core.synthetic.truth import sparse_vs_truth
     from recon_core.geometry.geodesy import geodetic_to_projected
     from recon_core.io.models import load_dense
     from recon_core.io.raster import Grid

@@ -166,7 +166,7 @@ def test_reduce_for_display_is_a_nan_aware_block_mean():
 def test_bend_report_separates_a_dome_from_point_noise():
     """A quadratic dome of 1.2 m plus 0.2 m of point noise over a 3 km site: the quadratic part
     carries the dome, the local part (each point minus its 150 m cell's mean) the noise."""
-    from recon_core.evaluation.truth import bend_report
+    from recon_core.synthetic.truth import bend_report
 
     rng = np.random.default_rng(2)
     Xt = np.column_stack([rng.uniform(-1500, 1500, (60000, 2)), rng.uniform(0, 40, 60000)])

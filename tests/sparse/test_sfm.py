@@ -11,7 +11,7 @@ import pytest
 from recon_core.config import preset
 from recon_core.errors import ReconstructionError
 from recon_core.euclidean.georef import frame_for
-from recon_core.evaluation.truth import sparse_vs_truth
+from recon_core.synthetic.truth import sparse_vs_truth
 from recon_core.events import BundleAdjusted, ModelUpdated, PointsAdded, TileRegistered
 from recon_core.io.models import load_model
 from recon_core.pipeline import run
