@@ -48,6 +48,7 @@ CORRECTIONS = {
     "joint": (["sfm.joint_groups"], [], {}),
     "tie": (["sfm.tie_sigma_px"], [], {"sfm.tie_sigma_px": 0.01}),
     "within": (["sfm.correction_rounds"], ["sfm.joint_groups"], {}),
+    "bend": (["sfm.bend_step"], ["sfm.joint_groups", "sfm.correction_rounds"], {}),
     "prior": (["upgrade.metric_prior_sigma_cos"], [], {"upgrade.metric_prior_sigma_cos": 2e-3}),
     "metric_bend": (["upgrade.metric_bend"], [], {}),
 }

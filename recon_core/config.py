@@ -134,12 +134,17 @@ class SfmConfig:
                                       # of several dates (one pass's views cannot see the vertical
                                       # warps it would free) (0 = none; each round more lowers
                                       # the bend further and costs one global adjustment)
+    bend_step: bool = _p(True)        # each correction round starts by taking out the quadratic warp
+                                      # of the structure the images' straight-line models see, and
+                                      # the last adjustment is followed by one; only where every
+                                      # sensor is a straight line array (checked on the run's data:
+                                      # a bowed line looks like a bend; docs: accuracy.md)
     correction_extrapolation: float = _p(1.0, lo=0, hi=1)  # from the second round
                                       # on, each round's correction is pushed this many times its
                                       # change since the round before, g + w (g - g_prev): plain
                                       # rounds converge slowly, each removing less of the bend
                                       # (0 = plain rounds; at most 1: 2 diverged; docs: research-notes.md,
-                                      # "Extrapolated rounds")
+                                      # "Superseded: the bend step and the extrapolated rounds")
 
 
 @dataclass
@@ -297,8 +302,7 @@ LEGACY_KEYS = {f"dense.{k}": f"sgbm.{k}" for k in ("block_size", "p1", "p2", "un
 REMOVED_KEYS = {"bundle.smoothness_weight"}
 # parameters that were removed because they did harm: read from older files only with the value
 # that does what the code now does (any other value is refused, saying why)
-RETIRED_KEYS = {"sfm.bend_step": (False, "the bend step was removed: on sensors whose focal plane "
-                                  "is not one straight line (every real one) it bent the structure")}
+RETIRED_KEYS: dict = {}
 # parameters that change how a stage runs, not what it computes: not part of a stage's hash
 # (bundle.solver: the dense and block-sparse reduced systems take the same steps to rounding,
 # not bitwise: `demo`'s cameras and points differ by ~5e-10, no decision of the SfM changes)

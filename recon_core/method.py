@@ -52,6 +52,10 @@ CHAIN: tuple[Step, ...] = (
          "its observations (several dates only)", "recon_core.geometry.pushbroom", False,
          "sfm.correction_rounds", 0, "one date (one pass's views cannot see what it would free); "
          "an image its model does not explain"),
+    Step("bend_step", "the quadratic bend of the structure that the images' straight-line models "
+         "see taken out at each correction round (several dates only)", "recon_core.sparse.sfm", False,
+         "sfm.bend_step", False, "any sensor that is not a straight line array (checked on the run's "
+         "data: a bowed line looks like a bend; every real sensor so far); one date"),
     Step("dense", "per overlapping tile pair: affine F from the cameras, rectifying affine maps, "
          "semi-global matching with a left-right check, multi-view tracks with a photometric "
          "check, triangulation", "recon_core.dense", True),

@@ -42,9 +42,11 @@ def test_defaults_are_no_worse_than_the_paper_on_real_looking_sensors(fp_site, t
     default, groups = _sparse_rms(fp_site, tmp_path / "default", preset("tiny"))
     # (before the focal-plane terms and without the bend step's removal: 0.84 m against 0.58 m)
     assert default <= 1.1 * paper + 0.02, (default, paper)
-    # the image model covers these sensors: no image was left out of the model's corrections
+    # the image model covers these sensors: no image was left out of the model's corrections;
+    # and they are not straight line arrays, so the bend step stood aside, saying why
     for g in groups.values():
         assert g["image_models"]["unexplained"] == [], g["image_models"]
+        assert g["bend_step"]["straight"] is False and "not a straight line array" in g["bend_step"]["why"]
 
 
 def test_an_image_the_model_does_not_explain_is_told(monkeypatch):
@@ -68,3 +70,18 @@ def test_an_image_the_model_does_not_explain_is_told(monkeypatch):
     chips = noisy.copy()
     chips[cr[:, 0] > cam.c0, 1] += 1.0
     assert model_misfit(X, chips) > MAX_MODEL_MISFIT_PX
+
+
+def test_straight_sensors_are_told_from_bowed_ones(tmp_path_factory):
+    """The bend step's check (sfm._straight_lines): `tiny2`, the same layout as `tiny2fp` with
+    straight line arrays, passes it (every image's straight-line model explains it once the
+    bend it sees is out); `tiny2fp` does not (the test above)."""
+    from recon_core.synthetic.generator import generate_site
+
+    site = tmp_path_factory.mktemp("tiny2") / "site"
+    generate_site(site, preset="tiny2", seed=0)
+    state = run(site, site.parent / "out", preset("tiny"), until="sparse", resume=False)
+    for g in state.report["stages"]["sparse"]["groups"].values():
+        check = g["bend_step"]
+        assert check["straight"] is True, check
+        assert max(check["misfit_px"].values()) < 0.02

@@ -37,17 +37,19 @@ def _focal_plane(r: np.ndarray, c: np.ndarray, row: bool) -> np.ndarray:
 STRAIGHT_LINE_TERMS = (8, 9)   # the row's and the column's terms before the focal plane's
 
 
-def row_basis(X: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+def row_basis(X: np.ndarray, r: np.ndarray, c: np.ndarray, focal_plane: bool = True) -> np.ndarray:
     """Basis of the row equation at points X (n, 3, standardised) with normalised rows r and
-    columns c (n,)."""
+    columns c (n,); without `focal_plane`, a straight line array's."""
     one = np.ones((len(X), 1))
-    return np.hstack([X, one, r[:, None] * X, (r ** 3)[:, None], _focal_plane(r, c, True)])
+    fp = _focal_plane(r, c, True) if focal_plane else np.zeros((len(X), 0))
+    return np.hstack([X, one, r[:, None] * X, (r ** 3)[:, None], fp])
 
 
-def col_basis(X: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+def col_basis(X: np.ndarray, r: np.ndarray, c: np.ndarray, focal_plane: bool = True) -> np.ndarray:
     """Basis of the column equation (see the module docstring)."""
     one = np.ones((len(X), 1))
-    return np.hstack([X, one, c[:, None] * X, (r ** 2)[:, None], (r ** 3)[:, None], _focal_plane(r, c, False)])
+    fp = _focal_plane(r, c, False) if focal_plane else np.zeros((len(X), 0))
+    return np.hstack([X, one, c[:, None] * X, (r ** 2)[:, None], (r ** 3)[:, None], fp])
 
 
 def col_basis_known_depth(X: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -91,14 +93,15 @@ def _image_coords(X: np.ndarray, xy: np.ndarray):
     return mean_cam, (X - x0) / xs, (uv[:, 1] - p0[1]) / ps, (uv[:, 0] - p0[0]) / ps, uv, p0
 
 
-def image_model_values(X: np.ndarray, xy: np.ndarray, trim: float = 4.0) -> np.ndarray:
+def image_model_values(X: np.ndarray, xy: np.ndarray, trim: float = 4.0,
+                       focal_plane: bool = True) -> np.ndarray:
     """(K, 2) the image model (module docstring) fitted by least squares to observations xy
     (K, 2: col, row) of points X (K, 3) in one image, evaluated at X. One refit without the
     observations beyond `trim` times the RMS residual (outliers the SfM has not dropped yet).
     On flat ground the model's basis is rank-deficient (r X and r^2 nearly collinear): the fitted
     values are still unique (minimum-norm least squares)."""
     _, Xn, r, c, _, _ = _image_coords(X, xy)
-    bases = (col_basis(Xn, r, c), row_basis(Xn, r, c))
+    bases = (col_basis(Xn, r, c, focal_plane), row_basis(Xn, r, c, focal_plane))
     keep = np.ones(len(X), bool)
     out = np.empty_like(xy, dtype=np.float64)
     for _ in range(2):
@@ -126,17 +129,21 @@ def image_model_values(X: np.ndarray, xy: np.ndarray, trim: float = 4.0) -> np.n
 # to 0.001 px; without its focal-plane terms, omaha_3dates' to 0.11-0.23 px.
 MISFIT_CELLS = 6             # cells per image side, at most (fewer on images with few points:
 MISFIT_CELL_POINTS = 30      # at least this many observations per cell on average)
+MAX_STRAIGHT_MISFIT_PX = 0.02  # ... and a sensor whose straight-line model's is larger (once the
+                             # bend it sees is out) is not a straight line array (the bend step's)
 MAX_MODEL_MISFIT_PX = 0.1    # an image whose model's systematic error is larger is not explained
                              # (the straight-line family missed omaha_3dates' images by 0.03-0.17
                              # px on its structure; the focal-plane family fits them to 0.005-0.02
                              # px, and a small site's 2-view groups to 0.03-0.08 px)
 
 
-def model_misfit(X: np.ndarray, xy: np.ndarray, cells: int = MISFIT_CELLS, trim: float = 4.0) -> float:
+def model_misfit(X: np.ndarray, xy: np.ndarray, cells: int = MISFIT_CELLS, trim: float = 4.0,
+                 focal_plane: bool = True) -> float:
     """The systematic error (px, RMS over the image's cells) of the image model fitted to
-    observations xy (K, 2) of points X (K, 3) in one image (see above)."""
+    observations xy (K, 2) of points X (K, 3) in one image (see above); without `focal_plane`,
+    of a straight line array's model."""
     cells = int(np.clip(np.sqrt(len(X) / MISFIT_CELL_POINTS), 2, cells))
-    fit = image_model_values(X, xy, trim=trim)
+    fit = image_model_values(X, xy, trim=trim, focal_plane=focal_plane)
     res = xy - fit
     size = np.sqrt((res ** 2).sum(1))
     keep = size <= trim * max(float(np.sqrt(np.mean(size ** 2))), 1e-9)
@@ -359,7 +366,8 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
                   depth: list[np.ndarray | None] | None = None,
                   range_free: bool = False,
                   directions: np.ndarray | None = None,
-                  pair: np.ndarray | None = None) -> tuple[BendWarp, dict]:
+                  pair: np.ndarray | None = None,
+                  focal_plane: bool = True) -> tuple[BendWarp, dict]:
     """The visible quadratic warp of structure X (N, 3, any affine frame) that removes what the
     images' models cannot fit (see above), from each image's observations (point indices into
     X, pixels (k, 2): each point once per image; images with fewer than MIN_POINTS_PER_IMAGE
@@ -383,6 +391,8 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     of relative change, an absolute measure that grows with the site, not a share of its own
     motion as the warps' are. A change per image instead would
     absorb the projective pair again (tried: docs: research-notes.md, "The metric bend step").
+    focal_plane: False models each image as a straight line array (the bend step's family: only
+    there does a bend show through the models, and only sensors that are straight lines allow it).
     directions: (k, 3) the displacement directions in X's frame the warp may take (e.g. the
     upgrade's east and north: a horizontal warp only); default any.
     pair: with two `directions`, (2, 3) the linear functions of X that are the ground
@@ -430,9 +440,9 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
                 motion of each warp is the whitened displacement q_a m through the mean camera
                 (and, with a known depth, through the 1D perspective it moves with)."""
                 if k == 1:
-                    B = row_basis(Xn[sl], r[sl], c[sl])
+                    B = row_basis(Xn[sl], r[sl], c[sl], focal_plane)
                 elif s_i is None:
-                    B = col_basis(Xn[sl], r[sl], c[sl])
+                    B = col_basis(Xn[sl], r[sl], c[sl], focal_plane)
                 else:
                     B = col_basis_known_depth(Xn[sl], r[sl], c[sl])
                 motion = np.einsum("km,a->kam", mono[pts[sl]], M3[k]).reshape(-1, 9)

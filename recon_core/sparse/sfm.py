@@ -28,8 +28,9 @@ from recon_core.model.sparse_model import Observations, SparseModel, images_per_
 from recon_core.model.tiling import Tile
 from recon_core.sparse.bundle import bundle_adjust
 from recon_core.sparse.features import ImageFeatures
-from recon_core.geometry.pushbroom import (MAX_MODEL_MISFIT_PX, MIN_POINTS_PER_IMAGE,
-                                          MIN_TILES_FOR_CORRECTION, correction_size, model_misfit,
+from recon_core.geometry.pushbroom import (MAX_MODEL_MISFIT_PX, MAX_STRAIGHT_MISFIT_PX,
+                                          MIN_POINTS_PER_IMAGE, MIN_TILES_FOR_CORRECTION,
+                                          correction_size, estimate_bend, model_misfit,
                                           tile_corrections)
 from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.matching import PairMatches
@@ -144,6 +145,7 @@ class IncrementalSfM:
         self._correction_info: dict = {}
         self._unexplained: set[int] = set()     # images whose model misses them (_check_image_models)
         self._model_check: dict = {}
+        self._straight: dict = {}
         self._corr_prev: np.ndarray | None = None  # the last round's fitted correction (all obs;
         #                                            NaN where it was not fitted)
 
@@ -248,10 +250,26 @@ class IncrementalSfM:
         # explain (_check_image_models).
         rounds = self.cfg.correction_rounds if self.n_dates > 1 else 0
         self._check_image_models()
+        # the bend step (several dates only: one pass's views leave the vertical bends unseen),
+        # where the sensors are straight line arrays; each correction round starts with it, and
+        # the last adjustment is followed by one (it slides back part of the way: its minimum
+        # is flat along these warps)
+        bend, self._straight = [], {"straight": False, "why": "off (sfm.bend_step = false)"}
+        if self.cfg.bend_step and rounds > 0:
+            self._straight = self._straight_lines()
+            if not self._straight["straight"]:
+                self.bus.message(f"group {m.group}: the bend step stands aside: {self._straight['why']}",
+                                 "info", m.group)
+        elif self.cfg.bend_step:
+            self._straight = {"straight": False, "why": "one date, or no correction round"}
         for k in range(1 + max(rounds, 1)):
             self._filter_outliers()
+            if k > 0 and rounds > 0 and self._straight["straight"]:
+                bend.append(self._bend_step(apply=True))
             self._bundle("global", final=True, correct=k > 0 and rounds > 0,
                          converge=rounds <= 0 or k == rounds)
+        if bend:
+            bend.append(self._bend_step(apply=True))
         self._emit_model()
         counts = self._correspondence_counts()
         reasons = {}
@@ -269,6 +287,7 @@ class IncrementalSfM:
                                               "rms_px": self._correction_info.get("rms_px", 0.0),
                                               "max_px": self._correction_info.get("max_px", 0.0)},
                    "image_models": self._model_check,
+                   "bend_step": {**self._straight, "steps": bend},
                    "seconds": time.time() - t0}
         return m
 
@@ -578,7 +597,7 @@ class IncrementalSfM:
         idx = idx[~np.isin(o.img[idx], list(self._unexplained))]
         corr, info = tile_corrections(self.m.X[o.track[idx]], o.xy[idx], o.tile[idx], o.img[idx])
         fitted = corr.copy()
-        w = self.cfg.correction_extrapolation
+        w = 0.0 if self._straight.get("straight") else self.cfg.correction_extrapolation
         if w and self._corr_prev is not None:
             # one step further along the change since the last round, for the observations
             # fitted both times (docs: research-notes.md, "Superseded: the bend step and the extrapolated rounds")
@@ -616,6 +635,82 @@ class IncrementalSfM:
             return (f"{lost} of its tracks are seen by registered tiles of other images but have no 3D point "
                     "(dropped: views too close in angle, sfm.min_triangulation_ratio, or a poor reprojection)")
         return "too little overlap with the registered tiles, or too little texture"
+
+    def _bend_step(self, apply: bool) -> dict:
+        """The bend step: the quadratic warp of the structure that every image's straight-line
+        model sees (pushbroom.estimate_bend, focal_plane=False), estimated from every image's
+        observations (each point once per image, images with enough tiles to fit their model)
+        and, when `apply`, taken out: the points move by it and each registered tile camera
+        follows its local linear part, so that the cameras still see the points where they did.
+        Only run when the sensors are straight line arrays (_straight_lines). Returns the
+        estimate's summary."""
+        m = self.m
+        pts, images = m.point_views(min_tiles=MIN_TILES_FOR_CORRECTION)
+        if len(images) < 2:
+            return {"images": len(images), "applied": False}
+        warp, info = estimate_bend(m.X[pts], images, focal_plane=False)
+        info = {"applied": bool(apply and info["warps_seen"] > 0), **info}
+        if not info["applied"]:
+            return info
+        # each registered tile camera follows the warp at its points' centre (a tile without
+        # active observations: at the structure's centre)
+        reg = np.flatnonzero(m.registered)
+        held = m.cams[m.fixed].copy()
+        m.cams[reg] = warp.follow(m.cams[reg], m.tile_centres()[reg])
+        m.X[pts] += warp(m.X[pts])
+        self._restore_gauge(held)
+        self.bus.message(f"group {m.group}: bend step: {info['warps_seen']} of 9 quadratic warps seen, "
+                         f"the structure unbent by {info['warp_rms_px']:.2f} px RMS", "info", m.group)
+        return info
+
+    def _restore_gauge(self, held: np.ndarray) -> None:
+        """Put the held camera entries (m.fixed: the initial pair's canonical frame) back to their
+        values `held` after the bend step moved them, by one 3D affine change of frame of every
+        camera and point (the structure's shape is unchanged: only its affine frame). The gauge
+        holds whole rows (2 of the first tile, 1 of the second): 12 numbers, one affine map."""
+        m = self.m
+        rows = np.argwhere(m.fixed.all(axis=2))                # (t, row) fully held
+        if len(rows) != 3:
+            return
+        new = m.cams[rows[:, 0], rows[:, 1]]                    # (3, 4)
+        old = held.reshape(-1, 4) if held.size == 12 else None
+        if old is None:
+            return
+        R = new[:, :3]
+        if abs(np.linalg.det(R)) < 1e-12 * max(np.abs(R).max(), 1e-300) ** 3:
+            return
+        # x = row . [X, 1]; with X = M X' + t the rows become [row[:3] M, row[:3] t + row[3]]
+        M = np.linalg.solve(R, old[:, :3])
+        t = np.linalg.solve(R, old[:, 3] - new[:, 3])
+        m.cams[:, :, :3], m.cams[:, :, 3] = m.cams[:, :, :3] @ M, m.cams[:, :, :3] @ t + m.cams[:, :, 3]
+        pts = m.point_ids()
+        m.X[pts] = (m.X[pts] - t) @ np.linalg.inv(M).T
+
+    def _straight_lines(self) -> dict:
+        """Are the images' sensors straight line arrays, as the bend step needs? In one image a
+        quadratic bend of the structure shows only as the row's c^2, which a bowed line makes
+        too: the bend step can only tell them apart where every line is straight. Tried on a
+        copy: the bend the straight-line models see taken out, each image's straight-line model
+        must then explain it to MAX_STRAIGHT_MISFIT_PX (pushbroom.model_misfit, focal_plane=
+        False); a sensor with a bowed or distorted line does not (omaha_3dates: 0.05-0.14 px;
+        this project's simulator: under 0.01). Returns {"straight": bool, the misfits, why}."""
+        m = self.m
+        pts, images = m.point_views(min_tiles=MIN_TILES_FOR_CORRECTION)
+        views = m.views_per_image(min_tiles=MIN_TILES_FOR_CORRECTION)
+        if len(images) < 2:
+            return {"straight": False, "why": "fewer than 2 images with 4 registered tiles"}
+        X = m.X[pts]
+        warp, info = estimate_bend(X, images, focal_plane=False)
+        if info["warps_seen"]:
+            X = X + warp(X)
+        mis = {m.images[i]: round(model_misfit(X[p], xy, focal_plane=False), 4)
+               for (i, _), (p, xy) in zip(views, images) if len(p) >= MIN_POINTS_PER_IMAGE}
+        bad = sorted((v, k) for k, v in mis.items() if v > MAX_STRAIGHT_MISFIT_PX)
+        out = {"straight": not bad, "misfit_px": mis, "max_misfit_px": MAX_STRAIGHT_MISFIT_PX}
+        if bad:
+            out["why"] = (f"{bad[-1][1]} is not a straight line array ({bad[-1][0]:.2f} px of systematic "
+                          f"error > {MAX_STRAIGHT_MISFIT_PX} px once the bend it sees is out)")
+        return out
 
     def _bundle(self, scope: str, around: int | None = None, final: bool = False,
                 correct: bool = False, converge: bool | None = None) -> None:

@@ -78,7 +78,7 @@ def test_extrapolated_correction_rounds(tiny_site, tmp_path, monkeypatch):
     monkeypatch.setattr(sfm_mod, "tile_corrections", spy)
     monkeypatch.setattr(sfm_class, "_refresh_corrections", refresh)
     cfg = preset("tiny")
-    cfg.sfm.correction_rounds, cfg.sfm.correction_extrapolation = 2, 1.0
+    cfg.sfm.correction_rounds, cfg.sfm.correction_extrapolation, cfg.sfm.bend_step = 2, 1.0, False
     state = run(tiny_site, tmp_path / "out", cfg, until="sparse", resume=False)
     m = state.models[0]
     assert len(fits) == len(rounds) == 2       # one fit per correction round
