@@ -9,6 +9,7 @@ import sys
 import textwrap
 import time
 
+import numpy as np
 import pytest
 
 from recon_core.cli import main
@@ -98,3 +99,28 @@ def test_a_site_inside_the_output_folder_is_refused(tiny_site, tmp_path, capsys)
     code = main(["run", str(site), "--out", str(tmp_path / "runs"), "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "holds the site" in err[0], err
+
+
+def test_the_first_job_finishes_as_if_alone(tiny_site, tiny_run, tmp_path, capsys):
+    """A real `aerec run` holds OUT; a second one started during it is refused naming it; the
+    first ends with the DSM of a run alone (bit for bit)."""
+    import rasterio
+
+    state, _ = tiny_run
+    out = tmp_path / "out"
+    first = subprocess.Popen([sys.executable, "-m", "recon_core.cli", "run", str(tiny_site), "--out", str(out),
+                              "--preset", "tiny", "--quiet"], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        t0 = time.time()
+        while holder(out) is None and first.poll() is None and time.time() - t0 < 60:
+            time.sleep(0.05)
+        assert holder(out) is not None, "the first job never held the folder"
+        assert main(["run", str(tiny_site), "--out", str(out), "--preset", "tiny", "--quiet"]) == 2
+        assert f"PID {first.pid}" in capsys.readouterr().err
+        assert first.wait(300) == 0, first.stderr.read()
+    finally:
+        if first.poll() is None:
+            first.kill()
+    with rasterio.open(out / "dsm.tif") as a, rasterio.open(state.layout.dsm) as b:
+        np.testing.assert_array_equal(a.read(1), b.read(1))

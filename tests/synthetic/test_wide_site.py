@@ -113,7 +113,7 @@ def _domed(X, e_m: float = 0.5, n_m: float = 0.25, en_m: float = -0.3):
 
 
 def test_a_bend_is_what_a_bowed_focal_plane_looks_like(large_views):
-    """Why the bend step was removed (docs: "The image model and the bend"): `large`'s 9 views,
+    """Why the bend step needs straight line arrays (docs: "The image model and the bend"): `large`'s 9 views,
     the true structure domed by 0.9 m peak to peak and put in an arbitrary affine frame. Through
     image models that cover a real focal plane (a bowed line: the row's c^2), no warp of the
     structure moves the pixels beyond what each image's model re-fits: every share is below
