@@ -74,7 +74,7 @@ class _RPCCamera:
     def __init__(self, path):
         import rasterio
 
-        from recon_core.synthetic.rpc import RPCModel
+        from recon_core.geometry.rpc import RPCModel
 
         with rasterio.open(path) as src:
             self.rpc, self.width, self.height = RPCModel.from_rasterio(src.rpcs), src.width, src.height

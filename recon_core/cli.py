@@ -81,7 +81,7 @@ def cmd_info(args) -> int:
     for im in site.images:
         t = im.acquired.strftime("%Y-%m-%d %H:%M:%S") if im.acquired else "NO TIME"
         print(f"  {im.name:24s} {im.width:6d} x {im.height:<6d} {im.bands} band {im.dtype:8s} "
-              f"{t} ({im.time_source}) rpc={'yes' if im.has_rpc else 'no'}")
+              f"{t} ({im.time_source}) rpc={'yes' if im.has_rpc else 'no'}" + _sensor(im.path))
     missing = [im.name for im in site.images if im.acquired is None]
     if missing:
         print(f"groups: cannot group, no acquisition time for {', '.join(missing)}")
@@ -119,6 +119,18 @@ def cmd_info(args) -> int:
             for w in group_tone_curves(g.images)[1]:
                 print(f"warning: group {g.index}: {w}")
     return 0
+
+
+def _sensor(image_path: Path) -> str:
+    """' sensor PHR 1A' from the time sidecar `aerec site init` writes, else ''."""
+    import json
+
+    side = Path(image_path).with_suffix(".json")
+    try:
+        sat = json.loads(side.read_text()).get("satellite") if side.is_file() else None
+    except (OSError, ValueError, AttributeError):
+        sat = None
+    return f" sensor {sat}" if sat else ""
 
 
 def cmd_run(args) -> int:
@@ -283,6 +295,32 @@ def cmd_gcps(args) -> int:
     return 0
 
 
+def cmd_site(args) -> int:
+    """`aerec site init SITE PRODUCT...`: a site from vendor products (recon_core.io.products)."""
+    from recon_core.errors import InputError
+    from recon_core.io.products import init_site
+
+    times = {}
+    for t in args.time:
+        name, sep, when = t.partition("=")
+        if not sep or not name or not when:
+            raise InputError(None, f"--time {t!r}: give NAME=YYYY-MM-DDTHH:MM:SSZ")
+        times[name] = when
+    images, notes = init_site(args.site, args.products, band=args.band, times=times, gcps=args.gcps,
+                              name=args.name)
+    print(f"wrote {args.site} with {len(images)} image(s) (VRTs of the products, no pixel copied):")
+    for im in images:
+        tiles = f", {len(im.files)} tiles" if len(im.files) > 1 else ""
+        print(f"  {im.name}: {im.width} x {im.height} px{tiles}, {im.satellite or 'sensor unknown'}, "
+              f"{im.acquired:%Y-%m-%d %H:%M:%S} UTC from {im.time_source}")
+    for n in notes:
+        print(f"note: {n}")
+    if args.gcps is None:
+        print(f"next: `aerec info {args.site}`, then add GCPs ({args.site}/gcps.geojson, "
+              "`aerec gcps convert`, or the viewer)")
+    return 0
+
+
 def cmd_config(args) -> int:
     from recon_core.config import PRESETS, config_to_toml, preset
     from recon_core.errors import InputError
@@ -402,6 +440,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="paper: the paper's plain path (every correction beyond it off)")
     s.set_defaults(func=cmd_config)
 
+    s = sub.add_parser("site", help="make a site from vendor products (no pixel copied)")
+    s.add_argument("action", choices=["init"])
+    s.add_argument("site", type=Path, help="the new site folder (must not exist or be empty)")
+    s.add_argument("products", type=Path, nargs="+",
+                   help="product folders or image files (DIMAP, Maxar, NITF, GeoTIFF, JPEG 2000, VRT)")
+    s.add_argument("--band", type=int, default=None, help="the band to use of a multi-band product (1-based)")
+    s.add_argument("--time", action="append", default=[], metavar="NAME=ISO8601",
+                   help="an image's acquisition time (UTC), where its metadata has none; repeatable")
+    s.add_argument("--gcps", type=Path, default=None, help="a gcps.geojson to copy into the site")
+    s.add_argument("--name", default=None, help="the site's name (site.json)")
+    s.set_defaults(func=cmd_site)
     s = sub.add_parser("gcps", help="convert a GCP list between gcps.geojson and CSV")
     s.add_argument("action", choices=["convert"])
     s.add_argument("src", type=Path, help="gcps.geojson or .csv")

@@ -45,7 +45,7 @@ def _rpc_rays(site_dir: Path) -> dict:
     import rasterio
 
     from recon_core.geometry.geodesy import geodetic_to_ecef
-    from recon_core.synthetic.rpc import RPCModel
+    from recon_core.geometry.rpc import RPCModel
 
     out = {}
     for p in sorted((site_dir / "images").glob("*.tif")):

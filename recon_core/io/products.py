@@ -1,0 +1,288 @@
+"""A site from vendor products, without copying a pixel (`aerec site init`).
+
+Each product image becomes a VRT in SITE/images/ that refers to the product's file (its band
+chosen), with its acquisition time in a sidecar. The time comes from the product's own
+metadata as GDAL's metadata readers expose it (the IMAGERY domain, filled from a DIMAP
+`DIM_*.XML`, a Maxar `*.IMD`/`*.XML` and others found beside the image: ACQUISITIONDATETIME and
+SATELLITEID), from a NITF image subheader (NITF_IDATIM), from TIFFTAG_DATETIME, or from the
+user (`--time NAME=ISO`). No vendor XML is parsed here. RPCs are never needed; when a product
+has them they give only the site's footprint (site.json), and the user is told so.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import warnings
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from xml.sax.saxutils import escape
+
+import numpy as np
+
+from recon_core.errors import InputError
+from recon_core.io.files import atomic_path, write_json
+
+RASTER_SUFFIXES = (".tif", ".tiff", ".jp2", ".ntf", ".vrt")
+TILE_NAME = re.compile(r"^(?P<base>.+)_R(?P<r>\d+)C(?P<c>\d+)$", re.I)    # IMG_..._R1C2
+
+
+@dataclass
+class ProductImage:
+    name: str                       # the site's name for it (the VRT's stem)
+    files: list[tuple[Path, int, int]]   # (file, row tile, column tile): one, or a product's tiles
+    acquired: datetime
+    time_source: str
+    satellite: str | None
+    band: int
+    width: int
+    height: int
+    dtype: str
+    rpc_footprint: list | None = None    # [[lon, lat], ...] from the product's RPC, if any
+    crs_footprint: tuple | None = None   # (epsg or wkt, [[x, y], ...]) of a georeferenced product
+
+
+def _open(path: Path):
+    import rasterio
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return rasterio.open(path)
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(path, f"GDAL cannot read it ({str(exc).splitlines()[0]})") from None
+
+
+def _parse_time(path: Path, field: str, text: str, fmt: str | None = None) -> datetime:
+    try:
+        if fmt:
+            t = datetime.strptime(text.strip(), fmt)
+        else:
+            t = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    except ValueError:
+        raise InputError(path, f"{field} {text!r} is not a time") from None
+    t = t if t.tzinfo else t.replace(tzinfo=timezone.utc)
+    if not 1957 <= t.year <= 2100:
+        raise InputError(path, f"{field} {text!r} is not a plausible acquisition time")
+    return t.astimezone(timezone.utc)
+
+
+def product_time(path: Path, ds) -> tuple[datetime, str, str | None]:
+    """(time, where it came from, satellite) from a product file's metadata (module docstring).
+    Raises InputError naming the file and the field when there is none or it is not a time."""
+    spaces = ds.tag_namespaces() or []
+    imagery = ds.tags(ns="IMAGERY") if "IMAGERY" in spaces else {}
+    sat = imagery.get("SATELLITEID") or None
+    imd = ds.tags(ns="IMD") if "IMD" in spaces else {}
+    # the vendor's own fields, as GDAL read them (IMAGERY rounds them to the second and lets an
+    # impossible date through): DIMAP's IMAGING_DATE + IMAGING_TIME, Maxar's firstLineTime
+    date = next((k for k in imd if k.endswith("Strip_Source.IMAGING_DATE")), None)
+    first = next((k for k in imd if k.endswith("firstLineTime")), None)
+    if date:
+        tkey = date.replace("IMAGING_DATE", "IMAGING_TIME")
+        text = f"{imd[date].strip()}T{imd.get(tkey, '00:00:00Z').strip()}"
+        return _parse_time(path, f"DIMAP IMAGING_DATE / IMAGING_TIME ({_vendor_file(ds)})", text), \
+            "the product's DIMAP metadata", sat
+    if first:
+        return _parse_time(path, f"firstLineTime ({_vendor_file(ds)})", imd[first].strip().rstrip(";")), \
+            "the product's IMD metadata", sat
+    if imagery.get("ACQUISITIONDATETIME"):
+        return (_parse_time(path, "IMAGERY ACQUISITIONDATETIME", imagery["ACQUISITIONDATETIME"],
+                            "%Y-%m-%d %H:%M:%S"), "product metadata (GDAL IMAGERY domain)", sat)
+    tags = ds.tags()
+    if tags.get("NITF_IDATIM"):
+        return _parse_time(path, "NITF_IDATIM", tags["NITF_IDATIM"], "%Y%m%d%H%M%S"), "NITF_IDATIM", sat
+    if tags.get("TIFFTAG_DATETIME"):
+        return (_parse_time(path, "TIFFTAG_DATETIME", tags["TIFFTAG_DATETIME"], "%Y:%m:%d %H:%M:%S"),
+                "TIFFTAG_DATETIME", sat)
+    raise InputError(path, "no acquisition time in its metadata (no vendor metadata file beside it that "
+                           "GDAL reads, no NITF_IDATIM, no TIFFTAG_DATETIME): give it with "
+                           f"--time {path.stem}=YYYY-MM-DDTHH:MM:SSZ")
+
+
+def _vendor_file(ds) -> str:
+    """The metadata file GDAL read beside the image (for messages)."""
+    others = [f for f in (ds.files or [])[1:] if f.lower().endswith((".xml", ".imd", ".txt"))]
+    return Path(others[0]).name if others else "its metadata"
+
+
+def find_product_images(paths: list[Path]) -> list[list[tuple[Path, int, int]]]:
+    """The images of the products given (files or folders): each image as its files, one or
+    the tiles of a product split in several (IMG_..._R1C1, _R1C2, ...: DIMAP's and Maxar's
+    naming), in tile order."""
+    files: list[Path] = []
+    for p in paths:
+        p = Path(p)
+        if not p.exists():
+            raise InputError(p, "no such product file or folder")
+        if p.is_dir():
+            found = sorted(q for q in p.rglob("*") if q.is_file() and q.suffix.lower() in RASTER_SUFFIXES
+                           and not q.name.startswith("."))
+            if not found:
+                raise InputError(p, "holds no image (.tif, .tiff, .jp2, .ntf, .vrt)")
+            files += found
+        elif p.suffix.lower() in RASTER_SUFFIXES:
+            files.append(p)
+        else:
+            raise InputError(p, "not an image (.tif, .tiff, .jp2, .ntf, .vrt) nor a product folder")
+    groups: dict[tuple[Path, str], list[tuple[Path, int, int]]] = {}
+    for f in files:
+        m = TILE_NAME.match(f.stem)
+        key = (f.parent, m.group("base") if m else f.stem)
+        groups.setdefault(key, []).append((f, int(m.group("r")) if m else 1, int(m.group("c")) if m else 1))
+    return [sorted(v, key=lambda t: (t[1], t[2])) for _, v in sorted(groups.items(), key=lambda kv: str(kv[0]))]
+
+
+def describe_image(tiles: list[tuple[Path, int, int]], band: int | None, times: dict[str, str]) -> ProductImage:
+    """What the site needs of one product image: its size (tiles mosaicked), band, time."""
+    first = tiles[0][0]
+    base = TILE_NAME.match(first.stem).group("base") if TILE_NAME.match(first.stem) else first.stem
+    with _open(first) as ds:
+        count, dtype = ds.count, ds.dtypes[0]
+        if band is None and count not in (1, 3):
+            raise InputError(first, f"has {count} bands: choose the panchromatic one with --band N "
+                                    "(a site's image has 1 band, or 3 for RGB)")
+        if f"{base}" in times or first.stem in times:
+            text = times.get(base) or times[first.stem]
+            acquired, source, sat = _parse_time(first, "--time", text), "--time", None
+            imagery = ds.tags(ns="IMAGERY") if "IMAGERY" in (ds.tag_namespaces() or []) else {}
+            sat = imagery.get("SATELLITEID") or None
+        else:
+            acquired, source, sat = product_time(first, ds)
+        rpc = ds.rpcs
+        crs, transform = ds.crs, ds.transform
+    if band is not None and not 1 <= band <= count:
+        raise InputError(first, f"--band {band}: the image has {count} band(s)")
+    rows = sorted({r for _, r, _ in tiles})
+    cols = sorted({c for _, _, c in tiles})
+    widths, heights = {}, {}
+    for f, r, c in tiles:
+        with _open(f) as ds:
+            if ds.count != count or ds.dtypes[0] != dtype:
+                raise InputError(f, f"a tile of {base} with {ds.count} band(s) of {ds.dtypes[0]}, where "
+                                    f"{first.name} has {count} of {dtype}")
+            widths.setdefault(c, ds.width)
+            heights.setdefault(r, ds.height)
+    width, height = sum(widths[c] for c in cols), sum(heights[r] for r in rows)
+    img = ProductImage(name=base, files=tiles, acquired=acquired, time_source=source, satellite=sat,
+                       band=band or 0, width=width, height=height, dtype=dtype)
+    if rpc is not None and len(tiles) == 1:
+        img.rpc_footprint = _rpc_footprint(rpc, width, height)
+    elif crs is not None and not transform.is_identity and len(tiles) == 1:
+        corners = [transform * (x, y) for x, y in ((0, 0), (width, 0), (width, height), (0, height))]
+        img.crs_footprint = (crs.to_wkt(), corners)
+    return img
+
+
+def _rpc_footprint(rpcs, width: int, height: int) -> list:
+    from recon_core.geometry.rpc import RPCModel
+
+    rpc = RPCModel.from_rasterio(rpcs)
+    cr = np.array([[0, 0], [width - 1, 0], [width - 1, height - 1], [0, height - 1]], float)
+    llh = rpc.localize(cr, rpc.height_off)
+    return llh[:, :2].tolist()
+
+
+def write_vrt(path: Path, img: ProductImage) -> None:
+    """A VRT of the product image: its tiles placed side by side, the chosen band (or all of
+    a 1- or 3-band product), the source files by absolute path."""
+    bands = [img.band] if img.band else list(range(1, (3 if _count(img) == 3 else 1) + 1))
+    gdal_type = {"uint8": "Byte", "uint16": "UInt16", "int16": "Int16", "float32": "Float32",
+                 "uint32": "UInt32", "int32": "Int32", "float64": "Float64"}.get(img.dtype)
+    if gdal_type is None:
+        raise InputError(img.files[0][0], f"pixel type {img.dtype} is not one a site reads")
+    rows = sorted({r for _, r, _ in img.files})
+    cols = sorted({c for _, _, c in img.files})
+    sizes = {}
+    for f, r, c in img.files:
+        with _open(f) as ds:
+            sizes[(r, c)] = (ds.width, ds.height)
+    x_off = {c: sum(sizes[(rows[0], cc)][0] for cc in cols if cc < c) for c in cols}
+    y_off = {r: sum(sizes[(rr, cols[0])][1] for rr in rows if rr < r) for r in rows}
+    out = [f'<VRTDataset rasterXSize="{img.width}" rasterYSize="{img.height}">']
+    for k, b in enumerate(bands, 1):
+        out.append(f'  <VRTRasterBand dataType="{gdal_type}" band="{k}">')
+        for f, r, c in img.files:
+            w, h = sizes[(r, c)]
+            out += ["    <SimpleSource>",
+                    f'      <SourceFilename relativeToVRT="0">{escape(str(f.resolve()))}</SourceFilename>',
+                    f"      <SourceBand>{b}</SourceBand>",
+                    f'      <SrcRect xOff="0" yOff="0" xSize="{w}" ySize="{h}"/>',
+                    f'      <DstRect xOff="{x_off[c]}" yOff="{y_off[r]}" xSize="{w}" ySize="{h}"/>',
+                    "    </SimpleSource>"]
+        out.append("  </VRTRasterBand>")
+    out.append("</VRTDataset>")
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(out) + "\n")
+
+
+def _count(img: ProductImage) -> int:
+    with _open(img.files[0][0]) as ds:
+        return ds.count
+
+
+def site_grid(images: list[ProductImage]) -> tuple[dict | None, str | None]:
+    """site.json's hints from the products' footprints (RPC or georeferencing), and a note to
+    the user about where they came from; (None, None) without any."""
+    from recon_core.geometry.geodesy import geodetic_to_projected
+
+    lonlat = [ll for im in images if im.rpc_footprint for ll in im.rpc_footprint]
+    note = "the footprint in site.json comes from the products' RPCs (used for nothing else)"
+    if not lonlat:
+        from pyproj import Transformer
+
+        for im in images:
+            if im.crs_footprint:
+                t = Transformer.from_crs(im.crs_footprint[0], "EPSG:4326", always_xy=True)
+                lonlat += [list(t.transform(x, y)) for x, y in im.crs_footprint[1]]
+        note = "the footprint in site.json comes from the products' georeferencing"
+    if not lonlat:
+        return None, None
+    ll = np.array(lonlat)
+    lon, lat = float(ll[:, 0].mean()), float(ll[:, 1].mean())
+    epsg = (32600 if lat >= 0 else 32700) + int((lon + 180) // 6) + 1
+    xy = geodetic_to_projected(np.column_stack([ll, np.zeros(len(ll))]), epsg)
+    b = [float(xy[:, 0].min()), float(xy[:, 1].min()), float(xy[:, 0].max()), float(xy[:, 1].max())]
+    return {"crs_epsg": epsg, "bounds": [round(v, 1) for v in b]}, note
+
+
+def init_site(site: Path, products: list[Path], *, band: int | None = None, times: dict[str, str] | None = None,
+              gcps: Path | None = None, name: str | None = None) -> tuple[list[ProductImage], list[str]]:
+    """Write SITE from products (module docstring). Returns the images and notes for the user.
+    Every problem is an InputError before anything is written."""
+    site = Path(site)
+    if site.exists() and any(site.iterdir()):
+        raise InputError(site, "exists and is not empty: `aerec site init` writes a new site")
+    times = dict(times or {})
+    images = [describe_image(tiles, band, times) for tiles in find_product_images(products)]
+    names = [im.name for im in images]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(None, f"two products give images named {dup[0]}: keep one")
+    unknown = sorted(set(times) - set(names) - {im.files[0][0].stem for im in images})
+    if unknown:
+        raise InputError(None, f"--time {unknown[0]}=...: no product image of that name ({', '.join(names)})")
+    if gcps is not None:
+        from recon_core.io.gcps import read_gcps_geojson
+
+        read_gcps_geojson(gcps)                 # a bad GCP file is refused before any write
+    hints, note = site_grid(images)
+    (site / "images").mkdir(parents=True, exist_ok=True)
+    for im in images:
+        write_vrt(site / "images" / f"{im.name}.vrt", im)
+        write_json(site / "images" / f"{im.name}.json",
+                   {"acquired": im.acquired.strftime("%Y-%m-%dT%H:%M:%SZ"), "time_source": im.time_source,
+                    "satellite": im.satellite, "product": [str(f.resolve()) for f, _, _ in im.files]})
+    with atomic_path(site / "gcps.geojson") as tmp:
+        tmp.write_text(Path(gcps).read_text() if gcps else json.dumps(
+            {"type": "FeatureCollection", "features": []}, indent=1) + "\n")
+    notes = []
+    if hints:
+        if name:
+            hints["name"] = name
+        write_json(site / "site.json", hints)
+        notes.append(note)
+    elif name:
+        write_json(site / "site.json", {"name": name})
+    return images, notes

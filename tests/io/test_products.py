@@ -1,0 +1,108 @@
+"""`aerec site init`: a site from vendor products, no pixel copied, times from the products'
+metadata as GDAL reads it (fixtures of each layout are written here, a few KB each)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import rasterio
+
+from recon_core.cli import main
+
+DIMAP = """<?xml version="1.0" encoding="UTF-8"?>
+<Dimap_Document>
+ <Dataset_Sources><Source_Identification><Strip_Source>
+  <MISSION>PHR</MISSION><MISSION_INDEX>{index}</MISSION_INDEX>
+  <IMAGING_DATE>{date}</IMAGING_DATE><IMAGING_TIME>{time}</IMAGING_TIME>
+ </Strip_Source></Source_Identification></Dataset_Sources>
+</Dimap_Document>
+"""
+
+
+def _write(path, arr, driver="GTiff", **kw):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with rasterio.open(path, "w", driver=driver, width=arr.shape[-1], height=arr.shape[-2],
+                       count=1 if arr.ndim == 2 else arr.shape[0], dtype=arr.dtype, **kw) as ds:
+        ds.write(arr if arr.ndim == 3 else arr[None])
+    return path
+
+
+def _dimap(folder, stem, arr, date="2013-02-08", time="08:36:09.1Z", index="1A", tiles=1):
+    """A Pleiades-like product: IMG_<stem>_R1C<k>.TIF tiles and DIM_<stem>.XML beside them."""
+    w = arr.shape[1] // tiles
+    for k in range(tiles):
+        _write(folder / f"IMG_{stem}_R1C{k + 1}.TIF", np.ascontiguousarray(arr[:, k * w:(k + 1) * w]))
+    (folder / f"DIM_{stem}.XML").write_text(DIMAP.format(date=date, time=time, index=index))
+
+
+def test_dimap_products_with_tiles_become_vrts_with_their_times(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    a, b = (rng.integers(0, 2047, (64, 96)).astype(np.uint16) for _ in range(2))
+    _dimap(tmp_path / "p1", "PHR1A_P_201302080836091_SEN_1", a, tiles=2)
+    _dimap(tmp_path / "p2", "PHR1B_P_201302080836013_SEN_2", b, time="08:36:01.3Z", index="1B")
+    site = tmp_path / "site"
+    assert main(["site", "init", str(site), str(tmp_path / "p1"), str(tmp_path / "p2")]) == 0
+    out = capsys.readouterr().out
+    assert "PHR 1A" in out and "2 tiles" in out
+    vrts = sorted((site / "images").glob("*.vrt"))
+    assert [v.stem for v in vrts] == ["IMG_PHR1A_P_201302080836091_SEN_1", "IMG_PHR1B_P_201302080836013_SEN_2"]
+    with rasterio.open(vrts[0]) as ds:                       # the two tiles, side by side
+        np.testing.assert_array_equal(ds.read(1), a)
+    side = json.loads(vrts[1].with_suffix(".json").read_text())
+    assert side["acquired"] == "2013-02-08T08:36:01Z" and side["satellite"] == "PHR 1B"
+    assert json.loads((site / "gcps.geojson").read_text())["features"] == []
+    assert sum(p.stat().st_size for p in site.rglob("*")) < 20_000      # no pixel copied
+    assert main(["info", str(site)]) == 0
+    info = capsys.readouterr().out
+    assert "sensor PHR 1A" in info and "1 date group" in info
+
+
+def test_nitf_geotiff_and_a_given_time(tmp_path, capsys):
+    rng = np.random.default_rng(1)
+    _write(tmp_path / "wv" / "17MAY.NTF", rng.integers(0, 2047, (64, 64)).astype(np.uint16), driver="NITF",
+           IDATIM="20170503104217")
+    g = _write(tmp_path / "g" / "scene.tif", rng.integers(0, 255, (64, 64)).astype(np.uint8))
+    with rasterio.open(g, "r+") as ds:
+        ds.update_tags(TIFFTAG_DATETIME="2017:05:03 10:43:01")
+    _write(tmp_path / "none" / "bare.tif", rng.integers(0, 255, (64, 64)).astype(np.uint8))
+    site = tmp_path / "site"
+    assert main(["site", "init", str(site), str(tmp_path / "wv"), str(g), str(tmp_path / "none" / "bare.tif"),
+                 "--time", "bare=2017-05-03T10:44:00Z"]) == 0
+    times = {p.stem: json.loads(p.read_text())["acquired"] for p in (site / "images").glob("*.json")}
+    assert times == {"17MAY": "2017-05-03T10:42:17Z", "scene": "2017-05-03T10:43:01Z",
+                     "bare": "2017-05-03T10:44:00Z"}
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda d: _write(d / "bare.tif", np.ones((64, 64), np.uint8)), "no acquisition time in its metadata"),
+    (lambda d: _dimap(d, "PHR1A_X", np.ones((64, 64), np.uint16), date="2013-13-45"), "IMAGING_DATE"),
+    (lambda d: _write(d / "ms.tif", np.ones((4, 64, 64), np.uint16)), "choose the panchromatic one with --band"),
+], ids=["no-time", "bad-date", "four-bands"])
+def test_bad_metadata_is_one_line_and_nothing_is_written(make, words, tmp_path, capsys):
+    make(tmp_path / "p")
+    site = tmp_path / "site"
+    assert main(["site", "init", str(site), str(tmp_path / "p")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+    assert not site.exists()
+
+
+def test_a_pleiades_like_site_from_the_real_crops_reconstructs(shared_data, tmp_path, capsys):
+    """The real Gizeh crops' pixels as DIMAP-like products; the site `site init` writes runs to
+    the dense stage (the GCPs' observations name the original files)."""
+    src = shared_data / "gizeh_pair" / "images"
+    for k, (name, t) in enumerate((("img1", "08:36:09.1Z"), ("img2", "08:36:01.3Z"))):
+        with rasterio.open(src / f"{name}.tif") as ds:
+            a = ds.read(1)
+        _dimap(tmp_path / f"prod{k}", f"PHR1A_P_20130208_SEN_{k}", a, time=t)
+    site = tmp_path / "site"
+    assert main(["site", "init", str(site), str(tmp_path / "prod0"), str(tmp_path / "prod1")]) == 0
+    assert main(["run", str(site), "--out", str(tmp_path / "out"), "--stage", "dense", "--tile-size", "400",
+                 "--quiet"]) == 0
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    g = rep["stages"]["sparse"]["groups"]["0"]
+    assert g["tiles_registered"] == g["tiles_total"] and rep["stages"]["dense"]["groups"]["0"]["points"] > 10_000
+    shutil.rmtree(tmp_path / "out")
