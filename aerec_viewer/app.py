@@ -50,7 +50,7 @@ from .results import (
     outcome_markdown,
     run_upgrade,
 )
-from .scene import SceneView, safe_name, tile_windows_for
+from .scene import TILE_MODES, SceneView, safe_name, tile_windows_for
 from .worker import DisplaySnapshot, ReconWorker
 
 log = logging.getLogger("aerec.viewer")
@@ -146,7 +146,7 @@ class ViewerApp:
 
     def __init__(self, out: str | Path, site: str | Path | None = None, cfg=None, *,
                  mode: str = "run", host: str = "127.0.0.1", port: int = 8080,
-                 update_hz: float = 4.0, until: str | None = None):
+                 update_hz: float = 4.0, until: str | None = None, budget: int | None = None):
         import viser
 
         from recon_core.config import Config, config_from_dict
@@ -174,6 +174,8 @@ class ViewerApp:
         self.scene = SceneView(self.server, self.images,
                                tile_windows_for(self.site.images, cfg.tiling.tile_size,
                                                 cfg.tiling.overlap))
+        if budget is not None:
+            self.scene.settings.budget = int(budget)
         self.session = open_session(self.out, self.site)
         self.models: dict = {}
         self._models_version = 0
@@ -401,8 +403,10 @@ class ViewerApp:
                                                self.scene.settings.budget // 1000,
                                                hint="points displayed at most; the full cloud "
                                                     "stays on disk")
-                self.g_tiles = gui.add_dropdown("Tiles", ["textured", "outlines", "hidden"],
-                                                initial_value=self.scene.settings.tiles)
+                self.g_tiles = gui.add_dropdown(
+                    "Tiles", list(TILE_MODES), initial_value=self.scene.settings.tiles,
+                    hint="; ".join(f"{k}: {v}" for k, v in TILE_MODES.items())
+                    + " (textured tiles are slow to draw without a GPU)")
                 self.g_sparse = gui.add_checkbox("Sparse points", True)
                 self.g_dense = gui.add_checkbox("Dense points", True)
                 self.g_reset = gui.add_button("Reset view")

@@ -313,7 +313,8 @@ def cmd_view(args) -> int:
                                   and demo_preset() == DEFAULT_DEMO else None)
         if tile:
             cfg = cfg.with_overrides({"tiling.tile_size": tile})
-    app = ViewerApp(out, site, cfg, mode=mode, host=args.host, port=args.port)
+    app = ViewerApp(out, site, cfg, mode=mode, host=args.host, port=args.port,
+                    budget=args.point_budget)
     app.start()
     what = "reopening" if mode == "reopen" else "reconstructing"
     print(f"aerec view: {what} {app.site.root} -> {out}")
@@ -393,6 +394,9 @@ def check_view_options(args) -> None:
 
     if not 0 <= args.port <= 65535:
         raise InputError(None, f"--port {args.port}: a port is 0-65535 (0: any free one)")
+    budget = getattr(args, "point_budget", None)
+    if budget is not None and not 10_000 <= budget <= 2_000_000:
+        raise InputError(None, f"--point-budget {budget}: points displayed are 10000-2000000")
     if args.preset is not None and args.preset not in PRESETS:
         raise InputError(None, f"--preset {args.preset!r}: choose one of {', '.join(sorted(PRESETS))}")
     if args.tile_size is not None:
@@ -421,6 +425,9 @@ def register(subparsers) -> None:
     s.add_argument("--port", type=int, default=8080, help="port (a busy one moves to the next)")
     s.add_argument("--tile-size", type=int, default=None, help="tile side d in pixels")
     s.add_argument("--preset", default=None, help="parameter preset (default, tiny)")
+    s.add_argument("--point-budget", type=int, default=None, metavar="N",
+                   help="points displayed at most, 10000-2000000 (default 150000; the Display "
+                        "panel's slider changes it): lower it when the page draws slowly")
     s.add_argument("--no-browser-hint", action="store_true",
                    help="print only the URL, not the ssh-tunnel and save-file hints")
     s.set_defaults(func=cmd_view)

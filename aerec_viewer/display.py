@@ -194,6 +194,24 @@ def cloud_salt(group: int, kind: str) -> int:
     return 1 + 2 * group + (0 if kind == "sparse" else 1)
 
 
+def auto_point_size(extent: float, area: float, n_shown: int) -> float:
+    """Point size (scene units) at which the displayed points about tile the cloud's footprint:
+    the mean spacing sqrt(area / n), never more than 1/200 of the extent (a sparse cloud), and
+    quantised to steps of 2^(1/4) so a growing cloud resizes its points seldom.
+
+    Drawing cost in software WebGL is the fragments: points of a fixed 1/200 of the extent
+    cover a 600 m site about four times over at 150 k points (2 fps while orbiting, measured);
+    points the size of their spacing cover it about once, whatever the budget."""
+    cap = extent / 200.0
+    if n_shown <= 0 or not area > 0:
+        return cap
+    size = float(np.sqrt(area / n_shown))
+    if size >= cap:
+        return cap
+    q = 2.0 ** (np.round(4.0 * np.log2(size)) / 4.0)
+    return float(min(cap, q))
+
+
 def display_fraction(n_total: int, budget: int) -> float:
     """Fraction of points to display for a point budget."""
     return 1.0 if n_total <= budget else budget / float(n_total)

@@ -27,6 +27,7 @@ from .display import (
     ColorRanges,
     DisplayTransform,
     QuadFrame,
+    auto_point_size,
     closest_point_to_ray,
     cloud_salt,
     color_ranges,
@@ -44,6 +45,12 @@ MAX_CHUNKS = 48               # more incremental chunks than this: consolidate
 PALETTE = np.array([(80, 160, 255), (255, 140, 60), (120, 210, 120), (220, 110, 220),
                     (240, 220, 80), (90, 220, 220)], dtype=np.uint8)
 NEWEST = (255, 230, 0)
+# How registered tiles are drawn. Textured tiles are what software WebGL spends most on: on a
+# 3-date site (44 tiles stacked 3 deep) 7 frames/s while orbiting with or without points, 48
+# with outlines (bench/bench_viewer.py --fps); under a dense cloud they are hardly seen.
+TILE_MODES = {"auto": "textured while a group has no dense points shown, then outlines",
+              "textured": "each tile's image, where the SfM put it",
+              "outlines": "each tile's outline", "hidden": "no tiles"}
 
 
 def safe_name(text: str) -> str:
@@ -55,11 +62,11 @@ def safe_name(text: str) -> str:
 class Settings:
     """Display settings the panel controls."""
 
-    point_size: float = 1.0              # multiple of the automatic size (extent / 200)
+    point_size: float = 1.0              # multiple of the automatic size (display.auto_point_size)
     color_mode: str = "height"
     budget: int = 150_000                # points displayed at most (all groups and kinds); 100 k
                                          # draw at ~37 fps in software WebGL, 300 k at ~2 fps
-    tiles: str = "textured"              # textured, outlines, hidden
+    tiles: str = "auto"                  # auto, textured, outlines, hidden (TILE_MODES)
     show_sparse: bool = True
     show_dense: bool = True
 
@@ -82,6 +89,7 @@ class _Cloud:
     chunks: list[_Chunk] = field(default_factory=list)
     ranges: ColorRanges = field(default_factory=ColorRanges)
     extent: float = 1.0
+    area: float = 0.0                    # its footprint (2-98 % spans multiplied), scene units^2
     next_k: int = 0
     kept: float = 1.0                    # the store's own thinning when this generation began
 
@@ -94,6 +102,12 @@ class _TileNode:
     outline: object
     image: object | None = None
     frame: object | None = None          # QuadFrame the texture was warped for
+
+
+def _footprint(xyz: np.ndarray) -> tuple[float, float]:
+    """(largest 2-98 % span, product of the two spans) of points in the display frame."""
+    span = np.percentile(xyz[:, :2], 98, axis=0) - np.percentile(xyz[:, :2], 2, axis=0)
+    return float(max(np.max(span), 1e-6)), float(span[0] * span[1])
 
 
 class SceneView:
@@ -109,7 +123,7 @@ class SceneView:
         self._tiles: dict[tuple[int, str], _TileNode] = {}
         self._newest: dict[int, tuple[str, int, int]] = {}
         self._newest_nodes: dict[int, tuple[object, object]] = {}
-        self._tile_mode = self.settings.tiles
+        self._tile_mode: dict[int, str] = {}
         self.finished = False
         self._slack = 1.5
         self.sent_log: list[dict] = []    # one entry per point chunk sent (for the bench)
@@ -131,7 +145,7 @@ class SceneView:
                 continue
             for kind, cloud in (("sparse", gs.sparse), ("dense", gs.dense)):
                 sent += self._sync_cloud(g, kind, cloud, T, frac)
-            self._sync_tiles(g, gs.tiles, gs.newest_tile, T)
+            self._sync_tiles(g, gs.tiles, gs.newest_tile, T, dense=gs.dense.n > 0)
         if sent and any(c.handle.point_size != self.point_size()
                         for st in self._clouds.values() for c in st.chunks):
             self.apply_point_size()
@@ -169,8 +183,7 @@ class SceneView:
         xyz = T.apply(sub.xyz)
         if len(xyz):
             st.ranges = color_ranges(xyz[:, 2], sub.n_views, sub.reproj)
-            span = np.percentile(xyz[:, :2], 98, axis=0) - np.percentile(xyz[:, :2], 2, axis=0)
-            st.extent = float(max(np.max(span), 1e-6))
+            st.extent, st.area = _footprint(xyz)
         sent = 0
         for s in range(0, len(sub), CHUNK_MAX):
             part = sub.subset(slice(s, s + CHUNK_MAX))
@@ -187,8 +200,7 @@ class SceneView:
         if not st.chunks:                  # first points of this generation: fix the ranges
             xyz = T.apply(sub.xyz)
             st.ranges = color_ranges(xyz[:, 2], sub.n_views, sub.reproj)
-            span = np.percentile(xyz[:, :2], 98, axis=0) - np.percentile(xyz[:, :2], 2, axis=0)
-            st.extent = float(max(np.max(span), 1e-6))
+            st.extent, st.area = _footprint(xyz)
         return self._send(key, st, sub, T.apply(sub.xyz), visible,
                           tuple(x.t_added for x in batches))
 
@@ -210,9 +222,12 @@ class SceneView:
         return len(sub)
 
     def point_size(self) -> float:
-        """Point size in scene units: the setting times 1/200 of the largest cloud extent."""
-        ext = max((c.extent for c in self._clouds.values() if c.generation >= 0), default=1000.0)
-        return float(self.settings.point_size * ext / 200.0)
+        """Point size in scene units: the setting times the automatic size, at which the points
+        shown about tile the largest cloud's footprint (display.auto_point_size)."""
+        live = [c for c in self._clouds.values() if c.generation >= 0]
+        ext = max((c.extent for c in live), default=1000.0)
+        area = max((c.area for c in live), default=0.0)
+        return float(self.settings.point_size * auto_point_size(ext, area, self._shown()))
 
     def apply_point_size(self) -> None:
         size = self.point_size()
@@ -231,6 +246,7 @@ class SceneView:
             vis = self.settings.show_sparse if kind == "sparse" else self.settings.show_dense
             for c in st.chunks:
                 c.handle.visible = vis
+        self.apply_point_size()          # the points shown set the size
 
     def nearest_point(self, ray_origin, ray_direction, max_angle: float = 0.02
                       ) -> tuple[int, np.ndarray] | None:
@@ -252,6 +268,12 @@ class SceneView:
                     best = (ang, g, st.transform.inverse(ch.xyz[k:k + 1])[0])
         return None if best is None else (best[1], best[2])
 
+    def _shown(self) -> int:
+        """Points on screen: the chunks of the kinds shown."""
+        show = {"sparse": self.settings.show_sparse, "dense": self.settings.show_dense}
+        return sum(len(c.batch) for (g, kind), st in self._clouds.items() if show[kind]
+                   for c in st.chunks)
+
     def displayed_points(self) -> int:
         return sum(len(c.batch) for st in self._clouds.values() for c in st.chunks)
 
@@ -264,15 +286,25 @@ class SceneView:
         return np.percentile(P, 2, axis=0), np.percentile(P, 98, axis=0)
 
     # -- tiles --------------------------------------------------------------------------------
-    def _sync_tiles(self, g: int, tiles: dict[str, TileView], newest: str | None,
-                    T: DisplayTransform) -> None:
+    def tile_mode(self, dense: bool) -> str:
+        """The drawing of a group's tiles: the setting, with `auto` resolved (`dense`: the
+        group has dense points)."""
         mode = self.settings.tiles
-        if mode != self._tile_mode:
-            self._tile_mode = mode
-            for node in self._tiles.values():
+        if mode == "auto":
+            return "outlines" if dense and self.settings.show_dense else "textured"
+        return mode
+
+    def _sync_tiles(self, g: int, tiles: dict[str, TileView], newest: str | None,
+                    T: DisplayTransform, dense: bool = False) -> None:
+        mode = self.tile_mode(dense)
+        if mode != self._tile_mode.get(g, mode):
+            for (gg, _), node in self._tiles.items():
+                if gg != g:
+                    continue
                 node.outline.visible = mode != "hidden"
                 if node.image is not None:
                     node.image.visible = mode == "textured"
+        self._tile_mode[g] = mode
         side = 160 if len(tiles) <= 100 else 96          # texture budget for many tiles
         for tid, tv in tiles.items():
             node = self._tiles.get((g, tid))
@@ -370,6 +402,7 @@ class SceneView:
             label.remove()
         self._newest_nodes.clear()
         self._newest.clear()
+        self._tile_mode.clear()
 
 
 def tile_windows_for(images: list, tile_size: int, overlap: int | None) -> dict[str, Window]:

@@ -9,6 +9,8 @@ connected and the time until the first points are rendered on its screen is meas
     python bench/bench_viewer.py                      # the demo site (generated on first use)
     python bench/bench_viewer.py --site ../shared/data/reunion_pair --tile-size 400
     python bench/bench_viewer.py --cold               # `aerec view` from a bare cache
+    python bench/bench_viewer.py --fps OUT            # frames drawn per second while orbiting
+    python bench/bench_viewer.py --fps OUT --budgets 150000,40000
 """
 
 from __future__ import annotations
@@ -254,6 +256,101 @@ def cold(args) -> None:
           else f"  no points within {args.cold_timeout:.0f} s")
 
 
+# Counts the frames the page draws: a frame clears the canvas (viser 1.1.1: 4 clears within a
+# millisecond, a frame apart they are > 100 ms in software WebGL); viser renders on demand, so
+# requestAnimationFrame alone would count frames that draw nothing.
+COUNT_RENDERS = """
+  window.__renders = [];
+  for (const C of [WebGL2RenderingContext, WebGLRenderingContext]) {
+    const clear = C.prototype.clear;
+    C.prototype.clear = function (m) { window.__renders.push(performance.now()); return clear.call(this, m); };
+  }"""
+
+
+def orbit_fps(page, seconds: float = 6.0) -> tuple[float, int]:
+    """Frames drawn per second while the mouse orbits the view (left button held, a circle
+    traced as fast as the page takes the moves), and the number of moves it took."""
+    w = page.viewport_size["width"] - 520          # left of the control panel
+    h = page.viewport_size["height"]
+    cx, cy, r = w / 2, h / 2, min(w, h) / 5
+    page.mouse.move(cx + r, cy)
+    page.mouse.down()
+    t0 = page.evaluate("performance.now()")
+    n, a, start = 0, 0.0, time.time()
+    while time.time() - start < seconds:
+        a += 0.12
+        page.mouse.move(cx + r * np.cos(a), cy + 0.6 * r * np.sin(a))
+        n += 1
+    t1 = page.evaluate("performance.now()")
+    page.mouse.up()
+    # viser clears the canvas several times per frame (4 here): a frame is a run of clears
+    drawn = page.evaluate(f"""(() => {{ const a = window.__renders.filter(t => t >= {t0} && t <= {t1});
+        let n = 0; for (let i = 0; i < a.length; i++) if (i === 0 || a[i] - a[i - 1] > 4) n++; return n; }})()""")
+    return drawn * 1000.0 / max(t1 - t0, 1.0), n
+
+
+def fps(args) -> None:
+    """`aerec view OUT --point-budget N` for each budget, headless Chromium at 1600 x 1000 with
+    software WebGL: frames drawn per second while orbiting, once the points are on the screen."""
+    import os
+    import re
+    import subprocess
+
+    from playwright.sync_api import sync_playwright
+
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+             "--disable-quic", "--no-first-run", "--disable-background-networking",
+             "--disable-component-update", "--disable-sync"]
+    print(f"frames drawn per second while orbiting, {args.fps}, headless Chromium 1600 x 1000, "
+          f"software WebGL, {os.cpu_count()} cores:")
+    for budget in [int(b) for b in args.budgets.split(",")]:
+        cmd = [sys.executable, "-m", "aerec_viewer", str(args.fps), "--port", "0", "--no-browser-hint"]
+        if budget:
+            cmd += ["--point-budget", str(budget)]
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        lines: list[str] = []
+        threading.Thread(target=lambda: [lines.append(ln) for ln in iter(proc.stdout.readline, "")],
+                         daemon=True).start()
+        try:
+            url = None
+            for _ in range(600):
+                url = next((m.group(0) for ln in lines for m in [re.search(r"http://\S+", ln)] if m), None)
+                if url or proc.poll() is not None:
+                    break
+                time.sleep(0.1)
+            if url is None:
+                raise SystemExit("the viewer printed no address:\n" + "".join(lines[-20:]))
+            with sync_playwright() as pw:
+                b = pw.chromium.launch(executable_path="/usr/bin/chromium", args=flags, headless=True)
+                page = b.new_page(viewport={"width": 1600, "height": 1000})
+                page.add_init_script(COUNT_RENDERS)
+                page.goto(url.rstrip(";"))
+                time.sleep(args.settle)              # the cloud arrives, textures upload
+                shown = """() => { const t = document.body.innerText;
+                    const m = t.match(/points displayed\\s*([\\d,]+)/); return m ? m[1] : '?'; }"""
+                rates, labels = [], []
+                for k in range(args.repeats):     # the viewer may adapt its budget in between
+                    if k:
+                        time.sleep(args.between)
+                    labels.append(page.evaluate(shown))
+                    rates.append(orbit_fps(page, args.seconds)[0])
+                label = " -> ".join(dict.fromkeys(labels))
+                if args.shots:
+                    Path(args.shots).mkdir(parents=True, exist_ok=True)
+                    page.screenshot(path=str(Path(args.shots) / f"fps_{budget or 'default'}.png"))
+                b.close()
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        notes = [ln.strip() for ln in lines if "budget" in ln.lower()]
+        print(f"  budget {budget or 'default':>8}: first orbit {rates[0]:.1f} fps, last {rates[-1]:.1f} "
+              f"(runs {', '.join(f'{r:.1f}' for r in rates)}), points displayed {label}"
+              + (f"; viewer said: {notes[-1]}" if notes else ""))
+
+
 class BrowserProbe:
     """Headless Chromium on the page; a thread notes when points first appear on its screen."""
 
@@ -310,8 +407,19 @@ def main() -> None:
     p.add_argument("--cold", action="store_true", help="time `aerec view` (no argument) from a "
                                                         "bare cache: page served, first points")
     p.add_argument("--cold-timeout", type=float, default=900.0)
+    p.add_argument("--fps", type=Path, default=None, metavar="OUT",
+                   help="frames drawn per second while orbiting the finished OUT")
+    p.add_argument("--budgets", default="0", help="--fps: point budgets to try (0: the viewer's default)")
+    p.add_argument("--seconds", type=float, default=6.0, help="--fps: orbit time per measurement")
+    p.add_argument("--repeats", type=int, default=3, help="--fps: measurements per budget")
+    p.add_argument("--between", type=float, default=12.0, help="--fps: seconds between measurements")
+    p.add_argument("--settle", type=float, default=25.0, help="--fps: seconds for the scene to load")
+    p.add_argument("--shots", default=None, help="--fps: save a screenshot per budget here")
     args = p.parse_args()
-    cold(args) if args.cold else run(args)
+    if args.fps:
+        fps(args)
+    else:
+        cold(args) if args.cold else run(args)
 
 
 if __name__ == "__main__":

@@ -180,6 +180,23 @@ def test_keep_mask_is_nested_and_proportional():
     assert dp.display_fraction(1000, 2000) == 1.0 and dp.display_fraction(4000, 1000) == 0.25
 
 
+def test_points_about_tile_the_footprint_whatever_the_budget():
+    """The drawing cost in software WebGL is the fragments: the automatic point size makes the
+    points shown cover the footprint about once (not four times over, as 1/200 of the extent
+    did at 150 k points on a 600 m site), and a sparse cloud keeps the 1/200 cap."""
+    ext, area = 600.0, 600.0 * 600.0
+    for n in (40_000, 150_000, 600_000):
+        s = dp.auto_point_size(ext, area, n)
+        cover = n * s * s / area
+        assert 0.7 < cover < 1.45, (n, s, cover)
+    assert dp.auto_point_size(ext, area, 150_000) < 0.6 * ext / 200
+    assert dp.auto_point_size(ext, area, 2_000) == ext / 200          # sparse: capped
+    assert dp.auto_point_size(ext, 0.0, 10) == ext / 200 and dp.auto_point_size(ext, area, 0) == ext / 200
+    # quantised: a cloud growing from 100 k to 200 k points in 1 % steps resizes its points twice
+    sizes = {dp.auto_point_size(ext, area, int(100_000 * 1.01 ** k)) for k in range(70)}
+    assert len(sizes) <= 3
+
+
 def test_closest_point_to_ray_picks_the_point_under_the_cursor():
     P = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, -100.0]])
     o = np.array([10.2, 0.1, 100.0])
@@ -512,6 +529,26 @@ def test_live_run_grows_points_and_tiles_to_the_end(live):
     assert "finished" in app.g_status.content
     assert f"{len(g0.tiles)} / {g0.total_tiles}" in app.g_stats.content
     assert "affine frame" in app.g_frame.content
+
+
+def test_tiles_are_textured_until_the_dense_cloud_covers_them(live):
+    """`auto` (the default): a sparse-only run shows each tile's image; a group with dense points
+    shown draws outlines (textured tiles are most of the drawing cost without a GPU)."""
+    app = live[0]
+    sc = app.scene
+    assert sc.settings.tiles == "auto"
+    assert sc._tiles and all(node.image is not None for node in sc._tiles.values())
+    assert sc.tile_mode(dense=False) == "textured" and sc.tile_mode(dense=True) == "outlines"
+    sc.settings.show_dense = False
+    try:
+        assert sc.tile_mode(dense=True) == "textured"
+    finally:
+        sc.settings.show_dense = True
+    sc.settings.tiles = "textured"
+    try:
+        assert sc.tile_mode(dense=True) == "textured"
+    finally:
+        sc.settings.tiles = "auto"
 
 
 def test_display_controls_apply_to_the_scene(live):
