@@ -45,6 +45,22 @@ def test_detection_by_blocks_equals_one_block_and_has_no_duplicates(tmp_path):
     assert blocks.desc.dtype == np.uint8 and np.all((blocks.xy >= -0.5) & (blocks.xy <= 639.5))
 
 
+def test_detection_spilled_as_it_goes_equals_detection_in_memory(tmp_path):
+    """With `spill`, each block's descriptors go to the file as they are detected (a 40,000 px
+    scene's would not fit in memory): the same keypoints, the descriptors a read-only map of
+    the file, also when the keypoint budget drops some."""
+    a, _ = _pair(tmp_path)
+    tone = tone_curve_for([a])
+    for k, cfg in enumerate((FeatureConfig(detect_block=320), FeatureConfig(detect_block=320, max_features_per_mpx=100))):
+        mem = detect_image(a, cfg, tone)
+        disk = detect_image(a, cfg, tone, spill=tmp_path / f"{k}.desc")
+        assert isinstance(disk.desc, np.memmap) and not disk.desc.flags.writeable
+        assert (tmp_path / f"{k}.desc").stat().st_size == 128 * len(disk) and len(disk) > 400
+        for f in ("xy", "desc", "scale", "response", "gray"):
+            assert np.array_equal(np.asarray(getattr(mem, f)), np.asarray(getattr(disk, f))), f
+    assert len(mem) == 500 and sorted(p.name for p in tmp_path.glob("*.desc*")) == ["0.desc", "1.desc"]
+
+
 def test_overview_link_recovers_the_known_affine_map(tmp_path):
     a, b = _pair(tmp_path)
     tone = tone_curve_for([a, b])
@@ -152,5 +168,5 @@ def test_the_sparse_stage_spills_descriptors_to_out_and_removes_them(tiny_site, 
 
     state = run(tiny_site, out, preset("tiny"), until="sparse", bus=EventBus(listen))
     n_images = len(state.groups[0].images)
-    assert seen and all(s == [f"{k}.npy" for k in range(n_images)] for s in seen)
+    assert seen and all(s == [f"{k}.desc" for k in range(n_images)] for s in seen)
     assert not list(out.glob(".sparse_desc_*")) and state.models
