@@ -70,11 +70,17 @@ def tone_curve_for(images: list[ImageInfo], percentiles=(0.5, 99.5), factor: int
     return _curve_of([_overview_values(im, factor) for im in images], percentiles)
 
 
+OVERVIEW_MAX_PX = 2048 * 2048     # a tone curve's overview has at most this many pixels
+
+
 def _overview_values(im: ImageInfo, factor: int = 8) -> np.ndarray:
     """The image's values for its tone curve, from its overview (finite ones; the full-resolution
     sample windows of the blank check when the overview has too few: a float image with NaN or
-    infinite pixels scattered everywhere)."""
+    infinite pixels scattered everywhere). The overview is decimated by `factor`, or more for an
+    image over 16,000 px a side: at most OVERVIEW_MAX_PX pixels (a 40,000 px scene at factor 8
+    was 25 Mpx, 0.6 GB of copies for two percentiles)."""
     f = max(1, min(factor, min(im.width, im.height) // 64))
+    f = max(f, int(np.ceil(np.sqrt(im.width * im.height / OVERVIEW_MAX_PX))))
     ov = read_downsampled(im, f)
     v = ov[np.isfinite(ov)].ravel()
     if len(v) < 0.05 * ov.size:

@@ -61,6 +61,26 @@ def test_detection_spilled_as_it_goes_equals_detection_in_memory(tmp_path):
     assert len(mem) == 500 and sorted(p.name for p in tmp_path.glob("*.desc*")) == ["0.desc", "1.desc"]
 
 
+def test_the_tone_curve_reads_a_bounded_overview(tmp_path, monkeypatch):
+    """A tone curve reads the image decimated to at most OVERVIEW_MAX_PX pixels, however large
+    the image (the whole 40,000 px scene at factor 8 was 25 Mpx)."""
+    import recon_core.io.site as site_io
+    import recon_core.sparse.features as features
+
+    a, _ = _pair(tmp_path)
+    reads, read = [], site_io.read_window
+
+    def spy(image, c0, r0, w, h, **kw):
+        out = read(image, c0, r0, w, h, **kw)
+        reads.append(out.size)
+        return out
+
+    monkeypatch.setattr(site_io, "read_window", spy)
+    monkeypatch.setattr(features, "OVERVIEW_MAX_PX", 64 * 64)
+    lo_hi = tone_curve_for([a])
+    assert reads and max(reads) <= 64 * 64 and lo_hi.hi > lo_hi.lo
+
+
 def test_overview_link_recovers_the_known_affine_map(tmp_path):
     a, b = _pair(tmp_path)
     tone = tone_curve_for([a, b])
