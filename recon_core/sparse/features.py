@@ -223,7 +223,11 @@ def _unique_rows(xy: np.ndarray, desc: np.ndarray) -> np.ndarray:
 
 
 def detect_overview(image: ImageInfo, factor: int, tone: ToneCurve, max_features: int = 4000):
-    """SIFT on a downsampled copy of the whole image: (xy in full-image pixels, descriptors)."""
+    """SIFT on a downsampled copy of the whole image: (xy in full-image pixels, descriptors).
+    The copy is decimated by `factor`, or more for an image over 16,000 px a side: at most
+    OVERVIEW_MAX_PX pixels (SIFT's pyramid of a 5,000 px copy of a 40,000 px scene, doubled
+    in size first, would be several GB)."""
+    factor = max(factor, int(np.ceil(np.sqrt(image.width * image.height / OVERVIEW_MAX_PX))))
     ov = read_downsampled(image, factor)
     img8 = tone.apply(ov)
     sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.01)

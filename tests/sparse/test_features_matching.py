@@ -61,9 +61,10 @@ def test_detection_spilled_as_it_goes_equals_detection_in_memory(tmp_path):
     assert len(mem) == 500 and sorted(p.name for p in tmp_path.glob("*.desc*")) == ["0.desc", "1.desc"]
 
 
-def test_the_tone_curve_reads_a_bounded_overview(tmp_path, monkeypatch):
-    """A tone curve reads the image decimated to at most OVERVIEW_MAX_PX pixels, however large
-    the image (the whole 40,000 px scene at factor 8 was 25 Mpx)."""
+def test_the_tone_curve_and_the_overview_features_read_a_bounded_overview(tmp_path, monkeypatch):
+    """A tone curve and the coarse link's features read the image decimated to at most
+    OVERVIEW_MAX_PX pixels, however large the image (a 40,000 px scene at factor 8 was 25 Mpx,
+    and SIFT's pyramid of it several GB)."""
     import recon_core.io.site as site_io
     import recon_core.sparse.features as features
 
@@ -79,6 +80,10 @@ def test_the_tone_curve_reads_a_bounded_overview(tmp_path, monkeypatch):
     monkeypatch.setattr(features, "OVERVIEW_MAX_PX", 64 * 64)
     lo_hi = tone_curve_for([a])
     assert reads and max(reads) <= 64 * 64 and lo_hi.hi > lo_hi.lo
+    reads.clear()
+    xy, desc = detect_overview(a, 2, lo_hi)
+    assert reads and max(reads) <= 64 * 64 and len(xy) == len(desc) > 0
+    assert np.all((xy >= -0.5) & (xy <= 639.5))                   # in full-image pixels
 
 
 def test_overview_link_recovers_the_known_affine_map(tmp_path):
