@@ -244,7 +244,19 @@ def site_grid(images: list[ProductImage]) -> tuple[dict | None, str | None]:
     epsg = (32600 if lat >= 0 else 32700) + int((lon + 180) // 6) + 1
     xy = geodetic_to_projected(np.column_stack([ll, np.zeros(len(ll))]), epsg)
     b = [float(xy[:, 0].min()), float(xy[:, 1].min()), float(xy[:, 0].max()), float(xy[:, 1].max())]
-    return {"crs_epsg": epsg, "bounds": [round(v, 1) for v in b]}, note
+    hints = {"crs_epsg": epsg, "bounds": [round(v, 1) for v in b]}
+    # a full scene's footprint (20 km a side) at the default 0.5 m is more DSM cells than fit
+    # (site.check_grid_size): site.json then names the finest resolution, in 0.5 m steps, that fits
+    from recon_core.io.site import MAX_DSM_CELLS
+
+    res = 0.5
+    while (b[2] - b[0]) * (b[3] - b[1]) / res ** 2 > MAX_DSM_CELLS:
+        res += 0.5
+    if res > 0.5:
+        hints["resolution_m"] = res
+        note += (f"; at 0.5 m its DSM would be {(b[2] - b[0]) * (b[3] - b[1]) / 0.25:.3g} cells, more than "
+                 f"fit ({MAX_DSM_CELLS:.2g}): resolution_m is {res:g} m (smaller bounds for a finer DSM)")
+    return hints, note
 
 
 def init_site(site: Path, products: list[Path], *, band: int | None = None, times: dict[str, str] | None = None,

@@ -70,11 +70,17 @@ def tone_curve_for(images: list[ImageInfo], percentiles=(0.5, 99.5), factor: int
     return _curve_of([_overview_values(im, factor) for im in images], percentiles)
 
 
+OVERVIEW_MAX_PX = 2048 * 2048     # a tone curve's overview has at most this many pixels
+
+
 def _overview_values(im: ImageInfo, factor: int = 8) -> np.ndarray:
     """The image's values for its tone curve, from its overview (finite ones; the full-resolution
     sample windows of the blank check when the overview has too few: a float image with NaN or
-    infinite pixels scattered everywhere)."""
+    infinite pixels scattered everywhere). The overview is decimated by `factor`, or more for an
+    image over 16,000 px a side: at most OVERVIEW_MAX_PX pixels (a 40,000 px scene at factor 8
+    was 25 Mpx, 0.6 GB of copies for two percentiles)."""
     f = max(1, min(factor, min(im.width, im.height) // 64))
+    f = max(f, int(np.ceil(np.sqrt(im.width * im.height / OVERVIEW_MAX_PX))))
     ov = read_downsampled(im, f)
     v = ov[np.isfinite(ov)].ravel()
     if len(v) < 0.05 * ov.size:
@@ -130,40 +136,76 @@ def _blocks(length: int, block: int, margin: int):
         yield max(0, c0 - margin), min(length, c1 + margin), c0, c1
 
 
-def detect_image(image: ImageInfo, cfg: FeatureConfig, tone: ToneCurve | None = None) -> ImageFeatures:
-    """Detect SIFT on the whole image, read by blocks with a margin, deduplicated by block cores."""
+def detect_image(image: ImageInfo, cfg: FeatureConfig, tone: ToneCurve | None = None,
+                 spill: Path | None = None) -> ImageFeatures:
+    """Detect SIFT on the whole image, read by blocks with a margin, deduplicated by block cores.
+
+    With `spill`, each block's descriptors are appended to that file as it is detected (raw
+    uint8 rows of 128) and come back as a read-only memory map of it: the process holds the
+    keypoints' 25 bytes (position, size, response, intensity) but not their 128 bytes of
+    descriptor (a 40,000 px scene: ~30 M keypoints, 4 GB of descriptors). Without it they are
+    held in memory. The same keypoints either way."""
     tone = tone or tone_curve_for([image], cfg.stretch_percentiles)
     budget = max(500, int(cfg.max_features_per_mpx * image.width * image.height / 1e6))
     sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=cfg.contrast_threshold)
     margin = 48
-    parts = []
-    for r0, r1, rc0, rc1 in _blocks(image.height, cfg.detect_block, margin):
-        for c0, c1, cc0, cc1 in _blocks(image.width, cfg.detect_block, margin):
-            raw = read_window(image, c0, r0, c1 - c0, r1 - r0)
-            img8 = tone.apply(raw)
-            mask = np.isfinite(raw).astype(np.uint8) * 255
-            kps, desc = sift.detectAndCompute(img8, mask)
-            if desc is None or not kps:
-                continue
-            pts = np.array([k.pt for k in kps], dtype=np.float64) + (c0, r0)
-            core = ((pts[:, 0] >= cc0) & (pts[:, 0] < cc1) & (pts[:, 1] >= rc0) & (pts[:, 1] < rc1))
-            if not core.any():
-                continue
-            idx = np.flatnonzero(core)
-            ij = np.clip(np.round(pts[idx] - (c0, r0)).astype(int), 0, [img8.shape[1] - 1, img8.shape[0] - 1])
-            parts.append((pts[idx], _to_uint8_desc(desc[idx]),
-                          np.array([kps[i].size for i in idx], np.float32),
-                          np.array([kps[i].response for i in idx], np.float32),
-                          img8[ij[:, 1], ij[:, 0]]))
+    parts, descs = [], []
+    sink = open(spill, "wb") if spill is not None else None
+    try:
+        for r0, r1, rc0, rc1 in _blocks(image.height, cfg.detect_block, margin):
+            for c0, c1, cc0, cc1 in _blocks(image.width, cfg.detect_block, margin):
+                raw = read_window(image, c0, r0, c1 - c0, r1 - r0)
+                img8 = tone.apply(raw)
+                mask = np.isfinite(raw).astype(np.uint8) * 255
+                del raw
+                kps, desc = sift.detectAndCompute(img8, mask)
+                if desc is None or not kps:
+                    continue
+                pts = np.array([k.pt for k in kps], dtype=np.float64) + (c0, r0)
+                core = ((pts[:, 0] >= cc0) & (pts[:, 0] < cc1) & (pts[:, 1] >= rc0) & (pts[:, 1] < rc1))
+                idx = np.flatnonzero(core)
+                if not len(idx):
+                    continue
+                d8 = _to_uint8_desc(desc[idx])
+                # exact duplicates (same position and descriptor) share a block core: dropped here
+                keep = _unique_rows(pts[idx], d8)
+                idx, d8 = idx[keep], d8[keep]
+                ij = np.clip(np.round(pts[idx] - (c0, r0)).astype(int), 0, [img8.shape[1] - 1, img8.shape[0] - 1])
+                parts.append((pts[idx], np.array([kps[i].size for i in idx], np.float32),
+                              np.array([kps[i].response for i in idx], np.float32), img8[ij[:, 1], ij[:, 0]]))
+                if sink is not None:
+                    sink.write(np.ascontiguousarray(d8).tobytes())
+                else:
+                    descs.append(d8)
+    finally:
+        if sink is not None:
+            sink.close()
     if not parts:
         return ImageFeatures(image.name, np.zeros((0, 2)), np.zeros((0, 128), np.uint8),
                              np.zeros(0, np.float32), np.zeros(0, np.float32), np.zeros(0, np.uint8))
-    xy, desc, size, resp, gray = (np.concatenate(p) for p in zip(*parts))
+    xy, size, resp, gray = (np.concatenate(p) for p in zip(*parts))
+    del parts
+    desc = np.concatenate(descs) if sink is None else _mapped_desc(spill, len(xy))
     feats = ImageFeatures(image.name, xy, desc, size, resp, gray)
-    feats = _dedupe(feats)
     if len(feats) > budget:
-        feats = feats.subset(np.sort(np.argsort(-feats.response, kind="stable")[:budget]))
+        keep = np.sort(np.argsort(-feats.response, kind="stable")[:budget])
+        if sink is None:
+            feats = feats.subset(keep)
+        else:                       # the kept rows copied to a new file by chunks, then renamed
+            tmp = spill.with_name(spill.name + ".kept")
+            with open(tmp, "wb") as out:
+                for k in range(0, len(keep), 1 << 20):
+                    out.write(np.ascontiguousarray(desc[keep[k:k + (1 << 20)]]).tobytes())
+            feats = desc = None          # the old map closed before its file is replaced
+            tmp.replace(spill)
+            feats = ImageFeatures(image.name, xy[keep], _mapped_desc(spill, len(keep)), size[keep],
+                                  resp[keep], gray[keep])
     return feats
+
+
+def _mapped_desc(path: Path, n: int) -> np.ndarray:
+    """n descriptors written raw to `path`, as a read-only memory map."""
+    return np.memmap(path, dtype=np.uint8, mode="r", shape=(n, 128)) if n else np.zeros((0, 128), np.uint8)
 
 
 def _to_uint8_desc(desc: np.ndarray) -> np.ndarray:
@@ -171,16 +213,21 @@ def _to_uint8_desc(desc: np.ndarray) -> np.ndarray:
     return np.clip(np.round(desc), 0, 255).astype(np.uint8)
 
 
-def _dedupe(f: ImageFeatures) -> ImageFeatures:
-    """Drop exact duplicates (same position and descriptor) that block borders may create."""
-    key = np.round(f.xy * 100).astype(np.int64)
-    _, first = np.unique(np.concatenate([key, f.desc[:, :4].astype(np.int64)], axis=1), axis=0,
+def _unique_rows(xy: np.ndarray, desc: np.ndarray) -> np.ndarray:
+    """Indices (ascending) of the first of each set of exact duplicates (same position to 0.01
+    px and same first descriptor bytes) that SIFT may return."""
+    key = np.round(xy * 100).astype(np.int64)
+    _, first = np.unique(np.concatenate([key, desc[:, :4].astype(np.int64)], axis=1), axis=0,
                          return_index=True)
-    return f.subset(np.sort(first))
+    return np.sort(first)
 
 
 def detect_overview(image: ImageInfo, factor: int, tone: ToneCurve, max_features: int = 4000):
-    """SIFT on a downsampled copy of the whole image: (xy in full-image pixels, descriptors)."""
+    """SIFT on a downsampled copy of the whole image: (xy in full-image pixels, descriptors).
+    The copy is decimated by `factor`, or more for an image over 16,000 px a side: at most
+    OVERVIEW_MAX_PX pixels (SIFT's pyramid of a 5,000 px copy of a 40,000 px scene, doubled
+    in size first, would be several GB)."""
+    factor = max(factor, int(np.ceil(np.sqrt(image.width * image.height / OVERVIEW_MAX_PX))))
     ov = read_downsampled(image, factor)
     img8 = tone.apply(ov)
     sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.01)

@@ -113,10 +113,10 @@ def _features_and_matches(group: Group, cfg: Config, bus: EventBus, tiles: dict[
                           image_groups: list[int] | None, timings: dict[str, float],
                           scratch_dir: Path | None) -> tuple[list[ImageFeatures], dict, dict]:
     """Each image's SIFT features, the coarse links between images and the verified matches of
-    the chosen pairs. The descriptors live in .npy files of a scratch folder (in scratch_dir:
-    the run's OUT, swept if the run is interrupted; the system's temporary folder when None),
-    memory-mapped while matching reads them, and are gone when it returns: the features come
-    back without them."""
+    the chosen pairs. The descriptors are written to files of a scratch folder as they are
+    detected (in scratch_dir: the run's OUT, swept if the run is interrupted; the system's
+    temporary folder when None), memory-mapped while matching reads them, and are gone when it
+    returns: the features come back without them."""
     g = group.index
     names = [im.name for im in group.images]
     with tempfile.TemporaryDirectory(prefix=".sparse_desc_", dir=scratch_dir) as folder:
@@ -130,8 +130,8 @@ def _features_and_matches(group: Group, cfg: Config, bus: EventBus, tiles: dict[
         # images in parallel threads (OpenCV and GDAL release the GIL): the same features in the
         # same order, in about half the time on 2 cores
         with ThreadPoolExecutor(max_workers=max(1, min(FEATURE_THREADS, len(names)))) as ex:
-            detected = ex.map(lambda k: detect_image(group.images[k], cfg.features, tones[k])
-                              .spilled(spill / f"{k}.npy"), range(len(names)))
+            detected = ex.map(lambda k: detect_image(group.images[k], cfg.features, tones[k],
+                                                     spill=spill / f"{k}.desc"), range(len(names)))
             for k, f in enumerate(detected):
                 feats.append(f)
                 bus.progress("features", k + 1, len(names), names[k], group=g)

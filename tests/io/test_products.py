@@ -76,6 +76,23 @@ def test_nitf_geotiff_and_a_given_time(tmp_path, capsys):
                      "bare": "2017-05-03T10:44:00Z"}
 
 
+def test_a_full_scene_footprint_gets_a_dsm_resolution_that_fits(tmp_path, capsys):
+    """A 20 km footprint at the default 0.5 m is 1.6e9 DSM cells, more than a site.json may ask
+    for: site init names a coarser resolution_m (and says so), and `aerec info` reads the site."""
+    from rasterio.transform import from_origin
+
+    g = _write(tmp_path / "g" / "scene.tif", np.random.default_rng(2).integers(0, 255, (64, 64)).astype(np.uint8),
+               crs="EPSG:32740", transform=from_origin(330000.0, 7660000.0, 312.5, 312.5))   # 20 km
+    with rasterio.open(g, "r+") as ds:
+        ds.update_tags(TIFFTAG_DATETIME="2024:03:02 10:41:31")
+    site = tmp_path / "site"
+    assert main(["site", "init", str(site), str(g)]) == 0
+    assert "resolution_m is 1 m" in capsys.readouterr().out
+    hints = json.loads((site / "site.json").read_text())
+    assert hints["resolution_m"] == 1.0 and hints["bounds"] == [330000.0, 7640000.0, 350000.0, 7660000.0]
+    assert main(["info", str(site)]) == 0
+
+
 @pytest.mark.parametrize("make, words", [
     (lambda d: _write(d / "bare.tif", np.ones((64, 64), np.uint8)), "no acquisition time in its metadata"),
     (lambda d: _dimap(d, "PHR1A_X", np.ones((64, 64), np.uint16), date="2013-13-45"), "IMAGING_DATE"),

@@ -45,6 +45,47 @@ def test_detection_by_blocks_equals_one_block_and_has_no_duplicates(tmp_path):
     assert blocks.desc.dtype == np.uint8 and np.all((blocks.xy >= -0.5) & (blocks.xy <= 639.5))
 
 
+def test_detection_spilled_as_it_goes_equals_detection_in_memory(tmp_path):
+    """With `spill`, each block's descriptors go to the file as they are detected (a 40,000 px
+    scene's would not fit in memory): the same keypoints, the descriptors a read-only map of
+    the file, also when the keypoint budget drops some."""
+    a, _ = _pair(tmp_path)
+    tone = tone_curve_for([a])
+    for k, cfg in enumerate((FeatureConfig(detect_block=320), FeatureConfig(detect_block=320, max_features_per_mpx=100))):
+        mem = detect_image(a, cfg, tone)
+        disk = detect_image(a, cfg, tone, spill=tmp_path / f"{k}.desc")
+        assert isinstance(disk.desc, np.memmap) and not disk.desc.flags.writeable
+        assert (tmp_path / f"{k}.desc").stat().st_size == 128 * len(disk) and len(disk) > 400
+        for f in ("xy", "desc", "scale", "response", "gray"):
+            assert np.array_equal(np.asarray(getattr(mem, f)), np.asarray(getattr(disk, f))), f
+    assert len(mem) == 500 and sorted(p.name for p in tmp_path.glob("*.desc*")) == ["0.desc", "1.desc"]
+
+
+def test_the_tone_curve_and_the_overview_features_read_a_bounded_overview(tmp_path, monkeypatch):
+    """A tone curve and the coarse link's features read the image decimated to at most
+    OVERVIEW_MAX_PX pixels, however large the image (a 40,000 px scene at factor 8 was 25 Mpx,
+    and SIFT's pyramid of it several GB)."""
+    import recon_core.io.site as site_io
+    import recon_core.sparse.features as features
+
+    a, _ = _pair(tmp_path)
+    reads, read = [], site_io.read_window
+
+    def spy(image, c0, r0, w, h, **kw):
+        out = read(image, c0, r0, w, h, **kw)
+        reads.append(out.size)
+        return out
+
+    monkeypatch.setattr(site_io, "read_window", spy)
+    monkeypatch.setattr(features, "OVERVIEW_MAX_PX", 64 * 64)
+    lo_hi = tone_curve_for([a])
+    assert reads and max(reads) <= 64 * 64 and lo_hi.hi > lo_hi.lo
+    reads.clear()
+    xy, desc = detect_overview(a, 2, lo_hi)
+    assert reads and max(reads) <= 64 * 64 and len(xy) == len(desc) > 0
+    assert np.all((xy >= -0.5) & (xy <= 639.5))                   # in full-image pixels
+
+
 def test_overview_link_recovers_the_known_affine_map(tmp_path):
     a, b = _pair(tmp_path)
     tone = tone_curve_for([a, b])
@@ -152,5 +193,5 @@ def test_the_sparse_stage_spills_descriptors_to_out_and_removes_them(tiny_site, 
 
     state = run(tiny_site, out, preset("tiny"), until="sparse", bus=EventBus(listen))
     n_images = len(state.groups[0].images)
-    assert seen and all(s == [f"{k}.npy" for k in range(n_images)] for s in seen)
+    assert seen and all(s == [f"{k}.desc" for k in range(n_images)] for s in seen)
     assert not list(out.glob(".sparse_desc_*")) and state.models
