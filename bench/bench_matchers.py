@@ -212,7 +212,8 @@ def main(argv=None) -> int:
         dense_child(s, Path(out), m, args.root)
         return 0
     sites, matchers = args.sites.split(","), args.matchers.split(",")
-    from recon_core.dense.matchers import MATCHERS, missing_packages
+    from recon_core.dense.matchers import MATCHERS
+    from recon_core.extras import missing_packages
 
     for m in matchers:
         if m not in MATCHERS:

@@ -531,7 +531,7 @@ def validate(cfg: Config) -> None:
         if broken(cfg):
             vals = ", ".join(f"{n} = {_get(cfg, n)!r}" for n in names)
             raise ValueError(f"{vals}: {need}")
-    from recon_core.dense.matchers import missing_packages
+    from recon_core.extras import missing_packages
 
     missing = missing_packages(cfg.dense.matcher)
     if missing:

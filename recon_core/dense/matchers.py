@@ -181,22 +181,6 @@ class PandoraMatcher:
 
 
 MATCHERS = {"sgbm": SgbmMatcher, "pandora": PandoraMatcher}
-# the packages a matcher needs beyond the default install (import names), and the extra that
-# brings them: pip install 'aerec[NAME]'
-OPTIONAL = {"pandora": ("pandora", "pandora_plugin_libsgm")}
-
-
-def missing_packages(name: str) -> list[str]:
-    """The packages matcher `name` needs that this Python cannot import (found, not imported)."""
-    import importlib.util
-
-    def absent(module: str) -> bool:
-        try:
-            return importlib.util.find_spec(module) is None
-        except (ImportError, ValueError):
-            return True
-
-    return [m for m in OPTIONAL.get(name, ()) if absent(m)]
 
 
 def make_matcher(cfg: Config) -> StereoMatcher:

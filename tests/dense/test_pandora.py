@@ -160,3 +160,19 @@ def test_the_dense_stage_depends_on_its_own_matcher_s_section(small_site):
     assert stage_hash(pa, "sparse", site) == stage_hash(sg, "sparse", site)
     assert stage_hash(pa, "dense", site) != stage_hash(sg, "dense", site)
     assert stage_hash(pa, "dense", site) != stage_hash(pa.with_overrides({"pandora.p1": 9.0}), "dense", site)
+
+
+def test_the_extra_brings_what_the_matcher_imports():
+    """pyproject.toml's `pandora` extra lists a distribution for each package the check looks
+    for, each bounded below its next major release."""
+    import re
+    import tomllib
+    from pathlib import Path
+
+    from recon_core.extras import EXTRAS
+
+    deps = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())[
+        "project"]["optional-dependencies"]["pandora"]
+    names = {re.split(r"[<>=!~ ]", d)[0].replace("-", "_").lower(): d for d in deps}
+    assert set(names) == set(EXTRAS["pandora"])
+    assert all("<" in d for d in deps)
