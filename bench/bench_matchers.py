@@ -22,8 +22,9 @@ Figures per site and matcher:
   match, NCC check, triangulate) per matched tile pair; the dense stage runs with one worker
   (dense.workers = 1, which changes no result), in a process of its own.
 - dense peak MB: that process's peak resident memory during the dense stage above what it held
-  before (it matches one tile pair at a time: the memory one worker needs for a tile pair),
-  and the absolute peak.
+  before, and the absolute peak. It runs one job at a time (a reference tile, matched with each
+  of its partner tiles in turn, its points gathered and triangulated): what one worker needs;
+  the matcher's share is the difference between the two matchers.
 Times are wall-clock on whatever else the machine runs: compare the two matchers of one run.
 """
 
