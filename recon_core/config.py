@@ -208,8 +208,8 @@ class PandoraConfig:
     pip install 'aerec[pandora]'."""
 
     census_window: int = _p(5, choices=(3, 5, 7, 9, 11, 13))  # census window side (px; CARS: 5, its urban profile 11)
-    p1: float = _p(8.0, lo=0, lo_open=True, hi=10_000)  # SGM penalty of a 1 px disparity step (census costs run
-                                      # from 0 to census_window^2; CARS: 8 for a 5 x 5 census)
+    p1: float = _p(8.0, lo=0, lo_open=True, hi=10_000)  # SGM penalty of a 1 px disparity step (CARS: 8)
+                                      # (census costs run from 0 to census_window^2)
     p2: float = _p(32.0, lo=0, lo_open=True, hi=100_000)  # SGM penalty of a larger step (> p1; CARS: 32)
     refinement: str = _p("vfit", choices=("vfit", "quadratic"))  # sub-pixel refinement of the winning disparity
     median_size: int = _p(3, lo=1, hi=15, odd=True)  # median filter of the disparity map (px; 1 = none)
