@@ -166,8 +166,10 @@ class BundleConfig:
 @dataclass
 class DenseConfig:
     step: int = _p(1, lo=1, hi=64)    # stride of the reference-pixel grid (1 = every pixel)
-    matcher: str = _p("sgbm", choices=("sgbm",))  # stereo matcher (recon_core.dense.matchers.MATCHERS); its
-                                      # parameters are the config section of the same name
+    matcher: str = _p("sgbm", choices=("sgbm", "pandora"))  # stereo matcher (recon_core.dense.matchers.MATCHERS); its
+                                      # parameters are the config section of the same name;
+                                      # "pandora" (CNES's census + SGM) needs the optional extra:
+                                      # pip install 'aerec[pandora]' (docs: accuracy.md, "Matchers: SGBM and pandora")
     disp_margin_px: float = _p(8.0, lo=0, hi=10_000)  # margin added around the sparse disparity percentiles
     disp_margin_frac: float = _p(0.25, lo=0, hi=100)  # ... plus this fraction of the percentile range
     min_pair_matches: int = _p(20, lo=4, hi=1_000_000)  # a tile pair needs this many sparse matches to be matched
@@ -196,6 +198,22 @@ class SgbmConfig:
     speckle_window: int = _p(100, lo=0, hi=100_000)  # speckle filter: max region size (px) to remove
     speckle_range: int = _p(2, lo=0, hi=1000)  # speckle filter: max disparity variation (px)
     lr_max_diff_px: float = _p(1.0, lo=0, hi=1000)  # left-right consistency tolerance (px)
+
+
+@dataclass
+class PandoraConfig:
+    """CNES's pandora with pandora_plugin_libsgm, set up as CNES CARS matches satellite pairs:
+    census cost, SGM over 8 directions, winner-take-all, V-fit sub-pixel refinement, a median
+    filter and accurate cross-checking (a second run from the right image). An optional extra:
+    pip install 'aerec[pandora]'."""
+
+    census_window: int = _p(5, choices=(3, 5, 7, 9, 11, 13))  # census window side (px; CARS: 5, its urban profile 11)
+    p1: float = _p(8.0, lo=0, lo_open=True, hi=10_000)  # SGM penalty of a 1 px disparity step (CARS: 8)
+                                      # (census costs run from 0 to census_window^2)
+    p2: float = _p(32.0, lo=0, lo_open=True, hi=100_000)  # SGM penalty of a larger step (> p1; CARS: 32)
+    refinement: str = _p("vfit", choices=("vfit", "quadratic"))  # sub-pixel refinement of the winning disparity
+    median_size: int = _p(3, lo=1, hi=15, odd=True)  # median filter of the disparity map (px; 1 = none)
+    lr_max_diff_px: float = _p(1.0, lo=0, hi=1000)  # cross-checking tolerance (px)
 
 
 @dataclass
@@ -272,6 +290,7 @@ class Config:
     bundle: BundleConfig = field(default_factory=BundleConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
     sgbm: SgbmConfig = field(default_factory=SgbmConfig)
+    pandora: PandoraConfig = field(default_factory=PandoraConfig)
     upgrade: UpgradeConfig = field(default_factory=UpgradeConfig)
     dsm: DsmConfig = field(default_factory=DsmConfig)
     seed: int = _p(0, lo=0, hi=2**63 - 1)  # seeds every random choice (RANSAC, sampling)
@@ -481,6 +500,8 @@ RELATIONS = (
      and c.features.stretch_percentiles[0] < c.features.stretch_percentiles[1]),
      "two percentiles, the lower first"),
     (("sgbm.p2", "sgbm.p1"), lambda c: c.sgbm.p2 < c.sgbm.p1, "P2 must be >= P1 (SGM's penalties)"),
+    (("pandora.p2", "pandora.p1"), lambda c: c.pandora.p2 <= c.pandora.p1,
+     "P2 must be > P1 (SGM's penalties, as pandora_plugin_libsgm requires)"),
     (("dense.max_two_view_spread",), lambda c: 0 < c.dense.max_two_view_spread < 1,
      "must be 0 (mark no two-view point weak) or at least 1"),
     (("dense.core_margin_px", "tiling.tile_size"), lambda c: c.dense.core_margin_px * 2 >= c.tiling.tile_size,
@@ -510,6 +531,12 @@ def validate(cfg: Config) -> None:
         if broken(cfg):
             vals = ", ".join(f"{n} = {_get(cfg, n)!r}" for n in names)
             raise ValueError(f"{vals}: {need}")
+    from recon_core.extras import missing_packages
+
+    missing = missing_packages(cfg.dense.matcher)
+    if missing:
+        raise ValueError(f"dense.matcher = {cfg.dense.matcher!r}: needs {' and '.join(missing)}, not "
+                         f"installed: pip install 'aerec[{cfg.dense.matcher}]'")
 
 
 def _get(cfg: Config, name: str):

@@ -57,6 +57,10 @@ def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None,
     stages the GCP file's content (`gcp_text`, else the file the run would read now)."""
     d = cfg.to_dict()
     keys = [k for s in STAGES[: STAGES.index(stage) + 1] for k in STAGE_SECTIONS[s]]
+    # the dense stage also depends on its matcher's own section (sgbm's is listed: runs made
+    # before there was a choice keep their hashes)
+    if STAGES.index(stage) >= STAGES.index("dense") and cfg.dense.matcher not in keys:
+        keys.append(cfg.dense.matcher)
     blob = {k: ({f: v for f, v in d[k].items() if f"{k}.{f}" not in NOT_IN_STAGE_HASH}
                 if isinstance(d[k], dict) else d[k]) for k in keys}
     blob["inputs"] = site_fingerprint(site)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +13,16 @@ import pytest
 import rasterio
 
 ROOT = Path(__file__).resolve().parents[1]
+
+# Tests import this folder as the package `tests` (`from tests.conftest import ...`); it has no
+# __init__.py, and some wheels install a top-level `tests` package of their own into
+# site-packages (pandora_plugin_libsgm and json-checker, brought by the optional `pandora`
+# extra), which would win over this folder: bind the name to this folder first.
+if "tests" not in sys.modules or list(getattr(sys.modules["tests"], "__path__", [])) != [str(ROOT / "tests")]:
+    _pkg = types.ModuleType("tests")
+    _pkg.__path__ = [str(ROOT / "tests")]
+    sys.modules["tests"] = _pkg
+
 SHARED_DATA = Path(os.environ.get("AEREC_SHARED_DATA", ROOT.parent / "shared" / "data"))
 
 

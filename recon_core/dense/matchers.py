@@ -2,6 +2,11 @@
 a disparity field and its validity out. `DenseConfig.matcher` picks one by name; its parameters
 are the configuration section of the same name.
 
+- `sgbm`: OpenCV's StereoSGBM (the default).
+- `pandora`: CNES's pandora with pandora_plugin_libsgm (census, SGM, V-fit, cross-checking), as
+  CNES CARS configures it for satellite pairs; an optional extra (`pip install 'aerec[pandora]'`),
+  imported only when used.
+
 Convention: rows are epipolar lines; the disparity of a left pixel u is d = u_right - u_left
 (the project's x2' - x1'), in pixels, NaN where invalid.
 """
@@ -14,7 +19,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from recon_core.config import Config, SgbmConfig
+from recon_core.config import Config, PandoraConfig, SgbmConfig
 
 
 class StereoMatcher(Protocol):
@@ -82,7 +87,100 @@ class SgbmMatcher:
         return np.where(ok, -D, np.nan).astype(np.float32), ok
 
 
-MATCHERS = {"sgbm": SgbmMatcher}
+# -- pandora (CNES) ------------------------------------------------------------------------------
+def pandora_pipeline(cfg: PandoraConfig) -> dict:
+    """Pandora's pipeline section for these parameters: CARS's census_sgm_default profile
+    (census 5 x 5, SGM P1 = 8 / P2 = 32 constant, no overcounting, WTA, V-fit, 3 x 3 median) with
+    the accurate cross-checking CARS adds (the right image's disparity computed too)."""
+    pipe = {
+        "matching_cost": {"matching_cost_method": "census", "window_size": cfg.census_window, "subpix": 1},
+        "optimization": {"optimization_method": "sgm", "overcounting": False,
+                         "penalty": {"penalty_method": "sgm_penalty", "P1": float(cfg.p1), "P2": float(cfg.p2),
+                                     "p2_method": "constant"}},
+        "disparity": {"disparity_method": "wta", "invalid_disparity": "NaN"},
+        "refinement": {"refinement_method": cfg.refinement},
+    }
+    if cfg.median_size > 1:
+        pipe["filter"] = {"filter_method": "median", "filter_size": cfg.median_size}
+    pipe["validation"] = {"validation_method": "cross_checking_accurate",
+                          "cross_checking_threshold": float(cfg.lr_max_diff_px)}
+    return {"pipeline": pipe}
+
+
+def _pandora_dataset(img: np.ndarray | None, shape: tuple[int, int], d_min: int, d_max: int):
+    """The xarray.Dataset pandora reads for one image (img None: its metadata only, what pandora
+    checks a configuration against): band-less, no nodata, one disparity range for every pixel."""
+    import xarray as xr
+    from pandora.img_tools import add_disparity
+
+    h, w = shape
+    coords = {"row": np.arange(h), "col": np.arange(w)}
+    if img is None:
+        ds = xr.Dataset(coords={"band_im": [None], **coords})
+    else:
+        ds = xr.Dataset({"im": (["row", "col"], img.astype(np.float32))}, coords=coords,
+                        attrs={"crs": None, "transform": None, "valid_pixels": 0, "no_data_mask": 1,
+                               "no_data_img": -9999})
+    return add_disparity(ds, [d_min, d_max], None)
+
+
+_PANDORA_READY = False
+
+
+def _pandora_import():
+    """pandora and its plugins, loaded once per process (its state machine's warnings hushed)."""
+    global _PANDORA_READY
+    import logging
+
+    import pandora
+
+    if not _PANDORA_READY:
+        # pandora sets "transitions" to WARNING at each run; its core's binding notes are noise
+        logging.getLogger("transitions.core").setLevel(logging.ERROR)
+        pandora.import_plugin()
+        _PANDORA_READY = True
+    return pandora
+
+
+@dataclass(frozen=True)
+class PandoraMatcher:
+    """CNES's pandora + pandora_plugin_libsgm: census cost, SGM (8 directions), WTA, sub-pixel
+    refinement, median filter, accurate cross-checking. Pandora's disparity is col_right -
+    col_left, the convention here. Holds only its parameters (picklable); pandora is imported in
+    the process that matches."""
+
+    cfg: PandoraConfig = field(default_factory=PandoraConfig)
+
+    @property
+    def margin_px(self) -> int:
+        return self.cfg.census_window // 2 + self.cfg.median_size // 2 + 1
+
+    def match(self, left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+        import copy
+
+        pandora = _pandora_import()
+        from pandora.check_configuration import check_pipeline_section
+        from pandora.constants import Criteria
+        from pandora.state_machine import PandoraMachine
+
+        d_min, d_max = int(np.floor(d_lo)), int(np.ceil(d_hi))
+        if d_max <= d_min:
+            d_max = d_min + 1
+        shape = left.shape
+        machine = PandoraMachine()
+        conf = check_pipeline_section(copy.deepcopy(pandora_pipeline(self.cfg)),
+                                      _pandora_dataset(None, shape, d_min, d_max),
+                                      _pandora_dataset(None, shape, -d_max, -d_min), machine)
+        out_left, _ = pandora.run(machine, _pandora_dataset(left, shape, d_min, d_max),
+                                  _pandora_dataset(right, shape, -d_max, -d_min), conf)
+        d = np.asarray(out_left["disparity_map"].values, np.float32)
+        flags = np.asarray(out_left["validity_mask"].values)
+        ok = np.isfinite(d) & ((flags & int(Criteria.PANDORA_MSK_PIXEL_INVALID)) == 0)
+        return np.where(ok, d, np.nan).astype(np.float32), ok
+
+
+MATCHERS = {"sgbm": SgbmMatcher, "pandora": PandoraMatcher}
 
 
 def make_matcher(cfg: Config) -> StereoMatcher:
