@@ -114,9 +114,11 @@ class GcpPanel:
         self.region = gui.add_dropdown("Region", ["whole image"], initial_value="whole image",
                                        hint="pick a tile to see it at full resolution")
         self.show_plane = gui.add_checkbox("Show image plane", True)
-        self.contrast = gui.add_dropdown("Contrast", ["site", "image", "window"], initial_value="site",
-                                         hint="site: one stretch for all images; image: this "
-                                              "image's own; window: stretched on what is shown")
+        self.contrast = gui.add_dropdown("Contrast", ["window", "image", "site"], initial_value="window",
+                                         hint="window: stretched on what is shown (the loupe's "
+                                              "pixels: a roof corner in shadow keeps its detail); "
+                                              "image: this image's own; site: one stretch for all "
+                                              "images (they look alike)")
         self.goto = gui.add_button("Look at the image plane", icon=None)
         self.zoom_click = gui.add_checkbox(
             "Click zooms in first (loupe)", True,
