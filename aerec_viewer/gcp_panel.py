@@ -237,7 +237,9 @@ class GcpPanel:
         self.goto.on_click(lambda ev: app.submit(lambda: self.app.look_at_plane(ev.client)))
         def chosen(ev) -> None:          # the value this tab chose, read now, not when queued
             v = ev.target.value
-            app.submit(lambda: (self.note_choice(ev.client, v), self.drop_prediction(), self.fill_fields()))
+            app.submit(lambda: (self.note_choice(ev.client, v), self.drop_prediction(), self.fill_fields(),
+                                v != self.NEW and v in self.app.session.ids
+                                and self.app.note(self.selection_note(v))))
         self.select.on_update(chosen)
         self.crs.on_update(lambda _: app.submit(self._convert_fields))
         self.apply.on_click(lambda _: app.submit(self._apply))
@@ -463,15 +465,38 @@ class GcpPanel:
             raise GcpError(f"another tab changed the GCP to {cur} after this tab chose {mine}: the "
                            f"click recorded nothing; click again to place {cur}, or choose another")
 
+    def finished(self, gid: str) -> bool:
+        """Observed in every image the reconstruction registered (every image of the site before
+        the sparse stage has): nothing left to place."""
+        images = set().union(*(m.images for m in self.app.models.values())) if self.app.models \
+            else {im.name for im in self.app.site.images}
+        return images <= set(self.app.session.get(gid).observations)
+
+    def selection_note(self, gid: str) -> str:
+        g = self.app.session.get(gid)
+        n = len(g.observations)
+        return (f"{gid} selected ({g.role}{'' if g.enabled else ', disabled'}): observed in {n} "
+                f"image(s)" + (", every registered one" if n and self.finished(gid) else ""))
+
+    def neighbour(self, gid: str | None, step: int) -> tuple[str, int]:
+        """(the GCP N (+1) or P (-1) selects from `gid`, how many finished ones it passes over)."""
+        ids = self.app.session.ids
+        todo = {g for g in ids if not self.finished(g)}
+        pool = todo if todo - {gid} else set(ids)
+        start = ids.index(gid) if gid in ids else (-1 if step > 0 else 0)
+        new = next(ids[(start + step * k) % len(ids)] for k in range(1, len(ids) + 1)
+                   if ids[(start + step * k) % len(ids)] in pool)
+        return new, len(ids) - len(pool)
+
     def step_gcp(self, step: int, client=None) -> str | None:
-        """Select the next (step +1) or previous (-1) GCP of the working set, wrapping."""
+        """Select the next (step +1) or previous (-1) GCP of the working set, wrapping, passing
+        over the finished ones (observed in every registered image) while any is not."""
         ids = self.app.session.ids
         if not ids:
             raise GcpError("the working set has no GCP yet")
-        gid = self.selected()
-        k = ids.index(gid) + step if gid in ids else (0 if step > 0 else len(ids) - 1)
-        new = ids[k % len(ids)]
-        self.app.gcps_changed(select=new, note=f"{new} selected")
+        new, skipped = self.neighbour(self.selected(), step)
+        self.app.gcps_changed(select=new, note=self.selection_note(new) + (
+            f"; {skipped} finished GCP(s) passed over" if skipped else ""))
         self.note_choice(client, new)
         return new
 
