@@ -237,8 +237,10 @@ class GcpPanel:
         self.goto.on_click(lambda ev: app.submit(lambda: self.app.look_at_plane(ev.client)))
         def chosen(ev) -> None:          # the value this tab chose, read now, not when queued
             v = ev.target.value
+            # the operator's own choice in the list is described; a selection made by the code
+            # (N, a new GCP, an edit) comes with its own note, which this must not overwrite
             app.submit(lambda: (self.note_choice(ev.client, v), self.drop_prediction(), self.fill_fields(),
-                                v != self.NEW and v in self.app.session.ids
+                                ev.client is not None and v != self.NEW and v in self.app.session.ids
                                 and self.app.note(self.selection_note(v))))
         self.select.on_update(chosen)
         self.crs.on_update(lambda _: app.submit(self._convert_fields))
@@ -484,9 +486,11 @@ class GcpPanel:
         todo = {g for g in ids if not self.finished(g)}
         pool = todo if todo - {gid} else set(ids)
         start = ids.index(gid) if gid in ids else (-1 if step > 0 else 0)
-        new = next(ids[(start + step * k) % len(ids)] for k in range(1, len(ids) + 1)
-                   if ids[(start + step * k) % len(ids)] in pool)
-        return new, len(ids) - len(pool)
+        for k in range(1, len(ids) + 1):
+            new = ids[(start + step * k) % len(ids)]
+            if new in pool:
+                return new, k - 1          # the finished ones stepped over on the way
+        raise AssertionError("unreachable: the pool is never empty")
 
     def step_gcp(self, step: int, client=None) -> str | None:
         """Select the next (step +1) or previous (-1) GCP of the working set, wrapping, passing

@@ -89,7 +89,7 @@ class _Cloud:
     chunks: list[_Chunk] = field(default_factory=list)
     ranges: ColorRanges = field(default_factory=ColorRanges)
     extent: float = 1.0
-    area: float = 0.0                    # its footprint (2-98 % spans multiplied), scene units^2
+    box: tuple | None = None             # its footprint: 2-98 % xy bounds (lo, hi), grown per chunk
     next_k: int = 0
     kept: float = 1.0                    # the store's own thinning when this generation began
 
@@ -104,10 +104,28 @@ class _TileNode:
     frame: object | None = None          # QuadFrame the texture was warped for
 
 
-def _footprint(xyz: np.ndarray) -> tuple[float, float]:
-    """(largest 2-98 % span, product of the two spans) of points in the display frame."""
-    span = np.percentile(xyz[:, :2], 98, axis=0) - np.percentile(xyz[:, :2], 2, axis=0)
-    return float(max(np.max(span), 1e-6)), float(span[0] * span[1])
+def _footprint(xyz: np.ndarray) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
+    """(largest 2-98 % span, the 2-98 % xy bounds) of points in the display frame."""
+    lo, hi = np.percentile(xyz[:, :2], 2, axis=0), np.percentile(xyz[:, :2], 98, axis=0)
+    return float(max(np.max(hi - lo), 1e-6)), (lo, hi)
+
+
+def union_area(boxes: list[tuple[np.ndarray, np.ndarray]], cells: int = 128) -> float:
+    """Area covered by axis-aligned boxes (lo, hi): the date groups overlap in the Euclidean
+    frame and lie side by side in the affine one (counted on a cells x cells raster)."""
+    boxes = [(np.asarray(lo, float), np.asarray(hi, float)) for lo, hi in boxes
+             if np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi > lo)]
+    if not boxes:
+        return 0.0
+    lo = np.min([b[0] for b in boxes], axis=0)
+    hi = np.max([b[1] for b in boxes], axis=0)
+    step = (hi - lo) / cells
+    centres = [lo[k] + step[k] * (np.arange(cells) + 0.5) for k in range(2)]
+    covered = np.zeros((cells, cells), bool)
+    for blo, bhi in boxes:
+        covered |= np.outer((centres[1] >= blo[1]) & (centres[1] <= bhi[1]),
+                            (centres[0] >= blo[0]) & (centres[0] <= bhi[0]))
+    return float(covered.mean() * np.prod(hi - lo))
 
 
 class SceneView:
@@ -183,7 +201,7 @@ class SceneView:
         xyz = T.apply(sub.xyz)
         if len(xyz):
             st.ranges = color_ranges(xyz[:, 2], sub.n_views, sub.reproj)
-            st.extent, st.area = _footprint(xyz)
+            st.extent, st.box = _footprint(xyz)
         sent = 0
         for s in range(0, len(sub), CHUNK_MAX):
             part = sub.subset(slice(s, s + CHUNK_MAX))
@@ -197,12 +215,15 @@ class SceneView:
         sub = b.subset(keep_mask(b.ids, st.fraction * st.kept, cloud_salt(*key)))
         if len(sub) == 0:
             return 0
+        xyz = T.apply(sub.xyz)
         if not st.chunks:                  # first points of this generation: fix the ranges
-            xyz = T.apply(sub.xyz)
             st.ranges = color_ranges(xyz[:, 2], sub.n_views, sub.reproj)
-            st.extent, st.area = _footprint(xyz)
-        return self._send(key, st, sub, T.apply(sub.xyz), visible,
-                          tuple(x.t_added for x in batches))
+            st.extent, st.box = _footprint(xyz)
+        elif len(xyz) >= 50:               # a cloud growing tile by tile: its footprint grows
+            _, (lo, hi) = _footprint(xyz)
+            lo, hi = np.minimum(st.box[0], lo), np.maximum(st.box[1], hi)
+            st.box, st.extent = (lo, hi), float(max(np.max(hi - lo), 1e-6))
+        return self._send(key, st, sub, xyz, visible, tuple(x.t_added for x in batches))
 
     def _send(self, key, st: _Cloud, sub: PointBatch, xyz: np.ndarray, visible: bool,
               t_added: tuple[float, ...]) -> int:
@@ -223,10 +244,11 @@ class SceneView:
 
     def point_size(self) -> float:
         """Point size in scene units: the setting times the automatic size, at which the points
-        shown about tile the largest cloud's footprint (display.auto_point_size)."""
-        live = [c for c in self._clouds.values() if c.generation >= 0]
+        shown about tile the footprint of the clouds shown (display.auto_point_size)."""
+        show = {"sparse": self.settings.show_sparse, "dense": self.settings.show_dense}
+        live = [c for (g, kind), c in self._clouds.items() if c.generation >= 0 and show[kind]]
         ext = max((c.extent for c in live), default=1000.0)
-        area = max((c.area for c in live), default=0.0)
+        area = union_area([c.box for c in live if c.box is not None])
         return float(self.settings.point_size * auto_point_size(ext, area, self._shown()))
 
     def apply_point_size(self) -> None:
@@ -331,6 +353,9 @@ class SceneView:
         outline = self.scene.add_line_segments(f"{base}/outline", seg, tuple(int(c) for c in col),
                                                thickness=0.002 * diag, visible=mode != "hidden")
         image, frame = (old.image, old.frame) if old is not None else (None, None)
+        if mode != "textured" and image is not None:   # hidden at a pose now stale: drop it
+            image.remove()
+            image, frame = None, None
         if mode == "textured":
             lowered = corners + np.array([0.0, 0.0, -0.02 * diag])   # just under the points
             new = quad_frame(lowered)

@@ -243,14 +243,17 @@ def site_grid(images: list[ProductImage]) -> tuple[dict | None, str | None]:
     lon, lat = float(ll[:, 0].mean()), float(ll[:, 1].mean())
     epsg = (32600 if lat >= 0 else 32700) + int((lon + 180) // 6) + 1
     xy = geodetic_to_projected(np.column_stack([ll, np.zeros(len(ll))]), epsg)
-    b = [float(xy[:, 0].min()), float(xy[:, 1].min()), float(xy[:, 0].max()), float(xy[:, 1].max())]
-    hints = {"crs_epsg": epsg, "bounds": [round(v, 1) for v in b]}
+    b = [round(float(v), 1) for v in (xy[:, 0].min(), xy[:, 1].min(), xy[:, 0].max(), xy[:, 1].max())]
+    if not all(np.isfinite(b)):
+        return None, None
+    hints = {"crs_epsg": epsg, "bounds": b}
     # a full scene's footprint (20 km a side) at the default 0.5 m is more DSM cells than fit
     # (site.check_grid_size): site.json then names the finest resolution, in 0.5 m steps, that fits
     from recon_core.io.site import MAX_DSM_CELLS
 
-    res = 0.5
-    while (b[2] - b[0]) * (b[3] - b[1]) / res ** 2 > MAX_DSM_CELLS:
+    area = (b[2] - b[0]) * (b[3] - b[1])
+    res = max(0.5, float(np.ceil(2.0 * np.sqrt(area / MAX_DSM_CELLS))) / 2.0)
+    while area / res ** 2 > MAX_DSM_CELLS:           # rounding at the boundary
         res += 0.5
     if res > 0.5:
         hints["resolution_m"] = res

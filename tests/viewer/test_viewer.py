@@ -197,6 +197,19 @@ def test_points_about_tile_the_footprint_whatever_the_budget():
     assert len(sizes) <= 3
 
 
+def test_union_area_counts_overlapping_groups_once():
+    from aerec_viewer.scene import union_area
+
+    a = (np.array([0.0, 0.0]), np.array([100.0, 100.0]))
+    side = (np.array([200.0, 0.0]), np.array([300.0, 100.0]))        # the affine frame: side by side
+    half = (np.array([50.0, 0.0]), np.array([150.0, 100.0]))
+    assert np.isclose(union_area([a]), 1e4, rtol=0.02)
+    assert np.isclose(union_area([a, a, a]), 1e4, rtol=0.02)           # Euclidean: on top
+    assert np.isclose(union_area([a, side]), 2e4, rtol=0.02)
+    assert np.isclose(union_area([a, half]), 1.5e4, rtol=0.02)
+    assert union_area([]) == 0.0
+
+
 def test_closest_point_to_ray_picks_the_point_under_the_cursor():
     P = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, -100.0]])
     o = np.array([10.2, 0.1, 100.0])
@@ -829,9 +842,15 @@ def test_next_gcp_passes_over_finished_gcps(live):
         app.call(lambda: gp.refresh(select=finished[0]))
         todo = [g for g in ids if not app.call(lambda g=g: gp.finished(g))]
         assert target in todo
+        k0 = ids.index(finished[0])
+        between = [ids[(k0 + j) % len(ids)] for j in range(1, len(ids))]
         first = app.call(lambda: gp.step_gcp(+1))
         assert first in todo
-        assert app.gcp_panel.status.content.startswith(f"{first} selected")
+        app.wait_idle()                          # the selection's own callbacks have run
+        status = app.gcp_panel.status.content
+        assert status.startswith(f"{first} selected"), status
+        n_over = between.index(first)             # the finished ones between the two
+        assert (f"; {n_over} finished GCP(s) passed over" in status) == (n_over > 0), status
         if len(todo) >= 2:                      # they alternate, the finished ones passed over
             seen = [app.call(lambda: gp.step_gcp(+1)) for _ in range(len(todo))]
             assert set(seen) == set(todo)
