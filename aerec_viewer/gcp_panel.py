@@ -438,7 +438,7 @@ class GcpPanel:
         self.accept.disabled = False
         self.accept.label = f"Accept: {gid} at col {pred.col:.2f}, row {pred.row:.2f}"
         self.app.note(f"{gid} predicted in {image} at col {pred.col:.2f}, row {pred.row:.2f} "
-                      f"({pred.how}); Accept records it, or click the right pixel")
+                      f"({pred.how}; {pred.uncertainty()}); Accept records it, or click the right pixel")
         return pred
 
     def note_choice(self, client, value: str | None = None, chooser: bool = True) -> None:
@@ -546,7 +546,8 @@ class GcpPanel:
             self.accept.label = f"Accept: {gid} at col {pred.col:.2f}, row {pred.row:.2f}"
         self._loupe_after_switch(gid, pred.image, (pred.col, pred.row), client,
                                  f"{gid} in {pred.image}: predicted at col {pred.col:.2f}, row "
-                                 f"{pred.row:.2f} ({pred.how}), shown in the loupe: click the exact "
+                                 f"{pred.row:.2f} ({pred.how}; {pred.uncertainty()}), shown in the "
+                                 "loupe: click the exact "
                                  "pixel, or Enter to accept the prediction as it is", before_open=offer)
 
     def walk_on(self, gid: str, client=None) -> str | None:

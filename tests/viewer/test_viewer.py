@@ -1312,7 +1312,7 @@ def test_prediction_of_a_gcp_in_another_image_against_the_truth(tiny_run):
     state, _ = tiny_run
     m = state.models[0]
     images = {im.name: im for im in state.site.images}
-    two, one_geo, one_ref = [], [], []
+    two, one_geo, one_ref, reach = [], [], [], []
     for g in _truth_gcps(state.site.root):
         tob = {k: tuple(v) for k, v in g["true_observations"].items()}
         for dst in sorted(tob):
@@ -1320,6 +1320,7 @@ def test_prediction_of_a_gcp_in_another_image_against_the_truth(tiny_run):
             p = predict_observation(m, images, others, dst) if len(others) >= 2 else None
             if p is not None:
                 two.append(np.hypot(p.col - tob[dst][0], p.row - tob[dst][1]))
+                reach.append(p.reach_px)
             for src in sorted(tob):
                 if src == dst:
                     continue
@@ -1332,6 +1333,10 @@ def test_prediction_of_a_gcp_in_another_image_against_the_truth(tiny_run):
     assert len(one_ref) >= 15
     assert np.median(one_ref) < 0.5 and np.median(one_ref) < 0.2 * np.median(one_geo), \
         (np.median(one_ref), np.median(one_geo))
+    # a triangulated prediction says how well its noise-free observations agree (about the
+    # sparse reprojection error of the tile cameras, not zero and not pixels)
+    r = np.array(reach, float)
+    assert np.all(np.isfinite(r)) and 0.0 < np.median(r) < 1.0, np.round(r, 2)
 
 
 def test_predict_then_accept_from_the_gcp_panel(live):
