@@ -467,11 +467,17 @@ class GcpPanel:
             raise GcpError(f"another tab changed the GCP to {cur} after this tab chose {mine}: the "
                            f"click recorded nothing; click again to place {cur}, or choose another")
 
-    def finished(self, gid: str) -> bool:
-        """Observed in every image the reconstruction registered (every image of the site before
-        the sparse stage has): nothing left to place."""
-        images = set().union(*(m.images for m in self.app.models.values())) if self.app.models \
-            else {im.name for im in self.app.site.images}
+    def _registered_images(self) -> set[str]:
+        """The images the reconstruction registered (every image of the site before the sparse
+        stage has)."""
+        if self.app.models:
+            return set().union(*(m.images for m in self.app.models.values()))
+        return {im.name for im in self.app.site.images}
+
+    def finished(self, gid: str, images: set[str] | None = None) -> bool:
+        """Observed in every registered image (`images`, when the caller has them): nothing left
+        to place."""
+        images = self._registered_images() if images is None else images
         return images <= set(self.app.session.get(gid).observations)
 
     def selection_note(self, gid: str) -> str:
@@ -483,7 +489,8 @@ class GcpPanel:
     def neighbour(self, gid: str | None, step: int) -> tuple[str, int]:
         """(the GCP N (+1) or P (-1) selects from `gid`, how many finished ones it passes over)."""
         ids = self.app.session.ids
-        todo = {g for g in ids if not self.finished(g)}
+        images = self._registered_images()
+        todo = {g for g in ids if not self.finished(g, images)}
         pool = todo if todo - {gid} else set(ids)
         start = ids.index(gid) if gid in ids else (-1 if step > 0 else 0)
         for k in range(1, len(ids) + 1):

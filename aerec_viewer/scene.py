@@ -164,16 +164,17 @@ class SceneView:
             for kind, cloud in (("sparse", gs.sparse), ("dense", gs.dense)):
                 sent += self._sync_cloud(g, kind, cloud, T, frac)
             self._sync_tiles(g, gs.tiles, gs.newest_tile, T, dense=gs.dense.n > 0)
-        if sent and any(c.handle.point_size != self.point_size()
-                        for st in self._clouds.values() for c in st.chunks):
-            self.apply_point_size()
+        if sent:
+            size = self.point_size()
+            if any(c.handle.point_size != size for st in self._clouds.values() for c in st.chunks):
+                self.apply_point_size(size)
         return sent
 
     def _sync_cloud(self, g: int, kind: str, cloud: CloudView, T: DisplayTransform,
                     frac: float) -> int:
         key = (g, kind)
         st = self._clouds.setdefault(key, _Cloud())
-        visible = self.settings.show_sparse if kind == "sparse" else self.settings.show_dense
+        visible = self._shows(kind)
         rebuild = (st.generation != cloud.generation or st.transform is not T
                    or frac < st.fraction / self._slack or (frac > st.fraction * 1.5 and st.fraction < 1.0)
                    or len(st.chunks) > MAX_CHUNKS or len(cloud.batches) < st.n_batches)
@@ -245,14 +246,13 @@ class SceneView:
     def point_size(self) -> float:
         """Point size in scene units: the setting times the automatic size, at which the points
         shown about tile the footprint of the clouds shown (display.auto_point_size)."""
-        show = {"sparse": self.settings.show_sparse, "dense": self.settings.show_dense}
-        live = [c for (g, kind), c in self._clouds.items() if c.generation >= 0 and show[kind]]
+        live = [c for (g, kind), c in self._clouds.items() if c.generation >= 0 and self._shows(kind)]
         ext = max((c.extent for c in live), default=1000.0)
         area = union_area([c.box for c in live if c.box is not None])
         return float(self.settings.point_size * auto_point_size(ext, area, self._shown()))
 
-    def apply_point_size(self) -> None:
-        size = self.point_size()
+    def apply_point_size(self, size: float | None = None) -> None:
+        size = self.point_size() if size is None else size
         for st in self._clouds.values():
             for c in st.chunks:
                 c.handle.point_size = size
@@ -265,7 +265,7 @@ class SceneView:
 
     def apply_visibility(self) -> None:
         for (g, kind), st in self._clouds.items():
-            vis = self.settings.show_sparse if kind == "sparse" else self.settings.show_dense
+            vis = self._shows(kind)
             for c in st.chunks:
                 c.handle.visible = vis
         self.apply_point_size()          # the points shown set the size
@@ -290,10 +290,13 @@ class SceneView:
                     best = (ang, g, st.transform.inverse(ch.xyz[k:k + 1])[0])
         return None if best is None else (best[1], best[2])
 
+    def _shows(self, kind: str) -> bool:
+        """Are the clouds of this kind (sparse, dense) shown?"""
+        return self.settings.show_sparse if kind == "sparse" else self.settings.show_dense
+
     def _shown(self) -> int:
         """Points on screen: the chunks of the kinds shown."""
-        show = {"sparse": self.settings.show_sparse, "dense": self.settings.show_dense}
-        return sum(len(c.batch) for (g, kind), st in self._clouds.items() if show[kind]
+        return sum(len(c.batch) for (g, kind), st in self._clouds.items() if self._shows(kind)
                    for c in st.chunks)
 
     def displayed_points(self) -> int:

@@ -23,6 +23,7 @@ import numpy as np
 
 from recon_core.errors import InputError
 from recon_core.io.files import atomic_path, write_json
+from recon_core.io.site import MAX_DSM_CELLS, parse_iso_time
 
 RASTER_SUFFIXES = (".tif", ".tiff", ".jp2", ".ntf", ".vrt")
 TILE_NAME = re.compile(r"^(?P<base>.+)_R(?P<r>\d+)C(?P<c>\d+)$", re.I)    # IMG_..._R1C2
@@ -56,10 +57,7 @@ def _open(path: Path):
 
 def _parse_time(path: Path, field: str, text: str, fmt: str | None = None) -> datetime:
     try:
-        if fmt:
-            t = datetime.strptime(text.strip(), fmt)
-        else:
-            t = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+        t = datetime.strptime(text.strip(), fmt) if fmt else parse_iso_time(text)
     except ValueError:
         raise InputError(path, f"{field} {text!r} is not a time") from None
     t = t if t.tzinfo else t.replace(tzinfo=timezone.utc)
@@ -249,8 +247,6 @@ def site_grid(images: list[ProductImage]) -> tuple[dict | None, str | None]:
     hints = {"crs_epsg": epsg, "bounds": b}
     # a full scene's footprint (20 km a side) at the default 0.5 m is more DSM cells than fit
     # (site.check_grid_size): site.json then names the finest resolution, in 0.5 m steps, that fits
-    from recon_core.io.site import MAX_DSM_CELLS
-
     area = (b[2] - b[0]) * (b[3] - b[1])
     res = max(0.5, float(np.ceil(2.0 * np.sqrt(area / MAX_DSM_CELLS))) / 2.0)
     while area / res ** 2 > MAX_DSM_CELLS:           # rounding at the boundary

@@ -37,15 +37,6 @@ class ImageFeatures:
         return ImageFeatures(self.image, self.xy, np.empty((len(self.xy), 0), np.uint8), self.scale,
                              self.response, self.gray)
 
-    def spilled(self, path: Path) -> "ImageFeatures":
-        """The same keypoints with the descriptors written to `path` (.npy) and read back as a
-        read-only memory map: matching reads each tile's descriptors when it needs them, and
-        the page cache, not the process, holds them (a 20 x 20 km scene: ~72 M keypoints,
-        9 GB of descriptors)."""
-        np.save(path, self.desc)
-        return ImageFeatures(self.image, self.xy, np.load(path, mmap_mode="r"), self.scale,
-                             self.response, self.gray)
-
     def subset(self, idx: np.ndarray) -> "ImageFeatures":
         return ImageFeatures(self.image, self.xy[idx], self.desc[idx], self.scale[idx],
                              self.response[idx], self.gray[idx])
@@ -70,7 +61,12 @@ def tone_curve_for(images: list[ImageInfo], percentiles=(0.5, 99.5), factor: int
     return _curve_of([_overview_values(im, factor) for im in images], percentiles)
 
 
-OVERVIEW_MAX_PX = 2048 * 2048     # a tone curve's overview has at most this many pixels
+OVERVIEW_MAX_PX = 2048 * 2048     # an overview (tone curve, coarse link) has at most this many pixels
+
+
+def overview_factor(im: ImageInfo, factor: int) -> int:
+    """`factor`, or the decimation that brings the image's overview down to OVERVIEW_MAX_PX."""
+    return max(factor, int(np.ceil(np.sqrt(im.width * im.height / OVERVIEW_MAX_PX))))
 
 
 def _overview_values(im: ImageInfo, factor: int = 8) -> np.ndarray:
@@ -79,8 +75,7 @@ def _overview_values(im: ImageInfo, factor: int = 8) -> np.ndarray:
     infinite pixels scattered everywhere). The overview is decimated by `factor`, or more for an
     image over 16,000 px a side: at most OVERVIEW_MAX_PX pixels (a 40,000 px scene at factor 8
     was 25 Mpx, 0.6 GB of copies for two percentiles)."""
-    f = max(1, min(factor, min(im.width, im.height) // 64))
-    f = max(f, int(np.ceil(np.sqrt(im.width * im.height / OVERVIEW_MAX_PX))))
+    f = overview_factor(im, max(1, min(factor, min(im.width, im.height) // 64)))
     ov = read_downsampled(im, f)
     v = ov[np.isfinite(ov)].ravel()
     if len(v) < 0.05 * ov.size:
@@ -227,7 +222,7 @@ def detect_overview(image: ImageInfo, factor: int, tone: ToneCurve, max_features
     The copy is decimated by `factor`, or more for an image over 16,000 px a side: at most
     OVERVIEW_MAX_PX pixels (SIFT's pyramid of a 5,000 px copy of a 40,000 px scene, doubled
     in size first, would be several GB)."""
-    factor = max(factor, int(np.ceil(np.sqrt(image.width * image.height / OVERVIEW_MAX_PX))))
+    factor = overview_factor(image, factor)
     ov = read_downsampled(image, factor)
     img8 = tone.apply(ov)
     sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.01)

@@ -171,7 +171,8 @@ def test_matching_on_spilled_descriptors_equals_matching_in_memory(tmp_path):
     link = coarse_link("a", detect_overview(a, 2, tone), "b", detect_overview(b, 2, tone))
     ta, tb = tile_image(a.name, 640, 640, 300), tile_image(b.name, 640, 640, 300)
     mem = match_pair(fa, fb, link, ta, tb, MatchingConfig(), np.random.default_rng(0))
-    sa, sb = fa.spilled(tmp_path / "a.npy"), fb.spilled(tmp_path / "b.npy")
+    sa = detect_image(a, FeatureConfig(), tone, spill=tmp_path / "a.desc")
+    sb = detect_image(b, FeatureConfig(), tone, spill=tmp_path / "b.desc")
     assert isinstance(sa.desc, np.memmap) and not sa.desc.flags.writeable
     assert np.array_equal(np.asarray(sa.desc), fa.desc) and np.array_equal(sa.xy, fa.xy)
     disk = match_pair(sa, sb, link, ta, tb, MatchingConfig(), np.random.default_rng(0))
