@@ -28,7 +28,7 @@ from recon_core.model.sparse_model import Observations, SparseModel, images_per_
 from recon_core.model.tiling import Tile
 from recon_core.sparse.bundle import bundle_adjust
 from recon_core.sparse.features import ImageFeatures
-from recon_core.geometry.pushbroom import (MAX_MODEL_MISFIT_PX, MAX_STRAIGHT_MISFIT_PX,
+from recon_core.geometry.pushbroom import (MAX_FOCAL_SHARE, MAX_MODEL_MISFIT_PX, MAX_STRAIGHT_MISFIT_PX,
                                           MIN_POINTS_PER_IMAGE, MIN_TILES_FOR_CORRECTION,
                                           correction_size, estimate_bend, model_misfit,
                                           tile_corrections)
@@ -692,8 +692,13 @@ class IncrementalSfM:
         too: the bend step can only tell them apart where every line is straight. Tried on a
         copy: the bend the straight-line models see taken out, each image's straight-line model
         must then explain it to MAX_STRAIGHT_MISFIT_PX (pushbroom.model_misfit, focal_plane=
-        False); a sensor with a bowed or distorted line does not (omaha_3dates: 0.05-0.14 px;
-        this project's simulator: under 0.01). Returns {"straight": bool, the misfits, why}."""
+        False), or, where it does not, its miss must not be a focal plane's: the focal-plane
+        terms must take away less than MAX_FOCAL_SHARE of its power (a miss they mostly do not
+        take away is not a bowed line's, whose c^2 the bend step would read as a bend). A
+        sensor with a bowed or
+        distorted line fails both (omaha_3dates: 0.04-0.17 px, of which the focal-plane terms
+        take away 0.55-0.98); this project's straight sensors pass (small sites: under 0.02 px;
+        `large`: 0.03-0.11 px, of which they take away 0.33-0.60). Returns {"straight": bool, the misfits, why}."""
         m = self.m
         pts, images = m.point_views(min_tiles=MIN_TILES_FOR_CORRECTION)
         views = m.views_per_image(min_tiles=MIN_TILES_FOR_CORRECTION)
@@ -703,13 +708,23 @@ class IncrementalSfM:
         warp, info = estimate_bend(X, images, focal_plane=False)
         if info["warps_seen"]:
             X = X + warp(X)
-        mis = {m.images[i]: round(model_misfit(X[p], xy, focal_plane=False), 4)
-               for (i, _), (p, xy) in zip(views, images) if len(p) >= MIN_POINTS_PER_IMAGE}
-        bad = sorted((v, k) for k, v in mis.items() if v > MAX_STRAIGHT_MISFIT_PX)
-        out = {"straight": not bad, "misfit_px": mis, "max_misfit_px": MAX_STRAIGHT_MISFIT_PX}
+        mis, share = {}, {}
+        for (i, _), (p, xy) in zip(views, images):
+            if len(p) < MIN_POINTS_PER_IMAGE:
+                continue
+            s = model_misfit(X[p], xy, focal_plane=False)
+            mis[m.images[i]] = round(s, 4)
+            if s > MAX_STRAIGHT_MISFIT_PX:
+                f = model_misfit(X[p], xy, focal_plane=True)
+                share[m.images[i]] = round(1.0 - min(f / s, 1.0) ** 2, 3)
+        bad = sorted((share[k], mis[k], k) for k in share if share[k] > MAX_FOCAL_SHARE)
+        out = {"straight": not bad, "misfit_px": mis, "max_misfit_px": MAX_STRAIGHT_MISFIT_PX,
+               "focal_share": share, "max_focal_share": MAX_FOCAL_SHARE}
         if bad:
-            out["why"] = (f"{bad[-1][1]} is not a straight line array ({bad[-1][0]:.2f} px of systematic "
-                          f"error > {MAX_STRAIGHT_MISFIT_PX} px once the bend it sees is out)")
+            sh, px, name = bad[-1]
+            out["why"] = (f"{name} is not a straight line array ({px:.2f} px of systematic error "
+                          f"> {MAX_STRAIGHT_MISFIT_PX} px once the bend it sees is out, {sh:.0%} of it "
+                          f"a focal plane's > {MAX_FOCAL_SHARE:.0%})")
         return out
 
     def _bundle(self, scope: str, around: int | None = None, final: bool = False,
