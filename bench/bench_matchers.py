@@ -1,9 +1,9 @@
-"""The stereo matchers side by side on the same sparse reconstruction: OpenCV's SGBM (the default)
-and CNES's pandora (census + SGM, as CARS sets it; `pip install 'aerec[pandora]'`). Prints one
-table; asserts nothing.
+"""The stereo matchers side by side on the same sparse reconstruction: OpenCV's SGBM (the default),
+the built-in MGM (census + MGM, the paper's matcher) and CNES's pandora (census + SGM, as CARS
+sets it; `pip install 'aerec[pandora]'`). Prints one table; asserts nothing.
 
-    python bench/bench_matchers.py                                 # every site found, both matchers
-    python bench/bench_matchers.py --sites gizeh,reunion --matchers sgbm,pandora
+    python bench/bench_matchers.py                                 # every site found, sgbm and mgm
+    python bench/bench_matchers.py --sites gizeh,reunion --matchers sgbm,mgm,pandora
     python bench/bench_matchers.py --table-only                    # reprint from results.json
 
 Sites as in bench_accuracy.py: `omaha` (../shared/data/omaha_3dates: an independent simulator's
@@ -201,7 +201,7 @@ def print_table(results: dict, sites: list[str], matchers: list[str]) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sites", default="gizeh,reunion,omaha,demo")
-    ap.add_argument("--matchers", default="sgbm,pandora")
+    ap.add_argument("--matchers", default="sgbm,mgm")
     ap.add_argument("--root", type=Path, default=Path("/tmp/aerec_matchers"))
     ap.add_argument("--table-only", action="store_true")
     ap.add_argument("--rerun", action="store_true", help="run again what results.json already has")

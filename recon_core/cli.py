@@ -174,7 +174,7 @@ def cmd_run(args) -> int:
         overrides["dense.workers"] = args.workers
     cfg = cfg.with_overrides(overrides)
     try:
-        check_config(cfg)
+        check_config(cfg, args.stage)
     except InputError as exc:          # name where the value came from
         where = args.config if args.config is not None else None
         raise InputError(where, exc.problem + ("" if where else " (from the command line)")) from None

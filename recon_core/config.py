@@ -166,10 +166,11 @@ class BundleConfig:
 @dataclass
 class DenseConfig:
     step: int = _p(1, lo=1, hi=64)    # stride of the reference-pixel grid (1 = every pixel)
-    matcher: str = _p("sgbm", choices=("sgbm", "pandora"))  # stereo matcher (recon_core.dense.matchers.MATCHERS); its
-                                      # parameters are the config section of the same name;
-                                      # "pandora" (CNES's census + SGM) needs the optional extra:
-                                      # pip install 'aerec[pandora]' (docs: accuracy.md, "Matchers: SGBM and pandora")
+    matcher: str = _p("sgbm", choices=("sgbm", "mgm", "pandora"))  # stereo matcher (recon_core.dense.matchers.MATCHERS);
+                                      # its parameters are the config section of the same name;
+                                      # "mgm": the paper's (census + MGM, built in); "pandora"
+                                      # (CNES's census + SGM) needs the optional extra:
+                                      # pip install 'aerec[pandora]' (docs: accuracy.md, "Matchers: SGBM, MGM and pandora")
     disp_margin_px: float = _p(8.0, lo=0, hi=10_000)  # margin added around the sparse disparity percentiles
     disp_margin_frac: float = _p(0.25, lo=0, hi=100)  # ... plus this fraction of the percentile range
     min_pair_matches: int = _p(20, lo=4, hi=1_000_000)  # a tile pair needs this many sparse matches to be matched
@@ -198,6 +199,25 @@ class SgbmConfig:
     speckle_window: int = _p(100, lo=0, hi=100_000)  # speckle filter: max region size (px) to remove
     speckle_range: int = _p(2, lo=0, hi=1000)  # speckle filter: max disparity variation (px)
     lr_max_diff_px: float = _p(1.0, lo=0, hi=1000)  # left-right consistency tolerance (px)
+
+
+@dataclass
+class MgmConfig:
+    """MGM (More Global Matching, Facciolo et al. 2015: the paper's matcher, and s2p's) on a census
+    cost, built in (recon_core.dense.mgm): 8 directions, each message from two neighbours,
+    winner-take-all, V-fit sub-pixel refinement, a left-right check, a 3 x 3 median, a speckle
+    filter."""
+
+    census_window: int = _p(5, choices=(3, 5, 7))  # census window side (px); costs run from 0 to census_window^2 - 1
+    p1: float = _p(8.0, lo=0, hi=10_000)  # penalty of a 1 px disparity step (census units)
+    p2: float = _p(32.0, lo=0, hi=100_000)  # penalty of a larger step (>= p1)
+    lr_max_diff_px: float = _p(1.0, lo=0, hi=1000)  # left-right check tolerance (px)
+    median: bool = _p(True)           # 3 x 3 median of the valid disparities
+    speckle_window: int = _p(100, lo=0, hi=100_000)  # speckle filter: max region size (px) to remove (0 = none)
+    speckle_range: float = _p(2.0, lo=0, hi=1000)  # speckle filter: max disparity step inside a region (px)
+    max_volume_mb: float = _p(512.0, lo=16, hi=1_000_000)  # a worker's 3 cost volumes together stay under
+                                      # this (MB): larger canvases are matched in row strips
+                                      # overlapping by 64 rows
 
 
 @dataclass
@@ -290,6 +310,7 @@ class Config:
     bundle: BundleConfig = field(default_factory=BundleConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
     sgbm: SgbmConfig = field(default_factory=SgbmConfig)
+    mgm: MgmConfig = field(default_factory=MgmConfig)
     pandora: PandoraConfig = field(default_factory=PandoraConfig)
     upgrade: UpgradeConfig = field(default_factory=UpgradeConfig)
     dsm: DsmConfig = field(default_factory=DsmConfig)
@@ -500,6 +521,7 @@ RELATIONS = (
      and c.features.stretch_percentiles[0] < c.features.stretch_percentiles[1]),
      "two percentiles, the lower first"),
     (("sgbm.p2", "sgbm.p1"), lambda c: c.sgbm.p2 < c.sgbm.p1, "P2 must be >= P1 (SGM's penalties)"),
+    (("mgm.p2", "mgm.p1"), lambda c: c.mgm.p2 < c.mgm.p1, "P2 must be >= P1 (MGM's penalties)"),
     (("pandora.p2", "pandora.p1"), lambda c: c.pandora.p2 <= c.pandora.p1,
      "P2 must be > P1 (SGM's penalties, as pandora_plugin_libsgm requires)"),
     (("dense.max_two_view_spread",), lambda c: 0 < c.dense.max_two_view_spread < 1,
@@ -531,6 +553,12 @@ def validate(cfg: Config) -> None:
         if broken(cfg):
             vals = ", ".join(f"{n} = {_get(cfg, n)!r}" for n in names)
             raise ValueError(f"{vals}: {need}")
+
+
+def check_extras(cfg: Config) -> None:
+    """The optional packages the chosen matcher needs are installed (only asked of a run that
+    reaches the dense stage: one that stops before needs none). Raises ValueError naming the
+    field and the install command."""
     from recon_core.extras import missing_packages
 
     missing = missing_packages(cfg.dense.matcher)

@@ -55,7 +55,8 @@ CHAIN: tuple[Step, ...] = (
     Step("bend_step", "the quadratic bend of the structure that the images' straight-line models "
          "see taken out at each correction round (several dates only)", "recon_core.sparse.sfm", False,
          "sfm.bend_step", False, "any sensor that is not a straight line array (checked on the run's "
-         "data: a bowed line looks like a bend; every real sensor so far); one date"),
+         "data: its straight-line model misses it by more than 0.02 px, mostly by what the focal-"
+         "plane terms take away; a bowed line looks like a bend; every real sensor so far); one date"),
     Step("dense", "per overlapping tile pair: affine F from the cameras, rectifying affine maps, "
          "semi-global matching with a left-right check, multi-view tracks with a photometric "
          "check, triangulation", "recon_core.dense", True),

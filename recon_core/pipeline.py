@@ -180,14 +180,17 @@ def refuse_nested(site_root: Path, out: Path) -> None:
                               "output folder; choose one that does not contain the site")
 
 
-def check_config(cfg: Config) -> None:
+def check_config(cfg: Config, until: str | None = None) -> None:
     """Every parameter against the schema (recon_core.config.validate: type, range, finiteness,
-    choices, relations between fields), before any compute. Raises InputError naming the field
-    (without a file: the caller names where the value came from)."""
-    from recon_core.config import validate
+    choices, relations between fields), and, for a run that reaches the dense stage (`until`
+    None or later), the chosen matcher's optional packages; before any compute. Raises
+    InputError naming the field (without a file: the caller names where the value came from)."""
+    from recon_core.config import check_extras, validate
 
     try:
         validate(cfg)
+        if until not in STAGES or STAGES.index(until) >= STAGES.index("dense"):
+            check_extras(cfg)
     except ValueError as exc:
         raise InputError(None, str(exc)) from None
 
@@ -227,7 +230,7 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     folder (creatable and writable), and, when the run goes as far as the upgrade, GCPs: at
     least one date group must have >= 4 control GCPs observed in >= 2 of its images (or picked
     on its cloud). Raises InputError; returns warnings (a group that will not be upgraded)."""
-    check_config(cfg)
+    check_config(cfg, until)
     site, out = _load(site_path, out, until, redo_from)
     check_images(site)
     early = check_groups(site, cfg)

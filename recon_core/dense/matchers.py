@@ -3,6 +3,7 @@ a disparity field and its validity out. `DenseConfig.matcher` picks one by name;
 are the configuration section of the same name.
 
 - `sgbm`: OpenCV's StereoSGBM (the default).
+- `mgm`: MGM on a census cost, the paper's matcher (and s2p's), built in (recon_core.dense.mgm).
 - `pandora`: CNES's pandora with pandora_plugin_libsgm (census, SGM, V-fit, cross-checking), as
   CNES CARS configures it for satellite pairs; an optional extra (`pip install 'aerec[pandora]'`),
   imported only when used.
@@ -19,7 +20,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from recon_core.config import Config, PandoraConfig, SgbmConfig
+from recon_core.config import Config, MgmConfig, PandoraConfig, SgbmConfig
 
 
 class StereoMatcher(Protocol):
@@ -85,6 +86,28 @@ class SgbmMatcher:
         Dr = run_sgbm(right[:, ::-1].copy(), left[:, ::-1].copy(), min_d, num_d, self.cfg)[:, ::-1]
         ok = lr_consistent(D, Dr, self.cfg.lr_max_diff_px)
         return np.where(ok, -D, np.nan).astype(np.float32), ok
+
+
+@dataclass(frozen=True)
+class MgmMatcher:
+    """MGM (recon_core.dense.mgm): census cost, 8 directions of two-neighbour messages, WTA,
+    V-fit, left-right check from the same aggregated costs, 3 x 3 median, speckle filter."""
+
+    cfg: MgmConfig = field(default_factory=MgmConfig)
+
+    @property
+    def margin_px(self) -> int:
+        return self.cfg.census_window // 2 + 2
+
+    def match(self, left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+        from recon_core.dense.mgm import mgm_disparity
+
+        c = self.cfg
+        d = mgm_disparity(left, right, d_lo, d_hi, census_window=c.census_window, p1=c.p1, p2=c.p2,
+                          lr_max_diff_px=c.lr_max_diff_px, median=c.median, speckle_window=c.speckle_window,
+                          speckle_range=c.speckle_range, max_volume_mb=c.max_volume_mb)
+        return d, np.isfinite(d)
 
 
 # -- pandora (CNES) ------------------------------------------------------------------------------
@@ -180,7 +203,7 @@ class PandoraMatcher:
         return np.where(ok, d, np.nan).astype(np.float32), ok
 
 
-MATCHERS = {"sgbm": SgbmMatcher, "pandora": PandoraMatcher}
+MATCHERS = {"sgbm": SgbmMatcher, "mgm": MgmMatcher, "pandora": PandoraMatcher}
 
 
 def make_matcher(cfg: Config) -> StereoMatcher:

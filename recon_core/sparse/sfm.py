@@ -724,7 +724,7 @@ class IncrementalSfM:
             sh, px, name = bad[-1]
             out["why"] = (f"{name} is not a straight line array ({px:.2f} px of systematic error "
                           f"> {MAX_STRAIGHT_MISFIT_PX} px once the bend it sees is out, {sh:.0%} of it "
-                          f"a focal plane's > {MAX_FOCAL_SHARE:.0%})")
+                          f"taken away by the focal-plane terms > {MAX_FOCAL_SHARE:.0%})")
         return out
 
     def _bundle(self, scope: str, around: int | None = None, final: bool = False,

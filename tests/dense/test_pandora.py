@@ -8,13 +8,13 @@ from __future__ import annotations
 import pickle
 import sys
 
-import cv2
 import numpy as np
 import pytest
 
 from recon_core.cli import main
 from recon_core.config import Config, PandoraConfig
 from recon_core.dense.matchers import MATCHERS, PandoraMatcher, SgbmMatcher, make_matcher, pandora_pipeline
+from tests.dense.pairs import block_pair, smooth_pair
 
 
 def _need_pandora():
@@ -22,31 +22,11 @@ def _need_pandora():
     pytest.importorskip("pandora_plugin_libsgm")
 
 
-def _texture(h, w, seed=0):
-    rng = np.random.default_rng(seed)
-    return cv2.GaussianBlur(rng.uniform(0, 255, (h, w)), (0, 0), 1.2).astype(np.float32)
-
-
-def _pair(d_of, h=120, w=220, seed=0):
-    """left(u, v) = T(u, v); right(u + d(u, v), v) = left(u, v), i.e. d = u_right - u_left, for a
-    smooth field d_of(u, v): each right pixel's source u_l = u_r - d(u_l, v) by fixed-point
-    iteration. Returns left, right (uint8) and d on the left grid."""
-    T = _texture(h, w + 80, seed)
-    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
-    ul = u.copy()
-    for _ in range(20):
-        ul = u - d_of(ul, v)
-    left = cv2.remap(T, u + 40, v, cv2.INTER_CUBIC)
-    right = cv2.remap(T, ul + 40, v, cv2.INTER_CUBIC)
-    return (np.clip(left, 0, 255).astype(np.uint8), np.clip(right, 0, 255).astype(np.uint8),
-            d_of(u, v))
-
-
 def test_pandora_recovers_a_slanted_plane_to_a_fraction_of_a_pixel():
     """d = 2.3 + 0.02 u - 0.01 v: every sub-pixel phase present; the interior is matched and
     within 0.15 px (median; 0.06 px measured, SGBM 0.12 px) of the truth; same sign as SGBM."""
     _need_pandora()
-    left, right, d_true = _pair(lambda u, v: 2.3 + 0.02 * u - 0.01 * v)
+    left, right, d_true = smooth_pair(lambda u, v: 2.3 + 0.02 * u - 0.01 * v)
     d, valid = PandoraMatcher().match(left, right, -2.0, 9.0)
     assert d.shape == left.shape and d.dtype == np.float32 and valid.dtype == bool
     assert np.array_equal(valid, np.isfinite(d))
@@ -64,27 +44,11 @@ def test_pandora_recovers_a_step_and_invalidates_what_it_cannot_see():
     levels are found within 0.15 px (0.04 px measured); the ground the block hides in the right image (the 6 px strip
     right of it) is mostly left invalid rather than given a wrong value."""
     _need_pandora()
-    h, w = 120, 220
-
-    def d_of(u, v):
-        inside = (u >= 80) & (u < 140) & (v >= 35) & (v < 85)
-        return np.where(inside, 7.0, 1.0).astype(np.float32)
-
-    T = _texture(h, w + 80, 3)
-    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
-    left = np.clip(cv2.remap(T, u + 40, v, cv2.INTER_CUBIC), 0, 255).astype(np.uint8)
-    # the right image: each right pixel shows the block where the block lands, else the ground
-    on_block = (u - 7 >= 80) & (u - 7 < 140) & (v >= 35) & (v < 85)
-    right = np.clip(cv2.remap(T, np.where(on_block, u - 7, u - 1) + 40, v, cv2.INTER_CUBIC),
-                    0, 255).astype(np.uint8)
-    d_true = d_of(u, v)
+    left, right, d_true, block, ground, hidden = block_pair()
     d, valid = PandoraMatcher().match(left, right, -4.0, 12.0)
-    block = (u >= 84) & (u < 136) & (v >= 39) & (v < 81)
-    ground = ((u < 76) | (u >= 150)) & (u >= 20) & (u < w - 20) & (v >= 8) & (v < h - 8)
     for zone in (block, ground):
         assert valid[zone].mean() > 0.9
         assert np.nanmedian(np.abs(d - d_true)[zone]) < 0.15
-    hidden = (u >= 141) & (u < 146) & (v >= 39) & (v < 81)     # ground the block covers in the right image
     wrong = valid[hidden] & (np.abs(d - d_true)[hidden] > 1.0)
     assert wrong.mean() < 0.2
 
@@ -94,7 +58,7 @@ def test_pandora_matcher_is_picklable_and_chosen_by_name():
     m = make_matcher(cfg)
     assert isinstance(m, PandoraMatcher) and m.cfg.census_window == 7
     assert pickle.loads(pickle.dumps(m)) == m
-    assert set(MATCHERS) == {"sgbm", "pandora"}
+    assert set(MATCHERS) == {"sgbm", "mgm", "pandora"}
     assert m.margin_px >= 7 // 2
     pipe = pandora_pipeline(PandoraConfig(median_size=1))["pipeline"]
     assert "filter" not in pipe and pipe["validation"]["validation_method"] == "cross_checking_accurate"
@@ -111,7 +75,7 @@ def test_pandora_matches_in_a_worker_process():
     _need_pandora()
     from recon_core.dense.executor import make_executor
 
-    left, right, d_true = _pair(lambda u, v: 3.4 + 0.0 * u, 80, 140)
+    left, right, d_true = smooth_pair(lambda u, v: 3.4 + 0.0 * u, 80, 140)
     with make_executor(None, 1) as ex:
         (med, frac), = list(ex.map_unordered(_match_in_worker, [(PandoraMatcher(), left, right)]))
     assert med == pytest.approx(3.4, abs=0.25) and frac > 0.7
@@ -176,3 +140,20 @@ def test_the_extra_brings_what_the_matcher_imports():
     names = {re.split(r"[<>=!~ ]", d)[0].replace("-", "_").lower(): d for d in deps}
     assert set(names) == set(EXTRAS["pandora"])
     assert all("<" in d for d in deps)
+
+
+def test_a_run_that_stops_before_the_dense_stage_needs_no_extra(tiny_site, tmp_path, monkeypatch):
+    """dense.matcher = "pandora" without pandora: a run with --stage sparse is not refused (it
+    never matches), nor is reading the file alone."""
+    monkeypatch.setattr(sys, "meta_path", [_NoPandora(), *sys.meta_path])
+    for mod in [m for m in sys.modules if m.split(".")[0] in ("pandora", "pandora_plugin_libsgm")]:
+        monkeypatch.delitem(sys.modules, mod)
+    from recon_core.config import config_from_toml
+
+    f = tmp_path / "c.toml"
+    f.write_text('[dense]\nmatcher = "pandora"\n')
+    assert config_from_toml(f).dense.matcher == "pandora"
+    out = tmp_path / "o"
+    assert main(["run", str(tiny_site), "--out", str(out), "--config", str(f), "--stage", "sparse",
+                 "--preset", "tiny", "--quiet"]) == 0
+    assert (out / "stages" / "sparse.json").exists()
