@@ -30,7 +30,7 @@ from recon_core.io.layout import OutLayout
 from recon_core.io.models import PointSource
 from recon_core.io.ply import PlyWriter
 from recon_core.io.raster import Grid, write_dsm, write_geotiff
-from recon_core.io.site import Site
+from recon_core.io.site import Site, default_resolution
 
 
 def output_grid(site: Site, xyh: np.ndarray, epsg: int, res: float) -> Grid:
@@ -81,7 +81,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
     else:
         Ts, fusion = align_groups(samples, c, reference=max(groups, key=lambda g: len(sources[g])))
     epsg = output_epsg(site.hints, frame)
-    res = float(c.resolution_m or site.hints.get("resolution_m") or max(0.5, round(gsd * 2) / 2))
+    res = float(c.resolution_m or site.hints.get("resolution_m") or default_resolution(gsd))
     extent = np.concatenate([apply_affine_3d(Ts[g], samples[g]) for g in groups])
     grid = output_grid(site, enu_to_output(extent, frame, epsg), epsg, res)
     total = sum(len(sources[g]) for g in groups)

@@ -23,7 +23,7 @@ import numpy as np
 
 from recon_core.errors import InputError
 from recon_core.io.files import atomic_path, write_json
-from recon_core.io.site import MAX_DSM_CELLS, parse_iso_time
+from recon_core.io.site import MAX_DSM_CELLS, default_resolution, parse_iso_time
 
 RASTER_SUFFIXES = (".tif", ".tiff", ".jp2", ".ntf", ".vrt")
 TILE_NAME = re.compile(r"^(?P<base>.+)_R(?P<r>\d+)C(?P<c>\d+)$", re.I)    # IMG_..._R1C2
@@ -168,7 +168,9 @@ def describe_image(tiles: list[tuple[Path, int, int]], band: int | None, times: 
     if rpc is not None and len(tiles) == 1:
         img.rpc_footprint = _rpc_footprint(rpc, width, height)
     elif crs is not None and not transform.is_identity and len(tiles) == 1:
-        corners = [transform * (x, y) for x, y in ((0, 0), (width, 0), (width, height), (0, height))]
+        a = transform
+        corners = [(a.a * x + a.b * y + a.c, a.d * x + a.e * y + a.f)
+                   for x, y in ((0, 0), (width, 0), (width, height), (0, height))]
         img.crs_footprint = (crs.to_wkt(), corners)
     return img
 
@@ -245,17 +247,44 @@ def site_grid(images: list[ProductImage]) -> tuple[dict | None, str | None]:
     if not all(np.isfinite(b)):
         return None, None
     hints = {"crs_epsg": epsg, "bounds": b}
-    # a full scene's footprint (20 km a side) at the default 0.5 m is more DSM cells than fit
-    # (site.check_grid_size): site.json then names the finest resolution, in 0.5 m steps, that fits
+    # a full scene's footprint (20 km a side) at the DSM's default cell (from the GSD, 0.5 m at
+    # least) may be more cells than fit (site.check_grid_size): site.json then names the finest
+    # resolution, in 0.5 m steps, that fits. Only then: otherwise the run's own default stands.
     area = (b[2] - b[0]) * (b[3] - b[1])
     res = max(0.5, float(np.ceil(2.0 * np.sqrt(area / MAX_DSM_CELLS))) / 2.0)
     while area / res ** 2 > MAX_DSM_CELLS:           # rounding at the boundary
         res += 0.5
-    if res > 0.5:
+    gsd = _gsd_estimate(images, epsg)
+    usual = default_resolution(gsd) if gsd else 0.5
+    if res > usual:
         hints["resolution_m"] = res
-        note += (f"; at 0.5 m its DSM would be {(b[2] - b[0]) * (b[3] - b[1]) / 0.25:.3g} cells, more than "
-                 f"fit ({MAX_DSM_CELLS:.2g}): resolution_m is {res:g} m (smaller bounds for a finer DSM)")
+        note += (f"; at {usual:g} m{' (from the GSD)' if gsd else ''} its DSM would be {area / usual ** 2:.3g} cells, "
+                 f"more than fit ({MAX_DSM_CELLS:.2g}): resolution_m is {res:g} m (smaller bounds for a finer DSM)")
     return hints, note
+
+
+def _gsd_estimate(images: list[ProductImage], epsg: int) -> float | None:
+    """The median over the images with a footprint of sqrt(footprint area / pixels) (m): the
+    ground sampling distance the run would find, to the footprint's accuracy."""
+    from recon_core.geometry.geodesy import geodetic_to_projected
+
+    out = []
+    for im in images:
+        if im.rpc_footprint:
+            ll = np.array(im.rpc_footprint, float)
+        elif im.crs_footprint:
+            from pyproj import Transformer
+
+            t = Transformer.from_crs(im.crs_footprint[0], "EPSG:4326", always_xy=True)
+            ll = np.array([t.transform(x, y) for x, y in im.crs_footprint[1]], float)
+        else:
+            continue
+        xy = geodetic_to_projected(np.column_stack([ll, np.zeros(len(ll))]), epsg)
+        x, y = xy[:, 0], xy[:, 1]
+        area = 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+        if area > 0 and im.width * im.height > 0:
+            out.append(np.sqrt(area / (im.width * im.height)))
+    return float(np.median(out)) if out else None
 
 
 def init_site(site: Path, products: list[Path], *, band: int | None = None, times: dict[str, str] | None = None,

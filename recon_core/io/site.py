@@ -281,6 +281,12 @@ MIN_RESOLUTION_M = 0.01        # a finer DSM cell than any satellite resolves
 MAX_DSM_CELLS = 1.5e9          # the DSM stage holds a few grids of float32 (6 GB each at this size)
 
 
+def default_resolution(gsd_m: float) -> float:
+    """The DSM's cell when neither the configuration nor site.json names one: the ground sampling
+    distance rounded to 0.5 m, 0.5 m at least."""
+    return max(0.5, round(gsd_m * 2) / 2)
+
+
 def check_grid_size(where, bounds, res: float) -> None:
     """A DSM grid over `bounds` at `res` that cannot fit is refused before any compute."""
     cells = ((bounds[2] - bounds[0]) / res) * ((bounds[3] - bounds[1]) / res)

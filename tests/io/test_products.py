@@ -77,12 +77,18 @@ def test_nitf_geotiff_and_a_given_time(tmp_path, capsys):
 
 
 def test_a_full_scene_footprint_gets_a_dsm_resolution_that_fits(tmp_path, capsys):
-    """A 20 km footprint at the default 0.5 m is 1.6e9 DSM cells, more than a site.json may ask
-    for: site init names a coarser resolution_m (and says so), and `aerec info` reads the site."""
+    """A 20 km footprint of a 0.5 m GSD scene at the default 0.5 m is 1.6e9 DSM cells, more than a
+    site.json may ask for: site init names a coarser resolution_m (and says so), and `aerec info`
+    reads the site."""
     from rasterio.transform import from_origin
 
-    g = _write(tmp_path / "g" / "scene.tif", np.random.default_rng(2).integers(0, 255, (64, 64)).astype(np.uint8),
-               crs="EPSG:32740", transform=from_origin(330000.0, 7660000.0, 312.5, 312.5))   # 20 km
+    g = tmp_path / "g" / "scene.tif"        # 20 km at 0.5 m, sparse: no pixel written
+    g.parent.mkdir()
+    with rasterio.open(g, "w", driver="GTiff", width=40_000, height=40_000, count=1, dtype="uint8",
+                       crs="EPSG:32740", transform=from_origin(330000.0, 7660000.0, 0.5, 0.5),
+                       tiled=True, sparse_ok=True) as ds:
+        ds.write(np.random.default_rng(2).integers(0, 255, (1, 64, 64)).astype(np.uint8),
+                 window=rasterio.windows.Window(0, 0, 64, 64))
     with rasterio.open(g, "r+") as ds:
         ds.update_tags(TIFFTAG_DATETIME="2024:03:02 10:41:31")
     site = tmp_path / "site"
@@ -123,3 +129,25 @@ def test_a_pleiades_like_site_from_the_real_crops_reconstructs(shared_data, tmp_
     g = rep["stages"]["sparse"]["groups"]["0"]
     assert g["tiles_registered"] == g["tiles_total"] and rep["stages"]["dense"]["groups"]["0"]["points"] > 10_000
     shutil.rmtree(tmp_path / "out")
+
+
+def test_a_footprint_that_fits_at_the_gsd_leaves_the_resolution_to_the_run():
+    """The same 20 km footprint: a 40,000 px scene (GSD 0.5 m) cannot be gridded at 0.5 m, so
+    site.json names 1 m; a 6,000 px scene (GSD 3.3 m) fits at its own GSD-based cell (3.5 m), so
+    site.json names none and the run's default stands (it used to be pinned at 1 m, finer than
+    the images can see)."""
+    from datetime import datetime, timezone
+
+    from recon_core.io.products import ProductImage, site_grid
+
+    corners = [(330000.0, 7660000.0), (350000.0, 7660000.0), (350000.0, 7640000.0), (330000.0, 7640000.0)]
+
+    def scene(px):
+        return ProductImage(name="s", files=[], acquired=datetime(2024, 3, 2, tzinfo=timezone.utc),
+                            time_source="t", satellite=None, band=1, width=px, height=px, dtype="uint16",
+                            crs_footprint=("EPSG:32740", corners))
+
+    fine, note = site_grid([scene(40_000)])
+    assert fine["resolution_m"] == 1.0 and "resolution_m is 1 m" in note and "from the GSD" in note
+    coarse, note = site_grid([scene(6_000)])
+    assert "resolution_m" not in coarse and coarse["bounds"] == [330000.0, 7640000.0, 350000.0, 7660000.0]
