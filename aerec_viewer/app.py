@@ -34,6 +34,7 @@ from .gcp_panel import GcpPanel, PickPlane, layout_pick_plane, pixel_from_ray
 from .gcp_session import (
     GcpError,
     add_observation,
+    edit_gcp,
     merge_last,
     new_gcp,
     open_session,
@@ -146,7 +147,8 @@ class ViewerApp:
 
     def __init__(self, out: str | Path, site: str | Path | None = None, cfg=None, *,
                  mode: str = "run", host: str = "127.0.0.1", port: int = 8080,
-                 update_hz: float = 4.0, until: str | None = None, budget: int | None = None):
+                 update_hz: float = 4.0, until: str | None = None, budget: int | None = None,
+                 reference=None):
         import viser
 
         from recon_core.config import Config, config_from_dict
@@ -170,7 +172,8 @@ class ViewerApp:
         self.server.scene.set_up_direction("+z")
         self.server.gui.configure_theme(control_width="large", dark_mode=False)
         self.worker = ReconWorker(self.site.root, self.out, cfg, mode=mode, until=until)
-        self.images = ImageSource(self.site.images)
+        self.reference = reference        # euclidean.ground_reference.GroundReference, or None
+        self.images = ImageSource(self.site.images, extra=[reference.ortho] if reference else ())
         self.scene = SceneView(self.server, self.images,
                                tile_windows_for(self.site.images, cfg.tiling.tile_size,
                                                 cfg.tiling.overlap))
@@ -628,7 +631,7 @@ class ViewerApp:
         chosen in the GCP tab) on the picking plane and put the client's camera straight above
         it; the next click places."""
         image = image or self.pick_plane.window.image
-        im = self.images.images[image]
+        im = self.images.info(image)
         win = loupe_window(im.width, im.height, image, *pix)
         self.loupe = (win, (float(pix[0]), float(pix[1])))
         self.show_image_plane(wait=True)
@@ -752,6 +755,8 @@ class ViewerApp:
         if pix is None:
             self.note("the click missed the image", "warning")
             return None
+        if self.reference is not None and self.pick_plane.window.image == self.reference.ortho.name:
+            return self.on_reference_click(pix, client)
         gid = self.gcp_panel.selected()
         if gid is None:
             x, y, h, epsg = self.gcp_panel.ground()
@@ -786,6 +791,39 @@ class ViewerApp:
                                            f"row {pix[1]:.2f}")
         if in_loupe:                          # a precise click: on to the GCP's next image
             self.gcp_panel.walk_on(gid, client)
+        return pix
+
+    def on_reference_click(self, pix: tuple[float, float], client=None) -> tuple[float, float] | None:
+        """A click on the reference orthoimage: the selected GCP's ground position (lon, lat from
+        the orthoimage, h from the DEM), or a new GCP there when none is selected; with "Click
+        zooms in first", a click outside the loupe opens the loupe there instead."""
+        ref = self.reference
+        self.gcp_panel.check_choice(client)
+        in_loupe = self.in_loupe(self.pick_plane.window)
+        if not in_loupe and self.gcp_panel.zoom_click.value:
+            self.open_loupe(pix, client)
+            return None
+        lon, lat, h = ref.ground_at(*pix)
+        gid = self.gcp_panel.selected()
+        if h is None:
+            h = float(self.gcp_panel.h.value) if gid is None else self.session.get(gid).h
+            where = ("no DEM given (--reference-dem): h kept at " if ref.dem is None
+                     else "the DEM has no height there: h kept at ") + f"{h:.2f} m, type it"
+        else:
+            where = f"h {h:.2f} m from the DEM"
+        if gid is None:
+            g = new_gcp(self.session, self.gcp_panel.gid.value or None, x=lon, y=lat, h=h,
+                        role=self.gcp_panel.role.value)
+            self.gcp_panel.note_choice(client, g.id)
+            what = f"new {g.id}"
+        else:
+            g = edit_gcp(self.session, gid, x=lon, y=lat, h=h)
+            what = g.id
+        if in_loupe:
+            self.close_loupe(client)
+        self.gcps_changed(select=g.id, note=f"{what}: ground position from the reference orthoimage at col "
+                                            f"{pix[0]:.2f}, row {pix[1]:.2f}: lon {lon:.7f}, lat {lat:.7f}; "
+                                            f"{where}. Now place it in the images")
         return pix
 
     def arm_cloud_pick(self) -> None:
@@ -861,7 +899,17 @@ class ViewerApp:
 
         want = {}
         r = self._marker_radius()
-        if self.pick_plane is not None:
+        if self.pick_plane is not None and self.reference is not None \
+                and self.pick_plane.window.image == self.reference.ortho.name and self.session.gcps:
+            # on the reference orthoimage: each GCP's ground position
+            win = self.pick_plane.window
+            gs = self.session.gcps
+            cols, rows = self.reference.pixel_of([g.lon for g in gs], [g.lat for g in gs])
+            for gcp, c, rr in zip(gs, cols, rows):
+                if win.contains([(float(c), float(rr))])[0]:
+                    want[f"/gcp/plane_marks/{safe_name(gcp.id)}"] = (
+                        self.pick_plane.point_of(float(c), float(rr), lift=0.5 * r), colour(gcp.id), gcp.id)
+        elif self.pick_plane is not None:
             win = self.pick_plane.window
             for gcp in self.session.gcps:
                 ob = gcp.observations.get(win.image)

@@ -265,6 +265,11 @@ def cmd_view(args) -> int:
     from .app import ViewerApp
 
     check_view_options(args)
+    reference = None
+    if getattr(args, "reference_ortho", None) is not None:
+        from recon_core.euclidean.ground_reference import open_ground_reference
+
+        reference = open_ground_reference(args.reference_ortho, args.reference_dem)
     prep = None
     demo_preset()                             # an unknown AEREC_DEMO_PRESET: one line, now
     if args.target is None and args.site is None and not demo_cached():
@@ -314,7 +319,7 @@ def cmd_view(args) -> int:
         if tile:
             cfg = cfg.with_overrides({"tiling.tile_size": tile})
     app = ViewerApp(out, site, cfg, mode=mode, host=args.host, port=args.port,
-                    budget=args.point_budget)
+                    budget=args.point_budget, reference=reference)
     app.start()
     what = "reopening" if mode == "reopen" else "reconstructing"
     print(f"aerec view: {what} {app.site.root} -> {out}")
@@ -409,6 +414,9 @@ def check_view_options(args) -> None:
             raise InputError(path, f"{opt} names a file; it must be a folder")
     if args.target is not None and not args.target.exists():
         raise InputError(args.target, "no such site or output folder")
+    if getattr(args, "reference_dem", None) is not None and getattr(args, "reference_ortho", None) is None:
+        raise InputError(args.reference_dem, "--reference-dem gives heights to points clicked on "
+                                             "--reference-ortho: give the orthoimage too")
 
 
 def register(subparsers) -> None:
@@ -428,6 +436,13 @@ def register(subparsers) -> None:
     s.add_argument("--point-budget", type=int, default=None, metavar="N",
                    help="points displayed at most, 10000-2000000 (default 150000; the Display "
                         "panel's slider changes it): lower it when the page draws slowly")
+    s.add_argument("--reference-ortho", type=Path, default=None, metavar="TIF",
+                   help="a georeferenced orthoimage of the site (a national orthophoto, any "
+                        "GeoTIFF): shown last in the GCP tab's image list; a click on it gives a "
+                        "GCP its ground position (no survey needed)")
+    s.add_argument("--reference-dem", type=Path, default=None, metavar="TIF",
+                   help="with --reference-ortho: a DEM giving those GCPs their height (ellipsoidal: "
+                        "convert a geoid-based DEM such as SRTM first)")
     s.add_argument("--no-browser-hint", action="store_true",
                    help="print only the URL, not the ssh-tunnel and save-file hints")
     s.set_defaults(func=cmd_view)

@@ -110,7 +110,12 @@ class GcpPanel:
         self.app = app
         s = app.session
         names = sorted(s.images)
-        self.image = gui.add_dropdown("Image", names, initial_value=names[0])
+        ref = getattr(app, "reference", None)
+        self.image = gui.add_dropdown("Image", names + ([ref.ortho.name] if ref is not None else []),
+                                      initial_value=names[0],
+                                      hint=None if ref is None else "the reference orthoimage (last): "
+                                      "a click there gives the selected GCP its ground position, or "
+                                      "makes a new GCP there")
         self.region = gui.add_dropdown("Region", ["whole image"], initial_value="whole image",
                                        hint="pick a tile to see it at full resolution")
         self.show_plane = gui.add_checkbox("Show image plane", True)
@@ -425,6 +430,10 @@ class GcpPanel:
         if gid is None:
             raise GcpError("select a GCP first")
         image = self.image.value
+        ref = getattr(self.app, "reference", None)
+        if ref is not None and image == ref.ortho.name:
+            raise GcpError("the reference orthoimage gives ground positions, not observations: click "
+                           f"{gid}'s spot on it, or choose one of the site's images to predict in")
         g = self.app.session.get(gid)
         model = next((m for m in self.app.models.values() if image in m.images), None)
         if model is None:

@@ -15,10 +15,15 @@ from recon_core.model.tiling import Window
 class ImageSource:
     """Reads display textures of a site's images with one shared tone curve (thread-safe)."""
 
-    def __init__(self, images: list):
+    def __init__(self, images: list, extra=()):
         self.images = {im.name: im for im in images}
+        self.extra = {im.name: im for im in extra}     # shown, but not the site's (a reference orthoimage)
         self._tone = None
         self._lock = threading.Lock()
+
+    def info(self, name: str):
+        """The ImageInfo of a site image or of an extra one."""
+        return self.images[name] if name in self.images else self.extra[name]
 
     @property
     def tone(self):
@@ -44,10 +49,10 @@ class ImageSource:
     def image_tone(self, name: str):
         from recon_core.sparse.features import tone_curve_for
 
-        return _image_tone(self, name) if name in self.images else tone_curve_for([])
+        return _image_tone(self, name) if name in self.images or name in self.extra else tone_curve_for([])
 
     def whole(self, name: str) -> Window:
-        im = self.images[name]
+        im = self.info(name)
         return Window(name, 0, 0, im.width, im.height)
 
 
@@ -55,14 +60,16 @@ class ImageSource:
 def _image_tone(src: ImageSource, name: str):
     from recon_core.sparse.features import tone_curve_for
 
-    return tone_curve_for([src.images[name]])
+    return tone_curve_for([src.info(name)])
 
 
 @lru_cache(maxsize=256)
 def _read_cached(src: ImageSource, win: Window, max_side: int, contrast: str = "site") -> np.ndarray:
     from recon_core.sparse.features import ToneCurve
 
-    im = src.images[win.image]
+    im = src.info(win.image)
+    if win.image in src.extra and contrast == "site":
+        contrast = "image"                  # the site's stretch is not the reference's
     f = max(1.0, max(win.width, win.height) / max_side)
     w, h = max(1, int(math.ceil(win.width / f))), max(1, int(math.ceil(win.height / f)))
     g = read_window(im, win.col0, win.row0, win.width, win.height, out_shape=(h, w))

@@ -103,9 +103,9 @@ class ReferenceDem:
         return out
 
 
-def open_reference_dem(path: str | Path) -> ReferenceDem:
+def open_reference_dem(path: str | Path, option: str = "upgrade.reference_dem") -> ReferenceDem:
     """The reference DEM at `path`, checked: a raster GDAL reads, with a CRS and a finite value
-    somewhere. Raises InputError (one line naming the file)."""
+    somewhere. Raises InputError (one line naming the file and `option`, where it came from)."""
     import rasterio
     from rasterio.errors import RasterioIOError
 
@@ -115,23 +115,23 @@ def open_reference_dem(path: str | Path) -> ReferenceDem:
     except OSError as exc:                         # a name too long
         kind = exc.strerror or str(exc)
     if kind:
-        raise InputError(p, f"upgrade.reference_dem: {kind}" + (", not a DEM file" if kind == "a folder" else ""))
+        raise InputError(p, f"{option}: {kind}" + (", not a DEM file" if kind == "a folder" else ""))
     try:
         with rasterio.open(p) as src:
             if src.crs is None:
-                raise InputError(p, "upgrade.reference_dem has no CRS: a reference DEM must be georeferenced "
+                raise InputError(p, f"{option} has no CRS: a reference DEM must be georeferenced "
                                     "(SRTM and Copernicus DEM tiles are EPSG:4326)")
             if src.count < 1:
-                raise InputError(p, "upgrade.reference_dem has no band")
+                raise InputError(p, f"{option} has no band")
             try:
                 from pyproj import Transformer
 
                 Transformer.from_crs("EPSG:4326", src.crs, always_xy=True).transform(0.0, 0.0)
             except Exception as exc:      # pyproj's CRSError / ProjError, or what GDAL's CRS gives it
-                raise InputError(p, f"upgrade.reference_dem's CRS cannot be reached from WGS84 ({exc})") from None
+                raise InputError(p, f"{option}'s CRS cannot be reached from WGS84 ({exc})") from None
             return ReferenceDem(p, src.crs, src.transform, src.width, src.height, src.nodata)
     except RasterioIOError as exc:
-        raise InputError(p, f"upgrade.reference_dem is not a raster GDAL can read ({str(exc).splitlines()[0]})") from None
+        raise InputError(p, f"{option} is not a raster GDAL can read ({str(exc).splitlines()[0]})") from None
 
 
 def check_covers(dem: ReferenceDem, llh: np.ndarray) -> None:

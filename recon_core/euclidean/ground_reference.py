@@ -1,0 +1,95 @@
+"""A GCP's ground position from a reference orthoimage and DEM of the site, for a user without a
+survey: the point clicked on the orthoimage gives its easting and northing (the orthoimage's
+georeferencing), the DEM its height there (bilinear).
+
+Any georeferenced raster serves as the orthoimage (a national orthophoto, a WMS export saved as
+GeoTIFF); any georeferenced height raster as the DEM (recon_core.euclidean.dem_bend.ReferenceDem).
+Heights are taken as the DEM gives them and stored as ellipsoidal: a DEM on the geoid (SRTM,
+Copernicus DEM: EGM96 / EGM2008) puts every GCP, and so the whole product, off by the geoid's
+undulation there (tens of metres, about constant over a site); convert it first.
+
+Pixels follow the project's convention: (col, row) with pixel centres at whole numbers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from recon_core.errors import InputError
+from recon_core.model.images import ImageInfo
+
+ORTHO_NAME = "reference orthoimage"
+
+
+@dataclass
+class GroundReference:
+    """The orthoimage (as an image the viewer can show) and, if given, the DEM."""
+
+    ortho: ImageInfo              # named "reference orthoimage: <file>"
+    crs: object
+    transform: object
+    dem: object | None = None     # dem_bend.ReferenceDem
+
+    def lonlat_at(self, col: float, row: float) -> tuple[float, float]:
+        """(lon, lat) of the orthoimage's pixel (col, row)."""
+        from pyproj import Transformer
+
+        a = self.transform
+        x, y = col + 0.5, row + 0.5                      # GDAL's pixel corners
+        e, n = a.a * x + a.b * y + a.c, a.d * x + a.e * y + a.f
+        lon, lat = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True).transform(e, n)
+        return float(lon), float(lat)
+
+    def pixel_of(self, lon: np.ndarray, lat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(col, row) in the orthoimage of points (lon, lat): where GCPs' ground positions lie."""
+        from pyproj import Transformer
+
+        e, n = Transformer.from_crs("EPSG:4326", self.crs, always_xy=True).transform(
+            np.asarray(lon, np.float64), np.asarray(lat, np.float64))
+        inv = ~self.transform
+        e, n = np.asarray(e), np.asarray(n)
+        return inv.a * e + inv.b * n + inv.c - 0.5, inv.d * e + inv.e * n + inv.f - 0.5
+
+    def ground_at(self, col: float, row: float) -> tuple[float, float, float | None]:
+        """(lon, lat, h) of the orthoimage's pixel; h None without a DEM or where it has none."""
+        lon, lat = self.lonlat_at(col, row)
+        if self.dem is None:
+            return lon, lat, None
+        h = float(self.dem.heights(np.array([lon]), np.array([lat]))[0])
+        return lon, lat, (h if np.isfinite(h) else None)
+
+
+def open_ground_reference(ortho: str | Path, dem: str | Path | None = None) -> GroundReference:
+    """The orthoimage (and DEM) checked before use: readable rasters GDAL knows, georeferenced
+    (a CRS reachable from WGS84 and a geotransform). Raises InputError (one line naming the file)."""
+    import rasterio
+    from pyproj import Transformer
+    from rasterio.errors import RasterioIOError
+
+    from recon_core.euclidean.dem_bend import open_reference_dem
+    from recon_core.io.site import open_image
+
+    p = Path(ortho).expanduser()
+    if not p.is_file():
+        raise InputError(p, "--reference-ortho: " + ("a folder, not an image" if p.is_dir() else "no such file"))
+    try:
+        with rasterio.open(p) as src:
+            crs, transform = src.crs, src.transform
+    except RasterioIOError as exc:
+        raise InputError(p, f"--reference-ortho is not a raster GDAL can read ({str(exc).splitlines()[0]})") from None
+    if crs is None or transform.is_identity:
+        raise InputError(p, "--reference-ortho is not georeferenced (no CRS or no geotransform): an "
+                            "orthoimage must say where its pixels are")
+    try:
+        Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(transform.c, transform.f)
+    except Exception as exc:              # pyproj's CRSError / ProjError
+        raise InputError(p, f"--reference-ortho's CRS cannot be turned into WGS84 ({exc})") from None
+    info = open_image(p)                  # its pixels readable, a band count and type the viewer shows
+    info.name = f"{ORTHO_NAME}: {p.name}"
+    ref = GroundReference(info, crs, transform)
+    if dem is not None:
+        ref.dem = open_reference_dem(dem, option="--reference-dem")
+    return ref

@@ -1,0 +1,119 @@
+"""GCP ground positions picked on a reference orthoimage + DEM (no survey): a click on the
+orthoimage in the viewer gives a new GCP, or the selected one, its lon/lat (the orthoimage's
+georeferencing) and its height (the DEM's, bilinear); the GCPs' ground positions are marked on
+it; bad references are refused in one line before the viewer starts."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import rasterio
+from pyproj import Transformer
+from rasterio.transform import from_origin
+
+from aerec_viewer.cli import main as view_main
+from aerec_viewer.gcp_session import GcpError
+from recon_core.euclidean.ground_reference import open_ground_reference
+from recon_core.errors import InputError
+
+
+def _reference(tmp_path, site):
+    """An orthoimage (random texture) on the ground-truth DSM's grid, that DSM as the DEM."""
+    with rasterio.open(site / "gt_dsm.tif") as src:
+        dem_profile, dem = src.profile, src.read(1)
+        crs, tf = src.crs, src.transform
+    h, w = dem.shape
+    ortho = tmp_path / "ortho.tif"
+    rng = np.random.default_rng(0)
+    with rasterio.open(ortho, "w", driver="GTiff", width=w, height=h, count=1, dtype="uint8",
+                       crs=crs, transform=tf) as dst:
+        dst.write(rng.integers(0, 255, (1, h, w)).astype(np.uint8))
+    dem_path = tmp_path / "dem.tif"
+    shutil.copy(site / "gt_dsm.tif", dem_path)
+    return ortho, dem_path, dem, crs, tf
+
+
+def test_the_ground_at_an_orthoimage_pixel(tiny_site, tmp_path):
+    ortho, dem_path, dem, crs, tf = _reference(tmp_path, tiny_site)
+    ref = open_ground_reference(ortho, dem_path)
+    col, row = 37, 52                           # a cell centre: bilinear is the cell's own value
+    lon, lat, h = ref.ground_at(col, row)
+    e, n = tf.c + (col + 0.5) * tf.a, tf.f + (row + 0.5) * tf.e
+    lon0, lat0 = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(e, n)
+    assert (lon, lat) == pytest.approx((lon0, lat0), abs=1e-9)
+    assert h == pytest.approx(float(dem[row, col]), abs=1e-4)
+    c, r = ref.pixel_of([lon], [lat])
+    assert (c[0], r[0]) == pytest.approx((col, row), abs=1e-6)
+    # halfway between two cells: the mean of the two
+    assert ref.ground_at(col + 0.5, row)[2] == pytest.approx(float(dem[row, col:col + 2].mean()), abs=1e-3)
+    assert open_ground_reference(ortho).ground_at(col, row)[2] is None        # no DEM: no height
+
+
+def test_bad_references_are_refused_in_one_line(tiny_site, tmp_path, capsys):
+    plain = tmp_path / "plain.tif"
+    with rasterio.open(plain, "w", driver="GTiff", width=64, height=64, count=1, dtype="uint8") as dst:
+        dst.write(np.ones((1, 64, 64), np.uint8))
+    with pytest.raises(InputError, match="not georeferenced"):
+        open_ground_reference(plain)
+    with pytest.raises(InputError, match="no such file"):
+        open_ground_reference(tmp_path / "nope.tif")
+    ortho, *_ = _reference(tmp_path, tiny_site)
+    with pytest.raises(InputError, match="--reference-dem"):
+        open_ground_reference(ortho, tmp_path / "nope_dem.tif")
+    for argv in ([str(tiny_site), "--reference-ortho", str(plain)],
+                 [str(tiny_site), "--reference-dem", str(ortho)]):
+        assert view_main([*argv, "--out", str(tmp_path / "o"), "--port", "0"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "reference" in err[0], err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path):
+    from aerec_viewer.app import ViewerApp
+
+    state, _ = tiny_run
+    out = tmp_path / "out"
+    shutil.copytree(state.out, out, ignore=shutil.ignore_patterns(".aerec.lock"))
+    ortho, dem_path, dem, crs, tf = _reference(tmp_path, state.site.root)
+    ref = open_ground_reference(ortho, dem_path)
+    app = ViewerApp(out, state.site.root, None, mode="reopen", port=0, update_hz=20.0, reference=ref)
+    app.start()
+    try:
+        assert app.worker.done.wait(60)
+        app.wait_idle()
+        gp = app.gcp_panel
+        assert gp.image.options[-1] == ref.ortho.name
+        app.call(lambda: (setattr(gp.zoom_click, "value", False), setattr(gp.image, "value", ref.ortho.name),
+                          setattr(gp.select, "value", gp.NEW), setattr(gp.gid, "value", "ORTHO-1")))
+        app.call(lambda: app.show_image_plane(wait=True))
+        assert app.pick_plane.window.image == ref.ortho.name
+        n_before = len(app.session.gcps)
+
+        def click(col, row):
+            p = app.pick_plane
+            target = p.point_of(col, row)
+            origin = target + np.array([3.0, -4.0, 40.0]) * p.render_width / 40.0
+            return app.call(lambda: app.on_plane_click(origin, target - origin))
+
+        assert click(40.0, 60.0) is not None
+        g = app.session.get("ORTHO-1")
+        lon, lat, h = ref.ground_at(40.0, 60.0)
+        assert len(app.session.gcps) == n_before + 1 and not g.observations        # ground only
+        assert (g.lon, g.lat, g.h) == pytest.approx((lon, lat, float(dem[60, 40])), abs=1e-7)
+        assert gp.selected() == "ORTHO-1"
+        # selected: a second click moves it
+        click(45.0, 61.0)
+        g = app.session.get("ORTHO-1")
+        assert (g.lon, g.lat) == pytest.approx(ref.ground_at(45.0, 61.0)[:2], abs=1e-9)
+        assert g.h == pytest.approx(float(dem[61, 45]), abs=1e-4)
+        # its ground position is marked on the orthoimage, where it was clicked
+        marks = app.call(app.marker_positions)
+        pos = marks["/gcp/plane_marks/ORTHO-1"][0]
+        assert np.allclose(pos[:2], app.pick_plane.point_of(45.0, 61.0)[:2], atol=1e-6 * app.pick_plane.render_width)
+        # the orthoimage is no image of the site: no prediction there, no observation recorded
+        with pytest.raises(GcpError, match="ground positions"):
+            app.call(gp._predict)
+    finally:
+        app.stop()
