@@ -821,9 +821,13 @@ class ViewerApp:
             what = g.id
         if in_loupe:
             self.close_loupe(client)
+        back = self.gcp_panel.walk.value and not g.observations
         self.gcps_changed(select=g.id, note=f"{what}: ground position from the reference orthoimage at col "
                                             f"{pix[0]:.2f}, row {pix[1]:.2f}: lon {lon:.7f}, lat {lat:.7f}; "
-                                            f"{where}. Now place it in the images")
+                                            f"{where}. Now place it in the images"
+                                            + (f" ({self.gcp_panel.last_site_image} shown)" if back else ""))
+        if back:           # "Then its next image": back to the site image shown before the reference
+            self.gcp_panel.image.value = self.gcp_panel.last_site_image
         return pix
 
     def arm_cloud_pick(self) -> None:

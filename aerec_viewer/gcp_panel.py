@@ -110,6 +110,7 @@ class GcpPanel:
         self.app = app
         s = app.session
         names = sorted(s.images)
+        self.last_site_image = names[0]
         ref = getattr(app, "reference", None)
         self.image = gui.add_dropdown("Image", names + ([ref.ortho.name] if ref is not None else []),
                                       initial_value=names[0],
@@ -229,8 +230,12 @@ class GcpPanel:
 
     def _wire(self) -> None:
         app = self.app
-        self.image.on_update(lambda _: app.submit(lambda: (self.drop_prediction(), self.app.close_loupe(),
-                                                           self.app.show_image_plane())))
+        def image_chosen(ev) -> None:
+            v = ev.target.value
+            if v in self.app.session.images:
+                self.last_site_image = v           # where a click on the reference sends back to
+            app.submit(lambda: (self.drop_prediction(), self.app.close_loupe(), self.app.show_image_plane()))
+        self.image.on_update(image_chosen)
         self.region.on_update(lambda _: app.submit(lambda: (self.app.close_loupe(),
                                                             self.app.show_image_plane())))
         self.leave_loupe.on_click(lambda ev: app.submit(lambda: self.app.close_loupe(ev.client)))

@@ -85,7 +85,8 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
         app.wait_idle()
         gp = app.gcp_panel
         assert gp.image.options[-1] == ref.ortho.name
-        app.call(lambda: (setattr(gp.zoom_click, "value", False), setattr(gp.image, "value", ref.ortho.name),
+        app.call(lambda: (setattr(gp.zoom_click, "value", False), setattr(gp.walk, "value", False),
+                          setattr(gp.image, "value", ref.ortho.name),
                           setattr(gp.select, "value", gp.NEW), setattr(gp.gid, "value", "ORTHO-1")))
         app.call(lambda: app.show_image_plane(wait=True))
         assert app.pick_plane.window.image == ref.ortho.name
@@ -115,5 +116,16 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
         # the orthoimage is no image of the site: no prediction there, no observation recorded
         with pytest.raises(GcpError, match="ground positions"):
             app.call(gp._predict)
+        # with "Then its next image", a new GCP placed on the orthoimage sends the plane back to
+        # the site image shown before it (where the operator places it next)
+        first = sorted(app.session.images)[1]
+        app.call(lambda: setattr(gp.image, "value", first))
+        app.call(lambda: (setattr(gp.walk, "value", True), setattr(gp.image, "value", ref.ortho.name),
+                          setattr(gp.select, "value", gp.NEW)))
+        app.call(lambda: app.show_image_plane(wait=True))
+        ids = set(app.session.ids)
+        click(80.0, 30.0)
+        new, = set(app.session.ids) - ids
+        assert gp.selected() == new and gp.image.value == first
     finally:
         app.stop()
