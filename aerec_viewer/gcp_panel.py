@@ -187,7 +187,8 @@ class GcpPanel:
         self.last_chooser: tuple[int, str] | None = None   # the tab that changed the list last, and to what
         self._wire()
         self.shortcuts = self._add_shortcuts(gui)
-        gui.add_markdown("Keys: " + ", ".join(f"**{k}** {what}" for k, what, _ in self.SHORTCUTS)
+        rows = self.SHORTCUTS + (self.REFERENCE_SHORTCUTS if getattr(app, "reference", None) else ())
+        gui.add_markdown("Keys: " + ", ".join(f"**{k}** {what}" for k, what, _ in rows)
                          + " (viser's W A S D Q E and arrows move the camera).")
 
     # key, what, action (the camera keeps viser's W A S D Q E and arrow keys)
@@ -204,6 +205,22 @@ class GcpPanel:
         ("ctrl+Z", "undo", lambda self, ev: self._undo()),
         ("ctrl+shift+Z", "redo", lambda self, ev: self._redo()),
     )
+    # with a reference orthoimage (aerec view --reference-ortho)
+    REFERENCE_SHORTCUTS = (
+        ("G", "a new GCP on the reference orthoimage", lambda self, ev: self.new_on_reference()),
+    )
+
+    def new_on_reference(self) -> None:
+        """Select "(new GCP ...)" and show the reference orthoimage: the next click there (through
+        the loupe) makes a GCP at that ground position."""
+        ref = getattr(self.app, "reference", None)
+        if ref is None:
+            raise GcpError("no reference orthoimage (aerec view --reference-ortho FILE)")
+        self.refresh(select=None)
+        if self.image.value != ref.ortho.name:
+            self.image.value = ref.ortho.name
+        self.app.note("a new GCP: click its spot on the reference orthoimage (its ground position "
+                      "comes from there), then place it in the images")
 
     def _add_shortcuts(self, gui) -> dict[str, object]:
         """One viser command (palette entry + hotkey) per SHORTCUTS row; its action runs on the
@@ -211,7 +228,8 @@ class GcpPanel:
         if not hasattr(gui, "add_command"):
             return {}
         out = {}
-        for key, what, action in self.SHORTCUTS:
+        rows = self.SHORTCUTS + (self.REFERENCE_SHORTCUTS if getattr(self.app, "reference", None) else ())
+        for key, what, action in rows:
             mods, _, hot = key.rpartition("+")
             modifier = {"": None, "ctrl": "cmd/ctrl", "shift": "shift",
                         "ctrl+shift": "cmd/ctrl+shift"}[mods]

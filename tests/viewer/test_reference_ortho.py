@@ -119,9 +119,9 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
         # with "Then its next image", a new GCP placed on the orthoimage sends the plane back to
         # the site image shown before it (where the operator places it next)
         first = sorted(app.session.images)[1]
-        app.call(lambda: setattr(gp.image, "value", first))
-        app.call(lambda: (setattr(gp.walk, "value", True), setattr(gp.image, "value", ref.ortho.name),
-                          setattr(gp.select, "value", gp.NEW)))
+        app.call(lambda: (setattr(gp.image, "value", first), setattr(gp.walk, "value", True)))
+        app.call(gp.new_on_reference)                          # the G key
+        assert gp.selected() is None and gp.image.value == ref.ortho.name
         app.call(lambda: app.show_image_plane(wait=True))
         ids = set(app.session.ids)
         click(80.0, 30.0)
