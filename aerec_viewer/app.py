@@ -26,6 +26,7 @@ from typing import Callable
 import numpy as np
 
 from recon_core.errors import AerecError
+from recon_core.euclidean.ground_reference import EDGE_SPREAD_M
 from recon_core.io.gcps import picked_positions
 from recon_core.model.tiling import Window
 
@@ -811,6 +812,10 @@ class ViewerApp:
                      else "the DEM has no height there: h kept at ") + f"{h:.2f} m, type it"
         else:
             where = f"h {h:.2f} m from the DEM"
+            spread = ref.height_spread(lon, lat)
+            if spread is not None and spread > EDGE_SPREAD_M:
+                where += (f" (check it: the DEM changes by {spread:.1f} m within 1 m of the spot, a wall "
+                          "or an edge; prefer flat ground or a roof's interior)")
         if gid is None:
             g = new_gcp(self.session, self.gcp_panel.gid.value or None, x=lon, y=lat, h=h,
                         role=self.gcp_panel.role.value)

@@ -16,6 +16,16 @@ the screen becomes a pixel, and how often the predictions bring the spot into th
 
     python bench/bench_operator.py                   # generates a 3-image site (2000 px) once
     python bench/bench_operator.py --shots /tmp/op   # also saves a screenshot after each step
+    python bench/bench_operator.py --no-survey       # ground positions from an orthoimage + DEM
+
+--no-survey: the operator has no survey. The working set starts empty; the viewer is given a
+reference orthoimage of the site (the generator's true orthoimage, render_ortho, 0.5 m) and a
+DEM (the site's truth DSM, as a lidar DEM would be). For each GCP the person presses G (a new
+GCP on the orthoimage), finds the spot on the orthoimage as on the images (a chip of the
+orthoimage around the GCP's true ground position), clicks it and then clicks it in the loupe:
+the GCP gets its ground position from there, and the viewer goes back to the image shown
+before, where the person places it as above. Scored: the ground positions against the truth
+(horizontal, m; the height is the DEM's at the clicked spot), and the observations as above.
 
 Site: a synthetic scene (seed 0, one date group of 3 images of 2000 x 2000 px, d = 1000); its
 working GCP set holds 4 control GCPs with ground coordinates only (no observation: the operator
@@ -31,6 +41,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -49,33 +60,87 @@ FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftsh
 
 
 # -- the site ---------------------------------------------------------------------------------
+def operator_preset():
+    from recon_core.synthetic.generator import SynthPreset
+
+    return SynthPreset(name="operator3", groups=(3,), group_months=(5,), image_size=(2000, 2000), n_gcps=12)
+
+
 def ensure_site(root: Path, seed: int) -> Path:
-    from recon_core.synthetic.generator import SynthPreset, generate_site
+    from recon_core.synthetic.generator import generate_site
 
     site = root / f"operator3_s{seed}"
     if not (site / "site.json").exists():
         t0 = time.time()
-        p = SynthPreset(name="operator3", groups=(3,), group_months=(5,), image_size=(2000, 2000),
-                        n_gcps=12)
-        generate_site(site, preset=p, seed=seed)
+        generate_site(site, preset=operator_preset(), seed=seed)
         print(f"generated the 3-image site in {time.time() - t0:.0f} s -> {site}")
     return site
 
 
-def choose_gcps(site: Path, n: int = 4) -> list[dict]:
+def choose_gcps(site: Path, n: int = 4, flat: bool = False) -> list[dict]:
     """The site's control GCPs seen in every image (truth file), completed by check points seen
-    in every image if fewer than n."""
+    in every image if fewer than n; `flat`: only where the ground is flat within 1 m (as a user
+    without a survey is told to choose them: a DEM's height at a wall or an edge is uncertain)."""
     truth = json.loads((site / "truth" / "gcps_truth.json").read_text())["gcps"]
     names = sorted(p.name for p in (site / "images").glob("*.tif"))
     seen = [g for g in truth if set(g["true_observations"]) >= set(names)]
+    if flat:
+        return flat_spots(site, names, n)
     seen.sort(key=lambda g: g["role"] != "control")
     if len(seen) < n:
         raise SystemExit(f"only {len(seen)} GCPs are seen in all {len(names)} images")
     return seen[:n]
 
 
+def flat_spots(site: Path, names: list[str], n: int) -> list[dict]:
+    """n spots a user without a survey would choose on the orthoimage: flat ground (the truth
+    DSM within 0.3 m over 1 m around), textured (corners of road markings, kerbs), seen in every
+    image, one near the centre of each quarter of the site; their true pixels by the images'
+    RPCs (the generator's cameras to 0.01 px), their height the truth DSM's."""
+    import cv2
+    import rasterio
+    from pyproj import Transformer
+
+    from recon_core.geometry.rpc import RPCModel
+
+    with rasterio.open(site / "gt_dsm.tif") as ds:
+        dsm, tf, crs, nd = ds.read(1).astype(np.float64), ds.transform, ds.crs, ds.nodata
+    ortho, _ = prepare_reference(site, site.parent, 0)
+    with rasterio.open(ortho) as ds:
+        img = ds.read(1).astype(np.float32)
+    ok = dsm != nd
+    k = np.ones((5, 5), np.uint8)                                  # 5 x 5 cells = 2 m
+    hi = cv2.dilate(np.where(ok, dsm, -1e9).astype(np.float32), k)
+    lo = cv2.erode(np.where(ok, dsm, 1e9).astype(np.float32), k)
+    corner = cv2.cornerMinEigenVal(img / max(img.max(), 1.0), 5)
+    good = ok & (hi - lo < 0.3) & (corner > np.percentile(corner[ok], 90))
+    rpcs = {}
+    for name in names:
+        with rasterio.open(site / "images" / name) as ds:
+            rpcs[name] = (RPCModel.from_rasterio(ds.rpcs), ds.width, ds.height)
+    rows, cols = np.nonzero(good)
+    e, nn = tf.c + (cols + 0.5) * tf.a, tf.f + (rows + 0.5) * tf.e
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(e, nn)
+    llh = np.column_stack([lon, lat, dsm[rows, cols]])
+    inside = np.ones(len(llh), bool)
+    pix = {}
+    for name, (rpc, w, h) in rpcs.items():
+        p = rpc.project(llh)
+        pix[name] = p
+        inside &= (p[:, 0] > 100) & (p[:, 0] < w - 100) & (p[:, 1] > 100) & (p[:, 1] < h - 100)
+    H, W = dsm.shape
+    out = []
+    for qr, qc in ((0.25, 0.25), (0.25, 0.75), (0.75, 0.75), (0.75, 0.25)):
+        d = np.hypot(rows - qr * H, cols - qc * W) + np.where(inside, 0, 1e9)
+        i = int(np.argmin(d))
+        out.append({"id": f"FLAT-{len(out) + 1}", "role": "control", "llh": [float(v) for v in llh[i]],
+                    "true_observations": {nm: [float(v) for v in pix[nm][i]] for nm in names}})
+    return out[:n]
+
+
 def prepare_out(site: Path, out: Path, gcps: list[dict]) -> None:
-    """Sparse reconstruction, then the working set = the chosen GCPs, ground coordinates only."""
+    """Sparse reconstruction, then the working set = the chosen GCPs, ground coordinates only
+    (none at all without a survey: `gcps` empty)."""
     from recon_core.io.gcps import GCP, write_gcps_geojson
 
     if not (out / "report.json").exists():
@@ -86,6 +151,28 @@ def prepare_out(site: Path, out: Path, gcps: list[dict]) -> None:
     write_gcps_geojson(out / "gcps.geojson",
                        [GCP(g["id"], *g["llh"], role="control") for g in gcps],
                        written_by="bench_operator (ground coordinates only)")
+
+
+def prepare_reference(site: Path, root: Path, seed: int) -> tuple[Path, Path]:
+    """The reference orthoimage (the generator's true one) and DEM (the truth DSM) of the site."""
+    from recon_core.synthetic.generator import render_ortho
+
+    ref = root / f"operator3_s{seed}_reference"
+    ortho, dem = ref / "ortho.tif", ref / "dem.tif"
+    if not ortho.exists():
+        ref.mkdir(parents=True, exist_ok=True)
+        render_ortho(site, ortho, operator_preset(), seed)
+        shutil.copy(site / "gt_dsm.tif", dem)
+    return ortho, dem
+
+
+def read_ground(out: Path) -> dict[str, tuple[float, float, float]]:
+    """Each GCP's (lon, lat, h) in the working set."""
+    try:
+        doc = json.loads((out / "gcps.geojson").read_text())
+    except (OSError, ValueError):
+        return {}
+    return {f["properties"]["id"]: tuple(f["geometry"]["coordinates"]) for f in doc["features"]}
 
 
 # -- the person -------------------------------------------------------------------------------
@@ -240,20 +327,65 @@ def click_in_loupe(person: Person, out: Path, img: np.ndarray, gid: str, image: 
     return wait_file(out, lambda o: image in o.get(gid, {})) is not None
 
 
+def place_ground(person: Person, out: Path, ortho: np.ndarray, true_px, label: str) -> str | None:
+    """Click the GCP's spot on the reference orthoimage, then in the loupe: a new GCP with that
+    ground position appears in the working set; returns its id."""
+    before = set(read_ground(out))
+    screen = person.settle()
+    x, y, s, v = find_on_screen(screen, ortho, *true_px, half=48, scales=np.geomspace(0.12, 2.5, 40),
+                                nearest=False)
+    if v < 0.4:
+        print(f"  {label} on the orthoimage: not found on the screen (NCC {v:.2f})")
+        return None
+    person.click(x, y, f"{label} on the orthoimage")
+    person.settle()
+    screen = person.settle()
+    x, y, s, v = find_on_screen(screen, ortho, *true_px, half=8, scales=np.geomspace(3.0, 40.0, 40), nearest=True)
+    if v < 0.8:
+        print(f"  {label}: not in the orthoimage's loupe (best NCC {v:.2f})")
+        return None
+    x, y, s, v = find_on_screen(screen, ortho, *true_px, half=8, scales=np.linspace(0.94 * s, 1.06 * s, 25),
+                                nearest=True)
+    person.click(x, y, f"{label} in the loupe on the orthoimage ({s:.1f} screen px per px)")
+    got = wait_file(out, lambda o: set(o) - before)
+    return None if got is None else sorted(set(got) - before)[0]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--root", type=Path, default=Path("/tmp/aerec_bench"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--shots", type=Path, default=None, help="save a screenshot after each step")
+    ap.add_argument("--no-survey", action="store_true",
+                    help="no ground coordinates: take them from a reference orthoimage + DEM")
     args = ap.parse_args()
 
     import rasterio
     from playwright.sync_api import sync_playwright
 
     site = ensure_site(args.root, args.seed)
-    gcps = choose_gcps(site)
+    gcps = choose_gcps(site, flat=args.no_survey)
     out = args.root / f"operator3_s{args.seed}_out"
     prepare_out(site, out, gcps)
+    extra: list[str] = []
+    if args.no_survey:
+        from pyproj import Transformer
+
+        ortho_path, dem_path = prepare_reference(site, args.root, args.seed)
+        survey = out
+        out = args.root / f"operator3_s{args.seed}_nosurvey_out"
+        if out.exists():
+            shutil.rmtree(out)
+        shutil.copytree(survey, out, ignore=shutil.ignore_patterns(".aerec.lock"))
+        prepare_out(site, out, [])                      # an empty working set
+        extra = ["--reference-ortho", str(ortho_path), "--reference-dem", str(dem_path)]
+        with rasterio.open(ortho_path) as ds:
+            ortho = ds.read(1).astype(np.float32)
+            tf, crs = ds.transform, ds.crs
+        to_map = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+        for g in gcps:
+            e, n = to_map.transform(g["llh"][0], g["llh"][1])
+            g["ortho_px"] = ((e - tf.c) / tf.a - 0.5, (n - tf.f) / tf.e - 0.5)
     names = sorted(p.name for p in (site / "images").glob("*.tif"))
     images = {}
     for n in names:
@@ -264,7 +396,7 @@ def main() -> None:
 
     t0 = time.time()
     proc = subprocess.Popen([sys.executable, "-m", "aerec_viewer", str(out), "--port", "0",
-                             "--no-browser-hint"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                             "--no-browser-hint", *extra], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, env=dict(os.environ))
     lines: list[str] = []
     threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
@@ -287,8 +419,16 @@ def main() -> None:
             shown = 0                                   # index of the image on the plane
             for g in gcps:
                 gid = g["id"]
-                person.key("n", "next GCP")
-                page.get_by_text(f"{gid} (control)").first.wait_for(timeout=20_000)
+                if args.no_survey:
+                    person.key("g", "a new GCP on the reference orthoimage")
+                    page.get_by_text("a new GCP: click its spot").first.wait_for(state="attached", timeout=20_000)
+                    gid = place_ground(person, out, ortho, g["ortho_px"], g["id"])
+                    if gid is None:
+                        continue
+                    g["viewer_id"] = gid                # the viewer names it; the truth is g's
+                else:
+                    person.key("n", "next GCP")
+                    page.get_by_text(f"{gid} (control)").first.wait_for(timeout=20_000)
                 im = names[shown]                       # start in the image on the screen
                 if not place(person, out, images[im], gid, im, g["true_observations"][im]):
                     continue
@@ -318,14 +458,28 @@ def main() -> None:
 
     obs = read_working_set(out)
     errs, rows = [], []
+    if args.no_survey:
+        from recon_core.geometry.geodesy import LocalFrame
+
+        ground = read_ground(out)
+        print("ground positions from the orthoimage + DEM against the truth:")
+        for g in gcps:
+            got = ground.get(g.get("viewer_id"))
+            if got is None:
+                print(f"  {g['id']}: not placed")
+                continue
+            enu = LocalFrame(*g["llh"]).geodetic_to_enu(np.array([got]))[0]
+            print(f"  {g['id']} (as {g['viewer_id']}): horizontal {np.hypot(enu[0], enu[1]):.3f} m, "
+                  f"height {enu[2]:+.3f} m")
     for g in gcps:
         for n in names:
             t = g["true_observations"][n]
-            o = obs.get(g["id"], {}).get(n)
+            o = obs.get(g.get("viewer_id", g["id"]), {}).get(n)
             e = None if o is None else float(np.hypot(o[0] - t[0], o[1] - t[1]))
             errs.append(e)
             rows.append(f"  {g['id']} {n}: " + ("missing" if e is None else f"{e:.3f} px"))
-    print(f"\ninputs: {len(person.inputs)} (target <= 25)")
+    print(f"\ninputs: {len(person.inputs)} (target <= 25" + (" with a survey; without one, 2 clicks "
+          "and G more per GCP)" if args.no_survey else ")"))
     for i in person.inputs:
         print(f"  {i}")
     print("observations against the truth:")

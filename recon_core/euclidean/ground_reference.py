@@ -62,6 +62,22 @@ class GroundReference:
         return lon, lat, (h if np.isfinite(h) else None)
 
 
+    def height_spread(self, lon: float, lat: float, radius_m: float = 1.0) -> float | None:
+        """The DEM's range (max - min, m) over the spot and 8 points radius_m around it: large on a
+        wall or a roof's edge, where the height of a spot a few centimetres off is another one."""
+        if self.dem is None:
+            return None
+        a = np.deg2rad(np.arange(8) * 45.0)
+        dlat = radius_m / 111_320.0
+        dlon = dlat / max(np.cos(np.deg2rad(lat)), 1e-6)
+        h = self.dem.heights(np.r_[lon, lon + dlon * np.cos(a)], np.r_[lat, lat + dlat * np.sin(a)])
+        h = h[np.isfinite(h)]
+        return float(np.ptp(h)) if len(h) > 1 else None
+
+
+EDGE_SPREAD_M = 1.0   # a DEM changing more than this within 1 m of the spot: its height is uncertain
+
+
 def open_ground_reference(ortho: str | Path, dem: str | Path | None = None) -> GroundReference:
     """The orthoimage (and DEM) checked before use: readable rasters GDAL knows, georeferenced
     (a CRS reachable from WGS84 and a geotransform). Raises InputError (one line naming the file)."""
