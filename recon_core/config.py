@@ -93,7 +93,6 @@ class MatchingConfig:
     min_inliers: int = _p(30, lo=4, hi=1_000_000)  # a tile pair with fewer verified matches is dropped
     coarse_factor: int = _p(8, lo=1, hi=64)  # downsampling of the whole-image overview match
     k_partners: int = _p(6, lo=1, hi=1000)  # match each image with its k best partners only
-    min_parallax_ratio: float = _p(0.0, lo=0, hi=1e6)  # sigma3/sigma4 guard; 0 = adaptive (see sfm)
 
 
 @dataclass
@@ -213,6 +212,8 @@ class MgmConfig:
     p2: float = _p(32.0, lo=0, hi=100_000)  # penalty of a larger step (>= p1)
     lr_max_diff_px: float = _p(1.0, lo=0, hi=1000)  # left-right check tolerance (px)
     median: bool = _p(True)           # 3 x 3 median of the valid disparities
+    uniqueness: float = _p(0.1, lo=0, hi=10)  # a winner whose cost another disparity (> 1 px away) comes within
+                                      # this fraction of is ambiguous: dropped (0 = keep all)
     speckle_window: int = _p(100, lo=0, hi=100_000)  # speckle filter: max region size (px) to remove (0 = none)
     speckle_range: float = _p(2.0, lo=0, hi=1000)  # speckle filter: max disparity step inside a region (px)
     max_volume_mb: float = _p(512.0, lo=16, hi=1_000_000)  # a worker's 3 cost volumes together stay under
@@ -338,8 +339,8 @@ class Config:
 LEGACY_KEYS = {f"dense.{k}": f"sgbm.{k}" for k in ("block_size", "p1", "p2", "uniqueness",
                                                    "speckle_window", "speckle_range", "lr_max_diff_px")}
 # parameters that no longer exist and never changed a result: read from older files and skipped
-# (bundle.smoothness_weight was read by nothing)
-REMOVED_KEYS = {"bundle.smoothness_weight"}
+# (bundle.smoothness_weight and matching.min_parallax_ratio were read by nothing)
+REMOVED_KEYS = {"bundle.smoothness_weight", "matching.min_parallax_ratio"}
 # parameters that were removed because they did harm: read from older files only with the value
 # that does what the code now does (any other value is refused, saying why)
 RETIRED_KEYS: dict = {}

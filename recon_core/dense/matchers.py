@@ -106,7 +106,7 @@ class MgmMatcher:
         c = self.cfg
         d = mgm_disparity(left, right, d_lo, d_hi, census_window=c.census_window, p1=c.p1, p2=c.p2,
                           lr_max_diff_px=c.lr_max_diff_px, median=c.median, speckle_window=c.speckle_window,
-                          speckle_range=c.speckle_range, max_volume_mb=c.max_volume_mb)
+                          speckle_range=c.speckle_range, uniqueness=c.uniqueness, max_volume_mb=c.max_volume_mb)
         return d, np.isfinite(d)
 
 

@@ -154,9 +154,11 @@ def aggregate(C: np.ndarray, P1: float, P2: float) -> np.ndarray:
 
 
 @njit(**_JIT)
-def _winners(S: np.ndarray, d0: int) -> tuple[np.ndarray, np.ndarray]:
-    """Left disparity (WTA + V-fit; NaN at the range's ends) and right disparity (WTA on the same
-    S along the right image's diagonals), both in d = u_right - u_left."""
+def _winners(S: np.ndarray, d0: int, uniqueness: float) -> tuple[np.ndarray, np.ndarray]:
+    """Left disparity (WTA + V-fit; NaN at the range's ends, and where a disparity more than one
+    step from the winner costs less than (1 + uniqueness) times the winner's: an ambiguous
+    match) and right disparity (WTA on the same S along the right image's diagonals), both in
+    d = u_right - u_left."""
     h, w, D = S.shape
     dl = np.full((h, w), np.nan, np.float32)
     dr = np.full((h, w), np.nan, np.float32)
@@ -166,6 +168,12 @@ def _winners(S: np.ndarray, d0: int) -> tuple[np.ndarray, np.ndarray]:
             for k in range(D):
                 if S[y, x, k] < best:
                     best, kb = S[y, x, k], k
+            if uniqueness > 0 and kb >= 0:
+                lim = best * (1.0 + uniqueness)
+                for k in range(D):
+                    if abs(k - kb) > 1 and S[y, x, k] <= lim:
+                        kb = -1
+                        break
             if 0 < kb < D - 1:
                 a, c = S[y, x, kb - 1], S[y, x, kb + 1]
                 slope = max(a, c) - best
@@ -234,8 +242,8 @@ def strips(h: int, rows: int, overlap: int) -> list[tuple[int, int, int, int]]:
 
 def mgm_disparity(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float, census_window: int = 5,
                   p1: float = 8.0, p2: float = 32.0, lr_max_diff_px: float = 1.0, median: bool = True,
-                  speckle_window: int = 100, speckle_range: float = 2.0, max_volume_mb: float = 512.0,
-                  overlap_rows: int = 64) -> np.ndarray:
+                  speckle_window: int = 100, speckle_range: float = 2.0, uniqueness: float = 0.1,
+                  max_volume_mb: float = 512.0, overlap_rows: int = 64) -> np.ndarray:
     """Disparity (h, w) float32 of a rectified pair (d = u_right - u_left, NaN invalid), searched
     in [floor(d_lo) - 1, ceil(d_hi) + 1] (one step beyond each end, so that a winner at the
     range's own ends is refined and not dropped)."""
@@ -253,7 +261,7 @@ def mgm_disparity(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float,
         C = cost_volume(cl[a:b], cr[a:b], d0, D, float(bits))
         S = aggregate(C, p1, p2)
         del C
-        dl, dr = _winners(S, d0)
+        dl, dr = _winners(S, d0, float(uniqueness))
         del S
         d = _lr_check(dl, dr, float(lr_max_diff_px))
         out[k0:k1] = d[k0 - a:k1 - a]
