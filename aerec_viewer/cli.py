@@ -73,16 +73,20 @@ _WARMUP = ("import sys\n"
            "warm_render_kernel()\n"
            "print('render', flush=True)\n"
            "from recon_core.sparse.bundle import warm_compiled_kernels\n"
-           "warm_compiled_kernels()\n")
+           "warm_compiled_kernels()\n"
+           "from recon_core.dense.mgm import warm_compiled_kernels as warm_mgm\n"
+           "warm_mgm()\n")
 
 
-_WARM_BA = "from recon_core.sparse.bundle import warm_compiled_kernels\nwarm_compiled_kernels()\n"
+_WARM_BA = ("from recon_core.sparse.bundle import warm_compiled_kernels\nwarm_compiled_kernels()\n"
+            "from recon_core.dense.mgm import warm_compiled_kernels as warm_mgm\nwarm_mgm()\n")
 
 
 def _start_ba_warmup():
-    """A second process compiling the bundle adjustment's kernels into numba's cache while this
-    one detects and matches features (a few seconds each): on a fresh machine the first
-    adjustment then loads them instead of compiling them on the way. A no-op when cached."""
+    """A second process compiling the bundle adjustment's kernels, then MGM's, into numba's cache
+    while this one detects and matches features (a few seconds each): on a fresh machine the
+    first adjustment and the dense stage then load them instead of compiling them on the way.
+    A no-op when cached."""
     import subprocess
     import threading
 

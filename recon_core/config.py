@@ -165,9 +165,11 @@ class BundleConfig:
 @dataclass
 class DenseConfig:
     step: int = _p(1, lo=1, hi=64)    # stride of the reference-pixel grid (1 = every pixel)
-    matcher: str = _p("sgbm", choices=("sgbm", "mgm", "pandora"))  # stereo matcher (recon_core.dense.matchers.MATCHERS);
-                                      # its parameters are the config section of the same name;
-                                      # "mgm": the paper's (census + MGM, built in); "pandora"
+    matcher: str = _p("mgm", choices=("sgbm", "mgm", "pandora"))  # stereo matcher (recon_core.dense.matchers.MATCHERS);
+                                      # its parameters are the config section of the same name:
+                                      # "mgm" the paper's (census + MGM, built in); "sgbm" OpenCV's
+                                      # (faster, sharper walls on this project's simulator, less
+                                      # accurate on real and independent scenes); "pandora"
                                       # (CNES's census + SGM) needs the optional extra:
                                       # pip install 'aerec[pandora]' (docs: accuracy.md, "Matchers: SGBM, MGM and pandora")
     disp_margin_px: float = _p(8.0, lo=0, hi=10_000)  # margin added around the sparse disparity percentiles

@@ -58,8 +58,8 @@ CHAIN: tuple[Step, ...] = (
          "data: its straight-line model misses it by more than 0.02 px, mostly by what the focal-"
          "plane terms take away; a bowed line looks like a bend; every real sensor so far); one date"),
     Step("dense", "per overlapping tile pair: affine F from the cameras, rectifying affine maps, "
-         "semi-global matching with a left-right check, multi-view tracks with a photometric "
-         "check, triangulation", "recon_core.dense", True),
+         "MGM (semi-global matching on a census cost; dense.matcher) with a left-right check, "
+         "multi-view tracks with a photometric check, triangulation", "recon_core.dense", True),
     Step("upgrade", "one 4 x 4 affine map H_A fitted on >= 4 control GCPs in a local ENU frame "
          "(least squares, RANSAC when many)", "recon_core.euclidean.upgrade", True),
     Step("metric_prior", "the cameras' metric constraint (the rows of each tile camera "

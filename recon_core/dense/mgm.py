@@ -283,3 +283,11 @@ def remove_speckles(d: np.ndarray, max_size: int, max_diff: float) -> np.ndarray
     fixed = np.clip(fixed, -32767, 32767).astype(np.int16)
     cv2.filterSpeckles(fixed, bad, int(max_size), int(round(max_diff * 16)))
     return np.where(ok & (fixed != bad), d, np.nan).astype(np.float32)
+
+
+def warm_compiled_kernels() -> None:
+    """Compile the kernels into numba's cache on a small pair (a second process does this while
+    the first run's sparse stage works, so the dense stage loads them instead of compiling)."""
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (40, 48)).astype(np.uint8)
+    mgm_disparity(img, np.roll(img, 2, axis=1), 0.0, 4.0)

@@ -138,7 +138,8 @@ def match_pair(ref_img: np.ndarray, ref: TileSpec, part_img: np.ndarray, p: Part
     """Rectify and match one tile pair; returns the rectified disparity field and its maps.
 
     ref_core / p.core: the full-image boxes each tile owns (None = the whole tile).
-    matcher: the stereo matcher (default: SGBM with its default parameters).
+    matcher: the stereo matcher (default: SGBM with its default parameters, the fastest; the
+    dense stage passes the configured one, make_matcher).
     """
     matcher = matcher or SgbmMatcher()
     rt, pt = ref.tile, p.spec.tile

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from recon_core.config import Config, DenseConfig, SgbmConfig, preset
-from recon_core.dense.matchers import SgbmMatcher, lr_consistent, make_matcher, run_sgbm, sgbm_params
+from recon_core.dense.matchers import MgmMatcher, SgbmMatcher, lr_consistent, make_matcher, run_sgbm, sgbm_params
 from recon_core.dense.reconstruct import (
     DenseJob,
     PartnerSpec,
@@ -46,7 +46,7 @@ def test_sgbm_convention_recovers_known_disparity():
     assert np.nanmedian(d) == pytest.approx(d_true, abs=0.15)
     # the matcher interface: the project's sign convention, validity from the left-right check
     d2, valid = make_matcher(Config()).match(left, right, lo, hi)
-    assert isinstance(make_matcher(Config()), SgbmMatcher)
+    assert isinstance(make_matcher(Config()), MgmMatcher)          # the default: the paper's MGM
     assert np.nanmedian(d2[20:-20, 60:-20]) == pytest.approx(d_true, abs=0.15)
     assert np.array_equal(valid, np.isfinite(d2)) and valid[20:-20, 60:-20].mean() > 0.8
     with pytest.raises(ValueError, match="unknown stereo matcher"):

@@ -95,20 +95,21 @@ def test_mgm_is_chosen_by_name_and_picklable():
     assert m.margin_px >= 7 // 2
 
 
-def test_a_run_with_mgm_is_as_accurate_as_sgbm(tiny_run, tmp_path):
-    """`tiny` reconstructed again from the same sparse stage with dense.matcher = "mgm": its DSM
-    against the generator's truth is about as accurate and complete as SGBM's."""
+def test_the_default_mgm_run_is_as_accurate_as_sgbm(tiny_run, tmp_path):
+    """`tiny` (defaults: MGM) reconstructed again from the same sparse stage with dense.matcher =
+    "sgbm": MGM's DSM against the generator's truth is about as accurate and complete."""
     import shutil
 
     from recon_core.config import preset
     from recon_core.pipeline import run
 
     state, _ = tiny_run
+    assert state.cfg.dense.matcher == "mgm"
     out = tmp_path / "o"
     shutil.copytree(state.out, out)
-    again = run(state.site.root, out, preset("tiny").with_overrides({"dense.matcher": "mgm"}))
+    again = run(state.site.root, out, preset("tiny").with_overrides({"dense.matcher": "sgbm"}))
     assert again.report["stages"]["dense"] != state.report["stages"]["dense"]   # matched again
-    sg, mg = state.report["stages"]["eval"]["aligned"], again.report["stages"]["eval"]["aligned"]
+    mg, sg = state.report["stages"]["eval"]["aligned"], again.report["stages"]["eval"]["aligned"]
     # measured: ME 0.386 m against 0.386, CP 71.6 % against 70.5, coverage 88.9 % against 86.8
     assert mg["median_abs_err_m"] <= sg["median_abs_err_m"] + 0.03, (mg, sg)
     assert mg["completeness_pct"] >= sg["completeness_pct"] - 1.0, (mg, sg)
