@@ -161,6 +161,8 @@ class GcpPanel:
             self.h = gui.add_number("h (m, ellipsoidal)", 0.0, step=0.01)
             self.apply = gui.add_button("Apply to the selected GCP")
             self.create = gui.add_button("New GCP")
+        with gui.add_folder("Working set", expand_by_default=True):
+            self.listing = gui.add_markdown("")
         with gui.add_folder("Site GCP list", expand_by_default=False):
             cat = [g.id for g in s.catalogue] or ["(the site has no gcps.geojson)"]
             self.catalogue = gui.add_dropdown("Site GCP", cat, initial_value=cat[0])
@@ -669,6 +671,7 @@ class GcpPanel:
         self.undo.label = f"Undo: {u}" if u else "Undo"
         self.redo.label = f"Redo: {r}" if r else "Redo"
         self.fill_fields(clear_new=before != self.NEW)
+        self.listing.content = self.working_set_table()
 
     def fill_fields(self, clear_new: bool = True) -> None:
         """Show the selected GCP; for a new GCP, empty the fields (unless the operator was
@@ -700,6 +703,26 @@ class GcpPanel:
         self.role.value = g.role
         self.crs.value = "lon, lat, h (WGS84)"
         self.x.value, self.y.value, self.h.value = g.lon, g.lat, g.h
+
+    def working_set_table(self) -> str:
+        """The working set at a glance (a marker list): each GCP's role, the registered images it
+        is placed in, and its worst reprojection residual (px; where >= 2 observations give one),
+        the selected one in bold."""
+        s = self.app.session
+        if not s.gcps:
+            return "No GCP yet."
+        images = self._registered_images()
+        sel = self.selected()
+        rows = ["| GCP | role | images | worst residual |", "|---|---|---|---|"]
+        for g in s.gcps:
+            res = self.residuals(g.id) if len(g.observations) >= 2 else {}
+            worst = max(res.items(), key=lambda kv: kv[1], default=None)
+            name = f"**{g.id}**" if g.id == sel else g.id
+            role = g.role if g.enabled else f"{g.role}, off"
+            placed = f"{len(set(g.observations) & images)} / {len(images)}"
+            rows.append(f"| {name} | {role} | {placed} | "
+                        + ("-" if worst is None else f"{worst[1]:.2f} px ({worst[0]})") + " |")
+        return "\n".join(rows)
 
     def set_regions(self, names: list[str]) -> None:
         opts = ["whole image"] + names

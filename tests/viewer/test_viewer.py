@@ -601,6 +601,8 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     pix = app.call(lambda: app.on_plane_click(o, d))
     assert pix is not None and abs(pix[0] - 123.25) < 1e-3 and abs(pix[1] - 200.75) < 1e-3
     assert app.last_click[:2] == ("NEW-1", img)
+    n_img = len(app.call(gp._registered_images))
+    assert f"| **NEW-1** | control | 1 / {n_img} | - |" in gp.listing.content      # the working set's table
     saved = json.loads((out / "gcps.geojson").read_text())
     feat = {f["properties"]["id"]: f for f in saved["features"]}["NEW-1"]
     assert np.allclose(feat["properties"]["observations"][img], [123.25, 200.75], atol=1e-3)
