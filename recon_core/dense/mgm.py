@@ -254,8 +254,12 @@ def mgm_disparity(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float,
     cl = census(np.ascontiguousarray(left, np.float32), r)
     cr = census(np.ascontiguousarray(right, np.float32), r)
     bits = census_window * census_window - 1
-    # three float32 volumes live at once (C, S, L)
-    rows = max(int(max_volume_mb * 2 ** 20 / (3 * 4 * w * D)) - 2 * overlap_rows, 16)
+    # three float32 volumes live at once (C, S, L): a strip of `fit` rows fills the budget, its
+    # context rows included (fewer of them when the canvas is so wide that they would not fit;
+    # a strip is 32 rows at least, over the budget only for a budget under 32 rows' volumes)
+    fit = int(max_volume_mb * 2 ** 20 / (3 * 4 * w * D))
+    overlap_rows = max(min(overlap_rows, (fit - 16) // 2), 8)
+    rows = max(fit - 2 * overlap_rows, 16)
     out = np.full((h, w), np.nan, np.float32)
     for a, b, k0, k1 in strips(h, rows, overlap_rows):
         C = cost_volume(cl[a:b], cr[a:b], d0, D, float(bits))

@@ -73,6 +73,9 @@ def test_row_strips_match_one_whole_volume(monkeypatch):
     monkeypatch.setattr(mgm, "cost_volume", lambda cl, *a: volumes.append(cl.shape) or real(cl, *a))
     parts = mgm.mgm_disparity(left, right, -2.0, 9.0, max_volume_mb=16, overlap_rows=32)
     assert len(volumes) > 2 and max(h * w * 14 * 4 * 3 for h, w in volumes) <= 16 * 2 ** 20
+    volumes.clear()          # context rows that would not fit the budget are fewer, not over it
+    mgm.mgm_disparity(left, right, -2.0, 9.0, max_volume_mb=16, overlap_rows=200)
+    assert len(volumes) > 2 and max(h * w * 14 * 4 * 3 for h, w in volumes) <= 16 * 2 ** 20
     both = np.isfinite(whole) & np.isfinite(parts)
     assert both.mean() > 0.9
     assert np.mean(np.abs(whole - parts)[both] > 0.05) < 0.01
