@@ -189,8 +189,7 @@ class GcpPanel:
         self.last_chooser: tuple[int, str] | None = None   # the tab that changed the list last, and to what
         self._wire()
         self.shortcuts = self._add_shortcuts(gui)
-        rows = self.SHORTCUTS + (self.REFERENCE_SHORTCUTS if getattr(app, "reference", None) else ())
-        gui.add_markdown("Keys: " + ", ".join(f"**{k}** {what}" for k, what, _ in rows)
+        gui.add_markdown("Keys: " + ", ".join(f"**{k}** {what}" for k, what, _ in self.shortcut_rows())
                          + " (viser's W A S D Q E and arrows move the camera).")
 
     # key, what, action (the camera keeps viser's W A S D Q E and arrow keys)
@@ -212,6 +211,10 @@ class GcpPanel:
         ("G", "a new GCP on the reference orthoimage", lambda self, ev: self.new_on_reference()),
     )
 
+    def shortcut_rows(self) -> tuple:
+        """SHORTCUTS, and REFERENCE_SHORTCUTS when the viewer has a reference orthoimage."""
+        return self.SHORTCUTS + (self.REFERENCE_SHORTCUTS if getattr(self.app, "reference", None) else ())
+
     def new_on_reference(self) -> None:
         """Select "(new GCP ...)" and show the reference orthoimage: the next click there (through
         the loupe) makes a GCP at that ground position."""
@@ -230,8 +233,7 @@ class GcpPanel:
         if not hasattr(gui, "add_command"):
             return {}
         out = {}
-        rows = self.SHORTCUTS + (self.REFERENCE_SHORTCUTS if getattr(self.app, "reference", None) else ())
-        for key, what, action in rows:
+        for key, what, action in self.shortcut_rows():
             mods, _, hot = key.rpartition("+")
             modifier = {"": None, "ctrl": "cmd/ctrl", "shift": "shift",
                         "ctrl+shift": "cmd/ctrl+shift"}[mods]

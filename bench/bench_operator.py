@@ -77,22 +77,23 @@ def ensure_site(root: Path, seed: int) -> Path:
     return site
 
 
-def choose_gcps(site: Path, n: int = 4, flat: bool = False) -> list[dict]:
+def choose_gcps(site: Path, n: int = 4, flat: Path | None = None) -> list[dict]:
     """The site's control GCPs seen in every image (truth file), completed by check points seen
-    in every image if fewer than n; `flat`: only where the ground is flat within 1 m (as a user
-    without a survey is told to choose them: a DEM's height at a wall or an edge is uncertain)."""
+    in every image if fewer than n; `flat` (the reference orthoimage): spots chosen on it where
+    the ground is flat (as a user without a survey is told to: a DEM's height at a wall or an
+    edge is uncertain), flat_spots."""
     truth = json.loads((site / "truth" / "gcps_truth.json").read_text())["gcps"]
     names = sorted(p.name for p in (site / "images").glob("*.tif"))
     seen = [g for g in truth if set(g["true_observations"]) >= set(names)]
-    if flat:
-        return flat_spots(site, names, n)
+    if flat is not None:
+        return flat_spots(site, flat, names, n)
     seen.sort(key=lambda g: g["role"] != "control")
     if len(seen) < n:
         raise SystemExit(f"only {len(seen)} GCPs are seen in all {len(names)} images")
     return seen[:n]
 
 
-def flat_spots(site: Path, names: list[str], n: int) -> list[dict]:
+def flat_spots(site: Path, ortho: Path, names: list[str], n: int) -> list[dict]:
     """n spots a user without a survey would choose on the orthoimage: flat ground (the truth
     DSM within 0.3 m over 1 m around), textured (corners of road markings, kerbs), seen in every
     image, one near the centre of each quarter of the site; their true pixels by the images'
@@ -105,7 +106,6 @@ def flat_spots(site: Path, names: list[str], n: int) -> list[dict]:
 
     with rasterio.open(site / "gt_dsm.tif") as ds:
         dsm, tf, crs, nd = ds.read(1).astype(np.float64), ds.transform, ds.crs, ds.nodata
-    ortho, _ = prepare_reference(site, site.parent, 0)
     with rasterio.open(ortho) as ds:
         img = ds.read(1).astype(np.float32)
     ok = dsm != nd
@@ -364,14 +364,15 @@ def main() -> None:
     from playwright.sync_api import sync_playwright
 
     site = ensure_site(args.root, args.seed)
-    gcps = choose_gcps(site, flat=args.no_survey)
+    reference = prepare_reference(site, args.root, args.seed) if args.no_survey else None
+    gcps = choose_gcps(site, flat=None if reference is None else reference[0])
     out = args.root / f"operator3_s{args.seed}_out"
     prepare_out(site, out, gcps)
     extra: list[str] = []
     if args.no_survey:
         from pyproj import Transformer
 
-        ortho_path, dem_path = prepare_reference(site, args.root, args.seed)
+        ortho_path, dem_path = reference
         survey = out
         out = args.root / f"operator3_s{args.seed}_nosurvey_out"
         if out.exists():

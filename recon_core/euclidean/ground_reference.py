@@ -14,6 +14,7 @@ Pixels follow the project's convention: (col, row) with pixel centres at whole n
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -33,22 +34,29 @@ class GroundReference:
     transform: object
     dem: object | None = None     # dem_bend.ReferenceDem
 
-    def lonlat_at(self, col: float, row: float) -> tuple[float, float]:
-        """(lon, lat) of the orthoimage's pixel (col, row)."""
+    @cached_property
+    def _to_wgs84(self):
         from pyproj import Transformer
 
+        return Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
+
+    @cached_property
+    def _from_wgs84(self):
+        from pyproj import Transformer
+
+        return Transformer.from_crs("EPSG:4326", self.crs, always_xy=True)
+
+    def lonlat_at(self, col: float, row: float) -> tuple[float, float]:
+        """(lon, lat) of the orthoimage's pixel (col, row)."""
         a = self.transform
         x, y = col + 0.5, row + 0.5                      # GDAL's pixel corners
         e, n = a.a * x + a.b * y + a.c, a.d * x + a.e * y + a.f
-        lon, lat = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True).transform(e, n)
+        lon, lat = self._to_wgs84.transform(e, n)
         return float(lon), float(lat)
 
     def pixel_of(self, lon: np.ndarray, lat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(col, row) in the orthoimage of points (lon, lat): where GCPs' ground positions lie."""
-        from pyproj import Transformer
-
-        e, n = Transformer.from_crs("EPSG:4326", self.crs, always_xy=True).transform(
-            np.asarray(lon, np.float64), np.asarray(lat, np.float64))
+        e, n = self._from_wgs84.transform(np.asarray(lon, np.float64), np.asarray(lat, np.float64))
         inv = ~self.transform
         e, n = np.asarray(e), np.asarray(n)
         return inv.a * e + inv.b * n + inv.c - 0.5, inv.d * e + inv.e * n + inv.f - 0.5

@@ -227,15 +227,10 @@ def site_grid(images: list[ProductImage]) -> tuple[dict | None, str | None]:
     the user about where they came from; (None, None) without any."""
     from recon_core.geometry.geodesy import geodetic_to_projected
 
-    lonlat = [ll for im in images if im.rpc_footprint for ll in im.rpc_footprint]
+    lonlat = [ll for im in images if im.rpc_footprint for ll in _footprint_lonlat(im)]
     note = "the footprint in site.json comes from the products' RPCs (used for nothing else)"
     if not lonlat:
-        from pyproj import Transformer
-
-        for im in images:
-            if im.crs_footprint:
-                t = Transformer.from_crs(im.crs_footprint[0], "EPSG:4326", always_xy=True)
-                lonlat += [list(t.transform(x, y)) for x, y in im.crs_footprint[1]]
+        lonlat = [ll for im in images if im.crs_footprint for ll in _footprint_lonlat(im)]
         note = "the footprint in site.json comes from the products' georeferencing"
     if not lonlat:
         return None, None
@@ -263,6 +258,18 @@ def site_grid(images: list[ProductImage]) -> tuple[dict | None, str | None]:
     return hints, note
 
 
+def _footprint_lonlat(im: ProductImage) -> np.ndarray | None:
+    """(4, 2) lon, lat of an image's corners: from its RPCs, else from its georeferencing."""
+    if im.rpc_footprint:
+        return np.array(im.rpc_footprint, float)
+    if im.crs_footprint:
+        from pyproj import Transformer
+
+        t = Transformer.from_crs(im.crs_footprint[0], "EPSG:4326", always_xy=True)
+        return np.array([t.transform(x, y) for x, y in im.crs_footprint[1]], float)
+    return None
+
+
 def _gsd_estimate(images: list[ProductImage], epsg: int) -> float | None:
     """The median over the images with a footprint of sqrt(footprint area / pixels) (m): the
     ground sampling distance the run would find, to the footprint's accuracy."""
@@ -270,14 +277,8 @@ def _gsd_estimate(images: list[ProductImage], epsg: int) -> float | None:
 
     out = []
     for im in images:
-        if im.rpc_footprint:
-            ll = np.array(im.rpc_footprint, float)
-        elif im.crs_footprint:
-            from pyproj import Transformer
-
-            t = Transformer.from_crs(im.crs_footprint[0], "EPSG:4326", always_xy=True)
-            ll = np.array([t.transform(x, y) for x, y in im.crs_footprint[1]], float)
-        else:
+        ll = _footprint_lonlat(im)
+        if ll is None:
             continue
         xy = geodetic_to_projected(np.column_stack([ll, np.zeros(len(ll))]), epsg)
         x, y = xy[:, 0], xy[:, 1]
