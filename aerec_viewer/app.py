@@ -21,7 +21,7 @@ from collections import deque
 from concurrent.futures import Future
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -30,7 +30,14 @@ from recon_core.euclidean.ground_reference import EDGE_SPREAD_M
 from recon_core.io.gcps import picked_positions
 from recon_core.model.tiling import Window
 
-from .display import COLOR_MODES, DisplayTransform, euclidean_display_transform, image_footprint
+from .display import (
+    COLOR_MODES,
+    DisplayTransform,
+    euclidean_display_transform,
+    image_footprint,
+    quat_to_matrix,
+)
+from .framerate import BudgetGovernor, ViewRateMeter
 from .gcp_panel import GcpPanel, PickPlane, layout_pick_plane, pixel_from_ray
 from .gcp_session import (
     GcpError,
@@ -101,7 +108,7 @@ def loupe_texture(gray: np.ndarray, win: Window, centre: tuple[float, float],
     return rgb
 
 
-def ring_segments(r: float, n: int = 32) -> np.ndarray:
+def ring_segments(r: float, n: int = 12) -> np.ndarray:
     """(n, 2, 3) segments of a circle of radius r in the local xy plane."""
     a = np.linspace(0.0, 2.0 * np.pi, n + 1)
     p = np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(a)], axis=1).astype(np.float32)
@@ -111,6 +118,16 @@ def ring_segments(r: float, n: int = 32) -> np.ndarray:
 def label_offset(r: float, on_plane: bool) -> np.ndarray:
     """Where a marker's label sits: beside its ring, not on the point."""
     return np.array([r, r, 0.0]) if on_plane else np.array([r, 0.0, r])
+
+
+class _Marker(NamedTuple):
+    """A GCP's marker in one place (the picking plane, a group's cloud): its ring is drawn with
+    the others of that place (`ViewerApp._draw_rings`), its label is its own node."""
+
+    label: object
+    colour: tuple[int, int, int]
+    radius: float
+    pos: np.ndarray
 
 
 class _OneLine(logging.Filter):
@@ -180,6 +197,8 @@ class ViewerApp:
                                                 cfg.tiling.overlap))
         if budget is not None:
             self.scene.settings.budget = int(budget)
+        self.view_rate = ViewRateMeter()
+        self.governor = BudgetGovernor(start=self.scene.settings.budget, user_set=budget is not None)
         self.session = open_session(self.out, self.site)
         self.models: dict = {}
         self._models_version = 0
@@ -204,7 +223,8 @@ class ViewerApp:
         self._plane_key = None
         self._plane_token = None
         self._reframe_on_plane = False
-        self._marks: dict[str, tuple] = {}   # path -> (ring, label, colour, radius, pos)
+        self._marks: dict[str, _Marker] = {}  # one per GCP and place: path -> its label, ...
+        self._rings: dict[str, object] = {}  # <place>/rings[_selected] -> merged ring node
         self._residual_nodes: list = []      # the residual vectors on the image plane and their legend
         self._drag_handle = None             # the drag handle on the selected observation (loupe)
         self._drag_key = None
@@ -300,6 +320,7 @@ class ViewerApp:
     # -- the update -----------------------------------------------------------------------------
     def _tick(self) -> int | None:
         """Apply the newest worker state; returns the number of points sent (None: no change)."""
+        self._govern_budget()
         snap = self.worker.snapshot()
         if snap.status in ("done", "reopened") and not self._auto_frame_tried:
             # a finished run that holds an upgrade opens in metres (the affine frame "may be
@@ -336,6 +357,37 @@ class ViewerApp:
             self._draw_marks()
             self.dsm_panel.refresh(snap)
         return sent
+
+    def _govern_budget(self) -> None:
+        """After each gesture, the point budget follows the page's view-update rate (framerate.py),
+        said in the Reconstruction tab's messages; a budget the operator sets is kept."""
+        fps = self.view_rate.rate(time.monotonic())
+        if fps is None:
+            return
+        s, gov = self.scene.settings, self.governor
+        hid = gov.hide_tiles
+        new = gov.observe(fps, s.budget)
+        if gov.hide_tiles and not hid and s.tiles == "auto":
+            s.tiles = "hidden"
+            self.g_tiles.value = "hidden"
+            self._force()
+            self.worker.message(
+                f"the view moves at {fps:.0f} updates/s with {s.budget // 1000} k points: tile "
+                "outlines hidden to save drawing (Display: Tiles); the image plane in the scene "
+                "is the other large cost (GCPs tab)", "warning")
+        if new is None:
+            return
+        old, s.budget = s.budget, new
+        self.g_budget.value = new // 1000
+        self._force()
+        if new < old:
+            self.worker.message(
+                f"the view moved at {fps:.0f} updates/s with {old // 1000} k points (under "
+                f"{gov.TARGET_FPS:g}: a browser without GPU?): point budget lowered to "
+                f"{new // 1000} k (Display; a budget you set there is kept)", "warning")
+        else:
+            self.worker.message(f"the view moves at {fps:.0f} updates/s: point budget raised "
+                                f"back to {new // 1000} k")
 
     def transforms(self, snap: DisplaySnapshot) -> dict[int, DisplayTransform | None]:
         """The display transform of each group in the current frame.
@@ -443,8 +495,11 @@ class ViewerApp:
                                               self.scene.apply_point_size())))
         self.g_color.on_update(setter(lambda: (setattr(s, "color_mode", self.g_color.value),
                                                self.scene.apply_colors())))
-        self.g_budget.on_update(setter(lambda: (setattr(s, "budget", int(self.g_budget.value) * 1000),
-                                                self._force())))
+        def budget_set(ev) -> None:
+            if ev.client is not None:       # the operator's choice: kept from now on
+                self.governor.user_set = True
+            sub(lambda: (setattr(s, "budget", int(self.g_budget.value) * 1000), self._force()))
+        self.g_budget.on_update(budget_set)
         self.g_tiles.on_update(setter(lambda: (setattr(s, "tiles", self.g_tiles.value),
                                                self.scene.set_tiles_visible(self.g_tiles.value != "hidden"),
                                                self._force())))
@@ -567,6 +622,7 @@ class ViewerApp:
         if old is None or not (np.allclose(old[0], pose[0], rtol=0, atol=1e-9)
                                and np.allclose(old[1], pose[1], rtol=0, atol=1e-9)):
             self._camera_moved[key] = (*pose, time.time())
+            self.view_rate.moved(key, time.monotonic())
             d = float(np.linalg.norm(np.asarray(camera.position) - np.asarray(camera.look_at)))
             view = (d, float(camera.fov), int(camera.image_height))
             before = self._ring_view
@@ -960,30 +1016,44 @@ class ViewerApp:
         r = self._marker_radius()
         sc = self.server.scene
         for name in [n for n in self._marks if n not in want]:
-            for h in self._marks.pop(name)[:2]:
-                h.remove()
+            self._marks.pop(name).label.remove()
         for name, (pos, col, text) in want.items():
             have = self._marks.get(name)
-            if have is not None and have[2] == col and abs(have[3] / r - 1) < 0.1:
-                if np.linalg.norm(have[4] - pos) > 1e-6 * r:
-                    on_plane = name.startswith("/gcp/plane_marks/") and self.pick_plane is not None
-                    have[0].position = tuple(pos)
-                    have[1].position = tuple(pos + label_offset(have[3], on_plane))
-                    self._marks[name] = (have[0], have[1], col, have[3], pos)
+            on_plane = name.startswith("/gcp/plane_marks/") and self.pick_plane is not None
+            if have is not None and have.colour == col and abs(have.radius / r - 1) < 0.1:
+                if np.linalg.norm(have.pos - pos) > 1e-6 * r:
+                    have.label.position = tuple(pos + label_offset(have.radius, on_plane))
+                    self._marks[name] = have._replace(pos=pos)
                 continue
             if have is not None:
-                have[0].remove()
-                have[1].remove()
-            on_plane = name.startswith("/gcp/plane_marks/") and self.pick_plane is not None
-            ring = sc.add_line_segments(name, ring_segments(r), np.array(col, np.uint8),
-                                          thickness=3.0 if col == MARK_SEL else 2.0,
-                                          thickness_units="screen", position=tuple(pos),
-                                          wxyz=tuple(self.pick_plane.wxyz) if on_plane else (1.0, 0.0, 0.0, 0.0))
+                have.label.remove()
             label = sc.add_label(f"{name}_label", text, position=tuple(pos + label_offset(r, on_plane)),
                                  anchor="bottom-left", font_screen_scale=0.7)
-            self._marks[name] = (ring, label, col, r, pos)
+            self._marks[name] = _Marker(label, col, r, pos)
+        self._draw_rings()
         self._draw_residual_vectors()
         self._draw_drag_handle()
+
+    def _draw_rings(self) -> None:
+        """The markers' rings, merged into one node per place (the picking plane, each group's
+        cloud) and width (the selected GCP's is wider): a node is a draw call, and software
+        WebGL pays about a millisecond for each, a frame for 40 markers."""
+        sets: dict[str, list] = {}
+        for name, (_, col, r, pos) in self._marks.items():
+            place = name.rsplit("/", 1)[0]
+            R = quat_to_matrix(np.asarray(self.pick_plane.wxyz)) \
+                if place == "/gcp/plane_marks" and self.pick_plane is not None else np.eye(3)
+            seg = ring_segments(r) @ R.T.astype(np.float32) + np.asarray(pos, np.float32)
+            sets.setdefault(f"{place}/rings{'_selected' if col == MARK_SEL else ''}", []).append(
+                (seg, np.broadcast_to(np.array(col, np.uint8), seg.shape)))
+        sc = self.server.scene
+        for path in [p for p in self._rings if p not in sets]:
+            self._rings.pop(path).remove()
+        for path, parts in sets.items():
+            self._rings[path] = sc.add_line_segments(
+                path, np.concatenate([p[0] for p in parts]).astype(np.float32),
+                np.ascontiguousarray(np.concatenate([p[1] for p in parts])),
+                thickness=3.0 if path.endswith("_selected") else 2.0, thickness_units="screen")
 
     def drag_target(self) -> tuple[str, str, tuple[float, float]] | None:
         """(GCP, image, pixel) the drag handle adjusts: the selected GCP's observation, when the

@@ -4,9 +4,12 @@
 thread only, inside `server.atomic()`. Scene paths are stable, so updates replace nodes:
 
   /recon/g<g>/<kind>/chunk_<k>     point-cloud chunks (kind: sparse, dense); float32, local origin
-  /recon/g<g>/tiles/<tile>/outline registered tile footprints (and /image: textured quad)
+  /recon/g<g>/tiles/outlines       registered tile footprints, one node per group (each node is
+                                   a draw call, and software WebGL pays ~1 ms for each)
+  /recon/g<g>/tiles/<tile>/image   a tile's textured quad
   /recon/g<g>/tiles/newest         the newest tile, highlighted
-  /gcp/plane                       the picking image plane; /gcp/plane_marks/<id>, /gcp/cloud/<id>
+  /gcp/plane                       the picking image plane; GCP markers: /gcp/plane_marks/rings
+                                   and /gcp/cloud/g<g>/rings (one node each), a label per GCP
 
 Points are sent as new chunks as they arrive (reassigning a node's points resends all of them,
 see VIEWER_NOTES); a new generation (ModelUpdated), a new frame transform, a budget change or
@@ -64,8 +67,8 @@ class Settings:
 
     point_size: float = 1.0              # multiple of the automatic size (display.auto_point_size)
     color_mode: str = "height"
-    budget: int = 150_000                # points displayed at most (all groups and kinds); 100 k
-                                         # draw at ~37 fps in software WebGL, 300 k at ~2 fps
+    budget: int = 150_000                # points displayed at most (all groups and kinds); the
+                                         # viewer lowers it on a slow page (framerate.py)
     tiles: str = "auto"                  # auto, textured, outlines, hidden (TILE_MODES)
     show_sparse: bool = True
     show_dense: bool = True
@@ -99,7 +102,7 @@ class _TileNode:
     version: int
     transform: DisplayTransform
     corners: np.ndarray
-    outline: object
+    color: tuple[int, int, int]
     image: object | None = None
     frame: object | None = None          # QuadFrame the texture was warped for
 
@@ -142,6 +145,7 @@ class SceneView:
         self._newest: dict[int, tuple[str, int, int]] = {}
         self._newest_nodes: dict[int, tuple[object, object]] = {}
         self._tile_mode: dict[int, str] = {}
+        self._outlines: dict[int, object] = {}   # group -> its outlines node
         self.finished = False
         self._slack = 1.5
         self.sent_log: list[dict] = []    # one entry per point chunk sent (for the bench)
@@ -322,12 +326,10 @@ class SceneView:
     def _sync_tiles(self, g: int, tiles: dict[str, TileView], newest: str | None,
                     T: DisplayTransform, dense: bool = False) -> None:
         mode = self.tile_mode(dense)
-        if mode != self._tile_mode.get(g, mode):
+        changed = mode != self._tile_mode.get(g)
+        if changed:
             for (gg, _), node in self._tiles.items():
-                if gg != g:
-                    continue
-                node.outline.visible = mode != "hidden"
-                if node.image is not None:
+                if gg == g and node.image is not None:
                     node.image.visible = mode == "textured"
         self._tile_mode[g] = mode
         side = 160 if len(tiles) <= 100 else 96          # texture budget for many tiles
@@ -336,6 +338,7 @@ class SceneView:
             if node is not None and node.version == tv.version and node.transform is T \
                     and (node.image is not None or mode != "textured"):
                 continue
+            changed = True
             corners = T.apply(tv.footprint).astype(np.float64)
             diag = float(np.linalg.norm(corners[2] - corners[0]))
             if node is not None and np.max(np.abs(corners - node.corners)) < 0.005 * diag \
@@ -343,18 +346,17 @@ class SceneView:
                 node.version, node.transform = tv.version, T
                 continue
             self._tiles[(g, tid)] = self._draw_tile(g, tv, corners, T, mode, node, side)
+        if changed:
+            self._draw_outlines(g, mode)
         self._sync_newest(g, tiles, newest, T)
 
     def _draw_tile(self, g: int, tv: TileView, corners: np.ndarray, T: DisplayTransform,
                    mode: str, old: _TileNode | None, side: int) -> _TileNode:
-        """Outline (always resent: ~100 bytes) and textured quad (moved when only its pose
-        changed, re-textured when its shape changed)."""
+        """A tile's node: its corners (outlined with its group's, `_draw_outlines`) and textured
+        quad (moved when only its pose changed, re-textured when its shape changed)."""
         base = f"/recon/g{g}/tiles/{safe_name(tv.tile_id)}"
-        col = PALETTE[self.image_index.get(tv.image, 0) % len(PALETTE)]
-        seg = np.stack([corners, np.roll(corners, -1, axis=0)], axis=1).astype(np.float32)
+        col = tuple(int(c) for c in PALETTE[self.image_index.get(tv.image, 0) % len(PALETTE)])
         diag = float(np.linalg.norm(corners[2] - corners[0]))
-        outline = self.scene.add_line_segments(f"{base}/outline", seg, tuple(int(c) for c in col),
-                                               thickness=0.002 * diag, visible=mode != "hidden")
         image, frame = (old.image, old.frame) if old is not None else (None, None)
         if mode != "textured" and image is not None:   # hidden at a pose now stale: drop it
             image.remove()
@@ -369,7 +371,25 @@ class SceneView:
                                   frame.xmin, frame.bw, frame.bh, new.centre)
             else:
                 image, frame = self._tile_image(base, tv, lowered, side)
-        return _TileNode(tv.version, T, corners, outline, image, frame)
+        return _TileNode(tv.version, T, corners, col, image, frame)
+
+    def _draw_outlines(self, g: int, mode: str) -> None:
+        """Every registered tile's outline of a group in one node, coloured by image (one draw
+        call where one per tile cost software WebGL ~1 ms each: bench_viewer.py --fps)."""
+        nodes = [n for (gg, _), n in sorted(self._tiles.items()) if gg == g]
+        if not nodes:
+            old = self._outlines.pop(g, None)
+            if old is not None:
+                old.remove()
+            return
+        corners = np.stack([n.corners for n in nodes])                     # (T, 4, 3)
+        seg = np.stack([corners, np.roll(corners, -1, axis=1)], axis=2)     # (T, 4, 2, 3)
+        cols = np.broadcast_to(np.array([n.color for n in nodes], np.uint8)[:, None, None, :],
+                               (len(nodes), 4, 2, 3))
+        self._outlines[g] = self.scene.add_line_segments(
+            f"/recon/g{g}/tiles/outlines", seg.reshape(-1, 2, 3).astype(np.float32),
+            np.ascontiguousarray(cols.reshape(-1, 2, 3)), thickness=1.5, thickness_units="screen",
+            visible=mode != "hidden")
 
     def _tile_image(self, base: str, tv: TileView, corners: np.ndarray, side: int):
         tile = self.tile_windows.get(tv.tile_id)
@@ -394,8 +414,8 @@ class SceneView:
         corners = T.apply(tv.footprint).astype(np.float64)
         lift = np.array([0.0, 0.0, 0.01 * float(np.linalg.norm(corners[2] - corners[0]))])
         seg = np.stack([corners + lift, np.roll(corners + lift, -1, axis=0)], axis=1).astype(np.float32)
-        width = 0.008 * float(np.linalg.norm(corners[2] - corners[0]))
-        line = self.scene.add_line_segments(f"/recon/g{g}/tiles/newest", seg, NEWEST, thickness=width)
+        line = self.scene.add_line_segments(f"/recon/g{g}/tiles/newest", seg, NEWEST, thickness=4.0,
+                                            thickness_units="screen")
         label = self.scene.add_label(f"/recon/g{g}/tiles/newest_label",
                                      f"{newest} (#{tv.order + 1})", position=tuple(corners[0] + lift),
                                      anchor="bottom-left", visible=not self.finished)
@@ -421,10 +441,12 @@ class SceneView:
                 c.handle.remove()
         self._clouds.clear()
         for node in self._tiles.values():
-            node.outline.remove()
             if node.image is not None:
                 node.image.remove()
         self._tiles.clear()
+        for h in self._outlines.values():
+            h.remove()
+        self._outlines.clear()
         for line, label in self._newest_nodes.values():
             line.remove()
             label.remove()

@@ -633,10 +633,10 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
 
     app._camera_update(view(400.0))
     app.wait_idle()
-    r_far = app._marks["/gcp/plane_marks/NEW-1"][3]
+    r_far = app._marks["/gcp/plane_marks/NEW-1"].radius
     app._camera_update(view(100.0))
     app.wait_idle()
-    r_near = app._marks["/gcp/plane_marks/NEW-1"][3]
+    r_near = app._marks["/gcp/plane_marks/NEW-1"].radius
     assert r_far / r_near == pytest.approx(4.0, rel=1e-6)
     assert r_near == pytest.approx(MARK_RING_PX * 2 * 100.0 * np.tan(0.4) / 900)
     app.call(lambda: delete_gcp(app.session, "NEW-1"))
@@ -1567,3 +1567,29 @@ def test_eval_markdown_shows_each_group_and_the_same_cells_comparison():
     rows = md.split("groups agreeing")[1].splitlines()[2:5]
     assert rows == ["| 0 (weak pair, filled) | 2.0 % | 1.900 | 25.0 % |", "| 1 | 25.5 % | 1.250 | 41.0 % |",
                     "| 2 | 30.1 % | 0.410 | 88.0 % |"]
+
+
+def test_a_slow_page_lowers_the_point_budget_and_says_so(live):
+    """Orbiting at 3 view updates/s (software WebGL at 150 k points) lowers the budget after the
+    gesture; the operator's own budget is kept from then on."""
+    app = live[0]
+    s = app.scene.settings
+    before, tiles = s.budget, s.tiles
+    try:
+        app.call(lambda: setattr(s, "budget", 150_000))
+        t0 = time.monotonic() - 10.0
+        for k in range(12):
+            app.view_rate.moved(99, t0 + k / 3.0)
+        app.call(app._govern_budget)
+        assert s.budget < 150_000 and app.g_budget.value == s.budget // 1000
+        assert any("point budget lowered" in text for _, text in app.worker.snapshot().messages)
+        # the operator sets it: kept, however slow
+        app.governor.user_set = True
+        app.call(lambda: setattr(s, "budget", 150_000))
+        for k in range(12):
+            app.view_rate.moved(99, t0 + 5.0 + k / 3.0)
+        app.call(app._govern_budget)
+        assert s.budget == 150_000
+    finally:
+        app.governor.user_set = False
+        app.call(lambda: (setattr(s, "budget", before), setattr(s, "tiles", tiles), app._force()))
