@@ -186,6 +186,7 @@ class GcpPanel:
         self._delete_armed: tuple[str, float] | None = None
         self.prediction = None              # (gid, Prediction) shown, waiting for Accept
         self.chosen: dict[int, str] = {}     # client id -> what that tab chose or saw in the GCP list
+        self._ids: dict[str, str] = {}       # entry of the GCP list -> GCP id (refresh)
         self.last_chooser: tuple[int, str] | None = None   # the tab that changed the list last, and to what
         self._wire()
         self.shortcuts = self._add_shortcuts(gui)
@@ -267,8 +268,8 @@ class GcpPanel:
         self.show_plane.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.contrast.on_update(lambda _: app.submit(self.app.show_image_plane))
         self.goto.on_click(lambda ev: app.submit(lambda: self.app.look_at_plane(ev.client)))
-        def chosen(ev) -> None:          # the value this tab chose, read now, not when queued
-            v = ev.target.value
+        def chosen(ev) -> None:          # the GCP this tab chose, read now, not when queued
+            v = self.id_of(ev.target.value) or self.NEW
             # the operator's own choice in the list is described; a selection made by the code
             # (N, a new GCP, an edit) comes with its own note, which this must not overwrite
             app.submit(lambda: (self.note_choice(ev.client, v), self.drop_prediction(), self.fill_fields(),
@@ -294,8 +295,26 @@ class GcpPanel:
 
     # -- actions (update thread) ----------------------------------------------------------------
     def selected(self) -> str | None:
-        v = self.select.value
-        return None if v == self.NEW else v
+        """The GCP chosen in the list (its id), None for a new one."""
+        return self.id_of(self.select.value)
+
+    def id_of(self, option: str) -> str | None:
+        """The GCP id behind an entry of the list (None: the new-GCP entry)."""
+        return None if option == self.NEW else self._ids.get(option, option)
+
+    def option_of(self, gid: str | None) -> str:
+        """The list's entry for a GCP: its id, role and the registered images it is placed in
+        (what an operator scans the list for), or the new-GCP entry."""
+        if gid is None or gid not in self.app.session.ids:
+            return self.NEW
+        g = self.app.session.get(gid)
+        images = self._registered_images()
+        role = g.role if g.enabled else "off"
+        return f"{gid} · {role} · {len(set(g.observations) & images)}/{len(images)}"
+
+    def select_id(self, gid: str | None) -> None:
+        """Show a GCP (by id) as chosen in the list."""
+        self.select.value = self.option_of(gid)
 
     def ground(self) -> tuple[float, float, float, int | None]:
         epsg = int(self.epsg.value) if self.crs.value.startswith("E") else None
@@ -482,7 +501,7 @@ class GcpPanel:
         `chooser`: the tab changed the list itself (not only looked at it)."""
         if client is None:
             return
-        v = self.select.value if value is None else value
+        v = (self.selected() or self.NEW) if value is None else value
         self.chosen[client.client_id] = v
         if chooser:
             self.last_chooser = (client.client_id, v)
@@ -494,7 +513,7 @@ class GcpPanel:
         to what is shown). One tab alone is never refused, whatever its actions did to the list."""
         if client is None:
             return
-        cur = self.select.value
+        cur = self.selected() or self.NEW
         mine = self.chosen.get(client.client_id)
         self.chosen[client.client_id] = cur
         other = self.last_chooser
@@ -656,16 +675,17 @@ class GcpPanel:
     # -- display --------------------------------------------------------------------------------
     def refresh(self, select: str | None = "keep") -> None:
         s = self.app.session
-        options = [self.NEW] + s.ids
-        before = self.select.value
-        current = before if select == "keep" else (select or self.NEW)
-        if current not in options:
-            current = self.NEW
+        before = self.selected() or self.NEW
+        gid = before if select == "keep" else (select or self.NEW)
+        labels = {i: self.option_of(i) for i in s.ids}
+        self._ids = {v: k for k, v in labels.items()}
+        options = [self.NEW] + list(labels.values())
+        current = labels.get(gid, self.NEW)
         if tuple(self.select.options) != tuple(options):
             self.select.options = options
         if self.select.value != current:
             self.select.value = current
-        if self._delete_armed is not None and self._delete_armed[0] != current:
+        if self._delete_armed is not None and self._delete_armed[0] != self.id_of(current):
             self._disarm_delete()
         self.drop_prediction()             # any edit or selection change makes it stale
         u, r = can_undo(s), can_redo(s)

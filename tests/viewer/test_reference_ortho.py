@@ -87,7 +87,7 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
         assert gp.image.options[-1] == ref.ortho.name
         app.call(lambda: (setattr(gp.zoom_click, "value", False), setattr(gp.walk, "value", False),
                           setattr(gp.image, "value", ref.ortho.name),
-                          setattr(gp.select, "value", gp.NEW), setattr(gp.gid, "value", "ORTHO-1")))
+                          gp.select_id(None), setattr(gp.gid, "value", "ORTHO-1")))
         app.call(lambda: app.show_image_plane(wait=True))
         assert app.pick_plane.window.image == ref.ortho.name
         n_before = len(app.session.gcps)

@@ -594,7 +594,7 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     img = app.pick_plane.window.image
     # a new GCP from typed coordinates, then a click on the image plane observes it
     gp = app.gcp_panel
-    app.call(lambda: (setattr(gp.select, "value", gp.NEW), setattr(gp.gid, "value", "NEW-1"),
+    app.call(lambda: (gp.select_id(None), setattr(gp.gid, "value", "NEW-1"),
                       setattr(gp.x, "value", 55.65), setattr(gp.y, "value", -21.23),
                       setattr(gp.h, "value", 2300.0)))
     o, d = _ray_to(app, 123.25, 200.75)
@@ -881,7 +881,7 @@ def test_next_previous_gcp_and_place_it_in_its_other_images(live):
         return next(ids[(k + step * j) % len(ids)] for j in range(1, len(ids) + 1)
                     if ids[(k + step * j) % len(ids)] in pool)
     nxt = expect(ids[-1], +1)
-    assert app.call(lambda: gp.step_gcp(+1)) == nxt and gp.select.value == nxt
+    assert app.call(lambda: gp.step_gcp(+1)) == nxt and gp.selected() == nxt
     assert app.call(lambda: gp.step_gcp(-1)) == expect(nxt, -1)
     cat = {c.id: c for c in app.session.catalogue}
     model = app.models[0]
@@ -1593,3 +1593,26 @@ def test_a_slow_page_lowers_the_point_budget_and_says_so(live):
     finally:
         app.governor.user_set = False
         app.call(lambda: (setattr(s, "budget", before), setattr(s, "tiles", tiles), app._force()))
+
+
+def test_the_gcp_list_names_each_gcps_role_and_images_placed(live):
+    """The list an operator scans: 'id · role · placed/registered', and choosing an entry
+    selects the GCP behind it."""
+    app = live[0]
+    gp = app.gcp_panel
+    app.call(lambda: gp.refresh())
+    s = app.session
+    if not s.ids:
+        pytest.skip("no GCP in the working set")
+    registered = app.call(gp._registered_images)
+    for gid in s.ids:
+        g = s.get(gid)
+        entry = gp.option_of(gid)
+        assert entry in gp.select.options and gp.id_of(entry) == gid
+        role = g.role if g.enabled else "off"
+        assert entry == f"{gid} · {role} · {len(set(g.observations) & registered)}/{len(registered)}"
+    gid = s.ids[-1]
+    app.call(lambda: gp.select_id(gid))
+    assert gp.selected() == gid and gp.select.value == gp.option_of(gid)
+    app.call(lambda: gp.select_id(None))
+    assert gp.selected() is None and gp.select.value == gp.NEW

@@ -117,7 +117,7 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     # GUI: open the GCP tab, select a GCP, press "Look at the image plane"
     page.get_by_role("tab", name="GCPs").click()
     gid = app.session.ids[0]
-    app.call(lambda: setattr(app.gcp_panel.select, "value", gid))
+    app.call(lambda: app.gcp_panel.select_id(gid))
     page.get_by_role("button", name="Look at the image plane").click()
     plane = app.pick_plane
     top = plane.position + np.array([0.0, 0.0, 1.0])
@@ -203,15 +203,15 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     # must not land on it (it records nothing and says so)
     page2.get_by_role("tab", name="GCPs").click()
     page2.get_by_role("button", name="Next GCP").click()
-    wait_for(lambda: app.gcp_panel.select.value != gid, 20, "the second tab's Next GCP")
-    other = app.gcp_panel.select.value
+    wait_for(lambda: app.gcp_panel.selected() != gid, 20, "the second tab's Next GCP")
+    other = app.gcp_panel.selected()
     held = {g: dict(app.session.get(g).observations) for g in (gid, other)}
     x3, y3 = project(client, app.pick_plane.point_of(win.col0 + 0.3 * win.width, win.row0 + 0.3 * win.height))
     page.mouse.click(x3, y3)
     wait_for(lambda: any(f"another tab changed the GCP to {other}" in t
                          for _, t in app.worker.snapshot().messages), 20, "the refused click")
     assert {g: dict(app.session.get(g).observations) for g in (gid, other)} == held and app.loupe is None
-    app.call(lambda: setattr(app.gcp_panel.select, "value", gid))
+    app.call(lambda: app.gcp_panel.select_id(gid))
     page2.close()
 
     # upgrade from the browser, then the Euclidean scene and the residual table
@@ -232,15 +232,15 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
         page.get_by_role("tab", name="GCPs").click()
         page.mouse.click(200, 820)                   # focus the scene (empty background)
         gp = app.gcp_panel
-        start = gp.select.value
+        start = gp.selected()
         expected = app.call(lambda: gp.neighbour(gp.selected(), +1))[0]
         page.keyboard.press("n")
-        wait_for(lambda: gp.select.value != start, 20, "the N key to select the next GCP")
-        nxt = gp.select.value
+        wait_for(lambda: gp.selected() != start, 20, "the N key to select the next GCP")
+        nxt = gp.selected()
         assert nxt == expected
         back = app.call(lambda: gp.neighbour(nxt, -1))[0]
         page.keyboard.press("p")
-        wait_for(lambda: gp.select.value == back, 20, "the P key to select the previous GCP")
+        wait_for(lambda: gp.selected() == back, 20, "the P key to select the previous GCP")
 
 
 def test_drag_the_handle_in_the_loupe_to_adjust_an_observation(browser_app, tiny_run, tmp_path):
