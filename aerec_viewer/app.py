@@ -35,6 +35,7 @@ from .display import (
     DisplayTransform,
     euclidean_display_transform,
     image_footprint,
+    plane_point,
     quat_to_matrix,
 )
 from .framerate import BudgetGovernor, ViewRateMeter
@@ -240,6 +241,10 @@ class ViewerApp:
         self._ring_view: tuple | None = None          # (distance to look-at, fov, height px) of the
         #                                               view that moved last: the rings' size
         self.server.on_client_connect(self._on_connect)
+        for modifier, factor in (("shift", self.ZOOM_STEP), ("cmd/ctrl+shift", 1.0 / self.ZOOM_STEP)):
+            self.server.scene.on_click(modifier=modifier)(
+                lambda ev, f=factor: self.submit(
+                    lambda: self.zoom_at(ev.client, ev.ray_origin, ev.ray_direction, f)))
 
     # -- lifecycle ------------------------------------------------------------------------------
     @property
@@ -359,35 +364,37 @@ class ViewerApp:
         return sent
 
     def _govern_budget(self) -> None:
-        """After each gesture, the point budget follows the page's view-update rate (framerate.py),
-        said in the Reconstruction tab's messages; a budget the operator sets is kept."""
+        """After each gesture, the point budget follows the page's view-update rate (framerate.py).
+        What it did stays said under the slider; the messages list hears of it once (a slow
+        page would otherwise fill it); a budget the operator sets is kept."""
         fps = self.view_rate.rate(time.monotonic())
         if fps is None:
             return
         s, gov = self.scene.settings, self.governor
         hid = gov.hide_tiles
         new = gov.observe(fps, s.budget)
+        said = []
         if gov.hide_tiles and not hid and s.tiles == "auto":
             s.tiles = "hidden"
             self.g_tiles.value = "hidden"
             self._force()
-            self.worker.message(
-                f"the view moves at {fps:.0f} updates/s with {s.budget // 1000} k points: tile "
-                "outlines hidden to save drawing (Display: Tiles); the image plane in the scene "
-                "is the other large cost (GCPs tab)", "warning")
-        if new is None:
+            said.append("tile outlines hidden (Tiles)")
+        if new is not None:
+            s.budget = new
+            self.g_budget.value = new // 1000
+            self._force()
+        if new is None and not said:
             return
-        old, s.budget = s.budget, new
-        self.g_budget.value = new // 1000
-        self._force()
-        if new < old:
-            self.worker.message(
-                f"the view moved at {fps:.0f} updates/s with {old // 1000} k points (under "
-                f"{gov.TARGET_FPS:g}: a browser without GPU?): point budget lowered to "
-                f"{new // 1000} k (Display; a budget you set there is kept)", "warning")
-        else:
-            self.worker.message(f"the view moves at {fps:.0f} updates/s: point budget raised "
-                                f"back to {new // 1000} k")
+        lowered = s.budget < gov.start
+        text = (f"The view moved at {fps:.0f} updates/s (under {gov.TARGET_FPS:g}: a browser "
+                f"without GPU?): budget lowered from {gov.start // 1000} k to {s.budget // 1000} k"
+                + "".join(f", {x}" for x in said) + ". A budget you set is kept."
+                if lowered or said else
+                f"The view moves at {fps:.0f} updates/s: budget back at {s.budget // 1000} k.")
+        self.g_budget_note.content = text
+        if lowered and not gov.said:
+            gov.said = True
+            self.worker.message(text.rstrip(".") + " (Display)", "warning")
 
     def transforms(self, snap: DisplaySnapshot) -> dict[int, DisplayTransform | None]:
         """The display transform of each group in the current frame.
@@ -459,6 +466,7 @@ class ViewerApp:
                                                self.scene.settings.budget // 1000,
                                                hint="points displayed at most; the full cloud "
                                                     "stays on disk")
+                self.g_budget_note = gui.add_markdown("")
                 self.g_tiles = gui.add_dropdown(
                     "Tiles", list(TILE_MODES), initial_value=self.scene.settings.tiles,
                     hint="; ".join(f"{k}: {v}" for k, v in TILE_MODES.items())
@@ -651,6 +659,33 @@ class ViewerApp:
         client.camera.up_direction = (0.0, 0.0, 1.0)
         client.camera.position = tuple(look + size * np.array([0.0, -0.6, 0.7]))
         client.camera.look_at = tuple(look)
+
+    ZOOM_STEP = 2.0        # shift+click: this much closer to the spot; ctrl+shift+click: back
+
+    def zoom_at(self, client, ray_origin, ray_direction, factor: float) -> np.ndarray:
+        """Zoom toward the spot under the cursor (viser's wheel zooms toward the view's centre):
+        the camera moves along the click ray, 1 - 1/factor of the way to what the ray meets (the
+        picking plane, else the nearest displayed point, else the depth of the view's centre),
+        and keeps its orientation, so the spot stays under the cursor. Returns the spot."""
+        o = np.asarray(ray_origin, float)
+        d = np.asarray(ray_direction, float)
+        d = d / np.linalg.norm(d)
+        spot = None
+        pl = self.pick_plane
+        if pl is not None and pl.hit(o, d) is not None:
+            fx, fy = pl.hit(o, d)
+            spot = plane_point(fx, fy, position=pl.position, wxyz=pl.wxyz,
+                               render_width=pl.render_width, render_height=pl.render_height)
+        if spot is None:
+            spot = self.scene.nearest_display_point(o, d)
+        look = np.asarray(client.camera.look_at, float)
+        if spot is None or (spot - o) @ d <= 0:
+            spot = o + max(float((look - o) @ d), 1e-6) * d
+        shift = (1.0 - 1.0 / factor) * (spot - o)
+        with client.atomic():
+            client.camera.position = tuple(o + shift)
+            client.camera.look_at = tuple(look + shift)
+        return spot
 
     def look_at_plane(self, client) -> None:
         """Put a client's camera straight above the picking plane (for precise clicks)."""

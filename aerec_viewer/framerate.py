@@ -61,6 +61,7 @@ class BudgetGovernor:
     MIN_BUDGET: int = 10_000
     last_budget: int | None = None
     hide_tiles: bool = False
+    said: bool = False                     # the messages list has heard of it
 
     def observe(self, fps: float, budget: int) -> int | None:
         """The new budget after a gesture at `fps` view updates per second (None: keep it)."""

@@ -136,7 +136,8 @@ class GcpPanel:
                  "without an observation opens in the loupe at its predicted pixel")
         self.leave_loupe = gui.add_button("Leave the loupe", disabled=True)
         gui.add_markdown("Click a pixel on the image plane: it becomes an observation of the GCP "
-                         "selected here (or of a new GCP with the fields below).")
+                         "selected here (or of a new GCP with the fields below). Shift+click "
+                         "zooms toward the spot under the cursor, Ctrl+Shift+click back out.")
         self.select = gui.add_dropdown("GCP", [self.NEW], initial_value=self.NEW)
         self.prev_gcp = gui.add_button("Previous GCP")
         self.next_gcp = gui.add_button("Next GCP")

@@ -274,15 +274,13 @@ class SceneView:
                 c.handle.visible = vis
         self.apply_point_size()          # the points shown set the size
 
-    def nearest_point(self, ray_origin, ray_direction, max_angle: float = 0.02
-                      ) -> tuple[int, np.ndarray] | None:
-        """(group, affine xyz) of the displayed point nearest in angle to a click ray (within
-        max_angle radians), or None: the scene answers picks on its own clouds."""
+    def _nearest(self, ray_origin, ray_direction, max_angle: float):
+        """(group, cloud state, display xyz) of the displayed point nearest in angle to a ray."""
         best = None
         d = np.asarray(ray_direction, float)
         d = d / np.linalg.norm(d)
         for (g, kind), st in self._clouds.items():
-            if st.transform is None:
+            if st.transform is None or not self._shows(kind):
                 continue
             for ch in st.chunks:
                 k = closest_point_to_ray(ch.xyz, ray_origin, ray_direction, max_angle=max_angle)
@@ -291,8 +289,21 @@ class SceneView:
                 v = ch.xyz[k] - np.asarray(ray_origin, float)
                 ang = np.linalg.norm(np.cross(v, d)) / max(v @ d, 1e-12)
                 if best is None or ang < best[0]:
-                    best = (ang, g, st.transform.inverse(ch.xyz[k:k + 1])[0])
-        return None if best is None else (best[1], best[2])
+                    best = (ang, g, st, np.asarray(ch.xyz[k], float))
+        return None if best is None else best[1:]
+
+    def nearest_point(self, ray_origin, ray_direction, max_angle: float = 0.02
+                      ) -> tuple[int, np.ndarray] | None:
+        """(group, affine xyz) of the displayed point nearest in angle to a click ray (within
+        max_angle radians), or None: the scene answers picks on its own clouds."""
+        got = self._nearest(ray_origin, ray_direction, max_angle)
+        return None if got is None else (got[0], got[1].transform.inverse(got[2][None])[0])
+
+    def nearest_display_point(self, ray_origin, ray_direction, max_angle: float = 0.02
+                              ) -> np.ndarray | None:
+        """The displayed point (display coordinates) nearest in angle to a ray, or None."""
+        got = self._nearest(ray_origin, ray_direction, max_angle)
+        return None if got is None else got[2]
 
     def _shows(self, kind: str) -> bool:
         """Are the clouds of this kind (sparse, dense) shown?"""

@@ -1582,7 +1582,8 @@ def test_a_slow_page_lowers_the_point_budget_and_says_so(live):
             app.view_rate.moved(99, t0 + k / 3.0)
         app.call(app._govern_budget)
         assert s.budget < 150_000 and app.g_budget.value == s.budget // 1000
-        assert any("point budget lowered" in text for _, text in app.worker.snapshot().messages)
+        assert "budget lowered from 150 k" in app.g_budget_note.content
+        assert sum("budget lowered" in text for _, text in app.worker.snapshot().messages) == 1
         # the operator sets it: kept, however slow
         app.governor.user_set = True
         app.call(lambda: setattr(s, "budget", 150_000))
@@ -1592,6 +1593,7 @@ def test_a_slow_page_lowers_the_point_budget_and_says_so(live):
         assert s.budget == 150_000
     finally:
         app.governor.user_set = False
+        app.g_budget_note.content = ""
         app.call(lambda: (setattr(s, "budget", before), setattr(s, "tiles", tiles), app._force()))
 
 
@@ -1616,3 +1618,32 @@ def test_the_gcp_list_names_each_gcps_role_and_images_placed(live):
     assert gp.selected() == gid and gp.select.value == gp.option_of(gid)
     app.call(lambda: gp.select_id(None))
     assert gp.selected() is None and gp.select.value == gp.NEW
+
+
+def test_shift_click_zooms_toward_the_spot_under_the_cursor(live):
+    """viser's wheel zooms toward the view's centre; shift+click moves the camera halfway along
+    the click ray to what it meets (the picking plane here), keeping the orientation, so the spot
+    stays under the cursor; ctrl+shift+click goes back."""
+    import contextlib
+    from types import SimpleNamespace
+
+    app = live[0]
+    pl = app.pick_plane
+    assert pl is not None
+    spot_true = pl.point_of(pl.window.col0 + 0.3 * pl.window.width, pl.window.row0 + 0.6 * pl.window.height)
+    o = spot_true + np.array([120.0, -80.0, 900.0])
+    look = o + np.array([0.0, 300.0, -700.0])
+    client = SimpleNamespace(camera=SimpleNamespace(position=tuple(o), look_at=tuple(look)),
+                             atomic=contextlib.nullcontext)
+    d = spot_true - o
+    spot = app.call(lambda: app.zoom_at(client, o, d, 2.0))
+    assert np.allclose(spot, spot_true, atol=1e-6 * np.linalg.norm(d))
+    p1, l1 = np.asarray(client.camera.position), np.asarray(client.camera.look_at)
+    assert np.allclose(p1, o + 0.5 * d)                      # on the ray, half the way
+    assert np.allclose(l1 - p1, look - o)                    # same orientation
+    app.call(lambda: app.zoom_at(client, p1, d, 0.5))
+    assert np.allclose(np.asarray(client.camera.position), o, atol=1e-6 * np.linalg.norm(d))
+    # a ray that meets nothing: the depth of the view's centre
+    up = np.array([0.0, 0.0, 1.0])
+    spot = app.call(lambda: app.zoom_at(client, o, up + 1e-3, 2.0))
+    assert np.all(np.isfinite(spot))
