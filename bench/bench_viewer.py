@@ -209,8 +209,8 @@ def cold(args) -> None:
     lines: list[tuple[float, str]] = []
     threading.Thread(target=lambda: [lines.append((time.time(), ln)) for ln in iter(proc.stdout.readline, "")],
                      daemon=True).start()
-    t_page = t_points = None
-    client = None
+    t_page = t_points = t_screen = None
+    client = browser = None
     try:
         port = None
         while port is None and time.time() - t0 < 120 and proc.poll() is None:
@@ -221,6 +221,7 @@ def cold(args) -> None:
             time.sleep(0.05)
         if port is None:
             raise SystemExit("no address printed:\n" + "".join(ln for _, ln in lines[-20:]))
+        browser = BrowserProbe(f"http://127.0.0.1:{port}/") if args.browser else None
         while t_page is None and time.time() - t0 < 120:
             try:
                 with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as r:
@@ -237,6 +238,10 @@ def cold(args) -> None:
                     continue
             t_points = client.first("PointCloudMessage")
             time.sleep(0.2)
+        if browser is not None:
+            while browser.t_points is None and time.time() - t0 < args.cold_timeout:
+                time.sleep(0.2)
+            t_screen = browser.finish()
     finally:
         if client is not None:
             client.close()
@@ -254,6 +259,9 @@ def cold(args) -> None:
         print(f"  command -> demo site generated, viewer started: {ready - t0:.1f} s")
     print(f"  command -> first points on a connected client: {t_points - t0:.1f} s" if t_points
           else f"  no points within {args.cold_timeout:.0f} s")
+    if args.browser:
+        print(f"  command -> first points on a headless Chromium screen: {t_screen - t0:.1f} s"
+              if t_screen else "  no points seen on the Chromium screen")
 
 
 # Counts the frames the page draws: a frame clears the canvas (viser 1.1.1: 4 clears within a
