@@ -488,7 +488,9 @@ class ViewerApp:
             self.g_upgrade_md = gui.add_markdown("")
             self.dsm_panel = DsmPanel(self, gui)
         self._wire()
-        self.gcp_panel.refresh()
+        # the list opens on the first GCP still to place (N from there goes on), not on "new"
+        gp = self.gcp_panel
+        gp.refresh(select=gp.neighbour(None, +1)[0] if self.session.ids else "keep")
         self._set_regions()
 
     def _wire(self) -> None:

@@ -428,7 +428,9 @@ def main() -> None:
                         continue
                     g["viewer_id"] = gid                # the viewer names it; the truth is g's
                 else:
-                    person.key("n", "next GCP")
+                    # the GCP tab opens on the first GCP still to place: N only from there on
+                    if not page.get_by_text(f"{gid} (control)").first.is_visible():
+                        person.key("n", "next GCP")
                     page.get_by_text(f"{gid} (control)").first.wait_for(timeout=20_000)
                 im = names[shown]                       # start in the image on the screen
                 if not place(person, out, images[im], gid, im, g["true_observations"][im]):

@@ -86,8 +86,9 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
         gp = app.gcp_panel
         assert gp.image.options[-1] == ref.ortho.name
         app.call(lambda: (setattr(gp.zoom_click, "value", False), setattr(gp.walk, "value", False),
-                          setattr(gp.image, "value", ref.ortho.name),
-                          gp.select_id(None), setattr(gp.gid, "value", "ORTHO-1")))
+                          setattr(gp.image, "value", ref.ortho.name), gp.select_id(None)))
+        app.wait_idle()                  # the list's change is applied (it clears the fields)
+        app.call(lambda: setattr(gp.gid, "value", "ORTHO-1"))
         app.call(lambda: app.show_image_plane(wait=True))
         assert app.pick_plane.window.image == ref.ortho.name
         n_before = len(app.session.gcps)

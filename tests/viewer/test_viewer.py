@@ -594,7 +594,9 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     img = app.pick_plane.window.image
     # a new GCP from typed coordinates, then a click on the image plane observes it
     gp = app.gcp_panel
-    app.call(lambda: (gp.select_id(None), setattr(gp.gid, "value", "NEW-1"),
+    app.call(lambda: gp.select_id(None))
+    app.wait_idle()                      # the list's change is applied (it clears the fields)
+    app.call(lambda: (setattr(gp.gid, "value", "NEW-1"),
                       setattr(gp.x, "value", 55.65), setattr(gp.y, "value", -21.23),
                       setattr(gp.h, "value", 2300.0)))
     o, d = _ray_to(app, 123.25, 200.75)
