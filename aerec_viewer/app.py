@@ -1178,7 +1178,7 @@ class ViewerApp:
     def residual_vectors(self) -> dict[str, tuple[tuple[float, float], tuple[float, float]]]:
         """GCP id -> (observed pixel, residual observed - reprojected) in the plane's image, for
         the GCPs observed there and in another registered image of its group."""
-        from .prediction import observation_residuals
+        from recon_core.euclidean.gcp_transfer import observation_residuals
 
         if self.pick_plane is None:
             return {}

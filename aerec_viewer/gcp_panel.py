@@ -12,7 +12,7 @@ import numpy as np
 from recon_core.model.tiling import Window
 
 from .display import FLAT_WXYZ, plane_hit, plane_point
-from .prediction import place_in_other_images
+from recon_core.euclidean.gcp_transfer import place_in_other_images
 from .gcp_session import (
     ROLES,
     GcpError,
@@ -434,7 +434,7 @@ class GcpPanel:
 
     def residuals(self, gid: str) -> dict[str, float]:
         """Image -> reprojection residual (px) of the GCP's observations, per group."""
-        from .prediction import observation_residuals
+        from recon_core.euclidean.gcp_transfer import observation_residuals
 
         g = self.app.session.get(gid)
         out: dict[str, float] = {}
@@ -471,7 +471,7 @@ class GcpPanel:
 
     def _predict(self):
         """Predict the selected GCP's pixel in the plane's image; Accept records it."""
-        from .prediction import predict_observation
+        from recon_core.euclidean.gcp_transfer import predict_observation
 
         gid = self.selected()
         if gid is None:
@@ -617,7 +617,7 @@ class GcpPanel:
         """After an observation of `gid`: open the loupe in the next image of its group(s) that
         has none, at the GCP's predicted pixel there (from every observation so far); returns
         that image, or None when every image that can see it has an observation."""
-        from .prediction import predict_observation
+        from recon_core.euclidean.gcp_transfer import predict_observation
 
         if not self.walk.value or gid not in self.app.session.ids:
             return None

@@ -90,7 +90,7 @@ def gcp_state_table(session: GcpSession, models: dict, images: list[str]) -> str
     contains it), "unusable" (observed, but no registered tile there), "predicted" (not observed,
     but predictable there from its observations in that image's group: the loupe can show it),
     "-" (neither), and "picked" (a cloud pick replaces the observations)."""
-    from .prediction import predict_observation
+    from recon_core.euclidean.gcp_transfer import predict_observation
 
     if not session.gcps:
         return ""

@@ -751,7 +751,7 @@ def test_a_click_in_the_loupe_walks_on_to_the_gcps_next_image(live):
     first = sorted(tob)[0]
 
     def predict_now(image):
-        from aerec_viewer.prediction import predict_observation
+        from recon_core.euclidean.gcp_transfer import predict_observation
 
         return predict_observation(model, {im.name: im for im in app.site.images},
                                    app.session.get(gid).observations, image)
@@ -916,7 +916,7 @@ def test_an_image_left_by_place_all_opens_in_the_loupe_and_enter_accepts(live, m
     the plane switches to that image and the loupe opens at the predicted pixel; accepting
     records exactly that pixel there; nothing else was recorded."""
     from aerec_viewer import gcp_panel as gpm
-    from aerec_viewer.prediction import Prediction
+    from recon_core.euclidean.gcp_transfer import Prediction
 
     app, events, trace, out, site, cfg = live
     gp = app.gcp_panel
@@ -1311,7 +1311,7 @@ def test_prediction_of_a_gcp_in_another_image_against_the_truth(tiny_run):
     """On the synthetic `tiny` site, with noise-free clicks: placed in two images, a GCP is
     predicted in the third by triangulation; placed in one, by the sparse surface and refined by
     matching along the ray's plausible depths. Errors against the true projections."""
-    from aerec_viewer.prediction import predict_observation
+    from recon_core.euclidean.gcp_transfer import predict_observation
 
     state, _ = tiny_run
     m = state.models[0]
@@ -1366,7 +1366,7 @@ def test_residual_vectors_on_the_image_plane(live):
     """Each GCP observed in the plane's image and in another image of its group gets a segment
     from its observation along its reprojection residual (x residual_scale()); a misclick of a few
     pixels shows as a long red one."""
-    from aerec_viewer.prediction import observation_residuals
+    from recon_core.euclidean.gcp_transfer import observation_residuals
 
     app, events, trace, out, site, cfg = live
     app.wait_idle()
@@ -1463,7 +1463,7 @@ def test_placing_in_other_images_keeps_only_predictions_that_agree(tiny_run, mon
     wrong (3 px off, across the epipolar lines, which run mostly along the columns here: an
     error along them is a depth the check cannot tell from the truth) is left to the operator
     with the reason, not recorded."""
-    import aerec_viewer.prediction as pr
+    import recon_core.euclidean.gcp_transfer as pr
 
     state, _ = tiny_run
     m = state.models[0]

@@ -10,8 +10,8 @@
    sub-pixel by a parabola through the peak. The refinement is kept only when the correlation is
    clear (score and margin); otherwise the geometric prediction stands.
 
-No viser here: the GCP panel calls `predict_observation` and shows the result for the operator to
-accept or adjust.
+Part of the core (no display here): the viewer's GCP panel calls `predict_observation` and shows
+the result for the operator to accept or adjust; any other front end (a script, a CLI) can too.
 """
 
 from __future__ import annotations
