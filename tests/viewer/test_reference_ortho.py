@@ -11,12 +11,11 @@ import numpy as np
 import pytest
 import rasterio
 from pyproj import Transformer
-from rasterio.transform import from_origin
 
 from aerec_viewer.cli import main as view_main
 from aerec_viewer.gcp_session import GcpError
-from recon_core.euclidean.ground_reference import open_ground_reference
 from recon_core.errors import InputError
+from recon_core.euclidean.ground_reference import open_ground_reference
 
 
 def _reference(tmp_path, site):
