@@ -21,7 +21,7 @@ from collections import deque
 from concurrent.futures import Future
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import numpy as np
 
@@ -36,9 +36,9 @@ from .display import (
     euclidean_display_transform,
     image_footprint,
     plane_point,
-    quat_to_matrix,
 )
 from .framerate import BudgetGovernor, ViewRateMeter
+from .gcp_marks import GcpMarks
 from .gcp_panel import GcpPanel, PickPlane, layout_pick_plane, pixel_from_ray
 from .gcp_session import (
     GcpError,
@@ -60,7 +60,7 @@ from .results import (
     outcome_markdown,
     run_upgrade,
 )
-from .scene import TILE_MODES, SceneView, safe_name, tile_windows_for
+from .scene import TILE_MODES, SceneView, tile_windows_for
 from .worker import DisplaySnapshot, ReconWorker
 
 log = logging.getLogger("aerec.viewer")
@@ -68,11 +68,6 @@ log = logging.getLogger("aerec.viewer")
 # A click that arrives within this many seconds of its client's camera moving was a drag (an
 # orbit that ended where it started, a wobble while pressing): it records nothing
 DRAG_GUARD_S = 0.35
-MARK_RING_PX = 11.0     # radius of a GCP marker ring on screen (pixels), whatever the zoom
-MARK_SEL = (255, 220, 0)
-MARK = (230, 40, 40)
-MARK_CHECK = (40, 200, 255)
-MARK_OFF = (150, 150, 150)   # a disabled GCP
 # The loupe: the first click on the image plane (when "Click zooms in first" is on) shows the
 # LOUPE_PX x LOUPE_PX full-resolution pixels around it, each drawn as LOUPE_SCALE x LOUPE_SCALE
 # texels (nearest neighbour, lossless), with a crosshair whose centre is left open; the second
@@ -107,28 +102,6 @@ def loupe_texture(gray: np.ndarray, win: Window, centre: tuple[float, float],
     rgb[cy, cols] = LOUPE_CROSS
     rgb[rows, cx] = LOUPE_CROSS
     return rgb
-
-
-def ring_segments(r: float, n: int = 12) -> np.ndarray:
-    """(n, 2, 3) segments of a circle of radius r in the local xy plane."""
-    a = np.linspace(0.0, 2.0 * np.pi, n + 1)
-    p = np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(a)], axis=1).astype(np.float32)
-    return np.stack([p[:-1], p[1:]], axis=1)
-
-
-def label_offset(r: float, on_plane: bool) -> np.ndarray:
-    """Where a marker's label sits: beside its ring, not on the point."""
-    return np.array([r, r, 0.0]) if on_plane else np.array([r, 0.0, r])
-
-
-class _Marker(NamedTuple):
-    """A GCP's marker in one place (the picking plane, a group's cloud): its ring is drawn with
-    the others of that place (`ViewerApp._draw_rings`), its label is its own node."""
-
-    label: object
-    colour: tuple[int, int, int]
-    radius: float
-    pos: np.ndarray
 
 
 class _OneLine(logging.Filter):
@@ -224,13 +197,8 @@ class ViewerApp:
         self._plane_key = None
         self._plane_token = None
         self._reframe_on_plane = False
-        self._marks: dict[str, _Marker] = {}  # one per GCP and place: path -> its label, ...
-        self._rings: dict[str, object] = {}  # <place>/rings[_selected] -> merged ring node
-        self._residual_nodes: list = []      # the residual vectors on the image plane and their legend
-        self._drag_handle = None             # the drag handle on the selected observation (loupe)
-        self._drag_key = None
         self._state_table_key = None
-        self._marks_key = None
+        self.marks = GcpMarks(self)          # every /gcp node but the picking plane
         self._armed = None
         self.loupe: tuple[Window, tuple[float, float]] | None = None   # (window, pixel zoomed on)
         self._loupe_views: dict[int, tuple] = {}   # client id -> its camera before the loupe
@@ -238,8 +206,6 @@ class ViewerApp:
         self._tri_cache: dict = {}
         self._build_gui()
         self._camera_moved: dict[int, tuple] = {}   # client id -> (position, wxyz, time it moved)
-        self._ring_view: tuple | None = None          # (distance to look-at, fov, height px) of the
-        #                                               view that moved last: the rings' size
         self.server.on_client_connect(self._on_connect)
         for modifier, factor in (("shift", self.ZOOM_STEP), ("cmd/ctrl+shift", 1.0 / self.ZOOM_STEP)):
             self.server.scene.on_click(modifier=modifier)(
@@ -339,11 +305,11 @@ class ViewerApp:
         if self.worker.models_version != self._models_version:
             self._models_version = self.worker.models_version
             self.models = dict(self.worker.models)
-            self._marks_key = None
+            self.marks.invalidate()
             self._update_upgrade_button()
         if self._dsm_rerun_pending and self.worker.done.is_set():
             self._start_dsm_rerun()
-        if snap.version == self._seen_version and self._marks_key is not None:
+        if snap.version == self._seen_version and self.marks.key is not None:
             return None
         self._seen_version = snap.version
         with self.server.atomic():
@@ -359,7 +325,7 @@ class ViewerApp:
                     self.show_image_plane()
                 for client in self.server.get_clients().values():
                     self._frame_client(client)
-            self._draw_marks()
+            self.marks.draw()
             self.dsm_panel.refresh(snap)
         return sent
 
@@ -635,10 +601,10 @@ class ViewerApp:
             self.view_rate.moved(key, time.monotonic())
             d = float(np.linalg.norm(np.asarray(camera.position) - np.asarray(camera.look_at)))
             view = (d, float(camera.fov), int(camera.image_height))
-            before = self._ring_view
-            self._ring_view = view
+            before = self.marks.ring_view
+            self.marks.ring_view = view
             if before is None or abs(d / max(before[0], 1e-12) - 1.0) > 0.2:
-                self.submit(self._resize_marks)
+                self.submit(self.marks.resize)
 
     def moved_just_before(self, client_id: int | None, t_click: float) -> bool:
         """Did this client's view move during the DRAG_GUARD_S before a click (a drag)?"""
@@ -763,7 +729,7 @@ class ViewerApp:
             if self._plane_handle is not None:
                 self._plane_handle.remove()
             self._plane_handle, self.pick_plane, self._plane_key = None, None, None
-            self._marks_key = None
+            self.marks.invalidate()
             return
         win = self.current_window()
         contrast = self.gcp_panel.contrast.value
@@ -809,8 +775,8 @@ class ViewerApp:
         h.on_click(clicked)
         self._plane_handle, self.pick_plane = h, plane
         self._plane_key = self._bounds_key()
-        self._marks_key = None
-        self._draw_marks()
+        self.marks.invalidate()
+        self.marks.draw()
         if self._reframe_on_plane:                    # the first view should show the plane too
             self._reframe_on_plane = False
             for client in self.server.get_clients().values():
@@ -837,7 +803,7 @@ class ViewerApp:
             self._plane_handle.position = tuple(new.position)
             self.pick_plane = PickPlane(old.window, new.position, old.wxyz, old.render_width,
                                         old.render_height)
-            self._marks_key = None
+            self.marks.invalidate()
         self._plane_key = key
 
     def on_plane_click(self, ray_origin, ray_direction, client=None) -> tuple[float, float] | None:
@@ -965,11 +931,11 @@ class ViewerApp:
 
     def gcps_changed(self, select: str | None = "keep", note: str | None = None) -> None:
         self.gcp_panel.refresh(select)
-        self._marks_key = None
+        self.marks.invalidate()
         if note:
             self.note(note)
         self._update_upgrade_button()
-        self._draw_marks()
+        self.marks.draw()
 
     def gcp_affine_positions(self, g: int) -> dict[str, np.ndarray]:
         """Affine position of every GCP placeable in group g (picked, else triangulated)."""
@@ -988,237 +954,6 @@ class ViewerApp:
             if self._tri_cache[key] is not None:
                 out[gcp.id] = self._tri_cache[key]
         return out
-
-    def marker_positions(self) -> dict[str, tuple[np.ndarray, tuple[int, int, int], str]]:
-        """Scene path -> (display position, colour, label) of every GCP marker to show: on the
-        picking plane for observations in its window, on each group's cloud for placed GCPs."""
-        snap_T = {g: T for g, T in self.transforms(self.worker.snapshot()).items() if T is not None}
-        sel = self.gcp_panel.selected()
-        roles = {g.id: g.role if g.enabled else "disabled" for g in self.session.gcps}
-
-        def colour(gid):
-            return MARK_SEL if gid == sel else {"check": MARK_CHECK, "disabled": MARK_OFF}.get(roles.get(gid), MARK)
-
-        want = {}
-        r = self._marker_radius()
-        if self.pick_plane is not None and self.reference is not None \
-                and self.pick_plane.window.image == self.reference.ortho.name and self.session.gcps:
-            # on the reference orthoimage: each GCP's ground position
-            win = self.pick_plane.window
-            gs = self.session.gcps
-            cols, rows = self.reference.pixel_of([g.lon for g in gs], [g.lat for g in gs])
-            for gcp, c, rr in zip(gs, cols, rows):
-                if win.contains([(float(c), float(rr))])[0]:
-                    want[f"/gcp/plane_marks/{safe_name(gcp.id)}"] = (
-                        self.pick_plane.point_of(float(c), float(rr), lift=0.5 * r), colour(gcp.id), gcp.id)
-        elif self.pick_plane is not None:
-            win = self.pick_plane.window
-            for gcp in self.session.gcps:
-                ob = gcp.observations.get(win.image)
-                if ob is not None and win.contains([ob])[0]:
-                    want[f"/gcp/plane_marks/{safe_name(gcp.id)}"] = (
-                        self.pick_plane.point_of(ob[0], ob[1], lift=0.5 * r), colour(gcp.id), gcp.id)
-        shown: set[str] = set()
-        for g, T in sorted(snap_T.items()):
-            for gid, xyz in self.gcp_affine_positions(g).items():
-                if self.frame == "euclidean" and gid in shown:
-                    continue                  # groups share the ENU frame: one marker per GCP
-                shown.add(gid)
-                want[f"/gcp/cloud/g{g}/{safe_name(gid)}"] = (
-                    T.apply(np.asarray(xyz)[None])[0].astype(float), colour(gid), gid)
-        return want
-
-    def _marker_radius(self) -> float:
-        """World radius of a marker ring MARK_RING_PX screen pixels wide in the view that moved
-        last (rings keep their size on screen as the operator zooms); before any view, a
-        fraction of the scene."""
-        if self._ring_view is not None:
-            d, fov, h_px = self._ring_view
-            return MARK_RING_PX * 2.0 * d * np.tan(fov / 2.0) / max(h_px, 1)
-        b = self.scene_bounds()
-        size = 1000.0 if b is None else float(max(b[1][0] - b[0][0], b[1][1] - b[0][1], 1e-6))
-        return size / 90.0
-
-    def _draw_marks(self) -> None:
-        """Add, move, recolour or remove GCP markers (rings with labels: the point itself stays
-        visible inside) to match the state."""
-        snap_T = self.transforms(self.worker.snapshot())
-        key = (self.session.version, self.gcp_panel.select.value, self.frame,
-               None if self.pick_plane is None else (self.pick_plane.window, tuple(self.pick_plane.position)),
-               tuple((g, id(T)) for g, T in sorted(snap_T.items())), len(self.models))
-        if key == self._marks_key:
-            return
-        self._marks_key = key
-        want = self.marker_positions()
-        r = self._marker_radius()
-        sc = self.server.scene
-        for name in [n for n in self._marks if n not in want]:
-            self._marks.pop(name).label.remove()
-        for name, (pos, col, text) in want.items():
-            have = self._marks.get(name)
-            on_plane = name.startswith("/gcp/plane_marks/") and self.pick_plane is not None
-            if have is not None and have.colour == col and abs(have.radius / r - 1) < 0.1:
-                if np.linalg.norm(have.pos - pos) > 1e-6 * r:
-                    have.label.position = tuple(pos + label_offset(have.radius, on_plane))
-                    self._marks[name] = have._replace(pos=pos)
-                continue
-            if have is not None:
-                have.label.remove()
-            label = sc.add_label(f"{name}_label", text, position=tuple(pos + label_offset(r, on_plane)),
-                                 anchor="bottom-left", font_screen_scale=0.7)
-            self._marks[name] = _Marker(label, col, r, pos)
-        self._draw_rings()
-        self._draw_residual_vectors()
-        self._draw_drag_handle()
-
-    def _draw_rings(self) -> None:
-        """The markers' rings, merged into one node per place (the picking plane, each group's
-        cloud) and width (the selected GCP's is wider): a node is a draw call, and software
-        WebGL pays about a millisecond for each, a frame for 40 markers."""
-        sets: dict[str, list] = {}
-        for name, (_, col, r, pos) in self._marks.items():
-            place = name.rsplit("/", 1)[0]
-            R = quat_to_matrix(np.asarray(self.pick_plane.wxyz)) \
-                if place == "/gcp/plane_marks" and self.pick_plane is not None else np.eye(3)
-            seg = ring_segments(r) @ R.T.astype(np.float32) + np.asarray(pos, np.float32)
-            sets.setdefault(f"{place}/rings{'_selected' if col == MARK_SEL else ''}", []).append(
-                (seg, np.broadcast_to(np.array(col, np.uint8), seg.shape)))
-        sc = self.server.scene
-        for path in [p for p in self._rings if p not in sets]:
-            self._rings.pop(path).remove()
-        for path, parts in sets.items():
-            self._rings[path] = sc.add_line_segments(
-                path, np.concatenate([p[0] for p in parts]).astype(np.float32),
-                np.ascontiguousarray(np.concatenate([p[1] for p in parts])),
-                thickness=3.0 if path.endswith("_selected") else 2.0, thickness_units="screen")
-
-    def drag_target(self) -> tuple[str, str, tuple[float, float]] | None:
-        """(GCP, image, pixel) the drag handle adjusts: the selected GCP's observation, when the
-        loupe shows it (full-resolution pixels: a drag there is as precise as a click)."""
-        gid, pl = self.gcp_panel.selected(), self.pick_plane
-        if gid is None or pl is None or self.loupe is None or not self.in_loupe(pl.window) \
-                or gid not in self.session.ids:
-            return None
-        ob = self.session.get(gid).observations.get(pl.window.image)
-        if ob is None or not pl.window.contains([ob])[0]:
-            return None
-        return gid, pl.window.image, (float(ob[0]), float(ob[1]))
-
-    def _draw_drag_handle(self) -> None:
-        """Arrows in the plane (no rotation, no height) on the selected GCP's observation in the
-        loupe: dragging them moves the observation, which is recorded when the drag ends."""
-        want = self.drag_target()
-        key = None if want is None else (want, tuple(self.pick_plane.position))
-        if key == self._drag_key:
-            return
-        if self._drag_handle is not None:
-            self._drag_handle.remove()
-            self._drag_handle = None
-        self._drag_key = key
-        if want is None:
-            return
-        gid, image, ob = want
-        pl = self.pick_plane
-        h = self.server.scene.add_transform_controls(
-            "/gcp/drag", scale=0.18 * pl.render_width, line_width=2.0, disable_rotations=True,
-            active_axes=(True, True, False), depth_test=False,
-            position=tuple(pl.point_of(*ob, lift=0.004 * pl.render_width)))
-
-        @h.on_update
-        def _(ev) -> None:
-            if ev.phase == "end":
-                pos = np.array(ev.target.position, dtype=np.float64)
-                self.submit(lambda: self.on_handle_dragged(gid, image, pos, ev.client, handle=h, plane=pl))
-        self._drag_handle = h
-
-    def on_handle_dragged(self, gid: str, image: str, position, client=None, handle=None,
-                          plane: PickPlane | None = None) -> tuple[float, float] | None:
-        """The drag handle was released at `position` (display coordinates, on `plane`, the plane
-        it was drawn on): the GCP's observation in `image` moves to the pixel under it. A handle
-        replaced meanwhile (the plane moved, another tab edited) is ignored."""
-        if handle is not None and handle is not self._drag_handle:
-            return None
-        pl = plane or self.pick_plane
-        if pl is None or pl.window.image != image or gid not in self.session.ids:
-            self._drag_key = None
-            self._draw_drag_handle()
-            return None
-        p = np.asarray(position, dtype=np.float64)
-        pix = pixel_from_ray(pl, p + np.array([0.0, 0.0, pl.render_width]), np.array([0.0, 0.0, -1.0]))
-        if pix is None:
-            self._drag_key = None
-            self._draw_drag_handle()
-            self.note("the drag left the image: nothing moved", "warning")
-            return None
-        was = self.session.get(gid).observations.get(image)
-        if was is not None and np.hypot(pix[0] - was[0], pix[1] - was[1]) < 1e-3:
-            return None                      # pressed and released without moving
-        add_observation(self.session, gid, image, *pix)
-        self.gcps_changed(select="keep", note=f"{gid}: moved in {image} to col {pix[0]:.2f}, "
-                                              f"row {pix[1]:.2f} (dragged)")
-        return pix
-
-    def _resize_marks(self) -> None:
-        """Redraw the rings at the size the last zoom asks for."""
-        self._marks_key = None
-        self._draw_marks()
-
-    RESIDUAL_SCALE = 20.0          # residual vectors on the image plane: 1 px drawn as >= 20 px
-
-    def residual_scale(self) -> float:
-        """The vectors' magnification for the window on the plane: 1 px of residual is drawn as
-        about 5 % of the window (a round 20, 50, 100, 200 or 500), so a 1 px residual shows on a
-        whole 2000 px image as well as in the loupe."""
-        if self.pick_plane is None:
-            return self.RESIDUAL_SCALE
-        w = self.pick_plane.window
-        target = 0.05 * max(w.width, w.height)
-        return float(next((n for n in (20, 50, 100, 200, 500) if n >= target), 500))
-
-    def residual_vectors(self) -> dict[str, tuple[tuple[float, float], tuple[float, float]]]:
-        """GCP id -> (observed pixel, residual observed - reprojected) in the plane's image, for
-        the GCPs observed there and in another registered image of its group."""
-        from recon_core.euclidean.gcp_transfer import observation_residuals
-
-        if self.pick_plane is None:
-            return {}
-        img = self.pick_plane.window.image
-        model = next((m for m in self.models.values() if img in m.images), None)
-        if model is None:
-            return {}
-        out = {}
-        for g in self.session.gcps:
-            if img in g.observations:
-                res = observation_residuals(model, g.observations)
-                if img in res:
-                    out[g.id] = (g.observations[img], res[img])
-        return out
-
-    def _draw_residual_vectors(self) -> None:
-        """Orange segments from each observation along its residual (x residual_scale()), with a
-        legend; red when the residual exceeds 1 px."""
-        for h in self._residual_nodes:
-            h.remove()
-        self._residual_nodes = []
-        vecs = self.residual_vectors()
-        if not vecs or self.pick_plane is None:
-            return
-        pl = self.pick_plane
-        k = self.residual_scale()
-        seg = np.array([[pl.point_of(c, r, lift=0.002 * pl.render_width),
-                         pl.point_of(c + k * dx, r + k * dy, lift=0.002 * pl.render_width)]
-                        for (c, r), (dx, dy) in vecs.values()], dtype=np.float32)
-        big = np.array([np.hypot(dx, dy) > 1.0 for _, (dx, dy) in vecs.values()])
-        cols = np.where(big[:, None, None], np.array([220, 30, 30]), np.array([255, 150, 0]))
-        cols = np.broadcast_to(cols, seg.shape).astype(np.uint8)
-        sc = self.server.scene
-        self._residual_nodes.append(sc.add_line_segments("/gcp/plane_residuals", seg, cols,
-                                                         thickness=3.0, thickness_units="screen"))
-        w = pl.window
-        self._residual_nodes.append(sc.add_label(
-            "/gcp/plane_residuals_legend", f"residual vectors x{k:g} (red: > 1 px)",
-            position=tuple(pl.point_of(w.col0, w.row0 + w.height, lift=0.002 * pl.render_width)),
-            anchor="top-left", font_screen_scale=0.7))
 
     # -- upgrade --------------------------------------------------------------------------------
     def _update_upgrade_button(self) -> None:
@@ -1303,7 +1038,7 @@ class ViewerApp:
         self.scene.clear()
         self._force()
         self._framed = False
-        self._marks_key = None
+        self.marks.invalidate()
         self._plane_key = ("reset",)
         self._tick()
         self.dsm_panel.frame_changed()

@@ -9,24 +9,24 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from recon_core.euclidean.gcp_transfer import place_in_other_images
 from recon_core.model.tiling import Window
 
 from .display import FLAT_WXYZ, plane_hit, plane_point
-from recon_core.euclidean.gcp_transfer import place_in_other_images
 from .gcp_session import (
     ROLES,
     GcpError,
     GcpSession,
+    add_observation,
     can_redo,
     can_undo,
-    merge_last,
     default_epsg,
     delete_gcp,
     describe,
     edit_gcp,
     ground_to_llh,
     import_site_gcps,
-    add_observation,
+    merge_last,
     new_gcp,
     redo,
     remove_observation,

@@ -113,7 +113,7 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
         assert (g.lon, g.lat) == pytest.approx(ref.ground_at(45.0, 61.0)[:2], abs=1e-9)
         assert g.h == pytest.approx(float(dem[61, 45]), abs=1e-4)
         # its ground position is marked on the orthoimage, where it was clicked
-        marks = app.call(app.marker_positions)
+        marks = app.call(app.marks.marker_positions)
         pos = marks["/gcp/plane_marks/ORTHO-1"][0]
         assert np.allclose(pos[:2], app.pick_plane.point_of(45.0, 61.0)[:2], atol=1e-6 * app.pick_plane.render_width)
         # the orthoimage is no image of the site: no prediction there, no observation recorded

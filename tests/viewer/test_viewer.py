@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from aerec_viewer import display as dp
-from aerec_viewer.app import MARK_RING_PX
+from aerec_viewer.gcp_marks import MARK_RING_PX
 from aerec_viewer.gcp_session import (
     GcpError,
     add_observation,
@@ -199,7 +199,7 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     assert app._armed is None and 0 in app.session.get("NEW-1").affine_picked
     # markers: on the plane for observations in this image, on the cloud for placed GCPs
     app.wait_idle()
-    names = set(app._marks)
+    names = set(app.marks.items)
     assert "/gcp/plane_marks/NEW-1" in names and "/gcp/cloud/g0/NEW-1" in names
     # markers are rings that keep their size on screen: zooming in 4x shrinks them 4x in the
     # world (the view that moved last sets it)
@@ -212,10 +212,10 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
 
     app._camera_update(view(400.0))
     app.wait_idle()
-    r_far = app._marks["/gcp/plane_marks/NEW-1"].radius
+    r_far = app.marks.items["/gcp/plane_marks/NEW-1"].radius
     app._camera_update(view(100.0))
     app.wait_idle()
-    r_near = app._marks["/gcp/plane_marks/NEW-1"].radius
+    r_near = app.marks.items["/gcp/plane_marks/NEW-1"].radius
     assert r_far / r_near == pytest.approx(4.0, rel=1e-6)
     assert r_near == pytest.approx(MARK_RING_PX * 2 * 100.0 * np.tan(0.4) / 900)
     app.call(lambda: delete_gcp(app.session, "NEW-1"))
@@ -893,7 +893,7 @@ def test_residual_vectors_on_the_image_plane(live):
         app.call(lambda: app.show_image_plane(wait=True))
     img = app.pick_plane.window.image
     model = next(m for m in app.models.values() if img in m.images)
-    vecs = app.call(app.residual_vectors)
+    vecs = app.call(app.marks.residual_vectors)
     expect = {g.id for g in app.session.gcps if img in g.observations
               and img in observation_residuals(model, g.observations)}
     assert set(vecs) == expect and len(expect) >= 3
@@ -901,20 +901,20 @@ def test_residual_vectors_on_the_image_plane(live):
     (c, r), _ = vecs[gid]
     app.call(lambda: add_observation(app.session, gid, img, c + 4.0, r - 3.0))   # a misclick
     app.call(lambda: app.gcps_changed(select=gid))
-    (c2, r2), (dx, dy) = app.call(app.residual_vectors)[gid]
+    (c2, r2), (dx, dy) = app.call(app.marks.residual_vectors)[gid]
     assert (c2, r2) == (c + 4.0, r - 3.0) and np.hypot(dx, dy) > 1.0
-    seg = app._residual_nodes[0]
+    seg = app.marks.residual_nodes[0]
     assert len(seg.points) == len(expect)
-    k = list(app.call(app.residual_vectors)).index(gid)
+    k = list(app.call(app.marks.residual_vectors)).index(gid)
     a, b = np.asarray(seg.points[k], float)
     pl = app.pick_plane
-    np.testing.assert_allclose(b - a, pl.point_of(c2 + app.residual_scale() * dx, r2 + app.residual_scale() * dy)
+    np.testing.assert_allclose(b - a, pl.point_of(c2 + app.marks.residual_scale() * dx, r2 + app.marks.residual_scale() * dy)
                                - pl.point_of(c2, r2), atol=1e-3)
     assert tuple(np.asarray(seg.colors)[k, 0]) == (220, 30, 30)
     # the magnification follows the window: ~5 % of it per pixel of residual, 20 at least
     w = pl.window
-    assert app.residual_scale() >= max(20.0, 0.05 * max(w.width, w.height))
-    assert f"x{app.residual_scale():g}" in app._residual_nodes[1].text
+    assert app.marks.residual_scale() >= max(20.0, 0.05 * max(w.width, w.height))
+    assert f"x{app.marks.residual_scale():g}" in app.marks.residual_nodes[1].text
     app.call(lambda: undo(app.session))
     app.call(lambda: app.gcps_changed(select=gid))
 

@@ -268,7 +268,7 @@ def test_drag_the_handle_in_the_loupe_to_adjust_an_observation(browser_app, tiny
             ob = app.session.get(gid).observations[im]
             app.call(lambda: gp.jump_to(im, client))
             app.wait_idle()
-            wait_for(lambda: app._drag_handle is not None and app.loupe is not None, 20, "the drag handle")
+            wait_for(lambda: app.marks.drag_handle is not None and app.loupe is not None, 20, "the drag handle")
             pl = app.pick_plane
             time.sleep(2.0)                      # the camera's move above the loupe
             shot(page, tmp_path, "6_drag_handle")
