@@ -11,6 +11,7 @@ from recon_core.io.gcps import GCP
 from recon_core.io.layout import OutLayout
 from recon_core.io.site import Site
 from recon_core.model.grouping import Group
+from recon_core.model.sparse_model import SparseModel
 
 
 @dataclass
@@ -31,9 +32,9 @@ class RunState:
     gcps: list[GCP] = field(default_factory=list)
     gcp_file: Path | None = None      # the GCP file the run read (the working set or the site's)
     gcp_text: str = ""                # its content at the start of the run (the stages' hashes)
-    models: dict = field(default_factory=dict)
-    dense: dict = field(default_factory=dict)
-    upgrade: tuple[dict, LocalFrame] | None = None
+    models: dict[int, SparseModel] = field(default_factory=dict)
+    dense: dict[int, Path] = field(default_factory=dict)
+    upgrade: tuple[dict[int, object], LocalFrame] | None = None
     report: dict = field(default_factory=dict)
 
     @property

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from recon_core.dense.matchers import make_matcher
 from recon_core.dense.reconstruct import reconstruct_dense_group
 from recon_core.events import EventBus
 
+if TYPE_CHECKING:
+    from recon_core.context import RunState
 
-def run(state, bus: EventBus) -> dict:
+
+def run(state: RunState, bus: EventBus) -> dict:
     out = {"groups": {}}
     images = {im.name: im for im in state.site.images}
     matcher = make_matcher(state.cfg)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,9 +22,9 @@ from recon_core.euclidean.dsm import DsmAccumulator, fill_small_holes
 from recon_core.euclidean.fusion import align_groups
 from recon_core.euclidean.georef import enu_to_output, output_epsg
 from recon_core.events import EventBus
-from recon_core.geometry.enu_map import EnuMap
 from recon_core.geometry import affine
 from recon_core.geometry.affine import apply_affine_3d
+from recon_core.geometry.enu_map import EnuMap
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.las import write_las
 from recon_core.io.layout import OutLayout
@@ -31,6 +32,9 @@ from recon_core.io.models import PointSource
 from recon_core.io.ply import PlyWriter
 from recon_core.io.raster import Grid, write_dsm, write_geotiff
 from recon_core.io.site import Site, default_resolution
+
+if TYPE_CHECKING:
+    from recon_core.context import RunState
 
 
 def output_grid(site: Site, xyh: np.ndarray, epsg: int, res: float) -> Grid:
@@ -620,7 +624,7 @@ def group_quality(upgrade_report: dict) -> dict[int, float]:
     return out
 
 
-def run(state, bus: EventBus) -> dict:
+def run(state: RunState, bus: EventBus) -> dict:
     if state.upgrade is None:
         raise ReconstructionError("the DSM needs the upgrade stage")
     maps, frame = state.upgrade

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,9 @@ from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.gcps import GCP
 from recon_core.io.models import load_upgrade, save_upgrade
 from recon_core.model.sparse_model import merge_joint
+
+if TYPE_CHECKING:
+    from recon_core.context import RunState
 
 
 def estimate_gsd(model, H: np.ndarray) -> float:
@@ -404,7 +408,7 @@ def write(up: Upgrade, out) -> None:
     save_upgrade(out, {g: up.record(g) for g in up.results}, up.frame)
 
 
-def run(state, bus: EventBus) -> dict:
+def run(state: RunState, bus: EventBus) -> dict:
     if not state.gcps:
         where = state.gcp_file or state.site.root / "gcps.geojson"
         raise ReconstructionError(f"{where}: no GCP; the Euclidean upgrade needs >= 4 control GCPs "

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from recon_core.errors import AerecError
 from recon_core.evaluation.evaluate import by_class, evaluate_dsm, same_cells
 from recon_core.events import EventBus
 from recon_core.io.files import write_json
+
+if TYPE_CHECKING:
+    from recon_core.context import RunState
 
 
 def reference_dsms(site_root) -> list:
@@ -16,7 +21,7 @@ def reference_dsms(site_root) -> list:
     return sorted(p for p in Path(site_root).glob("ref_dsm*.tif") if p.is_file())
 
 
-def run(state, bus: EventBus) -> dict:
+def run(state: RunState, bus: EventBus) -> dict:
     refs = _score_references(state, bus)
     if state.site.gt_dsm is None:
         out = {"skipped": "the site has no gt_dsm.tif"}

@@ -10,6 +10,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,11 +30,19 @@ from recon_core.io.models import load_model, save_model
 from recon_core.model.grouping import Group
 from recon_core.model.sparse_model import Observations, SparseModel, images_per_track
 from recon_core.model.tiling import Tile, tile_image
-from recon_core.sparse.features import ImageFeatures, detect_image, detect_overview, group_tone_curves
+from recon_core.sparse.features import (
+    ImageFeatures,
+    detect_image,
+    detect_overview,
+    group_tone_curves,
+)
 from recon_core.sparse.matching import CoarseLink, PairMatches, coarse_link, match_pair
-from recon_core.sparse.sfm import IncrementalSfM
 from recon_core.sparse.refine import refine_tracks
+from recon_core.sparse.sfm import IncrementalSfM
 from recon_core.sparse.tracks import build_tracks
+
+if TYPE_CHECKING:
+    from recon_core.context import RunState
 
 
 FEATURE_THREADS = min(4, os.cpu_count() or 1)   # images whose features are detected at once
@@ -327,7 +336,7 @@ def reconstruct_joint(groups: list[Group], cfg: Config, bus: EventBus,
 
 
 # -- the stage ------------------------------------------------------------------------------------
-def run(state, bus: EventBus) -> dict:
+def run(state: RunState, bus: EventBus) -> dict:
     """Reconstruct every date group of the run and save its model (a group that fails is
     reported; the stage fails only when no group could be reconstructed)."""
     out = {"groups": {}}
