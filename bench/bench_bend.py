@@ -67,7 +67,8 @@ def main(argv=None) -> int:
                     help="grow the model without the correction, one tied adjustment, then this many "
                          "closing rounds with the correction refitted, as the SfM does (and stop)")
     ap.add_argument("--extrapolation", default="0,1",
-                    help="comma-separated sfm.correction_extrapolation values for --closing")
+                    help="comma-separated extrapolation weights w for --closing (each round's correction "
+                         "pushed w times its change since the last: the superseded extrapolated rounds)")
     ap.add_argument("--image-size", type=int, default=0,
                     help="every image of the preset this many px a side (e.g. 20000: a 10 km scene; "
                          "the cameras only: nothing is rendered)")
@@ -199,7 +200,7 @@ def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: floa
             bend: bool = False, ring_step: float = 300.0, physics: list[str] = ()) -> None:
     """The SfM's closing adjustments on a model grown without the correction (WideSite.grow):
     one tied adjustment, then `rounds` with the within-tile correction refitted, each round's
-    correction extrapolated by w (sfm.correction_extrapolation) along its change since the
+    correction extrapolated by w (the superseded extrapolated rounds) along its change since the
     round before; with `bend`, then the same rounds each started by the bend step
     (pushbroom.estimate_bend: the structure unbent, the tile cameras following), and one last
     step after the last round, as the SfM ends. Per round: the

@@ -138,12 +138,6 @@ class SfmConfig:
                                       # the last adjustment is followed by one; only where every
                                       # sensor is a straight line array (checked on the run's data:
                                       # a bowed line looks like a bend; docs: accuracy.md)
-    correction_extrapolation: float = _p(1.0, lo=0, hi=1)  # from the second round
-                                      # on, each round's correction is pushed this many times its
-                                      # change since the round before, g + w (g - g_prev): plain
-                                      # rounds converge slowly, each removing less of the bend
-                                      # (0 = plain rounds; at most 1: 2 diverged; docs: research-notes.md,
-                                      # "Superseded: the bend step and the extrapolated rounds")
 
 
 @dataclass
@@ -342,7 +336,9 @@ LEGACY_KEYS = {f"dense.{k}": f"sgbm.{k}" for k in ("block_size", "p1", "p2", "un
                                                    "speckle_window", "speckle_range", "lr_max_diff_px")}
 # parameters that no longer exist and never changed a result: read from older files and skipped
 # (bundle.smoothness_weight and matching.min_parallax_ratio were read by nothing)
-REMOVED_KEYS = {"bundle.smoothness_weight", "matching.min_parallax_ratio"}
+REMOVED_KEYS = {"bundle.smoothness_weight", "matching.min_parallax_ratio",
+                "sfm.correction_extrapolation"}   # superseded by the bend step; acted only from a
+                                                  # second correction round (1 by default)
 # parameters that were removed because they did harm: read from older files only with the value
 # that does what the code now does (any other value is refused, saying why)
 RETIRED_KEYS: dict = {}

@@ -277,7 +277,6 @@ def test_gcps_seen_across_date_groups_count_when_the_groups_are_reconstructed_jo
     ("[matching]\nratio = 5.0\n", "matching.ratio = 5.0"),
     ("[sgbm]\nblock_size = 4\n", "sgbm.block_size = 4: must be odd"),
     ("[sfm]\ncorrection_rounds = -1\n", "sfm.correction_rounds = -1: must be >= 0"),
-    ("[sfm]\ncorrection_extrapolation = 2.0\n", "sfm.correction_extrapolation = 2.0: must be <= 1"),
     ("[upgrade]\norbit_altitude_km = 0.0\n", "upgrade.orbit_altitude_km = 0.0: must be >= 100"),
 ], ids=lambda v: v.split("\n")[0] if "\n" in v else None)
 def test_config_values_are_checked_before_any_compute(body, words, small_site, tmp_path, capsys):

@@ -30,7 +30,7 @@ from recon_core.sparse.bundle import bundle_adjust
 from recon_core.sparse.features import ImageFeatures
 from recon_core.geometry.pushbroom import (MAX_FOCAL_SHARE, MAX_MODEL_MISFIT_PX, MAX_STRAIGHT_MISFIT_PX,
                                           MIN_POINTS_PER_IMAGE, MIN_TILES_FOR_CORRECTION,
-                                          correction_size, estimate_bend, model_misfit,
+                                          estimate_bend, model_misfit,
                                           tile_corrections)
 from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.matching import PairMatches
@@ -146,8 +146,6 @@ class IncrementalSfM:
         self._unexplained: set[int] = set()     # images whose model misses them (_check_image_models)
         self._model_check: dict = {}
         self._straight: dict = {}
-        self._corr_prev: np.ndarray | None = None  # the last round's fitted correction (all obs;
-        #                                            NaN where it was not fitted)
 
     # -- initial pair -------------------------------------------------------------------------
     def choose_initial_pair(self) -> tuple[int, int, dict]:
@@ -596,17 +594,6 @@ class IncrementalSfM:
         o = self.m.obs
         idx = idx[~np.isin(o.img[idx], list(self._unexplained))]
         corr, info = tile_corrections(self.m.X[o.track[idx]], o.xy[idx], o.tile[idx], o.img[idx])
-        fitted = corr.copy()
-        w = 0.0 if self._straight.get("straight") else self.cfg.correction_extrapolation
-        if w and self._corr_prev is not None:
-            # one step further along the change since the last round, for the observations
-            # fitted both times (docs: research-notes.md, "Superseded: the bend step and the extrapolated rounds")
-            prev = self._corr_prev[idx]
-            both = ~np.isnan(prev[:, 0])
-            corr[both] += w * (fitted[both] - prev[both])
-            info = {**info, **correction_size(corr)}
-        self._corr_prev = np.full(o.xy.shape, np.nan)
-        self._corr_prev[idx] = fitted
         o.corr[:] = 0.0
         o.corr[idx] = corr
         self._correction_info = info

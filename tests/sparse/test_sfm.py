@@ -54,48 +54,6 @@ def test_within_tile_correction_in_the_closing_adjustments(tiny_site, tmp_path, 
     assert r["rms_m"] < 0.5, r
 
 
-def test_extrapolated_correction_rounds(tiny_site, tmp_path, monkeypatch):
-    """sfm.correction_extrapolation = w: from the second round on, an observation fitted in both
-    rounds is corrected by g + w (g - g_prev) (g: this round's fitted correction); the others by
-    g alone. Checked against the fitted corrections themselves, recorded as the SfM asks for them."""
-    from recon_core.sparse import sfm as sfm_mod
-    from recon_core.sparse import stage
-
-    sfm_class = stage.IncrementalSfM
-    monkeypatch.setattr(stage, "IncrementalSfM", lambda *a, **k: sfm_class(*a, **{**k, "n_dates": 2}))
-    fits, rounds = [], []
-    real_fit, real_refresh = sfm_mod.tile_corrections, sfm_class._refresh_corrections
-
-    def spy(*a, **k):
-        corr, info = real_fit(*a, **k)
-        fits.append(corr.copy())
-        return corr, info
-
-    def refresh(self, idx):
-        rounds.append(idx.copy())
-        return real_refresh(self, idx)
-
-    monkeypatch.setattr(sfm_mod, "tile_corrections", spy)
-    monkeypatch.setattr(sfm_class, "_refresh_corrections", refresh)
-    cfg = preset("tiny")
-    cfg.sfm.correction_rounds, cfg.sfm.correction_extrapolation, cfg.sfm.bend_step = 2, 1.0, False
-    state = run(tiny_site, tmp_path / "out", cfg, until="sparse", resume=False)
-    m = state.models[0]
-    assert len(fits) == len(rounds) == 2       # one fit per correction round
-    (i1, i2), (g1, g2) = rounds, fits
-    np.testing.assert_array_equal(i2, m.active_obs())
-    prev = np.full((len(m.obs.xy), 2), np.nan)
-    prev[i1] = g1
-    both = ~np.isnan(prev[i2, 0])
-    assert both.mean() > 0.9
-    want = g2.copy()
-    want[both] += 1.0 * (g2[both] - prev[i2[both]])
-    np.testing.assert_allclose(m.obs.corr[i2], want, atol=1e-12)
-    assert np.abs(g2[both] - prev[i2[both]]).max() > 0   # the rounds did move the correction
-    r = sparse_vs_truth(tiny_site, m, frame_for(state.gcps))
-    assert r["rms_m"] < 0.5, r
-
-
 def test_resect_with_prior_few_points():
     """Few correspondences and a prior camera: the camera agrees with the truth within the
     points' noise, an outlier is dropped, and a set that disagrees with the prior is refused."""
