@@ -1028,6 +1028,34 @@ def _dda_init(f, d, cs):
     return 0, np.inf, np.inf
 
 
+@njit(inline="always", **_JIT)
+def _dda_start(x, y, dx, dy, gx0, gy0, cs):
+    """The grid cell of (x, y) and the DDA set-up of both axes for the direction (dx, dy):
+    (ix, iy, stx, tmx, tdx, sty, tmy, tdy)."""
+    fx = (x - gx0) / cs
+    fy = (y - gy0) / cs
+    stx, tmx, tdx = _dda_init(fx, dx, cs)
+    sty, tmy, tdy = _dda_init(fy, dy, cs)
+    return np.int64(math.floor(fx)), np.int64(math.floor(fy)), stx, tmx, tdx, sty, tmy, tdy
+
+
+@njit(inline="always", **_JIT)
+def _cell_max(grid, ix, iy):
+    """The highest surface in a cell (infinite outside the grid: nothing passes there)."""
+    ny, nx = grid.shape
+    if 0 <= ix < nx and 0 <= iy < ny:
+        return grid[iy, ix]
+    return np.inf
+
+
+@njit(inline="always", **_JIT)
+def _dda_next(ix, iy, stx, sty, tmx, tmy, tdx, tdy):
+    """One DDA step into the next cell the segment enters: (ix, iy, s_in, tmx, tmy)."""
+    if tmx < tmy:
+        return ix + stx, iy, tmx, tmx + tdx, tmy
+    return ix, iy + sty, tmy, tmx, tmy + tdy
+
+
 @njit(**_JIT)
 def _march(tx, ty, tz, bx, by, bz, C, grid, gx0, gy0, cs, step):
     """First crossing of the segment T -> B (T above all surfaces, B below) with the surface.
@@ -1039,21 +1067,12 @@ def _march(tx, ty, tz, bx, by, bz, C, grid, gx0, gy0, cs, step):
     dy = by - ty
     dz = bz - tz
     L = math.sqrt(dx * dx + dy * dy)
-    ny, nx = grid.shape
-    fx = (tx - gx0) / cs
-    fy = (ty - gy0) / cs
-    ix = np.int64(math.floor(fx))
-    iy = np.int64(math.floor(fy))
-    stx, tmx, tdx = _dda_init(fx, dx, cs)
-    sty, tmy, tdy = _dda_init(fy, dy, cs)
+    ix, iy, stx, tmx, tdx, sty, tmy, tdy = _dda_start(tx, ty, dx, dy, gx0, gy0, cs)
     ds = step / L if L > 1e-12 else 2.0
     s_in = 0.0
     while True:
         s_out = min(min(tmx, tmy), 1.0)
-        if 0 <= ix < nx and 0 <= iy < ny:
-            cm = grid[iy, ix]
-        else:
-            cm = np.inf
+        cm = _cell_max(grid, ix, iy)
         if tz + dz * s_out <= cm:
             z_in = tz + dz * s_in
             s = s_in if z_in <= cm else (cm - tz) / dz
@@ -1069,14 +1088,7 @@ def _march(tx, ty, tz, bx, by, bz, C, grid, gx0, gy0, cs, step):
                 f = f_n
         if s_out >= 1.0:
             break
-        if tmx < tmy:
-            ix += stx
-            s_in = tmx
-            tmx += tdx
-        else:
-            iy += sty
-            s_in = tmy
-            tmy += tdy
+        ix, iy, s_in, tmx, tmy = _dda_next(ix, iy, stx, sty, tmx, tmy, tdx, tdy)
     return 0, bx, by, bz
 
 
@@ -1145,21 +1157,12 @@ def _shadowed(px, py, pz, sx, sy, sz, ztop, C, grid, gx0, gy0, cs, step):
     L = math.sqrt(dx * dx + dy * dy)
     if L < 1e-9:
         return False                   # sun at the zenith: nothing above a height field point
-    ny, nx = grid.shape
-    fx = (px - gx0) / cs
-    fy = (py - gy0) / cs
-    ix = np.int64(math.floor(fx))
-    iy = np.int64(math.floor(fy))
-    stx, tmx, tdx = _dda_init(fx, dx, cs)
-    sty, tmy, tdy = _dda_init(fy, dy, cs)
+    ix, iy, stx, tmx, tdx, sty, tmy, tdy = _dda_start(px, py, dx, dy, gx0, gy0, cs)
     ds = step / L
     s_in = 0.0
     while True:
         s_out = min(min(tmx, tmy), 1.0)
-        if 0 <= ix < nx and 0 <= iy < ny:
-            cm = grid[iy, ix]
-        else:
-            cm = np.inf
+        cm = _cell_max(grid, ix, iy)
         if pz + dz * s_in <= cm:
             s_b = s_out if pz + dz * s_out <= cm else (cm - pz) / dz
             s = max(s_in, 0.3 * ds)
@@ -1171,14 +1174,7 @@ def _shadowed(px, py, pz, sx, sy, sz, ztop, C, grid, gx0, gy0, cs, step):
                 return True
         if s_out >= 1.0:
             break
-        if tmx < tmy:
-            ix += stx
-            s_in = tmx
-            tmx += tdx
-        else:
-            iy += sty
-            s_in = tmy
-            tmy += tdy
+        ix, iy, s_in, tmx, tmy = _dda_next(ix, iy, stx, sty, tmx, tmy, tdx, tdy)
     return False
 
 
