@@ -123,21 +123,24 @@ def _u01(h):
     return float(h >> _S11) * _INV53
 
 
-@njit(**_JIT)
-def _vnoise(x, y, salt, tag):
-    """Value noise on the unit lattice, smoothstep interpolation, in [0, 1]."""
+@njit(inline="always", **_JIT)
+def _lattice(x, y, salt, tag):
+    """(x, y)'s place in its unit lattice cell and the cell's corner values in [0, 1]:
+    (tx, ty, v00, v10, v01, v11)."""
     fx = math.floor(x)
     fy = math.floor(y)
     ix = np.int64(fx)
     iy = np.int64(fy)
-    tx = x - fx
-    ty = y - fy
+    return (x - fx, y - fy, _u01(_h4(ix, iy, tag, salt)), _u01(_h4(ix + 1, iy, tag, salt)),
+            _u01(_h4(ix, iy + 1, tag, salt)), _u01(_h4(ix + 1, iy + 1, tag, salt)))
+
+
+@njit(**_JIT)
+def _vnoise(x, y, salt, tag):
+    """Value noise on the unit lattice, smoothstep interpolation, in [0, 1]."""
+    tx, ty, v00, v10, v01, v11 = _lattice(x, y, salt, tag)
     sx = tx * tx * (3.0 - 2.0 * tx)
     sy = ty * ty * (3.0 - 2.0 * ty)
-    v00 = _u01(_h4(ix, iy, tag, salt))
-    v10 = _u01(_h4(ix + 1, iy, tag, salt))
-    v01 = _u01(_h4(ix, iy + 1, tag, salt))
-    v11 = _u01(_h4(ix + 1, iy + 1, tag, salt))
     a = v00 + (v10 - v00) * sx
     b = v01 + (v11 - v01) * sx
     return a + (b - a) * sy
@@ -163,20 +166,11 @@ def _fbm(x, y, salt, tag, wl0, n_oct):
 @njit(**_JIT)
 def _vnoise_grad(x, y, salt, tag):
     """Value noise with quintic fade and its gradient (unit lattice): (v, dv/dx, dv/dy)."""
-    fx = math.floor(x)
-    fy = math.floor(y)
-    ix = np.int64(fx)
-    iy = np.int64(fy)
-    tx = x - fx
-    ty = y - fy
+    tx, ty, v00, v10, v01, v11 = _lattice(x, y, salt, tag)
     sx = tx * tx * tx * (tx * (6.0 * tx - 15.0) + 10.0)
     sy = ty * ty * ty * (ty * (6.0 * ty - 15.0) + 10.0)
     dsx = 30.0 * tx * tx * (tx - 1.0) * (tx - 1.0)
     dsy = 30.0 * ty * ty * (ty - 1.0) * (ty - 1.0)
-    v00 = _u01(_h4(ix, iy, tag, salt))
-    v10 = _u01(_h4(ix + 1, iy, tag, salt))
-    v01 = _u01(_h4(ix, iy + 1, tag, salt))
-    v11 = _u01(_h4(ix + 1, iy + 1, tag, salt))
     a = v00 + (v10 - v00) * sx
     b = v01 + (v11 - v01) * sx
     return a + (b - a) * sy, ((v10 - v00) + (v11 - v01 - v10 + v00) * sy) * dsx, (b - a) * dsy
