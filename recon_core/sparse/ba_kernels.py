@@ -93,6 +93,24 @@ def _add_point_rhs(rhs, p, m, g_p, G, hw, cols):
                     rhs[col1] += hw[q1, j1] * gg
 
 
+@njit(inline="always", **_JIT)
+def _point_scratch(start):
+    """Scratch for the observations of one point (as many as the longest track): G = M V^-1,
+    M, w h, the camera's 8 columns, its compact camera, and a 2 x 2 product."""
+    mmax = _max_run(start)
+    return (np.empty((mmax, 2, 3)), np.empty((mmax, 2, 3)), np.empty((mmax, 4)),
+            np.empty((mmax, 8), np.int64), np.empty(mmax, np.int64), np.empty((2, 2)))
+
+
+@njit(inline="always", **_JIT)
+def _pair_product(A, G, Mq, q1, q2):
+    """A = G[q1] Mq[q2]^T (2 x 2): M1 V^-1 M2^T for a pair of observations of one point."""
+    for row1 in range(2):
+        for row2 in range(2):
+            A[row1, row2] = (G[q1, row1, 0] * Mq[q2, row2, 0] + G[q1, row1, 1] * Mq[q2, row2, 1]
+                             + G[q1, row1, 2] * Mq[q2, row2, 2])
+
+
 @njit(**_JIT)
 def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start, porder):
     """Damped reduced camera system: S = U' - sum_p W_p V_p'^-1 W_p^T, rhs = -(g_c - sum_p
@@ -106,17 +124,11 @@ def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start, porder):
         S[i, i] = S[i, i] * (1.0 + lam) + 1e-12
     rhs = -g_c.copy()
     Vinv = np.empty((npt, 3, 3))
-    mmax = _max_run(start)
-    # per observation of the point: G = M V^-1, M, w h and the camera's 8 columns
-    G = np.empty((mmax, 2, 3))
-    Mq = np.empty((mmax, 2, 3))
-    hw = np.empty((mmax, 4))
-    cols = np.empty((mmax, 8), np.int64)
+    G, Mq, hw, cols, cam, A = _point_scratch(start)
     no_cc = np.empty(0, np.int64)
-    A = np.empty((2, 2))
     for pi in range(npt):
         p = porder[pi]
-        m = _load_point(p, lam, V, Vinv, h, M, w, oc, cam_col, no_cc, order, start, G, Mq, hw, cols, no_cc)
+        m = _load_point(p, lam, V, Vinv, h, M, w, oc, cam_col, no_cc, order, start, G, Mq, hw, cols, cam)
         _add_point_rhs(rhs, p, m, g_p, G, hw, cols)
         # W_k[row*4 + j, i] = w h_j M[row, i], so the (c1, row1, j1) x (c2, row2, j2) entry of
         # W V^-1 W^T is w1 h1_j1 w2 h2_j2 (M1[row1] V^-1 M2[row2]^T): one 2 x 2 matrix A of
@@ -125,10 +137,7 @@ def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start, porder):
         for q1 in range(m):
             for q2 in range(q1, m):
                 same = q1 == q2
-                for row1 in range(2):
-                    for row2 in range(2):
-                        A[row1, row2] = (G[q1, row1, 0] * Mq[q2, row2, 0] + G[q1, row1, 1] * Mq[q2, row2, 1]
-                                         + G[q1, row1, 2] * Mq[q2, row2, 2])
+                _pair_product(A, G, Mq, q1, q2)
                 for row1 in range(2):
                     for j1 in range(4):
                         col1 = cols[q1, row1 * 4 + j1]
@@ -302,13 +311,7 @@ def schur_blocks(Ub, g_c, V, g_p, lam, diag, h, M, w, oc, cam_col, cc, order, st
             S[d, i, i] += lam * diag[a, i] + 1e-12
     rhs = -g_c.copy()
     Vinv = np.empty((npt, 3, 3))
-    mmax = _max_run(start)
-    G = np.empty((mmax, 2, 3))
-    Mq = np.empty((mmax, 2, 3))
-    hw = np.empty((mmax, 4))
-    cols = np.empty((mmax, 8), np.int64)
-    cam = np.empty(mmax, np.int64)
-    A = np.empty((2, 2))
+    G, Mq, hw, cols, cam, A = _point_scratch(start)
     for pi in range(npt):
         p = porder[pi]
         m = _load_point(p, lam, V, Vinv, h, M, w, oc, cam_col, cc, order, start, G, Mq, hw, cols, cam)
@@ -321,10 +324,7 @@ def schur_blocks(Ub, g_c, V, g_p, lam, diag, h, M, w, oc, cam_col, cc, order, st
                 # the same camera twice through two observations (never in practice): both
                 # orders of the pair land in the one diagonal block
                 twice = a == b and q1 != q2
-                for row1 in range(2):
-                    for row2 in range(2):
-                        A[row1, row2] = (G[q1, row1, 0] * Mq[q2, row2, 0] + G[q1, row1, 1] * Mq[q2, row2, 1]
-                                         + G[q1, row1, 2] * Mq[q2, row2, 2])
+                _pair_product(A, G, Mq, q1, q2)
                 for row1 in range(2):
                     for j1 in range(4):
                         e1 = row1 * 4 + j1
