@@ -14,6 +14,7 @@ plus a part per point, so the budget moves by the measured ratio and converges i
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,21 +30,25 @@ class ViewRateMeter:
     last finished gesture (the median interval between consecutive moves), once."""
 
     _moves: dict[int, list[float]] = field(default_factory=dict)
+    # camera messages arrive on the server's thread, `rate` is asked on the viewer's
+    _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def moved(self, client: int, t: float) -> None:
-        ts = self._moves.setdefault(client, [])
-        if ts and t - ts[-1] > GESTURE_GAP_S:
-            ts.clear()                    # an earlier gesture too short to measure
-        ts.append(t)
+        with self._lock:
+            ts = self._moves.setdefault(client, [])
+            if ts and t - ts[-1] > GESTURE_GAP_S:
+                ts.clear()                # an earlier gesture too short to measure
+            ts.append(t)
 
     def rate(self, now: float) -> float | None:
         """The rate of a gesture that has just ended (None when none has); slowest client."""
         rates = []
-        for client, ts in self._moves.items():
-            if ts and now - ts[-1] >= REST_S:
-                if len(ts) > MIN_INTERVALS:
-                    rates.append(1.0 / float(np.median(np.diff(ts))))
-                ts.clear()
+        with self._lock:
+            for ts in self._moves.values():
+                if ts and now - ts[-1] >= REST_S:
+                    if len(ts) > MIN_INTERVALS:
+                        rates.append(1.0 / float(np.median(np.diff(ts))))
+                    ts.clear()
         return min(rates) if rates else None
 
 
