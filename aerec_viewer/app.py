@@ -306,6 +306,7 @@ class ViewerApp:
             self._models_version = self.worker.models_version
             self.models = dict(self.worker.models)
             self.marks.invalidate()
+            self.gcp_panel.relabel()          # "images placed n/N" counts registered images
             self._update_upgrade_button()
         if self._dsm_rerun_pending and self.worker.done.is_set():
             self._start_dsm_rerun()

@@ -674,11 +674,12 @@ class GcpPanel:
         self.app.gcps_changed(note=f"redone: {what}")
 
     # -- display --------------------------------------------------------------------------------
-    def refresh(self, select: str | None = "keep") -> None:
-        s = self.app.session
-        before = self.selected() or self.NEW
-        gid = before if select == "keep" else (select or self.NEW)
-        labels = {i: self.option_of(i) for i in s.ids}
+    def relabel(self, gid: str | None = None) -> None:
+        """The list's entries (id, role, images placed) for the working set and the registered
+        images as they are now, `gid` (default: the one chosen) shown as chosen; nothing else
+        changes (the reconstruction registering images calls this alone)."""
+        gid = (self.selected() or self.NEW) if gid is None else gid
+        labels = {i: self.option_of(i) for i in self.app.session.ids}
         self._ids = {v: k for k, v in labels.items()}
         options = [self.NEW] + list(labels.values())
         current = labels.get(gid, self.NEW)
@@ -686,7 +687,12 @@ class GcpPanel:
             self.select.options = options
         if self.select.value != current:
             self.select.value = current
-        if self._delete_armed is not None and self._delete_armed[0] != self.id_of(current):
+
+    def refresh(self, select: str | None = "keep") -> None:
+        s = self.app.session
+        before = self.selected() or self.NEW
+        self.relabel(before if select == "keep" else (select or self.NEW))
+        if self._delete_armed is not None and self._delete_armed[0] != self.selected():
             self._disarm_delete()
         self.drop_prediction()             # any edit or selection change makes it stale
         u, r = can_undo(s), can_redo(s)
