@@ -135,3 +135,52 @@ def method_chain() -> str:
         lines.append(f"| {k} | {s.name} | {'yes' if s.paper else 'no'} | {on} | {s.what} (`{s.module}`) | "
                      f"{off} | {s.stands_aside} |")
     return "\n".join(lines) + "\n"
+
+
+def module_constants() -> list[tuple[str, str, str, str]]:
+    """Every module-level numeric constant of the library outside the synthetic generator
+    (module, name, value, comment): values fixed in the code rather than in the configuration,
+    each with the comment that says what it is and why it is fixed (its line's, the comment lines
+    above it, or those that continue it below)."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent
+    out = []
+    for path in sorted(root.rglob("*.py")):
+        if "synthetic" in path.relative_to(root).parts:
+            continue
+        src = path.read_text().splitlines()
+        for node in ast.parse("\n".join(src)).body:
+            if not (isinstance(node, ast.Assign) and len(node.targets) == 1
+                    and isinstance(node.targets[0], ast.Name)):
+                continue
+            name, v = node.targets[0].id, node.value
+            if not (name.isupper() and not name.startswith("_") and isinstance(v, ast.Constant)
+                    and isinstance(v.value, (int, float)) and not isinstance(v.value, bool)):
+                continue
+            i = node.lineno - 1
+            line = src[i]
+            comment = line.split("#", 1)[1].strip() if "#" in line else ""
+            if comment:                    # continued on the lines below, aligned comments
+                j = i + 1
+                while j < len(src) and src[j].strip().startswith("#") and not src[j].startswith("#"):
+                    comment += " " + src[j].strip().lstrip("#").strip()
+                    j += 1
+            else:                          # or the comment block just above
+                above, j = [], i - 1
+                while j >= 0 and src[j].startswith("#"):
+                    above.insert(0, src[j].lstrip("#").strip())
+                    j -= 1
+                comment = " ".join(above)
+            module = ".".join(path.relative_to(root.parent).with_suffix("").parts)
+            out.append((module, name, line.split("=", 1)[1].split("#", 1)[0].strip(), comment))
+    return out
+
+
+def constants_reference() -> str:
+    """`module_constants` as a table."""
+    lines = ["| module | constant | value | what it is, why it is fixed |", "|---|---|---|---|"]
+    for module, name, value, comment in module_constants():
+        lines.append(f"| `{module}` | `{name}` | `{value}` | {comment.replace('|', '/')} |")
+    return "\n".join(lines) + "\n"

@@ -55,3 +55,17 @@ def test_no_machine_path_in_the_tree():
             continue
         for k, line in enumerate(f.read_text(errors="replace").splitlines(), 1):
             assert not pat.search(line), f"{f.relative_to(ROOT)}:{k}: a machine path: {line.strip()}"
+
+
+def test_every_value_fixed_in_the_code_says_what_it_is_and_why():
+    """A module-level numeric constant of the library is a value a reader cannot change from the
+    configuration: it must carry a comment (the docs' table of fixed values is made from them)."""
+    from recon_core.docs_reference import constants_reference, module_constants
+
+    rows = module_constants()
+    assert len(rows) > 20                       # the scan sees the library's constants
+    silent = [f"{m}.{n}" for m, n, _, c in rows if len(c) < 10]
+    assert not silent, f"constants without a comment: {silent}"
+    names = {n for _, n, _, _ in rows}
+    assert {"MAX_FOCAL_SHARE", "CE90_FACTOR", "TIE_REFERENCE_VIEWS"} <= names
+    assert all(f"`{n}`" in constants_reference() for n in names)

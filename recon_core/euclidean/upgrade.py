@@ -47,8 +47,8 @@ from recon_core.euclidean.metric_prior import (ImageRows, fit_with_metric_prior,
                                                height_sigma, row_cosines)
 from recon_core.geometry.affine import apply_affine_3d, as_4x4, fit_affine_3d
 
-CE90_FACTOR = 2.146
-LE90_FACTOR = 1.645
+CE90_FACTOR = 2.146   # CE90 = 2.146 x the horizontal RMSE per axis (circular normal, 90 %)
+LE90_FACTOR = 1.645   # LE90 = 1.645 x the vertical RMSE (normal, two-sided 90 %)
 # Relative smallest/largest singular value below which a point set is rank deficient
 # ("exactly" collinear or coplanar, up to floating point).
 RANK_TOL = 1e-9

@@ -44,7 +44,7 @@ from recon_core.io.files import write_json
 from recon_core.io.raster import write_geotiff
 
 THRESH_M = 1.0          # completeness threshold on |error|
-NMAD_K = 1.4826
+NMAD_K = 1.4826         # NMAD = 1.4826 x median |e - median e|: the normal's sigma
 
 
 # --------------------------------------------------------------------------------------------

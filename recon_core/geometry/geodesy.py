@@ -12,7 +12,7 @@ from functools import lru_cache
 import numpy as np
 from pyproj import CRS, Transformer
 
-WGS84_A = 6378137.0
+WGS84_A = 6378137.0                 # the WGS84 ellipsoid: semi-major axis (m), flattening
 WGS84_F = 1.0 / 298.257223563
 WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
 

@@ -76,6 +76,8 @@ def col_basis_known_depth(X: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.nda
 # them with the points' noise (each refit takes the last displacement as the new reference):
 # the SfM refits it only in its closing adjustments (SfmConfig.correction_rounds).
 
+# an image with fewer tiles among the observations is too small a part of the image to fit its
+# model: it gets no within-tile correction
 MIN_TILES_FOR_CORRECTION = 4
 
 
@@ -269,7 +271,7 @@ def warp_observability(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]
             "labels": [f"{ax} {m}" for ax in "enu" for m in WARP_MONOMIALS]}
 
 
-EARTH_RADIUS_M = 6.371e6
+EARTH_RADIUS_M = 6.371e6     # the mean Earth radius: the orbit geometry of the 1D perspective
 
 
 def physical_depth(P: np.ndarray, altitude_m: float) -> np.ndarray:

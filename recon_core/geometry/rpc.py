@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-N_COEF = 20
+N_COEF = 20       # the RPC00B cubic polynomial's coefficients (per numerator and denominator)
 
 
 def monomials(L: np.ndarray, P: np.ndarray, H: np.ndarray) -> np.ndarray:

@@ -84,6 +84,7 @@ def build_observations(tiles: list[Tile], image_names: list[str], feats: list[Im
                         img.astype(np.int64), np.ones(len(tile), bool))
 
 
+# the per-image tie's sigma is given for a group of this many images (tie_sigma scales it)
 TIE_REFERENCE_VIEWS = 3
 # a tile with fewer 2D-3D correspondences than sfm.resect_min_inliers (a corner of the images'
 # overlap) is registered from its image's camera as a prior when at least this many of them
