@@ -209,25 +209,38 @@ def _fit(model, gcps: list[GCP], frame: LocalFrame, cfg: Config) -> tuple[Upgrad
     return res, aff
 
 
-def _fit_metric(model, gcps: list[GCP], frame: LocalFrame, cfg: Config):
+@dataclass(frozen=True)
+class MetricFit:
+    """H_A after the metric bend step: the fit, the GCP placements, the step's warp (None when
+    it stood aside or is off) and summary, the model H_A is of (warped when the step applied) and
+    the GCPs as that fit had them (picks on the cloud moved with the warp)."""
+
+    result: UpgradeResult
+    affine: dict
+    warp: object | None
+    summary: dict
+    model: object
+    gcps: list
+
+
+def _fit_metric(model, gcps: list[GCP], frame: LocalFrame, cfg: Config) -> MetricFit:
     """_fit, then the metric bend step (recon_core.euclidean.metric_bend) and, when it applies a
-    warp, H_A refitted on the warped model (GCP positions picked on the cloud move with it).
-    Returns (result, GCP placements, warp or None, the step's summary, the model H_A is of, the
-    GCPs as that fit had them)."""
+    warp, H_A refitted on the warped model (GCP positions picked on the cloud move with it)."""
     res, aff = _fit(model, gcps, frame, cfg)
     if not cfg.upgrade.metric_bend:
-        return res, aff, None, {}, model, gcps
+        return MetricFit(res, aff, None, {}, model, gcps)
     warp, info = metric_bend(model, res.H, cfg.upgrade.orbit_altitude_km * 1e3)
     if warp is None:
-        return res, aff, None, info, model, gcps
+        return MetricFit(res, aff, None, info, model, gcps)
     moved = warped_model(model, warp)
     picks = [replace(g, affine_picked={k: np.asarray(x, np.float64) + warp(np.asarray(x, np.float64)[None])[0]
                                        for k, x in g.affine_picked.items()}) for g in gcps]
     try:
         res_w, aff_w = _fit(moved, picks, frame, cfg)
     except ReconstructionError as exc:       # e.g. the control GCPs too flat once warped
-        return res, aff, None, {**info, "applied": False, "reason": f"H_A refit on the warped model: {exc}"}, model, gcps
-    return res_w, aff_w, warp, info, moved, picks
+        return MetricFit(res, aff, None, {**info, "applied": False,
+                                          "reason": f"H_A refit on the warped model: {exc}"}, model, gcps)
+    return MetricFit(res_w, aff_w, warp, info, moved, picks)
 
 
 def _surveyed_enu(gcps: list[GCP], frame: LocalFrame) -> np.ndarray:
@@ -245,11 +258,12 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
     ctrl = [p["id"] for p in res.points if p["status"] in ("used", "rejected") and p["id"] in pos]
     enu = dict(zip([g.id for g in gcps], _surveyed_enu(gcps, frame)))
     thresh = cfg.upgrade.ransac_thresh_m
-    H, warp, info, inl, loo = fit_gcp_bend(res.H, np.array([pos[k] for k in ctrl]).reshape(-1, 3),
-                                           np.array([enu[k] for k in ctrl]).reshape(-1, 3), bend,
-                                           BEND_INVISIBLE_PX_PER_M, thresh, cfg.seed)
-    if warp is None:
-        return res, None, info
+    fit = fit_gcp_bend(res.H, np.array([pos[k] for k in ctrl]).reshape(-1, 3),
+                       np.array([enu[k] for k in ctrl]).reshape(-1, 3), bend,
+                       BEND_INVISIBLE_PX_PER_M, thresh, cfg.seed)
+    if not fit.applied:
+        return res, None, fit.summary
+    H, warp, info, inl, loo = fit.H, fit.warp, fit.summary, fit.inliers, fit.loo
     used = [k for k, ok in zip(ctrl, inl) if ok]
     rejected = [k for k, ok in zip(ctrl, inl) if not ok]
     out = rescore(res, H, warp, pos, enu, used, rejected, dict(zip(used, loo)), info, thresh)
@@ -342,8 +356,8 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
     joint = merge_joint([models[g] for g in sorted(models)])
     if joint is not None:
         try:
-            res, aff, warp, info, moved, used = _fit_metric(joint, [_picks_joint(g, joint.group) for g in gcps],
-                                                            up.frame, cfg)
+            mf = _fit_metric(joint, [_picks_joint(g, joint.group) for g in gcps], up.frame, cfg)
+            res, aff, warp, info, moved, used = mf.result, mf.affine, mf.warp, mf.summary, mf.model, mf.gcps
             bend = bend_observability(moved, res.H)
             res, gwarp, ginfo = _fit_gcp_bend(res, aff, gcps, up.frame, bend, cfg)
             res, dwarp, dinfo = _fit_dem_bend(res, used, up.frame, moved, bend, ginfo, cfg)
@@ -364,7 +378,8 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
             up = Upgrade(up.frame)
     for g, model in sorted(models.items()):
         try:
-            res, aff, warp, info, moved, used = _fit_metric(model, gcps, up.frame, cfg)
+            mf = _fit_metric(model, gcps, up.frame, cfg)
+            res, aff, warp, info, moved, used = mf.result, mf.affine, mf.warp, mf.summary, mf.model, mf.gcps
             estimate_gsd(moved, res.H)            # a model without a registered camera stops here
         except ReconstructionError as exc:
             up.errors[g] = f"group {g}: {exc}"

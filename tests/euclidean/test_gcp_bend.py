@@ -45,7 +45,8 @@ def _rms(r):
 def test_spread_gcps_recover_the_invisible_bend():
     H, Xa, Xe, obs, n, rng = _site(0, 12, dome_m=20.0)
     noisy = Xe[:n] + rng.normal(0, 0.05, (n, 3))
-    Hn, warp, info, inl, loo = fit_gcp_bend(H, Xa[:n], noisy, obs, 1e-3)
+    fit = fit_gcp_bend(H, Xa[:n], noisy, obs, 1e-3)
+    Hn, warp, info, inl, loo = fit.H, fit.warp, fit.summary, fit.inliers, fit.loo
     assert info["applied"] and info["invisible_warps"] == 2 and inl.all() and loo.shape == (n, 3)
     before = _rms((np.c_[Xa[n:], np.ones(len(Xa) - n)] @ H.T)[:, :3] - Xe[n:])
     after = _rms(EnuMap(Hn, None, warp)(Xa[n:]) - Xe[n:])
@@ -56,17 +57,19 @@ def test_spread_gcps_recover_the_invisible_bend():
 
 def test_too_few_gcps_or_no_bend_apply_nothing():
     H, Xa, Xe, obs, n, rng = _site(1, 5, dome_m=20.0)
-    Hn, warp, info, inl, loo = fit_gcp_bend(H, Xa[:n], Xe[:n], obs, 1e-3)
-    assert warp is None and not info["applied"] and info["control_gcps_needed"] == 8
+    fit = fit_gcp_bend(H, Xa[:n], Xe[:n], obs, 1e-3)
+    Hn, warp, info, inl, loo = fit.H, fit.warp, fit.summary, fit.inliers, fit.loo
+    assert not fit.applied and warp is None and not info["applied"] and info["control_gcps_needed"] == 8
     assert "needed" in info["reason"]
     # no bend: the extra warps only fit noise, and the leave-one-out says so
     H, Xa, Xe, obs, n, rng = _site(2, 10, dome_m=0.0, noise_m=0.3)
     noisy = Xe[:n] + rng.normal(0, 0.3, (n, 3))
-    Hn, warp, info, inl, loo = fit_gcp_bend(H, Xa[:n], noisy, obs, 1e-3)
-    assert warp is None and not info["applied"] and "leave-one-out" in info["reason"]
+    fit = fit_gcp_bend(H, Xa[:n], noisy, obs, 1e-3)
+    warp, info = fit.warp, fit.summary
+    assert not fit.applied and warp is None and not info["applied"] and "leave-one-out" in info["reason"]
     # every warp seen: nothing to fit
     obs2 = dict(obs, singular_px_per_m=[0.2, 0.1, 0.05, 0.02, 0.01])
-    assert fit_gcp_bend(H, Xa[:n], noisy, obs2, 1e-3)[2]["reason"] == "the views see every quadratic warp"
+    assert fit_gcp_bend(H, Xa[:n], noisy, obs2, 1e-3).summary["reason"] == "the views see every quadratic warp"
 
 
 def test_enu_map_record_round_trip():
@@ -95,7 +98,8 @@ def test_the_report_is_rescored_with_the_bend_and_a_blunder_left_out():
     assert any(w.startswith("RANSAC") for w in res.warnings)
     ctrl = [p["id"] for p in res.points if p["status"] in ("used", "rejected")]
     idx = [int(k[1:]) for k in ctrl]
-    Hn, warp, info, inl, loo = fit_gcp_bend(res.H, Xa[idx], surveyed[idx], obs, 1e-3)
+    fit = fit_gcp_bend(res.H, Xa[idx], surveyed[idx], obs, 1e-3)
+    Hn, warp, info, inl, loo = fit.H, fit.warp, fit.summary, fit.inliers, fit.loo
     assert info["applied"] and not inl[ctrl.index("G02")] and inl.sum() == n - 1
     used = [k for k, ok in zip(ctrl, inl) if ok]
     out = rescore(res, Hn, warp, {g.id: g.affine_xyz for g in gcps}, {g.id: g.enu for g in gcps}, used,
@@ -119,7 +123,8 @@ def test_the_results_tab_says_what_the_gcp_bend_did():
     H, Xa, Xe, obs, n, rng = _site(4, 12, dome_m=30.0)
     gcps = [GcpInput(f"G{i:02d}", "control" if i < n else "check", Xa[i], Xe[i], None, 0.2) for i in range(n + 3)]
     res = upgrade(gcps, rng=np.random.default_rng(0))
-    Hn, warp, info, inl, loo = fit_gcp_bend(res.H, Xa[:n], Xe[:n], obs, 1e-3)
+    fit = fit_gcp_bend(res.H, Xa[:n], Xe[:n], obs, 1e-3)
+    warp, info = fit.warp, fit.summary
     out = UpgradeOutcome(LocalFrame(30.0, 31.0), results={0: res}, gcp_bend={0: info}, enu_warps={0: warp},
                          bend={0: {"site_width_km": 10.0}})
     md = outcome_markdown(out)
