@@ -9,7 +9,6 @@ it exists, the site's file otherwise (`working_gcp_file`); the site's file is ne
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING

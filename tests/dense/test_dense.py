@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from recon_core.config import Config, DenseConfig, SgbmConfig, preset
-from recon_core.dense.matchers import MgmMatcher, SgbmMatcher, lr_consistent, make_matcher, run_sgbm, sgbm_params
+from recon_core.dense.matchers import MgmMatcher, lr_consistent, make_matcher, run_sgbm, sgbm_params
 from recon_core.dense.reconstruct import (
     DenseJob,
     PartnerSpec,

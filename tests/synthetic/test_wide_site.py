@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from recon_core.geometry.pushbroom import tile_corrections
-from recon_core.synthetic.wide_site import image_ties, make_wide_site, observability, structure_vs_truth
+from recon_core.synthetic.wide_site import make_wide_site, observability, structure_vs_truth
 
 
 @pytest.fixture(scope="module")

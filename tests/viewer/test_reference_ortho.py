@@ -21,7 +21,7 @@ from recon_core.euclidean.ground_reference import open_ground_reference
 def _reference(tmp_path, site):
     """An orthoimage (random texture) on the ground-truth DSM's grid, that DSM as the DEM."""
     with rasterio.open(site / "gt_dsm.tif") as src:
-        dem_profile, dem = src.profile, src.read(1)
+        dem = src.read(1)
         crs, tf = src.crs, src.transform
     h, w = dem.shape
     ortho = tmp_path / "ortho.tif"
