@@ -64,7 +64,6 @@ class BudgetGovernor:
     TARGET_FPS: float = 15.0
     HIGH_FPS: float = 40.0
     MIN_BUDGET: int = 10_000
-    last_budget: int | None = None
     hide_tiles: bool = False
     said: bool = False                     # the messages list has heard of it
 
@@ -84,7 +83,6 @@ class BudgetGovernor:
             new = min(self.start, _round(budget * 1.5))
         if new is None or new == budget:
             return None
-        self.last_budget = new
         return new
 
 

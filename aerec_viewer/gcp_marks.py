@@ -154,12 +154,14 @@ class GcpMarks:
         cloud) and width (the selected GCP's is wider): a node is a draw call, and software
         WebGL pays about a millisecond for each, a frame for 40 markers."""
         app = self.app
+        flat = np.eye(3, dtype=np.float32)                 # rings on the clouds lie in xy
+        on_plane = flat if app.pick_plane is None else \
+            quat_to_matrix(np.asarray(app.pick_plane.wxyz)).astype(np.float32)
         sets: dict[str, list] = {}
         for name, (_, col, r, pos) in self.items.items():
             place = name.rsplit("/", 1)[0]
-            R = quat_to_matrix(np.asarray(app.pick_plane.wxyz)) \
-                if place == "/gcp/plane_marks" and app.pick_plane is not None else np.eye(3)
-            seg = ring_segments(r) @ R.T.astype(np.float32) + np.asarray(pos, np.float32)
+            R = on_plane if place == "/gcp/plane_marks" else flat
+            seg = ring_segments(r) @ R.T + np.asarray(pos, np.float32)
             sets.setdefault(f"{place}/rings{'_selected' if col == MARK_SEL else ''}", []).append(
                 (seg, np.broadcast_to(np.array(col, np.uint8), seg.shape)))
         sc = app.server.scene
@@ -261,9 +263,9 @@ class GcpMarks:
     def residual_vectors(self) -> dict[str, tuple[tuple[float, float], tuple[float, float]]]:
         """GCP id -> (observed pixel, residual observed - reprojected) in the plane's image, for
         the GCPs observed there and in another registered image of its group."""
-        app = self.app
         from recon_core.euclidean.gcp_transfer import observation_residuals
 
+        app = self.app
         if app.pick_plane is None:
             return {}
         img = app.pick_plane.window.image

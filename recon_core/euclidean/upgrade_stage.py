@@ -263,14 +263,14 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
                        BEND_INVISIBLE_PX_PER_M, thresh, cfg.seed)
     if not fit.applied:
         return res, None, fit.summary
-    H, warp, info, inl, loo = fit.H, fit.warp, fit.summary, fit.inliers, fit.loo
-    used = [k for k, ok in zip(ctrl, inl) if ok]
-    rejected = [k for k, ok in zip(ctrl, inl) if not ok]
-    out = rescore(res, H, warp, pos, enu, used, rejected, dict(zip(used, loo)), info, thresh)
+    used = [k for k, ok in zip(ctrl, fit.inliers) if ok]
+    rejected = [k for k, ok in zip(ctrl, fit.inliers) if not ok]
+    out = rescore(res, fit.H, fit.warp, pos, enu, used, rejected, dict(zip(used, fit.loo)), fit.summary,
+                  thresh)
     refusal = None if cfg.upgrade.allow_flat_gcps else flat_gcp_refusal(out.conditioning)
     if refusal:                 # the GCPs the fit kept are too flat for its height scale
-        return res, None, {**info, "applied": False, "reason": f"the control GCPs it kept: {refusal}"}
-    return out, warp, info
+        return res, None, {**fit.summary, "applied": False, "reason": f"the control GCPs it kept: {refusal}"}
+    return out, fit.warp, fit.summary
 
 
 def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model, bend: dict, gcp_fit: dict,
