@@ -23,8 +23,32 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+
+
+class _At:
+    """A file or folder at a fixed place under OUT (the path relative to it)."""
+
+    def __init__(self, rel: str):
+        self.rel = rel
+
+    def __get__(self, layout: OutLayout | None, owner=None) -> Path:
+        return self if layout is None else layout.root / self.rel
+
+
+class _Each:
+    """A file or folder per group or per stage: `rel` names it with `{}` for the group number or
+    the stage name; reading the attribute gives the function of that value."""
+
+    def __init__(self, rel: str):
+        self.rel = rel
+
+    def __get__(self, layout: OutLayout | None, owner=None) -> Callable[[int | str], Path]:
+        if layout is None:
+            return self
+        return lambda key: layout.root / self.rel.format(key)
 
 
 @dataclass(frozen=True)
@@ -36,93 +60,46 @@ class OutLayout:
     def __init__(self, root: str | Path):
         object.__setattr__(self, "root", Path(root))
 
-    # -- the run ------------------------------------------------------------------------------
-    @property
-    def report(self) -> Path:
-        return self.root / "report.json"
+    # the run
+    report = _At("report.json")
+    gcps = _At("gcps.geojson")             # the working GCP set (the viewer's edits; the run uses
+                                            # it when it exists)
+    stage_record = _Each("stages/{}.json")
 
-    @property
-    def gcps(self) -> Path:
-        """The working GCP set (written by the viewer; used by the run when it exists)."""
-        return self.root / "gcps.geojson"
+    # affine models
+    group_dir = _Each("affine/group_{}")
+    cameras = _Each("affine/group_{}/cameras.json")
+    sparse_ply = _Each("affine/group_{}/sparse.ply")
+    observations = _Each("affine/group_{}/observations.npz")
+    dense_ply = _Each("affine/group_{}/dense.ply")
 
-    def stage_record(self, stage: str) -> Path:
-        return self.root / "stages" / f"{stage}.json"
+    # Euclidean products
+    upgrade_record = _Each("upgrade/group_{}.json")
+    upgrade_frame = _At("upgrade/frame.json")
+    cloud = _At("cloud.ply")
+    cloud_laz = _At("cloud.laz")
+    dsm = _At("dsm.tif")
+    dsm_agreement = _At("dsm_agreement.tif")   # per cell of the fused DSM, how many date groups
+                                                # agree on its height
+    group_dsm = _Each("dsm_groups/group_{}.tif")   # one date group's own DSM (when several)
 
-    # -- affine models ------------------------------------------------------------------------
-    def group_dir(self, g: int) -> Path:
-        return self.root / "affine" / f"group_{g}"
+    # evaluation
+    eval_dir = _At("eval")
+    eval_json = _At("eval/eval.json")
+    height_error_tif = _At("eval/height_error.tif")
+    height_error_png = _At("eval/height_error.png")
+    dsm_vs_gt_png = _At("eval/dsm_vs_gt.png")
 
-    def cameras(self, g: int) -> Path:
-        return self.group_dir(g) / "cameras.json"
-
-    def sparse_ply(self, g: int) -> Path:
-        return self.group_dir(g) / "sparse.ply"
-
-    def observations(self, g: int) -> Path:
-        return self.group_dir(g) / "observations.npz"
-
-    def dense_ply(self, g: int) -> Path:
-        return self.group_dir(g) / "dense.ply"
-
+    # which groups have products
     def model_groups(self) -> list[int]:
         """Groups with a saved sparse model, ascending."""
         return _indices(self.root / "affine", r"group_(\d+)", lambda p: (p / "cameras.json").exists())
 
-    # -- Euclidean products -------------------------------------------------------------------
-    def upgrade_record(self, g: int) -> Path:
-        return self.root / "upgrade" / f"group_{g}.json"
-
-    @property
-    def upgrade_frame(self) -> Path:
-        return self.root / "upgrade" / "frame.json"
-
     def upgraded_groups(self) -> list[int]:
         return _indices(self.root / "upgrade", r"group_(\d+)\.json", lambda p: p.is_file())
 
-    @property
-    def cloud(self) -> Path:
-        return self.root / "cloud.ply"
-
-    @property
-    def cloud_laz(self) -> Path:
-        return self.root / "cloud.laz"
-
-    @property
-    def dsm(self) -> Path:
-        return self.root / "dsm.tif"
-
-    @property
-    def dsm_agreement(self) -> Path:
-        """Per cell of the fused DSM, the number of date groups that agree on its height."""
-        return self.root / "dsm_agreement.tif"
-
-    def group_dsm(self, g: int) -> Path:
-        """The DSM of one date group alone (written when there are several)."""
-        return self.root / "dsm_groups" / f"group_{g}.tif"
-
     def group_dsms(self) -> list[int]:
         return _indices(self.root / "dsm_groups", r"group_(\d+)\.tif", lambda p: p.is_file())
-
-    @property
-    def eval_dir(self) -> Path:
-        return self.root / "eval"
-
-    @property
-    def eval_json(self) -> Path:
-        return self.eval_dir / "eval.json"
-
-    @property
-    def height_error_tif(self) -> Path:
-        return self.eval_dir / "height_error.tif"
-
-    @property
-    def height_error_png(self) -> Path:
-        return self.eval_dir / "height_error.png"
-
-    @property
-    def dsm_vs_gt_png(self) -> Path:
-        return self.eval_dir / "dsm_vs_gt.png"
 
     def stage_products(self, stage: str) -> list[Path]:
         """The files and folders a stage writes (those that exist), beside its record."""

@@ -96,19 +96,36 @@ def _add_point_rhs(rhs, p, m, g_p, G, hw, cols):
 @njit(inline="always", **_JIT)
 def _point_scratch(start):
     """Scratch for the observations of one point (as many as the longest track): G = M V^-1,
-    M, w h, the camera's 8 columns, its compact camera, and a 2 x 2 product."""
+    M, w h, the camera's 8 columns, its compact camera, and the 8 x 8 block of one pair."""
     mmax = _max_run(start)
     return (np.empty((mmax, 2, 3)), np.empty((mmax, 2, 3)), np.empty((mmax, 4)),
-            np.empty((mmax, 8), np.int64), np.empty(mmax, np.int64), np.empty((2, 2)))
+            np.empty((mmax, 8), np.int64), np.empty(mmax, np.int64), np.empty((8, 8)))
 
 
 @njit(inline="always", **_JIT)
-def _pair_product(A, G, Mq, q1, q2):
-    """A = G[q1] Mq[q2]^T (2 x 2): M1 V^-1 M2^T for a pair of observations of one point."""
+def _next_point(pi, porder, lam, V, Vinv, h, M, w, oc, cam_col, cc, order, start, g_p, rhs,
+                G, Mq, hw, cols, cam):
+    """Load the pi-th point of the visiting order into the scratch and add its share of the
+    right-hand side; returns its number of observations."""
+    p = porder[pi]
+    m = _load_point(p, lam, V, Vinv, h, M, w, oc, cam_col, cc, order, start, G, Mq, hw, cols, cam)
+    _add_point_rhs(rhs, p, m, g_p, G, hw, cols)
+    return m
+
+
+@njit(inline="always", **_JIT)
+def _pair_block(B, G, Mq, hw, q1, q2):
+    """B[row1 * 4 + j1, row2 * 4 + j2] = w1 h1_j1 w2 h2_j2 (M1 V^-1 M2^T)[row1, row2]: the 8 x 8
+    entry block of W V^-1 W^T for a pair of observations of one point (W_k[row*4 + j, i] =
+    w h_j M[row, i]), every entry whether or not its camera column is free."""
     for row1 in range(2):
         for row2 in range(2):
-            A[row1, row2] = (G[q1, row1, 0] * Mq[q2, row2, 0] + G[q1, row1, 1] * Mq[q2, row2, 1]
-                             + G[q1, row1, 2] * Mq[q2, row2, 2])
+            a = (G[q1, row1, 0] * Mq[q2, row2, 0] + G[q1, row1, 1] * Mq[q2, row2, 1]
+                 + G[q1, row1, 2] * Mq[q2, row2, 2])
+            for j1 in range(4):
+                ah = a * hw[q1, j1]
+                for j2 in range(4):
+                    B[row1 * 4 + j1, row2 * 4 + j2] = ah * hw[q2, j2]
 
 
 @njit(**_JIT)
@@ -124,41 +141,34 @@ def schur(U, g_c, V, g_p, lam, h, M, w, oc, cam_col, order, start, porder):
         S[i, i] = S[i, i] * (1.0 + lam) + 1e-12
     rhs = -g_c.copy()
     Vinv = np.empty((npt, 3, 3))
-    G, Mq, hw, cols, cam, A = _point_scratch(start)
+    G, Mq, hw, cols, cam, B = _point_scratch(start)
     no_cc = np.empty(0, np.int64)
     for pi in range(npt):
-        p = porder[pi]
-        m = _load_point(p, lam, V, Vinv, h, M, w, oc, cam_col, no_cc, order, start, G, Mq, hw, cols, cam)
-        _add_point_rhs(rhs, p, m, g_p, G, hw, cols)
-        # W_k[row*4 + j, i] = w h_j M[row, i], so the (c1, row1, j1) x (c2, row2, j2) entry of
-        # W V^-1 W^T is w1 h1_j1 w2 h2_j2 (M1[row1] V^-1 M2[row2]^T): one 2 x 2 matrix A of
-        # scalars per pair of observations, then outer products. S is symmetric: each
-        # unordered pair once (q2 >= q1), filed in the upper triangle, mirrored at the end.
+        m = _next_point(pi, porder, lam, V, Vinv, h, M, w, oc, cam_col, no_cc, order, start,
+                        g_p, rhs, G, Mq, hw, cols, cam)
+        # S is symmetric: each unordered pair of observations once (q2 >= q1), filed in the
+        # upper triangle, mirrored at the end
         for q1 in range(m):
             for q2 in range(q1, m):
                 same = q1 == q2
-                _pair_product(A, G, Mq, q1, q2)
-                for row1 in range(2):
-                    for j1 in range(4):
-                        col1 = cols[q1, row1 * 4 + j1]
-                        if col1 < 0:
+                _pair_block(B, G, Mq, hw, q1, q2)
+                for e1 in range(8):
+                    col1 = cols[q1, e1]
+                    if col1 < 0:
+                        continue
+                    for e2 in range(8):
+                        col2 = cols[q2, e2]
+                        if col2 < 0:
                             continue
-                        for row2 in range(2):
-                            ah = A[row1, row2] * hw[q1, j1]
-                            for j2 in range(4):
-                                col2 = cols[q2, row2 * 4 + j2]
-                                if col2 < 0:
-                                    continue
-                                v = ah * hw[q2, j2]
-                                if col1 < col2:
-                                    S[col1, col2] -= v
-                                elif col2 < col1:
-                                    if not same:
-                                        S[col2, col1] -= v
-                                elif same:
-                                    S[col1, col2] -= v
-                                else:                # never in practice: one camera twice
-                                    S[col1, col2] -= 2.0 * v
+                        if col1 < col2:
+                            S[col1, col2] -= B[e1, e2]
+                        elif col2 < col1:
+                            if not same:
+                                S[col2, col1] -= B[e1, e2]
+                        elif same:
+                            S[col1, col2] -= B[e1, e2]
+                        else:                        # never in practice: one camera twice
+                            S[col1, col2] -= 2.0 * B[e1, e2]
     for i in range(nc):
         for j in range(i + 1, nc):
             S[j, i] = S[i, j]
@@ -176,15 +186,12 @@ def back_substitute(dc, g_p, Vinv, h, M, w, oc, cam_col, order, start):
             b[i] = g_p[p, i]
         for q in range(start[p], start[p + 1]):
             k = order[q]
-            c = oc[k]
-            for row in range(2):
-                for j in range(4):
-                    col = cam_col[c, row * 4 + j]
-                    if col < 0:
-                        continue
-                    whd = w[k] * h[k, j] * dc[col]
+            for e in range(8):                  # the camera's entries: row e // 4, column e % 4
+                col = cam_col[oc[k], e]
+                if col >= 0:
+                    whd = w[k] * h[k, e % 4] * dc[col]
                     for i in range(3):
-                        b[i] += whd * M[k, row, i]
+                        b[i] += whd * M[k, e // 4, i]
         for i in range(3):
             dp[p, i] = -(Vinv[p, i, 0] * b[0] + Vinv[p, i, 1] * b[1] + Vinv[p, i, 2] * b[2])
     return dp
@@ -251,34 +258,33 @@ def block_pattern(oc, cc, ncc, order, start):
     mark = np.full(ncc, -1, np.int64)
     # two passes: count, then fill
     bptr = np.zeros(ncc + 1, np.int64)
+    none = np.empty(0, np.int64)
     for a in range(ncc):
-        n = 1
-        mark[a] = a
-        for i in range(cptr[a], cptr[a + 1]):
-            p = cpts[i]
-            for q in range(start[p], start[p + 1]):
-                b = cc[oc[order[q]]]
-                if b > a and mark[b] != a:
-                    mark[b] = a
-                    n += 1
-        bptr[a + 1] = bptr[a] + n
+        bptr[a + 1] = bptr[a] + _later_neighbours(a, cptr, cpts, start, order, oc, cc, mark, none, 1)
     bcol = np.empty(bptr[ncc], np.int64)
     mark[:] = -1
     for a in range(ncc):
-        f = bptr[a]
-        bcol[f] = a
-        f += 1
-        mark[a] = a
-        for i in range(cptr[a], cptr[a + 1]):
-            p = cpts[i]
-            for q in range(start[p], start[p + 1]):
-                b = cc[oc[order[q]]]
-                if b > a and mark[b] != a:
-                    mark[b] = a
-                    bcol[f] = b
-                    f += 1
+        bcol[bptr[a]] = a
+        _later_neighbours(a, cptr, cpts, start, order, oc, cc, mark, bcol, bptr[a] + 1)
         bcol[bptr[a]:bptr[a + 1]].sort()
     return bptr, bcol
+
+
+@njit(**_JIT)
+def _later_neighbours(a, cptr, cpts, start, order, oc, cc, mark, out, f):
+    """The compact cameras b > a that share a point with camera a, each once (marked with a in
+    `mark`): written to out[f], out[f + 1], ... unless `out` is empty; returns the end f."""
+    mark[a] = a
+    for i in range(cptr[a], cptr[a + 1]):
+        p = cpts[i]
+        for q in range(start[p], start[p + 1]):
+            b = cc[oc[order[q]]]
+            if b > a and mark[b] != a:
+                mark[b] = a
+                if out.shape[0]:
+                    out[f] = b
+                f += 1
+    return f
 
 
 @njit(**_JIT)
@@ -311,11 +317,10 @@ def schur_blocks(Ub, g_c, V, g_p, lam, diag, h, M, w, oc, cam_col, cc, order, st
             S[d, i, i] += lam * diag[a, i] + 1e-12
     rhs = -g_c.copy()
     Vinv = np.empty((npt, 3, 3))
-    G, Mq, hw, cols, cam, A = _point_scratch(start)
+    G, Mq, hw, cols, cam, B = _point_scratch(start)
     for pi in range(npt):
-        p = porder[pi]
-        m = _load_point(p, lam, V, Vinv, h, M, w, oc, cam_col, cc, order, start, G, Mq, hw, cols, cam)
-        _add_point_rhs(rhs, p, m, g_p, G, hw, cols)
+        m = _next_point(pi, porder, lam, V, Vinv, h, M, w, oc, cam_col, cc, order, start,
+                        g_p, rhs, G, Mq, hw, cols, cam)
         for q1 in range(m):
             for q2 in range(q1, m):
                 a, b = cam[q1], cam[q2]
@@ -324,23 +329,17 @@ def schur_blocks(Ub, g_c, V, g_p, lam, diag, h, M, w, oc, cam_col, cc, order, st
                 # the same camera twice through two observations (never in practice): both
                 # orders of the pair land in the one diagonal block
                 twice = a == b and q1 != q2
-                _pair_product(A, G, Mq, q1, q2)
-                for row1 in range(2):
-                    for j1 in range(4):
-                        e1 = row1 * 4 + j1
-                        if cols[q1, e1] < 0:
+                _pair_block(B, G, Mq, hw, q1, q2)
+                for e1 in range(8):
+                    if cols[q1, e1] < 0:
+                        continue
+                    for e2 in range(8):
+                        if cols[q2, e2] < 0:
                             continue
-                        for row2 in range(2):
-                            ah = A[row1, row2] * hw[q1, j1]
-                            for j2 in range(4):
-                                e2 = row2 * 4 + j2
-                                if cols[q2, e2] < 0:
-                                    continue
-                                v = ah * hw[q2, j2]
-                                if swap:
-                                    S[blk, e2, e1] -= v
-                                else:
-                                    S[blk, e1, e2] -= v
-                                    if twice:
-                                        S[blk, e2, e1] -= v
+                        if swap:
+                            S[blk, e2, e1] -= B[e1, e2]
+                        else:
+                            S[blk, e1, e2] -= B[e1, e2]
+                            if twice:
+                                S[blk, e2, e1] -= B[e1, e2]
     return S, rhs, Vinv

@@ -1095,13 +1095,17 @@ def _bisect(s_lo, f_lo, s_hi, f_hi, tx, ty, tz, dx, dy, dz, scale, tol, C):
             break
         s_m = 0.5 * (s_lo + s_hi)
         f_m = (tz + dz * s_m) - _H(tx + dx * s_m, ty + dy * s_m, C)
-        if f_m <= 0.0:
-            s_hi = s_m
-            f_hi = f_m
-        else:
-            s_lo = s_m
-            f_lo = f_m
+        s_lo, f_lo, s_hi, f_hi = _split(s_lo, f_lo, s_hi, f_hi, s_m, f_m)
     return s_lo, f_lo, s_hi, f_hi
+
+
+@njit(**_JIT)
+def _split(s_lo, f_lo, s_hi, f_hi, s_m, f_m):
+    """The half of the bracket [s_lo, s_hi] that still holds the crossing, given the value
+    f_m at s_m inside it (a point on or below the surface closes the bracket from below)."""
+    if f_m <= 0.0:
+        return s_lo, f_lo, s_m, f_m
+    return s_m, f_m, s_hi, f_hi
 
 
 @njit(**_JIT)
@@ -1118,12 +1122,7 @@ def _refine(s_lo, f_lo, s_hi, f_hi, tx, ty, tz, dx, dy, dz, L, C):
         f_m = (tz + dz * s_m) - _H(tx + dx * s_m, ty + dy * s_m, C)
         if abs(f_m) <= 1e-4:
             return 1, tx + dx * s_m, ty + dy * s_m, tz + dz * s_m
-        if f_m <= 0.0:
-            s_hi = s_m
-            f_hi = f_m
-        else:
-            s_lo = s_m
-            f_lo = f_m
+        s_lo, f_lo, s_hi, f_hi = _split(s_lo, f_lo, s_hi, f_hi, s_m, f_m)
     s_lo, f_lo, s_hi, f_hi = _bisect(s_lo, f_lo, s_hi, f_hi, tx, ty, tz, dx, dy, dz, scale,
                                       COARSE_TOL, C)
     # jump of H across the bracket (the ray height changes by dz (s_hi - s_lo) only)
