@@ -29,8 +29,8 @@ COLOR_MODES = ("image colour", "height", "number of views", "reprojection error"
 @dataclass(frozen=True)
 class DisplayTransform:
     """y = A @ (x + warp(x)) + b, x_display = y + post(y), mapping a frame (affine or ENU) to
-    scene coordinates (warp: the upgrade's metric bend step, recon_core.euclidean.metric_bend;
-    post: the bend fitted to control GCPs, recon_core.euclidean.gcp_bend; each None when not
+    scene coordinates (warp: the upgrade's metric bend step, recon_core.bend.metric;
+    post: the bend fitted to control GCPs, recon_core.bend.gcp; each None when not
     applied).
 
     Attributes:

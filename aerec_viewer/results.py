@@ -16,9 +16,9 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from recon_core.bend.dem import bend_kind
 from recon_core.config import Config
 from recon_core.errors import ReconstructionError
-from recon_core.euclidean.dem_bend import bend_kind
 from recon_core.euclidean.upgrade_stage import Upgrade, upgrade_models
 from recon_core.io.gcps import read_gcps_geojson
 from recon_core.io.layout import OutLayout

@@ -73,7 +73,7 @@ def make_problem(km: float, points_per_cell: int, seed: int = 0, d: int = 1000):
 
 
 def ties_for(cams, X, oc, op, tiles_img, weight=16.0, per_tile=48, seed=0):
-    from recon_core.sparse.image_model import image_tie
+    from recon_core.bend.image_model import image_tie
 
     rng = np.random.default_rng(seed)
     order = np.argsort(oc, kind="stable")

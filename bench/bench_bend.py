@@ -4,7 +4,7 @@ Render-free (recon_core.synthetic.wide_site): points on the true scene, projecte
 pushbroom cameras with pixel noise, observed in every d x d tile that contains them; a global
 bundle adjustment of independent tile cameras starts from the truth and finds the bend on its
 own; then the same adjustment with each image's tiles tied to one physical pushbroom model
-(recon_core.sparse.image_model), re-linearised `--rounds` times. Prints the structure against
+(recon_core.bend.image_model), re-linearised `--rounds` times. Prints the structure against
 the truth after one best-fit 3D affine map: RMS, the vertical RMS a quadratic surface explains,
 and its peak-to-peak range.
 
@@ -14,10 +14,20 @@ and its peak-to-peak range.
     python bench/bench_bend.py --preset flat --observability        # what 3 views can see
     python bench/bench_bend.py --preset flat --grow --sigma-tie 0.01   # incremental growth,
                                                                      # the within-tile correction
-    python bench/bench_bend.py --preset large --closing 7 --extrapolation 0,1   # the SfM's closing
-                                                      # rounds, plain and extrapolated (per round)
+    python bench/bench_bend.py --preset large --closing 7   # the SfM's closing rounds (per round)
     python bench/bench_bend.py --preset large --closing 2 --bend-step   # ... each round starting
                                                       # with the bend step (the SfM's default)
+
+--observability prints, for each quadratic warp of the structure, the pixel motion the images'
+models cannot re-fit (bend.pushbroom.warp_observability), with the 1D perspective free and fixed
+by physics at --altitude-km. --grow grows the model in rings from a central patch, with and
+without the within-tile correction, then the tied closing adjustments. --closing N grows it
+without the correction, makes one tied adjustment, then N closing rounds with the correction
+refitted; --bend-step then repeats them each started by the bend step. --image-size N makes
+every image N px a side (e.g. 20000: a 10 km scene; nothing is rendered). --physics then runs
+the metric bend step, each image's 1D perspective fixed by physics in the frame of the best
+affine map to the truth: comma-separated orbit altitudes in km, or 'true' for each image's own,
+each followed by letters (see metric_step): e.g. 660ghpt is the pipeline's step.
 """
 
 from __future__ import annotations
@@ -25,8 +35,8 @@ from __future__ import annotations
 import argparse
 import re
 import sys
-from dataclasses import replace
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +54,7 @@ def line(tag: str, s: dict, extra: str = "") -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="large")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--images", default="", help="comma-separated image names (default: all)")
@@ -55,33 +65,14 @@ def main(argv=None) -> int:
                     help="comma-separated tie sigmas in px (the model's error against a pushbroom)")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--max-nfev", type=int, default=300)
-    ap.add_argument("--observability", action="store_true",
-                    help="print how well the views see each quadratic warp of the structure "
-                         "(geometry.pushbroom.warp_observability) and stop")
-    ap.add_argument("--altitude-km", type=float, default=660.0,
-                    help="orbit altitude for the physical 1D perspective of --observability")
-    ap.add_argument("--grow", action="store_true",
-                    help="also grow the model in rings from a central patch (as the SfM does), with and "
-                         "without the within-tile correction, then the tied closing adjustments")
-    ap.add_argument("--closing", type=int, default=0,
-                    help="grow the model without the correction, one tied adjustment, then this many "
-                         "closing rounds with the correction refitted, as the SfM does (and stop)")
-    ap.add_argument("--extrapolation", default="0,1",
-                    help="comma-separated extrapolation weights w for --closing (each round's correction "
-                         "pushed w times its change since the last: the superseded extrapolated rounds)")
-    ap.add_argument("--image-size", type=int, default=0,
-                    help="every image of the preset this many px a side (e.g. 20000: a 10 km scene; "
-                         "the cameras only: nothing is rendered)")
-    ap.add_argument("--ring-step", type=float, default=300.0,
-                    help="ring width (m) of the incremental growth (--grow, --closing)")
-    ap.add_argument("--bend-step", action="store_true",
-                    help="--closing with the bend step at the start of each round (sfm.bend_step; "
-                         "no extrapolation), after the rounds without it")
-    ap.add_argument("--physics", default="",
-                    help="--bend-step: then the metric bend step, each image's 1D perspective fixed by "
-                         "physics in the frame of an upgrade (the best affine map to the truth): comma-"
-                         "separated orbit altitudes in km, or 'true' for each image's own, each followed "
-                         "by letters (metric_step): e.g. 660ghpt is the pipeline's step")
+    ap.add_argument("--observability", action="store_true", help="how well the views see each warp (and stop)")
+    ap.add_argument("--altitude-km", type=float, default=660.0, help="orbit altitude for --observability")
+    ap.add_argument("--grow", action="store_true", help="also grow the model in rings, as the SfM does")
+    ap.add_argument("--closing", type=int, default=0, help="grow, then this many closing rounds (and stop)")
+    ap.add_argument("--image-size", type=int, default=0, help="every image this many px a side (cameras only)")
+    ap.add_argument("--ring-step", type=float, default=300.0, help="ring width (m) of --grow and --closing")
+    ap.add_argument("--bend-step", action="store_true", help="--closing: then rounds started by the bend step")
+    ap.add_argument("--physics", default="", help="--bend-step: then the metric bend step (see above)")
     a = ap.parse_args(argv)
     t0 = time.time()
     preset = PRESETS[a.preset]
@@ -116,9 +107,8 @@ def main(argv=None) -> int:
 
             _, cams = design_cameras(preset, a.seed)
             site.altitudes_m = [float(cams[n].orbit_radius - np.linalg.norm(cams[n].target0)) for n in site.names]
-        closing(site, a.closing, [float(w) for w in a.extrapolation.split(",") if w],
-                [float(s) for s in a.sigma_tie.split(",") if s][-1], a.noise, a.bend_step, a.ring_step,
-                physics)
+        closing(site, a.closing, [float(s) for s in a.sigma_tie.split(",") if s][-1], a.noise, a.bend_step,
+                a.ring_step, physics)
         return 0
     cams0 = site.best_tile_cameras(site.X_true)
     base = site.adjust(cams0, site.X_true, max_nfev=a.max_nfev)
@@ -157,8 +147,8 @@ def _gauge_and_obs(site, cams, on):
 def _tied_adjustment(site, cams, X, on, reg, use, fixed, corr, weight, rng):
     """One global adjustment with the per-image ties (48 points sampled per tile), the
     observations moved by `corr` (the within-tile correction, or 0)."""
+    from recon_core.bend.image_model import image_tie
     from recon_core.sparse.bundle import bundle_adjust
-    from recon_core.sparse.image_model import image_tie
 
     oc, op = site.obs_cam[use], site.obs_pt[use]
     ties = []
@@ -177,7 +167,7 @@ def grow(site, sigma_obs: float, sigma_tie: float, rounds: int, ring_step: float
     """The model grown in rings from the truth of a central patch (WideSite.grow: nothing else of
     the truth), with and without the within-tile correction, then `rounds` closing adjustments
     with the per-image tie (and the correction refitted before each, when it is on)."""
-    from recon_core.geometry.pushbroom import tile_corrections
+    from recon_core.bend.pushbroom import tile_corrections
 
     for corrected in (False, True):
         t0 = time.time()
@@ -196,17 +186,15 @@ def grow(site, sigma_obs: float, sigma_tie: float, rounds: int, ring_step: float
                        f"[{res.rms_px:.4f} px, {res.iterations} it]"))
 
 
-def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: float,
+def closing(site, rounds: int, sigma_tie: float, noise_px: float,
             bend: bool = False, ring_step: float = 300.0, physics: list[str] = ()) -> None:
     """The SfM's closing adjustments on a model grown without the correction (WideSite.grow):
-    one tied adjustment, then `rounds` with the within-tile correction refitted, each round's
-    correction extrapolated by w (the superseded extrapolated rounds) along its change since the
-    round before; with `bend`, then the same rounds each started by the bend step
+    one tied adjustment, then `rounds` with the within-tile correction refitted; with `bend`, then the same rounds each started by the bend step
     (pushbroom.estimate_bend: the structure unbent, the tile cameras following), and one last
     step after the last round, as the SfM ends. Per round: the
     structure against the truth, and the quadratic coefficients (e^2, e n, n^2 over the site
     scaled to a unit square) of its vertical and east residuals."""
-    from recon_core.geometry.pushbroom import estimate_bend, tile_corrections
+    from recon_core.bend.pushbroom import estimate_bend, tile_corrections
 
     t0 = time.time()
     cams0, X0, on = site.grow(correction=False, step_m=ring_step,
@@ -238,14 +226,10 @@ def closing(site, rounds: int, ws: list[float], sigma_tie: float, noise_px: floa
 
     cams1, X1 = adjust(cams0, X0, 0.0)
     report("grown, tied", X1)
-    for w in ws:
-        cams, X, prev = cams1, X1, None
-        for r in range(rounds):
-            g = tile_corrections(X[op], site.obs_xy[use], oc, site.tile_image[oc])[0]
-            u = g if prev is None else g + w * (g - prev)
-            prev = g
-            cams, X = adjust(cams, X, u)
-            report(f"  w {w:g}, round {r + 1}", X)
+    cams, X = cams1, X1
+    for r in range(rounds):
+        cams, X = adjust(cams, X, tile_corrections(X[op], site.obs_xy[use], oc, site.tile_image[oc])[0])
+        report(f"  round {r + 1}", X)
     if not bend:
         return
     ids = np.flatnonzero(on)
@@ -286,7 +270,7 @@ def metric_step(site, X, cams, ids, images, reg, use, oc, op, cnt, on, alt, adju
     range estimated too, h horizontal displacements only (the upgrade's east and north), p only
     their projective pair, t the metric step's share threshold (0.1) instead of the bend step's,
     r then a round's adjustment and the step again."""
-    from recon_core.geometry.pushbroom import estimate_bend, physical_depth, tile_corrections
+    from recon_core.bend.pushbroom import estimate_bend, physical_depth, tile_corrections
 
     X, cams = X.copy(), cams.copy()
     base, factor, flags = re.fullmatch(r"(true|[0-9.]+)(?:\*([0-9.]+))?([ghprt]*)", alt).groups()

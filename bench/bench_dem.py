@@ -1,4 +1,4 @@
-"""The vertical bend held by a reference DEM (recon_core.euclidean.dem_bend) on a synthetic site,
+"""The vertical bend held by a reference DEM (recon_core.bend.dem) on a synthetic site,
 against DEMs of several kinds simulated from the site's truth (recon_core.synthetic.ref_dem):
 prints, per DEM, the bend found, the sparse heights against their truth under the upgrade's own
 map, and the check points. Asserts nothing.
@@ -53,10 +53,10 @@ def scratch_copy(out: Path) -> Path:
 def main(argv=None) -> int:
     from recon_core.config import Config
     from recon_core.euclidean.georef import frame_for
-    from recon_core.synthetic.truth import sparse_vs_truth
     from recon_core.geometry.enu_map import EnuMap
     from recon_core.pipeline import run
     from recon_core.synthetic.ref_dem import simulate_reference_dem
+    from recon_core.synthetic.truth import sparse_vs_truth
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--site", type=Path, required=True)

@@ -21,7 +21,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from recon_core.euclidean.fusion import apply_rigid, icp_refine  # noqa: E402
+from recon_core.euclidean.fusion import icp_refine  # noqa: E402
+from recon_core.geometry.affine import apply_affine_3d as apply_rigid  # noqa: E402
 
 
 def city(size: float, spacing: float, rng: np.random.Generator) -> np.ndarray:

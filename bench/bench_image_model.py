@@ -9,7 +9,7 @@ at 4 heights spanning the scene, in the scene's local ENU frame; models fitted b
   LP+row3     LP plus cubic polynomials of the row in both coordinates (attitude drift)
   quadratic   affine plus every quadratic monomial of X (the dome-as-gauge family)
   straight    this project's image model without its focal-plane terms (a straight line array)
-  pushbroom   this project's image model (recon_core.sparse.image_model)
+  pushbroom   this project's image model (recon_core.bend.image_model)
 
 A site of another simulator whose images carry RPCs fitted to its true cameras (omaha_3dates) is
 read with --site: the RPCs stand for the true cameras.
@@ -29,8 +29,8 @@ from scipy.optimize import least_squares
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from recon_core.bend.pushbroom import STRAIGHT_LINE_TERMS, col_basis, row_basis
 from recon_core.geometry.geodesy import LocalFrame
-from recon_core.geometry.pushbroom import STRAIGHT_LINE_TERMS, col_basis, row_basis
 from recon_core.synthetic.generator import design_cameras
 
 

@@ -81,7 +81,7 @@ def ensure_site(preset: str, seed: int, root: Path) -> Path:
 
 def truth_figures(site: Path, state, rpc_truth: bool = False) -> dict:
     from recon_core.euclidean.georef import frame_for
-    from recon_core.euclidean.metric_bend import warped_model
+    from recon_core.bend.metric import warped_model
     from recon_core.synthetic.truth import sparse_vs_truth
 
     from recon_core.synthetic.truth import has_truth_cameras

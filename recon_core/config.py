@@ -119,7 +119,7 @@ class SfmConfig:
     joint_min_matches: int = _p(200, lo=1, hi=10_000_000)  # verified matches an image needs with the other groups'
                                       # images for the joint reconstruction
     joint_partners: int = _p(2, lo=1, hi=1000)  # images of other groups each image is matched with
-    tie_sigma_px: float = _p(0.0, lo=0, hi=100)  # the per-image pushbroom tie (recon_core.sparse.image_model)
+    tie_sigma_px: float = _p(0.0, lo=0, hi=100)  # the per-image pushbroom tie (recon_core.bend.image_model)
                                       # in the final global adjustments: the model's error against
                                       # a pushbroom, px, for a model of 3 images; n > 3 images
                                       # scale it by 3 / n (0 = off, the default: with the focal
@@ -129,7 +129,7 @@ class SfmConfig:
                                       # with the within-tile correction refitted (each image's
                                       # pushbroom model's departure from affine inside a tile
                                       # taken out of its observations: what drives the bend;
-                                      # recon_core.geometry.pushbroom), in a joint reconstruction
+                                      # recon_core.bend.pushbroom), in a joint reconstruction
                                       # of several dates (one pass's views cannot see the vertical
                                       # warps it would free) (0 = none; each round more lowers
                                       # the bend further and costs one global adjustment)
@@ -243,11 +243,11 @@ class UpgradeConfig:
                                       # (recon_core.euclidean.metric_prior; 0 = GCPs only, the
                                       # default: it moved every independent reference's check
                                       # points horizontally; 2e-3 for groups reconstructed apart)
-    metric_bend: bool = _p(True)      # the metric bend step (recon_core.euclidean.metric_bend): the
+    metric_bend: bool = _p(True)      # the metric bend step (recon_core.bend.metric): the
                                       # horizontal warp no affine frame lets the views see, found once
                                       # H_A gives metres, each image's 1D perspective from its orbit
     gcp_bend: bool = _p(True)         # fit the bend the views cannot see to >= 9 control GCPs
-                                      # (recon_core.euclidean.gcp_bend): kept only when it
+                                      # (recon_core.bend.gcp): kept only when it
                                       # predicts each control GCP left out better than H_A alone
     orbit_altitude_km: float = _p(694.0, lo=100, hi=50_000)  # its start: the orbit's altitude (Pleiades, SPOT 6/7: 694;
                                       # Pleiades Neo, WorldView-3: ~620); the step then estimates one
@@ -255,7 +255,7 @@ class UpgradeConfig:
     reference_dem: str = _p("")       # a coarse DEM of the site (GeoTIFF: SRTM, Copernicus GLO-30, a
                                       # national DEM; any CRS, geoid or ellipsoid heights) that holds
                                       # the vertical bend the views cannot see when the GCPs do not
-                                      # (recon_core.euclidean.dem_bend); "" = none
+                                      # (recon_core.bend.dem); "" = none
     reference_dem_degree: int = _p(2, choices=(2, 3))  # the degree of the vertical bend taken from it: 2 (a dome or a
                                       # saddle) or 3, for a DEM whose errors do not reach over km
                                       # (Copernicus GLO-30 class): on `wide` (10 km, one date) 3 gives

@@ -44,16 +44,16 @@ CHAIN: tuple[Step, ...] = (
          "triangulation; robust bundle adjustment", "recon_core.sparse.sfm", True),
     Step("image_models", "each image's pushbroom model (focal plane included) checked against "
          "the image: the two steps below stand aside for an image it does not explain",
-         "recon_core.geometry.pushbroom", False),
+         "recon_core.bend.closing", False),
     Step("tie", "each image's tile cameras tied to one pushbroom model in the closing "
-         "adjustments", "recon_core.sparse.image_model", False, "sfm.tie_sigma_px", 0.0,
+         "adjustments", "recon_core.bend.image_model", False, "sfm.tie_sigma_px", 0.0,
          "an image with fewer than 4 registered tiles, or one its model does not explain"),
     Step("within_tile", "each image's model's departure from affine inside a tile taken out of "
-         "its observations (several dates only)", "recon_core.geometry.pushbroom", False,
+         "its observations (several dates only)", "recon_core.bend.closing", False,
          "sfm.correction_rounds", 0, "one date (one pass's views cannot see what it would free); "
          "an image its model does not explain"),
     Step("bend_step", "the quadratic bend of the structure that the images' straight-line models "
-         "see taken out at each correction round (several dates only)", "recon_core.sparse.sfm", False,
+         "see taken out at each correction round (several dates only)", "recon_core.bend.closing", False,
          "sfm.bend_step", False, "any sensor that is not a straight line array (checked on the run's "
          "data: its straight-line model misses it by more than 0.02 px, mostly by what the focal-"
          "plane terms take away; a bowed line looks like a bend; every real sensor so far); one date"),
@@ -66,13 +66,13 @@ CHAIN: tuple[Step, ...] = (
          "orthogonal in metres) weighed into the fit of H_A", "recon_core.euclidean.metric_prior",
          False, "upgrade.metric_prior_sigma_cos", 0.0),
     Step("metric_bend", "the horizontal warp no affine frame shows, found once H_A gives metres "
-         "from each image's 1D perspective", "recon_core.euclidean.metric_bend", False,
+         "from each image's 1D perspective", "recon_core.bend.metric", False,
          "upgrade.metric_bend", False, "the views do not see the warps (most sites)"),
     Step("gcp_bend", "the bend the views cannot see fitted to the control GCPs",
-         "recon_core.euclidean.gcp_bend", False, "upgrade.gcp_bend", False,
+         "recon_core.bend.gcp", False, "upgrade.gcp_bend", False,
          "fewer than 9 control GCPs, or it does not predict each one left out better"),
     Step("dem_bend", "the vertical bend taken from a coarse reference DEM",
-         "recon_core.euclidean.dem_bend", False, "upgrade.reference_dem", "",
+         "recon_core.bend.dem", False, "upgrade.reference_dem", "",
          "no DEM given, a site under 1 km, views that see the bend, or a DEM too noisy"),
     Step("fusion", "date groups reconstructed apart aligned by ICP; the groups' DSMs fused by "
          "their acquisition geometry", "recon_core.euclidean.dsm_stage", True),

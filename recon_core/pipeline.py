@@ -273,7 +273,7 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
         raise InputError(gcp_path, "no date group has 4 control GCPs observed in >= 2 of its images: "
                                    + "; ".join(warnings) + " (stop before the upgrade with --stage dense)")
     if cfg.upgrade.reference_dem:
-        from recon_core.euclidean.dem_bend import check_covers, open_reference_dem
+        from recon_core.bend.dem import check_covers, open_reference_dem
 
         check_covers(open_reference_dem(cfg.upgrade.reference_dem),
                      np.array([g.llh for g in gcps if g.role == "control" and g.enabled]).reshape(-1, 3))

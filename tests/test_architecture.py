@@ -54,6 +54,17 @@ def test_method_packages_import_only_shared_layers():
             assert not others, f"{path} imports {others}"
 
 
+def test_the_bend_package_sits_between_the_shared_layers_and_the_stages():
+    """recon_core.bend (the pushbroom model and the corrections it makes possible) is used by the
+    stages and uses none of them: only geometry, model and the run's shared modules."""
+    allowed = ("recon_core.bend", "recon_core.geometry", "recon_core.model", "recon_core.config",
+               "recon_core.errors", "recon_core.events")
+    for path in (ROOT / "recon_core" / "bend").rglob("*.py"):
+        bad = [m for m in _imports(path) if m.startswith("recon_core") and m != "recon_core"
+               and not m.startswith(allowed)]
+        assert not bad, f"{path} imports {bad}"
+
+
 def test_synth_command_presets_match_the_generator():
     from recon_core.synthetic.cli import PRESET_NAMES
     from recon_core.synthetic.generator import PRESETS

@@ -14,9 +14,9 @@ import pytest
 
 from recon_core.config import preset
 from recon_core.euclidean.georef import frame_for
-from recon_core.synthetic.truth import sparse_vs_truth
 from recon_core.model.sparse_model import merge_joint
 from recon_core.pipeline import run
+from recon_core.synthetic.truth import sparse_vs_truth
 
 
 @pytest.fixture(scope="module")
@@ -53,8 +53,8 @@ def test_an_image_the_model_does_not_explain_is_told(monkeypatch):
     """pushbroom.model_misfit: a bowed, distorted line is inside the family (a few thousandths
     of a pixel of systematic error); a focal plane made of two chips 1 px apart in the row (not
     calibrated) is not, and is told apart from noise (the same noise, no step, stays inside)."""
+    from recon_core.bend.pushbroom import MAX_MODEL_MISFIT_PX, model_misfit
     from recon_core.geometry.geodesy import LocalFrame
-    from recon_core.geometry.pushbroom import MAX_MODEL_MISFIT_PX, model_misfit
     from recon_core.synthetic.generator import design_cameras
 
     scene, cams = design_cameras("demofp", 0)
@@ -73,7 +73,7 @@ def test_an_image_the_model_does_not_explain_is_told(monkeypatch):
 
 
 def test_straight_sensors_are_told_from_bowed_ones(tmp_path_factory):
-    """The bend step's check (sfm._straight_lines): `tiny2`, the same layout as `tiny2fp` with
+    """The bend step's check (bend.closing.straight_lines): `tiny2`, the same layout as `tiny2fp` with
     straight line arrays, passes it (every image's straight-line model explains it once the
     bend it sees is out); `tiny2fp` does not (the test above)."""
     from recon_core.synthetic.generator import generate_site

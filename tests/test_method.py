@@ -33,3 +33,23 @@ def test_steps_are_unique_and_their_modules_exist():
     assert len(names) == len(set(names))
     for s in CHAIN:
         importlib.import_module(s.module)
+
+
+def test_the_stages_run_their_steps_in_the_chains_order():
+    """The two places that run corrections in order follow CHAIN: the upgrade's UPGRADE_CHAIN
+    (its steps that are CHAIN's, in CHAIN's order) and the sparse closing adjustments, whose
+    plan's bend steps come after the first adjustment and start each correction round."""
+    from recon_core.bend.closing import closing_plan
+    from recon_core.euclidean.upgrade_stage import UPGRADE_CHAIN
+
+    order = [s.name for s in CHAIN]
+    ran = [name for name, _ in UPGRADE_CHAIN if name in order]
+    assert ran == [n for n in order if n in ran]
+    assert {"upgrade", "metric_bend", "gcp_bend", "dem_bend"} <= set(ran)
+    plan = [s.name for s in closing_plan(2, bend=True)]
+    assert plan == ["filter", "adjust", "filter", "bend", "adjust", "filter", "bend", "adjust", "bend"]
+    steps = closing_plan(2, bend=True)
+    assert [s.correct for s in steps if s.name == "adjust"] == [False, True, True]
+    assert [s.converge for s in steps if s.name == "adjust"] == [False, False, True]
+    assert "bend" not in [s.name for s in closing_plan(2, bend=False)]
+    assert all(s.converge for s in closing_plan(0, bend=True) if s.name == "adjust")

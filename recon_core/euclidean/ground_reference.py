@@ -3,7 +3,7 @@ survey: the point clicked on the orthoimage gives its easting and northing (the 
 georeferencing), the DEM its height there (bilinear).
 
 Any georeferenced raster serves as the orthoimage (a national orthophoto, a WMS export saved as
-GeoTIFF); any georeferenced height raster as the DEM (recon_core.euclidean.dem_bend.ReferenceDem).
+GeoTIFF); any georeferenced height raster as the DEM (recon_core.bend.dem.ReferenceDem).
 Heights are taken as the DEM gives them and stored as ellipsoidal: a DEM on the geoid (SRTM,
 Copernicus DEM: EGM96 / EGM2008) puts every GCP, and so the whole product, off by the geoid's
 undulation there (tens of metres, about constant over a site); convert it first.
@@ -93,7 +93,7 @@ def open_ground_reference(ortho: str | Path, dem: str | Path | None = None) -> G
     from pyproj import Transformer
     from rasterio.errors import RasterioIOError
 
-    from recon_core.euclidean.dem_bend import open_reference_dem
+    from recon_core.bend.dem import open_reference_dem
     from recon_core.io.site import open_image
 
     p = Path(ortho).expanduser()

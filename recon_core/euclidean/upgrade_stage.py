@@ -13,20 +13,20 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from recon_core.bend.dem import bend_kind, fit_dem_bend, open_reference_dem
+from recon_core.bend.gcp import fit_gcp_bend
+from recon_core.bend.metric import metric_bend, warped_model
+from recon_core.bend.observability import BEND_INVISIBLE_PX_PER_M, bend_observability, bend_seen, bend_warning
 from recon_core.config import Config
 from recon_core.errors import ReconstructionError
-from recon_core.euclidean.dem_bend import bend_kind, fit_dem_bend, open_reference_dem
-from recon_core.euclidean.gcp_bend import fit_gcp_bend, rescore
 from recon_core.euclidean.georef import GcpAffine, frame_for, upgrade_group
-from recon_core.euclidean.metric_bend import metric_bend, warped_model
-from recon_core.euclidean.upgrade import UpgradeResult, flat_gcp_refusal
+from recon_core.euclidean.upgrade import UpgradeResult, flat_gcp_refusal, rescore_with_bend
 from recon_core.events import EventBus
-from recon_core.geometry.affine import apply_affine_3d
-from recon_core.geometry.enu_map import EnuMap, EnuWarp, warp_record
+from recon_core.geometry.enu_map import BendWarp, EnuMap, EnuWarp, warp_record
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.gcps import GCP
 from recon_core.io.models import load_upgrade, save_upgrade
-from recon_core.model.sparse_model import merge_joint
+from recon_core.model.sparse_model import SparseModel, merge_joint
 
 if TYPE_CHECKING:
     from recon_core.context import RunState
@@ -46,91 +46,8 @@ def estimate_gsd(model, H: np.ndarray) -> float:
     return float(np.median(gsd))
 
 
-# A warp that moves the images by less than this (px RMS per metre at the site's edge) once
-# each image's pushbroom model re-fits is invisible to them (3 views of one date: 1e-5 to 7e-4;
-# `demo`'s 6 views of two dates: >= 0.002; `large`'s 9: >= 0.008 for every vertical warp)
-BEND_INVISIBLE_PX_PER_M = 1e-3
-# ... and worth a warning on sites wider than this: the bend such a warp lets through grows
-# with the site (measured with 3 views: 0.4 m over 1.3 km, 1.5-2.9 m over 2.5 km)
-BEND_WARN_WIDTH_KM = 1.0
 # a reference DEM tilted against the control GCPs by more than this at the site's edge is said
 DEM_TILT_WARN_M = 5.0
-
-
-def bend_observability(model, H: np.ndarray, max_per_image: int = 20000, seed: int = 0) -> dict:
-    """What a model's views can see of a bend of its structure, in the metric frame H_A gives
-    (recon_core.geometry.pushbroom.warp_observability over its points, each point once per
-    image, at most max_per_image per image): the singular values (px per metre of quadratic
-    warp at the site's edge), each warp's vertical share, the weakest mostly vertical one, how
-    many are invisible (< BEND_INVISIBLE_PX_PER_M) and the site's width. {} for a model of
-    fewer than 2 images with points."""
-    from recon_core.geometry.pushbroom import warp_observability
-
-    ids = model.point_ids()
-    if len(ids) < 100:
-        return {}
-    X = apply_affine_3d(H, model.X[ids])
-    slot = np.full(len(model.X), -1, np.int64)
-    slot[ids] = np.arange(len(ids))
-    o = model.obs
-    rng = np.random.default_rng(seed)
-    images = []
-    for _, k in model.views_per_image(min_points=50):
-        if len(k) > max_per_image:
-            k = np.sort(rng.choice(k, max_per_image, replace=False))
-        images.append((slot[o.track[k]], o.xy[k]))
-    if len(images) < 2:
-        return {}
-    w = warp_observability(X, images)
-    s = np.asarray(w["singular_px_per_m"])
-    vertical = np.linalg.norm(w["warps"][:, 6:], axis=1)
-    weakest = s[vertical > 0.5]
-    return {"views": len(images), "site_width_km": 2.0 * w["half_width_m"] / 1000.0,
-            "singular_px_per_m": s.tolist(), "vertical_share": vertical.tolist(),
-            "weakest_vertical_px_per_m": float(weakest.min()) if len(weakest) else None,
-            "invisible_warps": int(np.sum(s < BEND_INVISIBLE_PX_PER_M)),
-            "basis": {"warps": np.asarray(w["warps"]).tolist(), "centre_m": w["centre_m"],
-                      "half_width_m": w["half_width_m"],
-                      "meaning": "the warps of singular_px_per_m (rows, a-major over E, N, U x e^2, e n, "
-                                 "n^2; e, n = (E, N - centre_m) / half_width_m), in the metric frame"},
-            "meaning": "pixel motion (RMS, px) that each quadratic warp of the structure, 1 m at "
-                       "the site's edge, leaves once every image's pushbroom model re-fits: a warp "
-                       f"below {BEND_INVISIBLE_PX_PER_M:g} px per m is invisible to the images, and 4 "
-                       "GCPs (an affine map) do not fix it either"}
-
-
-def bend_seen(b: dict) -> str | None:
-    """Why the views' bend needs nothing beyond them (they see it, or the site is too small to
-    bend), or None when they cannot see a vertical bend of a site of BEND_WARN_WIDTH_KM or more
-    (b: bend_observability's summary)."""
-    if not b:
-        return "no two views of the structure to tell a bend"
-    if b["site_width_km"] < BEND_WARN_WIDTH_KM:
-        return f"the site is {b['site_width_km']:.2f} km wide, too small to bend (a DEM is used from {BEND_WARN_WIDTH_KM:g} km)"
-    s = b.get("weakest_vertical_px_per_m")
-    if s is None or s >= BEND_INVISIBLE_PX_PER_M:
-        return "the views see the bend (several dates, or views from more than one direction)"
-    return None
-
-
-def bend_warning(b: dict, gcp_fit: dict | None = None) -> str | None:
-    """One line when the views cannot see a vertical bend of a site wider than
-    BEND_WARN_WIDTH_KM (and the control GCPs did not hold it: gcp_fit, the summary of
-    recon_core.euclidean.gcp_bend); None otherwise."""
-    if bend_seen(b):
-        return None
-    s = b["weakest_vertical_px_per_m"]
-    text = (f"its {b['views']} views cannot see a bend of the structure (a height warp of 1 m over "
-            f"its {b['site_width_km']:.1f} km moves them by {s:.0e} px): 4 GCPs fix an affine map, not a "
-            "bend, so heights away from the GCPs may be off by metres (3 views of one date: 1.5-2.9 m "
-            "over 2.5 km, 30 m RMS over 10 km); views of another date, or more control GCPs spread "
-            "over the site, hold it")
-    need = (gcp_fit or {}).get("control_gcps_needed")
-    if need and gcp_fit.get("control_gcps", 0) < need:
-        text += f" ({need} or more control GCPs fit the {gcp_fit['invisible_warps']} warps it cannot see)"
-    if (gcp_fit or {}).get("loo_rms_bend_m") is not None:
-        text += f"; {gcp_fit['reason']}"
-    return text
 
 
 @dataclass
@@ -157,6 +74,15 @@ class Upgrade:
     enu_warps: dict[int, EnuWarp] = field(default_factory=dict)  # group -> the bend fitted to GCPs
     gcp_bend: dict[int, dict] = field(default_factory=dict)  # group -> that fit's summary
     dem_bend: dict[int, dict] = field(default_factory=dict)  # group -> the reference DEM's fit's summary
+
+    def add(self, g: int, st: ModelUpgrade, gsd_m: float) -> None:
+        """File group g's upgrade (a joint one is filed once per group)."""
+        self.results[g], self.affine[g], self.gsd_m[g] = st.result, st.affine, gsd_m
+        self.bend[g], self.warps[g], self.metric[g], self.gcp_bend[g] = st.bend, st.warp, st.metric, st.gcp_bend
+        if st.dem_bend:
+            self.dem_bend[g] = st.dem_bend
+        if st.enu_warp is not None:
+            self.enu_warps[g] = st.enu_warp
 
     @property
     def Hs(self) -> dict[int, np.ndarray]:
@@ -209,38 +135,87 @@ def _fit(model, gcps: list[GCP], frame: LocalFrame, cfg: Config) -> tuple[Upgrad
     return res, aff
 
 
-@dataclass(frozen=True)
-class MetricFit:
-    """H_A after the metric bend step: the fit, the GCP placements, the step's warp (None when
-    it stood aside or is off) and summary, the model H_A is of (warped when the step applied) and
-    the GCPs as that fit had them (picks on the cloud moved with the warp)."""
+@dataclass
+class ModelUpgrade:
+    """One model's upgrade as UPGRADE_CHAIN builds it, step by step."""
 
-    result: UpgradeResult
-    affine: dict
-    warp: object | None
-    summary: dict
-    model: object
-    gcps: list
+    model: SparseModel             # the model H_A is of (warped once the metric bend step applied)
+    picks: list[GCP]               # the GCPs as the fit of H_A has them (picks on the cloud move
+                                   # with the metric bend step's warp)
+    gcps: list[GCP]                # the run's GCP set (their surveyed positions)
+    frame: LocalFrame
+    cfg: Config
+    result: UpgradeResult | None = None
+    affine: dict[str, GcpAffine] = field(default_factory=dict)
+    warp: BendWarp | None = None    # the metric bend step's warp (None: it stood aside or is off)
+    metric: dict = field(default_factory=dict)     # ... and its summary
+    bend: dict = field(default_factory=dict)       # bend_observability in the frame H_A gives
+    enu_warp: EnuWarp | None = None  # the bend fitted to GCPs or taken from the reference DEM
+    gcp_bend: dict = field(default_factory=dict)   # the GCP fit's summary
+    dem_bend: dict = field(default_factory=dict)   # the reference DEM's fit's summary
 
 
-def _fit_metric(model, gcps: list[GCP], frame: LocalFrame, cfg: Config) -> MetricFit:
-    """_fit, then the metric bend step (recon_core.euclidean.metric_bend) and, when it applies a
-    warp, H_A refitted on the warped model (GCP positions picked on the cloud move with it)."""
-    res, aff = _fit(model, gcps, frame, cfg)
-    if not cfg.upgrade.metric_bend:
-        return MetricFit(res, aff, None, {}, model, gcps)
-    warp, info = metric_bend(model, res.H, cfg.upgrade.orbit_altitude_km * 1e3)
+def _h_a(st: ModelUpgrade) -> None:
+    st.result, st.affine = _fit(st.model, st.picks, st.frame, st.cfg)
+
+
+def _metric_bend(st: ModelUpgrade) -> None:
+    """The metric bend step (recon_core.bend.metric) and, when it applies a warp, H_A refitted
+    on the warped model (GCP positions picked on the cloud move with it)."""
+    if not st.cfg.upgrade.metric_bend:
+        return
+    warp, st.metric = metric_bend(st.model, st.result.H, st.cfg.upgrade.orbit_altitude_km * 1e3)
     if warp is None:
-        return MetricFit(res, aff, None, info, model, gcps)
-    moved = warped_model(model, warp)
+        return
+    moved = warped_model(st.model, warp)
     picks = [replace(g, affine_picked={k: np.asarray(x, np.float64) + warp(np.asarray(x, np.float64)[None])[0]
-                                       for k, x in g.affine_picked.items()}) for g in gcps]
+                                       for k, x in g.affine_picked.items()}) for g in st.picks]
     try:
-        res_w, aff_w = _fit(moved, picks, frame, cfg)
+        res_w, aff_w = _fit(moved, picks, st.frame, st.cfg)
     except ReconstructionError as exc:       # e.g. the control GCPs too flat once warped
-        return MetricFit(res, aff, None, {**info, "applied": False,
-                                          "reason": f"H_A refit on the warped model: {exc}"}, model, gcps)
-    return MetricFit(res_w, aff_w, warp, info, moved, picks)
+        st.metric = {**st.metric, "applied": False, "reason": f"H_A refit on the warped model: {exc}"}
+        return
+    st.result, st.affine, st.warp, st.model, st.picks = res_w, aff_w, warp, moved, picks
+
+
+def _observe(st: ModelUpgrade) -> None:
+    st.bend = bend_observability(st.model, st.result.H)
+
+
+def _gcp_bend(st: ModelUpgrade) -> None:
+    st.result, warp, st.gcp_bend = _fit_gcp_bend(st.result, st.affine, st.gcps, st.frame, st.bend, st.cfg)
+    if warp is not None:
+        st.enu_warp = warp
+
+
+def _dem_bend(st: ModelUpgrade) -> None:
+    st.result, warp, st.dem_bend = _fit_dem_bend(st.result, st.picks, st.frame, st.model, st.bend,
+                                                 st.gcp_bend, st.cfg)
+    if warp is not None:
+        st.enu_warp = warp
+
+
+def _warn(st: ModelUpgrade) -> None:
+    _warn_bend(st.result, st.bend, st.gcp_bend, st.dem_bend)
+
+
+# One model's upgrade, in order: H_A (with the cameras' metric constraint when asked), the
+# metric bend step (H_A refitted), what the views can see of a bend in the frame H_A gives, the
+# bend fitted to control GCPs, the vertical bend from a reference DEM, and the warning when
+# nothing holds what the views cannot see. Named as recon_core.method.CHAIN names its steps
+# (the two without a switch of their own are checks); a test holds the two in the same order.
+UPGRADE_CHAIN = (("upgrade", _h_a), ("metric_bend", _metric_bend), ("bend_observability", _observe),
+                 ("gcp_bend", _gcp_bend), ("dem_bend", _dem_bend), ("bend_warning", _warn))
+
+
+def upgrade_model(model: SparseModel, picks: list[GCP], gcps: list[GCP], frame: LocalFrame,
+                  cfg: Config) -> ModelUpgrade:
+    """Run UPGRADE_CHAIN on one model (`picks`: the GCPs as its fit has them; `gcps`: the run's
+    set). Raises ReconstructionError when H_A cannot be fitted."""
+    st = ModelUpgrade(model, picks, gcps, frame, cfg)
+    for _, step in UPGRADE_CHAIN:
+        step(st)
+    return st
 
 
 def _surveyed_enu(gcps: list[GCP], frame: LocalFrame) -> np.ndarray:
@@ -251,7 +226,7 @@ def _surveyed_enu(gcps: list[GCP], frame: LocalFrame) -> np.ndarray:
 def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP], frame: LocalFrame,
                   bend: dict, cfg: Config) -> tuple[UpgradeResult, EnuWarp | None, dict]:
     """The bend the views cannot see, fitted to the control GCPs H_A used
-    (recon_core.euclidean.gcp_bend), and the result re-scored with it when it applies."""
+    (recon_core.bend.gcp), and the result re-scored with it when it applies."""
     if not cfg.upgrade.gcp_bend:
         return res, None, {}
     pos = {k: a.xyz for k, a in aff.items() if a.xyz is not None}
@@ -265,7 +240,7 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
         return res, None, fit.summary
     used = [k for k, ok in zip(ctrl, fit.inliers) if ok]
     rejected = [k for k, ok in zip(ctrl, fit.inliers) if not ok]
-    out = rescore(res, fit.H, fit.warp, pos, enu, used, rejected, dict(zip(used, fit.loo)), fit.summary,
+    out = rescore_with_bend(res, fit.H, fit.warp, pos, enu, used, rejected, dict(zip(used, fit.loo)), fit.summary,
                   thresh)
     refusal = None if cfg.upgrade.allow_flat_gcps else flat_gcp_refusal(out.conditioning)
     if refusal:                 # the GCPs the fit kept are too flat for its height scale
@@ -276,7 +251,7 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
 def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model, bend: dict, gcp_fit: dict,
                   cfg: Config, max_points: int = 300_000) -> tuple[UpgradeResult, EnuWarp | None, dict]:
     """The vertical bend the views cannot see, taken from the reference DEM
-    (recon_core.euclidean.dem_bend) when one is given, the GCPs did not hold the bend and the
+    (recon_core.bend.dem) when one is given, the GCPs did not hold the bend and the
     views cannot see it; H_A refitted by the upgrade's own fit (`_fit`, on `model` with `gcps`
     as the first fit had them) on the GCPs' surveyed positions less the bend. Returns the new
     result (its residuals: against the surveyed positions less the bend there), the warp or
@@ -356,46 +331,22 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
     joint = merge_joint([models[g] for g in sorted(models)])
     if joint is not None:
         try:
-            mf = _fit_metric(joint, [_picks_joint(g, joint.group) for g in gcps], up.frame, cfg)
-            res, aff, warp, info, moved, used = mf.result, mf.affine, mf.warp, mf.summary, mf.model, mf.gcps
-            bend = bend_observability(moved, res.H)
-            res, gwarp, ginfo = _fit_gcp_bend(res, aff, gcps, up.frame, bend, cfg)
-            res, dwarp, dinfo = _fit_dem_bend(res, used, up.frame, moved, bend, ginfo, cfg)
-            gwarp = gwarp if dwarp is None else dwarp
-            _warn_bend(res, bend, ginfo, dinfo)
+            st = upgrade_model(joint, [_picks_joint(g, joint.group) for g in gcps], gcps, up.frame, cfg)
             for g, model in sorted(models.items()):
-                up.results[g], up.affine[g] = res, aff
-                up.gsd_m[g] = estimate_gsd(model if warp is None else warped_model(model, warp), res.H)
-                up.bend[g], up.warps[g], up.metric[g] = bend, warp, info
-                up.gcp_bend[g] = ginfo
-                if dinfo:
-                    up.dem_bend[g] = dinfo
-                if gwarp is not None:
-                    up.enu_warps[g] = gwarp
+                gsd = estimate_gsd(model if st.warp is None else warped_model(model, st.warp), st.result.H)
+                up.add(g, st, gsd)
             up.joint = True
             return up
         except ReconstructionError:           # each group on its own, below
             up = Upgrade(up.frame)
     for g, model in sorted(models.items()):
         try:
-            mf = _fit_metric(model, gcps, up.frame, cfg)
-            res, aff, warp, info, moved, used = mf.result, mf.affine, mf.warp, mf.summary, mf.model, mf.gcps
-            estimate_gsd(moved, res.H)            # a model without a registered camera stops here
+            st = upgrade_model(model, gcps, gcps, up.frame, cfg)
+            gsd = estimate_gsd(st.model, st.result.H)   # a model without a registered camera stops here
         except ReconstructionError as exc:
             up.errors[g] = f"group {g}: {exc}"
             continue
-        up.affine[g] = aff
-        up.warps[g], up.metric[g] = warp, info
-        up.bend[g] = bend_observability(moved, res.H)
-        res, gwarp, up.gcp_bend[g] = _fit_gcp_bend(res, aff, gcps, up.frame, up.bend[g], cfg)
-        res, dwarp, dinfo = _fit_dem_bend(res, used, up.frame, moved, up.bend[g], up.gcp_bend[g], cfg)
-        if dinfo:
-            up.dem_bend[g] = dinfo
-        gwarp = gwarp if dwarp is None else dwarp
-        up.results[g], up.gsd_m[g] = res, estimate_gsd(moved, res.H)
-        if gwarp is not None:
-            up.enu_warps[g] = gwarp
-        _warn_bend(res, up.bend[g], up.gcp_bend[g], dinfo)
+        up.add(g, st, gsd)
     if not up.results:
         raise ReconstructionError("; ".join(up.errors.values()))
     return up

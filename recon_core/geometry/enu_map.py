@@ -1,7 +1,7 @@
 """The Euclidean upgrade of a group as one map: affine frame -> local ENU metres,
-X -> Y + G(Y), Y = H_A (X + D(X)), D the metric bend step's warp (recon_core.euclidean.metric_bend)
-or none, G the bend fitted to control GCPs (recon_core.euclidean.gcp_bend), or the vertical bend
-taken from a reference DEM (recon_core.euclidean.dem_bend), or none.
+X -> Y + G(Y), Y = H_A (X + D(X)), D the metric bend step's warp (recon_core.bend.metric)
+or none, G the bend fitted to control GCPs (recon_core.bend.gcp), or the vertical bend
+taken from a reference DEM (recon_core.bend.dem), or none.
 Shared by the upgrade stage that fits it, the files that record it and the DSM stage that
 applies it."""
 
@@ -12,7 +12,51 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon_core.geometry.affine import apply_affine_3d
-from recon_core.geometry.pushbroom import BendWarp
+
+
+@dataclass
+class BendWarp:
+    """A quadratic warp X -> X + D(X) of an affine structure (its basis: recon_core.bend.pushbroom,
+    estimate_bend): D(X) = T^-1 d,
+    d_a = sum_m coef[3 a + m] mono_m(e, n), (e, n) = S (T (X - x0) - w0)."""
+    x0: np.ndarray        # (3,) the structure's centre
+    T: np.ndarray         # (3, 3) whitening of the frame by the mean cameras
+    S: np.ndarray         # (2, 3) the ground plane's normalised coordinates in the whitened frame
+    w0: np.ndarray        # (3,) the whitened centre
+    coef: np.ndarray      # (9,) the warp, (axis a, monomial m), a-major, in whitened units (px)
+
+    def _plane(self, X: np.ndarray) -> np.ndarray:
+        return ((X - self.x0) @ self.T.T - self.w0) @ self.S.T
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        """(n, 3) the displacement D(X) of points X (n, 3)."""
+        p = self._plane(X)
+        mono = np.stack([p[:, 0] ** 2, np.sqrt(2.0) * p[:, 0] * p[:, 1], p[:, 1] ** 2], 1)
+        return (mono @ self.coef.reshape(3, 3).T) @ np.linalg.inv(self.T).T
+
+    def jacobian(self, X: np.ndarray) -> np.ndarray:
+        """(n, 3, 3) dD/dX at points X (n, 3)."""
+        p = self._plane(X)
+        e, n = p[:, 0], p[:, 1]
+        z = np.zeros_like(e)
+        r2 = np.sqrt(2.0)
+        dmono = np.stack([np.stack([2 * e, z], 1), np.stack([r2 * n, r2 * e], 1),
+                          np.stack([z, 2 * n], 1)], 1)                 # (n, 3 monomials, 2)
+        dd = np.einsum("am,nmk,kj->naj", self.coef.reshape(3, 3), dmono, self.S @ self.T)
+        return np.einsum("ab,nbj->naj", np.linalg.inv(self.T), dd)
+
+
+    def follow(self, cams: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        """(T, 2, 4) affine cameras cams (T, 2, 4) moved with the warp's linear part at their
+        points' centres (T, 3), so that they still see the warped points where they saw them:
+        X' = X + D(X) ~ c + D(c) + (I + G)(X - c) (G = dD/dX at c) gives A' = A (I + G)^-1 and
+        p' = A c + p - A' (c + D(c)). What is left (the warp's curvature over a tile) is far
+        below a pixel, and the next adjustment takes it."""
+        A, p = cams[:, :, :3], cams[:, :, 3]
+        A_new = np.einsum("tij,tjk->tik", A, np.linalg.inv(np.eye(3) + self.jacobian(centres)))
+        p_new = (np.einsum("tij,tj->ti", A, centres) + p
+                 - np.einsum("tij,tj->ti", A_new, centres + self(centres)))
+        return np.concatenate([A_new, p_new[:, :, None]], 2)
 
 
 def monomials(e: np.ndarray, n: np.ndarray, degree: int) -> np.ndarray:

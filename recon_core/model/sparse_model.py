@@ -25,7 +25,7 @@ class Observations:
     img: np.ndarray        # (K,) image index
     valid: np.ndarray      # (K,) bool: False once rejected as an outlier
     corr: np.ndarray | None = None   # (K, 2) the within-tile correction (px): an affine tile
-    #                                  camera sees xy - corr (recon_core.geometry.pushbroom)
+    #                                  camera sees xy - corr (recon_core.bend.pushbroom)
 
     def __post_init__(self):
         if self.corr is None:
@@ -96,7 +96,7 @@ class SparseModel:
         return out
 
     def point_views(self, min_tiles: int = 0) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-        """What the bend estimates read (recon_core.geometry.pushbroom.estimate_bend): the point
+        """What the bend estimates read (recon_core.bend.pushbroom.estimate_bend): the point
         ids, and per image of views_per_image(min_tiles=...) (positions in those ids, pixels)."""
         o, pts = self.obs, self.point_ids()
         local = np.full(len(self.X), -1)

@@ -68,7 +68,7 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
     they stop when an iteration lowers the robust cost by less than `rel_tol` of it.
     `compiled`: assemble the normal equations with the compiled per-point kernels
     (recon_core.sparse.ba_kernels); False takes the scipy.sparse path (same steps, slower).
-    `ties`: quadratic penalties on camera entries (recon_core.sparse.image_model.Tie), added to
+    `ties`: quadratic penalties on camera entries (recon_core.bend.image_model.Tie), added to
     the cost and to the camera normal equations.
     `solver`: "dense" (the reduced camera system as one dense matrix, Cholesky), "sparse" (as
     8 x 8 blocks over the pairs of cameras that share points, sparse LU; the ties as a low-rank

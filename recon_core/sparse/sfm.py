@@ -20,6 +20,8 @@ import time
 
 import numpy as np
 
+from recon_core.bend.closing import (ImageModelCheck, StraightLines, bend_step, check_image_models,
+                                      closing_plan, image_ties, straight_lines, within_tile)
 from recon_core.config import BundleConfig, SfmConfig
 from recon_core.errors import ReconstructionError
 from recon_core.events import BundleAdjusted, EventBus, ModelUpdated, PointsAdded, TileRegistered
@@ -28,11 +30,6 @@ from recon_core.model.sparse_model import Observations, SparseModel, images_per_
 from recon_core.model.tiling import Tile
 from recon_core.sparse.bundle import bundle_adjust
 from recon_core.sparse.features import ImageFeatures
-from recon_core.geometry.pushbroom import (MAX_FOCAL_SHARE, MAX_MODEL_MISFIT_PX, MAX_STRAIGHT_MISFIT_PX,
-                                          MIN_POINTS_PER_IMAGE, MIN_TILES_FOR_CORRECTION,
-                                          estimate_bend, model_misfit,
-                                          tile_corrections)
-from recon_core.sparse.image_model import image_tie
 from recon_core.sparse.matching import PairMatches
 from recon_core.sparse.tracks import Tracks
 
@@ -84,8 +81,6 @@ def build_observations(tiles: list[Tile], image_names: list[str], feats: list[Im
                         img.astype(np.int64), np.ones(len(tile), bool))
 
 
-# the per-image tie's sigma is given for a group of this many images (tie_sigma scales it)
-TIE_REFERENCE_VIEWS = 3
 # a tile with fewer 2D-3D correspondences than sfm.resect_min_inliers (a corner of the images'
 # overlap) is registered from its image's camera as a prior when at least this many of them
 # agree with it: 8 unknowns, 2 conditions per point, and the prior (docs: method.md)
@@ -93,13 +88,6 @@ MIN_WITH_PRIOR = 6
 # ... and the prior weighs a hundredth of the points in what they fix (the 2D part), while it
 # still sets what a flat set of points cannot (the response to height)
 FEW_PRIOR_WEIGHT = 0.1
-
-
-def tie_sigma(sigma_px: float, n_views: int) -> float:
-    """The per-image tie's sigma for a model of n_views images: sigma_px for a group of 3,
-    scaled by 3 / n_views (its weight by (n_views / 3)^2): every view adds conditions on what
-    the tie must discriminate (docs: research-notes.md, "The image model and the bend")."""
-    return sigma_px * TIE_REFERENCE_VIEWS / max(n_views, TIE_REFERENCE_VIEWS)
 
 
 class IncrementalSfM:
@@ -144,9 +132,8 @@ class IncrementalSfM:
         self._few_points: dict[str, int] = {}    # tile id -> correspondences it was registered from
         self._counts: np.ndarray | None = None     # _counts_now's
         self._correction_info: dict = {}
-        self._unexplained: set[int] = set()     # images whose model misses them (_check_image_models)
-        self._model_check: dict = {}
-        self._straight: dict = {}
+        self._images = ImageModelCheck()          # which images their model explains (closing)
+        self._straight = StraightLines(False, "off (sfm.bend_step = false)")
 
     # -- initial pair -------------------------------------------------------------------------
     def choose_initial_pair(self) -> tuple[int, int, dict]:
@@ -241,34 +228,36 @@ class IncrementalSfM:
                 break
             best = int(cand[np.argmax(counts[cand])])
             self._attempt(best, why, tried_few, counts, img_reg, few=True)
-        # the closing adjustments: the per-image ties, then rounds with the within-tile
-        # correction refitted to the tied structure (the last one converged to rel_tol). Only
-        # with views of several dates: one pass's views (2-3, scanned alike) leave the vertical
-        # warps invisible, and the correction would only move the structure along them
-        # (docs: "What the views can see"). Both stand aside for an image its model does not
-        # explain (_check_image_models).
+        # the closing adjustments (recon_core.bend.closing.closing_plan): the per-image ties,
+        # then rounds with the within-tile correction refitted to the tied structure, each
+        # started by the bend step where the sensors are straight line arrays. Only with views
+        # of several dates: one pass's views (2-3, scanned alike) leave the vertical warps
+        # invisible, and the corrections would only move the structure along them
+        # (docs: "What the views can see"). The tie and the correction stand aside for an
+        # image its model does not explain.
         rounds = self.cfg.correction_rounds if self.n_dates > 1 else 0
-        self._check_image_models()
-        # the bend step (several dates only: one pass's views leave the vertical bends unseen),
-        # where the sensors are straight line arrays; each correction round starts with it, and
-        # the last adjustment is followed by one (it slides back part of the way: its minimum
-        # is flat along these warps)
-        bend, self._straight = [], {"straight": False, "why": "off (sfm.bend_step = false)"}
+        self._images = check_image_models(m)
+        if self._images.warning():
+            self.bus.message(f"group {m.group}: {self._images.warning()}", "warning", m.group)
         if self.cfg.bend_step and rounds > 0:
-            self._straight = self._straight_lines()
-            if not self._straight["straight"]:
-                self.bus.message(f"group {m.group}: the bend step stands aside: {self._straight['why']}",
+            self._straight = straight_lines(m)
+            if not self._straight.straight:
+                self.bus.message(f"group {m.group}: the bend step stands aside: {self._straight.why}",
                                  "info", m.group)
         elif self.cfg.bend_step:
-            self._straight = {"straight": False, "why": "one date, or no correction round"}
-        for k in range(1 + max(rounds, 1)):
-            self._filter_outliers()
-            if k > 0 and rounds > 0 and self._straight["straight"]:
-                bend.append(self._bend_step(apply=True))
-            self._bundle("global", final=True, correct=k > 0 and rounds > 0,
-                         converge=rounds <= 0 or k == rounds)
-        if bend:
-            bend.append(self._bend_step(apply=True))
+            self._straight = StraightLines(False, "one date, or no correction round")
+        bend = []
+        for step in closing_plan(rounds, self._straight.straight):
+            if step.name == "filter":
+                self._filter_outliers()
+            elif step.name == "bend":
+                bend.append(bend_step(m))
+                if bend[-1]["applied"]:
+                    self.bus.message(f"group {m.group}: bend step: {bend[-1]['warps_seen']} of 9 quadratic "
+                                     f"warps seen, the structure unbent by {bend[-1]['warp_rms_px']:.2f} px RMS",
+                                     "info", m.group)
+            else:
+                self._bundle("global", final=True, correct=step.correct, converge=step.converge)
         self._emit_model()
         counts = self._correspondence_counts()
         reasons = {}
@@ -285,8 +274,8 @@ class IncrementalSfM:
                    "within_tile_correction": {"images": [m.images[i] for i in self._correction_info.get("images", [])],
                                               "rms_px": self._correction_info.get("rms_px", 0.0),
                                               "max_px": self._correction_info.get("max_px", 0.0)},
-                   "image_models": self._model_check,
-                   "bend_step": {**self._straight, "steps": bend},
+                   "image_models": self._images.summary(),
+                   "bend_step": {**self._straight.summary(), "steps": bend},
                    "seconds": time.time() - t0}
         return m
 
@@ -539,66 +528,7 @@ class IncrementalSfM:
                 self._cond_ref = float(ref)
 
     # -- the image models -----------------------------------------------------------------------
-    def _check_image_models(self) -> None:
-        """Which images the pushbroom family explains (pushbroom.model_misfit, on the grown
-        structure, before any closing adjustment): the tie and the within-tile correction stand
-        aside for an image it does not (its model's own error would be read as a bend of the
-        structure and put into it); said in the report and on the console."""
-        m = self.m
-        misfit = {}
-        for i, k in m.views_per_image(min_points=MIN_POINTS_PER_IMAGE, min_tiles=MIN_TILES_FOR_CORRECTION):
-            misfit[m.images[i]] = round(model_misfit(m.X[m.obs.track[k]], m.obs.xy[k]), 4)
-        bad = sorted(name for name, v in misfit.items() if v > MAX_MODEL_MISFIT_PX)
-        self._unexplained = {m.images.index(name) for name in bad}
-        self._model_check = {"misfit_px": misfit, "max_misfit_px": MAX_MODEL_MISFIT_PX, "unexplained": bad}
-        if bad:
-            worst = max(bad, key=misfit.get)
-            self.bus.message(
-                f"group {m.group}: the pushbroom model does not explain {len(bad)} of {len(misfit)} images "
-                f"({worst}: {misfit[worst]:.2f} px > {MAX_MODEL_MISFIT_PX} px, systematic): the tie and "
-                "the within-tile correction stand aside for them", "warning", m.group)
-
     # -- bundle adjustment --------------------------------------------------------------------
-    def _image_ties(self, idx: np.ndarray) -> list:
-        """One pushbroom tie per image with >= 4 registered tiles (recon_core.sparse.image_model),
-        weighted by (sigma_obs / sigma_tie)^2, sigma_obs from the reprojection error, sigma_tie
-        from SfmConfig.tie_sigma_px and the number of images (tie_sigma)."""
-        m = self.m
-        if self.cfg.tie_sigma_px <= 0:
-            return []
-        _, err = m.reprojection(idx)
-        sigma_obs = max(float(np.sqrt(np.mean(err ** 2))) / np.sqrt(2.0), 0.02)
-        n_views = len({m.tiles[t].image for t in np.flatnonzero(m.registered)})
-        w = (sigma_obs / tie_sigma(self.cfg.tie_sigma_px, n_views)) ** 2
-        rng = np.random.default_rng(0)
-        track_of, bounds = m.tracks_by_tile(idx)      # the points of every tile, one sort
-        ties = []
-        for i, name in enumerate(m.images):
-            tids = np.array([t for t in np.flatnonzero(m.registered) if m.tiles[t].image == name], np.int64)
-            if len(tids) < 4 or i in self._unexplained:
-                continue
-            samples = []
-            for t in tids:
-                k = track_of[bounds[t]:bounds[t + 1]]
-                if len(k) > 48:
-                    k = rng.choice(k, 48, replace=False)
-                samples.append(m.X[k])
-            ties.append(image_tie(m.cams[tids], samples, tids, w))
-        return ties
-
-    def _refresh_corrections(self, idx: np.ndarray) -> None:
-        """Refit each image's model and the within-tile correction of the active observations
-        idx (recon_core.geometry.pushbroom, "the within-tile correction"); the others get none.
-        Only in the closing adjustments, after the tie has held the structure once: refitted
-        at every global adjustment of the growing model, the correction leaves the warps no
-        view sees free to wander (docs: research-notes.md, "The within-tile correction needs several dates")."""
-        o = self.m.obs
-        idx = idx[~np.isin(o.img[idx], list(self._unexplained))]
-        corr, info = tile_corrections(self.m.X[o.track[idx]], o.xy[idx], o.tile[idx], o.img[idx])
-        o.corr[:] = 0.0
-        o.corr[idx] = corr
-        self._correction_info = info
-
     def _unregistered_reason(self, t: int, last_try: str | None, count: int) -> str:
         """What the report says of a tile left unregistered: its last try's reason, or, when
         that is a count of correspondences alone (or it was never tried), why so few."""
@@ -624,97 +554,6 @@ class IncrementalSfM:
                     "(dropped: views too close in angle, sfm.min_triangulation_ratio, or a poor reprojection)")
         return "too little overlap with the registered tiles, or too little texture"
 
-    def _bend_step(self, apply: bool) -> dict:
-        """The bend step: the quadratic warp of the structure that every image's straight-line
-        model sees (pushbroom.estimate_bend, focal_plane=False), estimated from every image's
-        observations (each point once per image, images with enough tiles to fit their model)
-        and, when `apply`, taken out: the points move by it and each registered tile camera
-        follows its local linear part, so that the cameras still see the points where they did.
-        Only run when the sensors are straight line arrays (_straight_lines). Returns the
-        estimate's summary."""
-        m = self.m
-        pts, images = m.point_views(min_tiles=MIN_TILES_FOR_CORRECTION)
-        if len(images) < 2:
-            return {"images": len(images), "applied": False}
-        warp, info = estimate_bend(m.X[pts], images, focal_plane=False)
-        info = {"applied": bool(apply and info["warps_seen"] > 0), **info}
-        if not info["applied"]:
-            return info
-        # each registered tile camera follows the warp at its points' centre (a tile without
-        # active observations: at the structure's centre)
-        reg = np.flatnonzero(m.registered)
-        held = m.cams[m.fixed].copy()
-        m.cams[reg] = warp.follow(m.cams[reg], m.tile_centres()[reg])
-        m.X[pts] += warp(m.X[pts])
-        self._restore_gauge(held)
-        self.bus.message(f"group {m.group}: bend step: {info['warps_seen']} of 9 quadratic warps seen, "
-                         f"the structure unbent by {info['warp_rms_px']:.2f} px RMS", "info", m.group)
-        return info
-
-    def _restore_gauge(self, held: np.ndarray) -> None:
-        """Put the held camera entries (m.fixed: the initial pair's canonical frame) back to their
-        values `held` after the bend step moved them, by one 3D affine change of frame of every
-        camera and point (the structure's shape is unchanged: only its affine frame). The gauge
-        holds whole rows (2 of the first tile, 1 of the second): 12 numbers, one affine map."""
-        m = self.m
-        rows = np.argwhere(m.fixed.all(axis=2))                # (t, row) fully held
-        if len(rows) != 3:
-            return
-        new = m.cams[rows[:, 0], rows[:, 1]]                    # (3, 4)
-        old = held.reshape(-1, 4) if held.size == 12 else None
-        if old is None:
-            return
-        R = new[:, :3]
-        if abs(np.linalg.det(R)) < 1e-12 * max(np.abs(R).max(), 1e-300) ** 3:
-            return
-        # x = row . [X, 1]; with X = M X' + t the rows become [row[:3] M, row[:3] t + row[3]]
-        M = np.linalg.solve(R, old[:, :3])
-        t = np.linalg.solve(R, old[:, 3] - new[:, 3])
-        m.cams[:, :, :3], m.cams[:, :, 3] = m.cams[:, :, :3] @ M, m.cams[:, :, :3] @ t + m.cams[:, :, 3]
-        pts = m.point_ids()
-        m.X[pts] = (m.X[pts] - t) @ np.linalg.inv(M).T
-
-    def _straight_lines(self) -> dict:
-        """Are the images' sensors straight line arrays, as the bend step needs? In one image a
-        quadratic bend of the structure shows only as the row's c^2, which a bowed line makes
-        too: the bend step can only tell them apart where every line is straight. Tried on a
-        copy: the bend the straight-line models see taken out, each image's straight-line model
-        must then explain it to MAX_STRAIGHT_MISFIT_PX (pushbroom.model_misfit, focal_plane=
-        False), or, where it does not, its miss must not be a focal plane's: the focal-plane
-        terms must take away less than MAX_FOCAL_SHARE of its power (a miss they mostly do not
-        take away is not a bowed line's, whose c^2 the bend step would read as a bend). A
-        sensor with a bowed or
-        distorted line fails both (omaha_3dates: 0.04-0.17 px, of which the focal-plane terms
-        take away 0.55-0.98); this project's straight sensors pass (small sites: under 0.02 px;
-        `large`: 0.03-0.11 px, of which they take away 0.33-0.60). Returns {"straight": bool, the misfits, why}."""
-        m = self.m
-        pts, images = m.point_views(min_tiles=MIN_TILES_FOR_CORRECTION)
-        views = m.views_per_image(min_tiles=MIN_TILES_FOR_CORRECTION)
-        if len(images) < 2:
-            return {"straight": False, "why": "fewer than 2 images with 4 registered tiles"}
-        X = m.X[pts]
-        warp, info = estimate_bend(X, images, focal_plane=False)
-        if info["warps_seen"]:
-            X = X + warp(X)
-        mis, share = {}, {}
-        for (i, _), (p, xy) in zip(views, images):
-            if len(p) < MIN_POINTS_PER_IMAGE:
-                continue
-            s = model_misfit(X[p], xy, focal_plane=False)
-            mis[m.images[i]] = round(s, 4)
-            if s > MAX_STRAIGHT_MISFIT_PX:
-                f = model_misfit(X[p], xy, focal_plane=True)
-                share[m.images[i]] = round(1.0 - min(f / s, 1.0) ** 2, 3)
-        bad = sorted((share[k], mis[k], k) for k in share if share[k] > MAX_FOCAL_SHARE)
-        out = {"straight": not bad, "misfit_px": mis, "max_misfit_px": MAX_STRAIGHT_MISFIT_PX,
-               "focal_share": share, "max_focal_share": MAX_FOCAL_SHARE}
-        if bad:
-            sh, px, name = bad[-1]
-            out["why"] = (f"{name} is not a straight line array ({px:.2f} px of systematic error "
-                          f"> {MAX_STRAIGHT_MISFIT_PX} px once the bend it sees is out, {sh:.0%} of it "
-                          f"taken away by the focal-plane terms > {MAX_FOCAL_SHARE:.0%})")
-        return out
-
     def _bundle(self, scope: str, around: int | None = None, final: bool = False,
                 correct: bool = False, converge: bool | None = None) -> None:
         """A local adjustment around tile `around` or a global one; `final`: a closing global
@@ -728,7 +567,7 @@ class IncrementalSfM:
             if len(idx) == 0:
                 return
             if correct:
-                self._refresh_corrections(idx)
+                self._correction_info = within_tile(m, idx, self._images.unexplained)
             free_cams, free_pts = np.flatnonzero(m.registered), m.point_ids()
             self._ba_at = int(m.registered.sum())
             self._retry_all = True          # cameras moved, outliers dropped: every track again
@@ -749,7 +588,8 @@ class IncrementalSfM:
                             m.fixed, loss=self.ba_cfg.loss, f_scale=self.ba_cfg.loss_scale_px,
                             max_nfev=self.ba_cfg.max_nfev if scope == "global" else self.ba_cfg.local_max_nfev,
                             rel_tol=self.ba_cfg.rel_tol if converge else self.ba_cfg.growing_rel_tol,
-                            ties=self._image_ties(idx) if final else None, solver=self.ba_cfg.solver)
+                            ties=image_ties(m, idx, self.cfg.tie_sigma_px, self._images.unexplained)
+                            if final else None, solver=self.ba_cfg.solver)
         m.cams, m.X = res.cams, res.X
         self.bus.emit(BundleAdjusted(m.group, scope, res.cost_before, res.cost_after, res.rms_px,
                                      len(free_cams), len(free_pts), res.seconds))

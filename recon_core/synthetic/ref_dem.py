@@ -5,7 +5,7 @@ street beside it as one height), resampled to a geographic grid of 1 arc-second 
 SRTM and Copernicus tiles come), with errors of the kind such a DEM has: a constant datum offset
 (a geoid, or a bias), a tilt across the site, and spatially correlated noise of `noise_m` with a
 correlation length of `corr_m`. For benchmarks and tests: the pipeline reads it as it would read
-a real DEM (recon_core.euclidean.dem_bend), never the truth it was made from.
+a real DEM (recon_core.bend.dem), never the truth it was made from.
 """
 
 from __future__ import annotations

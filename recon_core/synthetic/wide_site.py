@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from recon_core.synthetic.truth import bend_report
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.model.tiling import Tile, tile_image
 from recon_core.sparse.bundle import BAResult, bundle_adjust
+from recon_core.synthetic.truth import bend_report
 
 if TYPE_CHECKING:
     from recon_core.synthetic.generator import SynthPreset
@@ -82,12 +82,12 @@ class WideSite:
         r0_m of the site's centre (ground position of their points) adjusted from the truth of
         their points, then rings of step_m: new tiles resected on the current points, new
         points triangulated with the current cameras, a global adjustment of all. With
-        `correction`, the within-tile correction (recon_core.sparse.image_model) is refitted
+        `correction`, the within-tile correction (recon_core.bend.image_model) is refitted
         from the current structure before every adjustment after the first, as the SfM does:
         nothing of the truth but the first patch enters. Returns (cams, X, point_in_model).
         `log`: called with a line per ring (radius, tiles, points, the adjustment's time)."""
+        from recon_core.bend.pushbroom import tile_corrections
         from recon_core.geometry import affine
-        from recon_core.geometry.pushbroom import tile_corrections
 
         T, N = len(self.tiles), len(self.X_true)
         cnt = np.bincount(self.obs_cam, minlength=T)
@@ -255,11 +255,11 @@ def structure_vs_truth(X: np.ndarray, X_true: np.ndarray) -> dict:
 
 def observability(site: WideSite, X: np.ndarray | None = None, max_per_image: int = 20000,
                   seed: int = 0, altitude_m: float | None = None) -> dict:
-    """recon_core.geometry.pushbroom.warp_observability of the site's images over the points X
+    """recon_core.bend.pushbroom.warp_observability of the site's images over the points X
     (default: the truth, a metric frame), each point once per image (at most max_per_image per
     image); with `altitude_m`, each image's 1D perspective fixed by physics (physical_depth)
     instead of free."""
-    from recon_core.geometry.pushbroom import physical_depth, warp_observability
+    from recon_core.bend.pushbroom import physical_depth, warp_observability
 
     X = site.X_true if X is None else X
     images = site.views_per_image(max_per_image, seed)
@@ -274,9 +274,9 @@ def observability(site: WideSite, X: np.ndarray | None = None, max_per_image: in
 
 def image_ties(site: WideSite, cams: np.ndarray, X: np.ndarray, weight: float,
                max_samples: int = 48, seed: int = 0) -> list:
-    """One image-model tie per image (recon_core.sparse.image_model), sampled on each tile's
+    """One image-model tie per image (recon_core.bend.image_model), sampled on each tile's
     points."""
-    from recon_core.sparse.image_model import image_tie
+    from recon_core.bend.image_model import image_tie
 
     rng = np.random.default_rng(seed)
     ties = []

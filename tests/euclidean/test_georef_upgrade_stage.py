@@ -75,8 +75,8 @@ def test_the_upgrade_says_what_the_views_can_see_of_a_bend(tiny_run):
     """The report's bend observability: `tiny`'s 3 views of one date cannot see a vertical warp
     (as the render-free harness finds on `flat`), but a site of a few hundred metres is not
     warned about; the same figures over a site of kilometres are."""
-    from recon_core.euclidean.metric_bend import warped_model
-    from recon_core.euclidean.upgrade_stage import BEND_INVISIBLE_PX_PER_M, bend_observability, bend_warning
+    from recon_core.bend.metric import warped_model
+    from recon_core.bend.observability import BEND_INVISIBLE_PX_PER_M, bend_observability, bend_warning
 
     state, _ = tiny_run
     rec = json.loads((state.layout.root / "report.json").read_text())["stages"]["upgrade"]["groups"]["0"]
@@ -93,18 +93,18 @@ def test_the_upgrade_says_what_the_views_can_see_of_a_bend(tiny_run):
     wide = dict(b, site_width_km=2.5)
     assert "cannot see a bend" in bend_warning(wide) and "2.5 km" in bend_warning(wide)
     assert bend_warning(dict(wide, weakest_vertical_px_per_m=0.006)) is None   # `large`'s 9 views
-    # 4 control GCPs cannot fit the invisible warps (recon_core.euclidean.gcp_bend): said, none applied
+    # 4 control GCPs cannot fit the invisible warps (recon_core.bend.gcp): said, none applied
     gb = rec["gcp_bend"]
     assert not gb["applied"] and gb["control_gcps"] == 4 and "needed" in gb["reason"]
     assert maps[0].enu_warp is None and "gcp_warp" not in rec
 
 
 def test_the_metric_bend_step_is_recorded_and_applied(tiny_run):
-    """The upgrade record says what the metric bend step did (recon_core.euclidean.metric_bend),
+    """The upgrade record says what the metric bend step did (recon_core.bend.metric),
     and the map the DSM stage applies (read back from the record) is the upgrade's. On `tiny`
     (0.2 km) the orbit's range is not seen (the perspective moves its pixels by a few
     thousandths of a pixel), so the step can only move the structure by millimetres; rows
-    across track are told apart on a wide site (tests/geometry/test_metric_bend.py)."""
+    across track are told apart on a wide site (tests/bend/test_metric.py)."""
     from recon_core.io.models import load_upgrade
 
     state, _ = tiny_run
@@ -130,8 +130,7 @@ def test_a_metric_warp_goes_through_the_upgrade_its_record_and_the_dsm(tiny_run,
     from recon_core.euclidean.dsm_stage import make_dsm
     from recon_core.euclidean.georef import enu_to_output, output_epsg
     from recon_core.euclidean.upgrade_stage import upgrade_models
-    from recon_core.geometry.enu_map import EnuMap
-    from recon_core.geometry.pushbroom import BendWarp
+    from recon_core.geometry.enu_map import BendWarp, EnuMap
     from recon_core.io.layout import OutLayout
     from recon_core.io.models import PointSource
     from recon_core.io.ply import read_ply

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon_core.geometry.pushbroom import tile_corrections
+from recon_core.bend.pushbroom import tile_corrections
 from recon_core.synthetic.wide_site import make_wide_site, observability, structure_vs_truth
 
 
@@ -120,7 +120,7 @@ def test_a_bend_is_what_a_bowed_focal_plane_looks_like(large_views):
     0.01 (before the focal-plane terms the weakest of 7 seen was 0.027), so nothing can tell a
     dome from the sensors' own bows, and estimate_bend leaves the structure as it is. The
     shares are the same in a metric and in an affine frame."""
-    from recon_core.geometry.pushbroom import estimate_bend
+    from recon_core.bend.pushbroom import estimate_bend
 
     site = large_views
     Xt = site.X_true
@@ -143,7 +143,7 @@ def test_bend_step_read_by_chunks_is_the_same_estimate(large_views):
     """estimate_bend reads each image's equations by chunks (a tall-skinny QR): with chunks of
     997 observations, on a bent and on a flat (rank-deficient model basis) structure, the warp,
     the shares, the residual and the observations kept are those of one chunk."""
-    from recon_core.geometry.pushbroom import estimate_bend
+    from recon_core.bend.pushbroom import estimate_bend
 
     site = large_views
     views = site.views_per_image()
@@ -164,7 +164,7 @@ def test_bend_warp_cameras_follow():
     """BendWarp: its Jacobian is the derivative of its displacement, and an affine camera moved
     with it (`follow`) sees the warped points where it saw the points, up to the warp's
     curvature over the camera's patch."""
-    from recon_core.geometry.pushbroom import BendWarp
+    from recon_core.geometry.enu_map import BendWarp
 
     rng = np.random.default_rng(0)
     T = np.eye(3) + 0.2 * rng.normal(size=(3, 3))

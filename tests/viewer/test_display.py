@@ -71,7 +71,7 @@ def test_the_euclidean_display_is_the_upgrade_map_with_its_metric_warp():
     (recon_core.geometry.enu_map.EnuMap), and a click's inverse finds the frame point back."""
     from aerec_viewer.display import euclidean_display_transform
     from recon_core.geometry.enu_map import EnuMap
-    from recon_core.geometry.pushbroom import BendWarp
+    from recon_core.geometry.enu_map import BendWarp
 
     rng = np.random.default_rng(1)
     X = rng.uniform(-500, 500, size=(200, 3)) * [1, 1, 0.05]

@@ -1,4 +1,4 @@
-"""The per-image pushbroom tie (recon_core.sparse.image_model): its algebra against functions
+"""The per-image pushbroom tie (recon_core.bend.image_model): its algebra against functions
 known to be in or out of the model's family, its invariance to the affine gauge, and how it
 enters the bundle adjustment."""
 
@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from recon_core.bend.image_model import col_basis, image_frame, image_tie, row_basis
 from recon_core.sparse.bundle import bundle_adjust
-from recon_core.sparse.image_model import col_basis, image_frame, image_tie, row_basis
 
 
 def _tiles(rng, n_side=4, pts=60, size=3000.0):

@@ -1,7 +1,7 @@
 """The bend the views cannot see, fitted to control GCPs spread over the site.
 
 Three views of one date leave up to six quadratic warps of the structure that move no pixel
-once every image's pushbroom model re-fits (upgrade_stage.bend_observability: a warp of 1 m at
+once every image's pushbroom model re-fits (recon_core.bend.observability: a warp of 1 m at
 the site's edge moves them by < 1e-3 px). No adjustment finds them and 4 GCPs fix an affine map,
 not a bend: on a 10 km site of one date the heights away from 4 central GCPs were off by 30 m
 RMS (docs: research-notes.md, "One date over 10 km: what 4 GCPs leave"). Control GCPs beyond the four can: this module fits,
@@ -147,7 +147,7 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
     affine fit of H kept it: a bend makes good GCPs disagree with any affine map), with an
     affine correction of H, robustly (GCPs off by more than thresh_m from the consensus left out).
 
-    obs: upgrade_stage.bend_observability of the model in the metric frame H gives, with its
+    obs: recon_core.bend.observability of the model in the metric frame H gives, with its
     "basis" (the 9 warps, centre and scale). Returns a GcpBendFit (its summary says why not, when
     it does not apply)."""
     basis_rec = obs.get("basis") if obs else None
@@ -215,75 +215,3 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
                 warp_max_m=[float(v) for v in np.abs(d).max(axis=0)],
                 warp_rms_m=[float(v) for v in np.sqrt(np.mean(d * d, axis=0))])
     return GcpBendFit(Hn, warp, info, inl, loo_res)
-
-
-# warnings of the affine fit that the fit with the bend replaces (upgrade.upgrade's wording)
-_AFFINE_FIT_WARNINGS = ("RANSAC rejected", "RANSAC cannot tell", "the check points are off by")
-
-
-def rescore(res, H: np.ndarray, warp: EnuWarp, positions: dict, enu: dict, used: list[str],
-            rejected: list[str], loo: dict, info: dict, thresh_m: float):
-    """The UpgradeResult `res` with H and the warp: every GCP row with an affine position
-    (positions: id -> (3,) in the frame H maps; enu: id -> surveyed (3,)) re-scored by the new
-    map; the control GCPs `used` or `rejected` as the fit with the warps decided; their
-    leave-one-out from that fit (loo: id -> (3,)); statistics, degrees of freedom, rejections,
-    warnings and a note updated. A new object; res is unchanged."""
-    from dataclasses import replace
-
-    from recon_core.euclidean.upgrade import _attach_loo, accuracy_stats, conditioning
-
-    rows, groups, rejections = [], {"control": [], "check": []}, []
-    for row in res.points:
-        row = {k: v for k, v in row.items() if not k.startswith("loo_")}
-        x = positions.get(row["id"])
-        if x is not None and row.get("dE") is not None:
-            Y = apply_affine_3d(H, np.asarray(x, np.float64)[None])
-            r = (Y + warp(Y))[0] - np.asarray(enu[row["id"]], np.float64)
-            row.update(dE=float(r[0]), dN=float(r[1]), dU=float(r[2]),
-                       horizontal_m=float(np.hypot(r[0], r[1])), norm3d_m=float(np.linalg.norm(r)))
-            if row["id"] in used:
-                row.update(status="used", reason=None)
-                groups["control"].append(r)
-            elif row["id"] in rejected:
-                row.update(status="rejected",
-                           reason=f"outlier of the fit with the bend: 3D residual {np.linalg.norm(r):.2f} m > "
-                                  f"{thresh_m:g} m against the consensus of the other control GCPs")
-            elif row["status"] == "check":
-                groups["check"].append(r)
-        if row["status"] in ("rejected", "unusable"):
-            rejections.append({"id": row["id"], "reason": row["reason"]})
-        rows.append(row)
-    ids = list(loo)
-    _attach_loo(rows, ids, np.array([loo[i] for i in ids]).reshape(-1, 3))
-    stats = {k: accuracy_stats(np.array(v).reshape(-1, 3)) for k, v in groups.items()}
-    stats["loo"] = accuracy_stats(np.array([loo[i] for i in ids]).reshape(-1, 3))
-    k = info["warps_fitted"]
-    # how well the GCPs the fit used fix the height scale (the affine fit's were fewer)
-    c0 = res.conditioning or {}
-    cond = conditioning(np.array([enu[i] for i in used]).reshape(-1, 3), c0.get("affine_height_sigma_m", 0.4),
-                        c0.get("structure_height_m", 40.0), c0.get("warn_height_error_m", 2.0),
-                        c0.get("poor_height_error_m", 5.0))
-    warnings = [w for w in res.warnings if not w.startswith(_AFFINE_FIT_WARNINGS) and w != c0.get("warning")]
-    if cond.get("warning"):
-        warnings.append(cond["warning"])
-    if rejected:
-        warnings.append("the fit with the bend left out control GCP(s) " + ", ".join(rejected)
-                        + f" (threshold {thresh_m:g} m): check their ground coordinates and image observations")
-    c = stats["check"]
-    if c.get("n") and c["rmse_3d_m"] > thresh_m:
-        warnings.append(f"the check points are off by {c['rmse_3d_m']:.2f} m RMS (3D) with the bend fitted, "
-                        f"more than the {thresh_m:g} m the control GCPs must agree within; see the "
-                        "per-point residuals")
-    what = "the views cannot see" if info["family"] == "invisible" else "of the structure (all nine)"
-    note = (f"{k} quadratic warps {what} were fitted to {len(used)} control GCPs with an "
-            f"affine correction of H_A (leave-one-out {info['loo_rms_bend_m']:.3f} m RMS against "
-            f"{info['loo_rms_affine_m']:.3f} m for an affine map alone, on the same GCPs); the residuals "
-            "are of that map")
-    # the affine fit's notes on its own redundancy and metric constraint no longer hold
-    notes = [t for t in res.notes if not t.startswith("N = 4 control GCPs")]
-    if res.metric_prior is not None:
-        note += ("; this fit uses the GCPs alone, without the cameras' metric constraint of the affine "
-                 "fit (metric_prior is that fit's)")
-    return replace(res, H=H, points=rows, stats=stats, dof=3 * len(used) - 12 - k,
-                   n_control_used=len(used), rejections=rejections, warnings=warnings, conditioning=cond,
-                   notes=notes + [note])

@@ -1,7 +1,7 @@
 """The metric bend step: the horizontal warp no affine frame lets the views see, removed once
 the upgrade gives a metric frame.
 
-Every image's pushbroom model (recon_core.geometry.pushbroom) has a 1D perspective across
+Every image's pushbroom model (recon_core.bend.pushbroom) has a 1D perspective across
 track, col = ... + (u_c - p_c)(s . X): the column's offset from its centre scales with 1 / range.
 In an affine frame s is unknown, so it is free, and with it the two warps of a projective map
 of the ground plane, X -> X (1 + a . X), are invisible: each image's free s absorbs them, and
@@ -37,8 +37,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from recon_core.geometry.pushbroom import (MIN_TILES_FOR_CORRECTION, BendWarp, estimate_bend,
-                                           physical_depth)
+from recon_core.bend.pushbroom import MIN_TILES_FOR_CORRECTION, estimate_bend, physical_depth
+from recon_core.geometry.enu_map import BendWarp
 
 MIN_METRIC_SHARE = 0.1      # a warp is estimated when this share of its pixel motion is seen.
                             # Measured: `large`'s pair and range at 0.28-0.55 (render-free,

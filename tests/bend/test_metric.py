@@ -1,4 +1,4 @@
-"""The metric bend step (recon_core.euclidean.metric_bend): the horizontal projective warp no
+"""The metric bend step (recon_core.bend.metric): the horizontal projective warp no
 affine frame lets the views see is found once each image's 1D perspective is known by physics.
 
 Render-free (recon_core.synthetic.wide_site): `large`'s 9 pushbroom cameras (orbits at 620-690
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon_core.geometry.pushbroom import BendWarp, estimate_bend, physical_depth
+from recon_core.bend.pushbroom import BendWarp, estimate_bend, physical_depth
 from recon_core.synthetic.wide_site import make_wide_site, structure_vs_truth
 
 
@@ -68,7 +68,7 @@ def test_the_projective_pair_is_found_only_with_the_physics(warped_site):
 def test_rows_across_track_are_told_apart(warped_site):
     """Columns and rows swapped (the perspective then in the rows): the data's range change is
     near -1 (no perspective where the physics puts it), which metric_bend refuses (> 0.5)."""
-    from recon_core.euclidean.metric_bend import MAX_RANGE_CHANGE
+    from recon_core.bend.metric import MAX_RANGE_CHANGE
 
     _, Xb, images = warped_site
     swapped = [(p, xy[:, ::-1]) for p, xy in images]

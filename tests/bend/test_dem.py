@@ -1,4 +1,4 @@
-"""The vertical bend held by a coarse reference DEM (recon_core.euclidean.dem_bend), against a
+"""The vertical bend held by a coarse reference DEM (recon_core.bend.dem), against a
 known scene: a 10 km site of terrain and buildings, its structure bent by a saddle of tens of
 metres the way three views of one date leave it, 4 control GCPs near the centre, and a DEM of
 1 arc-second cells with an offset, a tilt and correlated noise of metres."""
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from recon_core.euclidean.dem_bend import fit_dem_bend, fit_surface, open_reference_dem
+from recon_core.bend.dem import fit_dem_bend, fit_surface, open_reference_dem
 from recon_core.geometry.affine import apply_affine_3d, fit_affine_3d
 from recon_core.geometry.geodesy import LocalFrame
 
@@ -134,7 +134,7 @@ def test_the_dem_is_sampled_where_it_is(tmp_path, monkeypatch, max_read):
     import rasterio
     from rasterio.transform import from_origin
 
-    from recon_core.euclidean import dem_bend
+    from recon_core.bend import dem as dem_bend
 
     monkeypatch.setattr(dem_bend, "MAX_READ_PX", max_read)
     d, lon0, lat0 = 1.0 / 3600.0, 30.0, 31.1
@@ -174,8 +174,9 @@ def test_the_upgrade_takes_the_bend_from_a_dem_only_where_the_views_cannot_see_i
     the map is the one without it; made to count as wide, the DEM's warp is applied, recorded
     where the DSM stage reads it, and the check points are no worse for it."""
     from aerec_viewer.results import outcome_markdown
+    from recon_core.bend import dem as dem_bend
+    from recon_core.bend import observability
     from recon_core.config import preset
-    from recon_core.euclidean import dem_bend, upgrade_stage
     from recon_core.euclidean.upgrade_stage import upgrade_models
     from recon_core.geometry.enu_map import EnuMap
     from recon_core.synthetic.ref_dem import simulate_reference_dem
@@ -191,7 +192,7 @@ def test_the_upgrade_takes_the_bend_from_a_dem_only_where_the_views_cannot_see_i
     np.testing.assert_array_equal(up.results[0].H, base.results[0].H)
     assert up.maps[0].enu_warp is None
     # as if it were wide (its views cannot see a vertical bend: test_georef_upgrade_stage)
-    monkeypatch.setattr(upgrade_stage, "BEND_WARN_WIDTH_KM", 0.0)
+    monkeypatch.setattr(observability, "BEND_WARN_WIDTH_KM", 0.0)
     monkeypatch.setattr(dem_bend, "CELL_M", 40.0)
     monkeypatch.setattr(dem_bend, "MIN_CELLS", 10)
     up = upgrade_models(state.gcps, state.models, cfg)

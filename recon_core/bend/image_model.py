@@ -22,7 +22,7 @@ affine maps of the frame (r, c follow the cameras), so the gauge stays the 12-do
 On this project's synthetic cameras (orbit, Earth rotation, agile steering, attitude drift),
 the model fits the true projection of whole images of 5000-8192 px to 0.003-0.096 px RMS
 (`bench/bench_image_model.py`), where a single affine camera is off by 0.4-3.6 px RMS and a
-general quadratic in X by 0.06-0.9 px. The focal plane's terms (recon_core.geometry.pushbroom:
+general quadratic in X by 0.06-0.9 px. The focal plane's terms (recon_core.bend.pushbroom:
 a bowed, distorted line array, yaw and scale drifting) make it fit an independent simulator's
 cameras too (omaha_3dates: 0.11-0.23 px RMS without them, 0.001 px with them).
 
@@ -42,7 +42,7 @@ rank <= 17 (the eliminated theta), which the dense bundle adjustment expands and
 block-sparse one solves by the Woodbury identity (`Tie`). Its weight w = (sigma_obs /
 sigma_tie)^2: sigma_obs the observations' noise (measured from the reprojection error),
 sigma_tie the model's error against a true pushbroom (SfmConfig.tie_sigma_px and the number of
-views: sfm.tie_sigma; bench/bench_bend.py tries others). Each tile counts as 8 points (the
+views: closing.tie_sigma; bench/bench_bend.py tries others). Each tile counts as 8 points (the
 corners of its volume), whatever its number of observations.
 
 Status (2026-11-27): off by default (SfmConfig.tie_sigma_px = 0). With the model's focal-plane
@@ -58,7 +58,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from recon_core.geometry.pushbroom import col_basis, row_basis  # the model's family
+from recon_core.bend.pushbroom import col_basis, row_basis  # the model's family
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """The per-image pushbroom model's family, the within-tile correction, and what a set of views can
 see of a bend (shared by the sparse stage, the upgrade and the render-free harness).
 
-The model (recon_core.sparse.image_model explains it and ties tile cameras to it): to second
+The model (recon_core.bend.image_model explains it and ties tile cameras to it): to second
 order in the affine frame X, with r, c an image's own row and column (its mean affine camera,
 normalised),
 
@@ -21,9 +21,9 @@ of the structure shows of itself, so the bend is no longer seen through the imag
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
+
+from recon_core.geometry.enu_map import BendWarp
 
 
 def _focal_plane(r: np.ndarray, c: np.ndarray, row: bool) -> np.ndarray:
@@ -315,50 +315,6 @@ MIN_WARP_SHARE = 0.02   # a warp is estimated when at least this share of the pi
                         # Through models of real focal planes no quadratic warp of an affine
                         # frame reaches it (every share < 0.01 on `large`'s 9 views): only the
                         # metric bend step, with each image's depth known, finds one
-
-
-@dataclass
-class BendWarp:
-    """A quadratic warp X -> X + D(X) of an affine structure (see above): D(X) = T^-1 d,
-    d_a = sum_m coef[3 a + m] mono_m(e, n), (e, n) = S (T (X - x0) - w0)."""
-    x0: np.ndarray        # (3,) the structure's centre
-    T: np.ndarray         # (3, 3) whitening of the frame by the mean cameras
-    S: np.ndarray         # (2, 3) the ground plane's normalised coordinates in the whitened frame
-    w0: np.ndarray        # (3,) the whitened centre
-    coef: np.ndarray      # (9,) the warp, (axis a, monomial m), a-major, in whitened units (px)
-
-    def _plane(self, X: np.ndarray) -> np.ndarray:
-        return ((X - self.x0) @ self.T.T - self.w0) @ self.S.T
-
-    def __call__(self, X: np.ndarray) -> np.ndarray:
-        """(n, 3) the displacement D(X) of points X (n, 3)."""
-        p = self._plane(X)
-        mono = np.stack([p[:, 0] ** 2, np.sqrt(2.0) * p[:, 0] * p[:, 1], p[:, 1] ** 2], 1)
-        return (mono @ self.coef.reshape(3, 3).T) @ np.linalg.inv(self.T).T
-
-    def jacobian(self, X: np.ndarray) -> np.ndarray:
-        """(n, 3, 3) dD/dX at points X (n, 3)."""
-        p = self._plane(X)
-        e, n = p[:, 0], p[:, 1]
-        z = np.zeros_like(e)
-        r2 = np.sqrt(2.0)
-        dmono = np.stack([np.stack([2 * e, z], 1), np.stack([r2 * n, r2 * e], 1),
-                          np.stack([z, 2 * n], 1)], 1)                 # (n, 3 monomials, 2)
-        dd = np.einsum("am,nmk,kj->naj", self.coef.reshape(3, 3), dmono, self.S @ self.T)
-        return np.einsum("ab,nbj->naj", np.linalg.inv(self.T), dd)
-
-
-    def follow(self, cams: np.ndarray, centres: np.ndarray) -> np.ndarray:
-        """(T, 2, 4) affine cameras cams (T, 2, 4) moved with the warp's linear part at their
-        points' centres (T, 3), so that they still see the warped points where they saw them:
-        X' = X + D(X) ~ c + D(c) + (I + G)(X - c) (G = dD/dX at c) gives A' = A (I + G)^-1 and
-        p' = A c + p - A' (c + D(c)). What is left (the warp's curvature over a tile) is far
-        below a pixel, and the next adjustment takes it."""
-        A, p = cams[:, :, :3], cams[:, :, 3]
-        A_new = np.einsum("tij,tjk->tik", A, np.linalg.inv(np.eye(3) + self.jacobian(centres)))
-        p_new = (np.einsum("tij,tj->ti", A, centres) + p
-                 - np.einsum("tij,tj->ti", A_new, centres + self(centres)))
-        return np.concatenate([A_new, p_new[:, :, None]], 2)
 
 
 def _orthonormal(B: np.ndarray) -> np.ndarray:

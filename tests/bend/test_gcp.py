@@ -1,10 +1,10 @@
-"""The bend the views cannot see, fitted to control GCPs (recon_core.euclidean.gcp_bend): the
+"""The bend the views cannot see, fitted to control GCPs (recon_core.bend.gcp): the
 true bend of a synthetic site is recovered from spread GCPs (checked on held-out points), and
 nothing is applied from too few GCPs or where there is no bend to find."""
 
 import numpy as np
 
-from recon_core.euclidean.gcp_bend import fit_gcp_bend
+from recon_core.bend.gcp import fit_gcp_bend
 from recon_core.geometry.enu_map import EnuMap, EnuWarp
 
 
@@ -85,8 +85,7 @@ def test_the_report_is_rescored_with_the_bend_and_a_blunder_left_out():
     """Through upgrade.upgrade (whose affine RANSAC rejects good GCPs that the bend moved) and
     rescore: every good control GCP used again, the blunder rejected, the check points scored by
     the map with the warps, and the affine fit's warnings replaced."""
-    from recon_core.euclidean.gcp_bend import rescore
-    from recon_core.euclidean.upgrade import GcpInput, upgrade
+    from recon_core.euclidean.upgrade import GcpInput, rescore_with_bend, upgrade
 
     H, Xa, Xe, obs, n, rng = _site(3, 12, dome_m=30.0)
     surveyed = Xe + rng.normal(0, 0.05, Xe.shape)
@@ -102,7 +101,7 @@ def test_the_report_is_rescored_with_the_bend_and_a_blunder_left_out():
     Hn, warp, info, inl, loo = fit.H, fit.warp, fit.summary, fit.inliers, fit.loo
     assert info["applied"] and not inl[ctrl.index("G02")] and inl.sum() == n - 1
     used = [k for k, ok in zip(ctrl, inl) if ok]
-    out = rescore(res, Hn, warp, {g.id: g.affine_xyz for g in gcps}, {g.id: g.enu for g in gcps}, used,
+    out = rescore_with_bend(res, Hn, warp, {g.id: g.affine_xyz for g in gcps}, {g.id: g.enu for g in gcps}, used,
                   ["G02"], dict(zip(used, loo)), info, 2.0)
     status = {p["id"]: p["status"] for p in out.points}
     assert status["G02"] == "rejected" and sum(v == "used" for v in status.values()) == n - 1
@@ -158,7 +157,7 @@ def test_leave_one_out_and_consensus_predict_with_the_map_they_fit():
     """Every fit centres the heights on one value: an exact affine change of the height scale is
     predicted exactly for each point left out, and a blunder kilometres off does not move the
     consensus (review: the centre had followed each subset's mean height)."""
-    from recon_core.euclidean.gcp_bend import _consensus, _loo
+    from recon_core.bend.gcp import _consensus, _loo
 
     rng = np.random.default_rng(7)
     Y = np.c_[rng.uniform(-5000, 5000, (12, 2)), rng.uniform(0, 200, 12)]

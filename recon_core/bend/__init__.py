@@ -1,0 +1,9 @@
+"""The pushbroom model and the corrections it makes possible: the one owner of the bend.
+
+Independent affine tile cameras leave a smooth bend of the structure nearly free; 4 GCPs fix an
+affine map, not a bend. Everything that models, checks or removes that bend lives here, between
+the shared layers (geometry, model) and the stages that call it: the per-image pushbroom model
+and its check (pushbroom), the per-image tie (image_model), the sparse stage's closing
+adjustments in their order (closing), what the views can see of a bend (observability), the
+metric bend step (metric), and the bend held by control GCPs (gcp) or by a reference DEM (dem).
+"""
