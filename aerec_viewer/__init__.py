@@ -12,10 +12,10 @@ _EXPORTS = {
     "ReconWorker": "worker", "DisplaySnapshot": "worker",
     "DisplayTransform": "display", "affine_display_transform": "display",
     "euclidean_display_transform": "display",
-    "GcpSession": "gcp_panel", "GcpError": "gcp_panel", "PickPlane": "gcp_panel",
+    "GcpSession": "gcp_panel", "GcpError": "gcp_panel", "PickPlane": "picking",
     "open_session": "gcp_panel", "add_observation": "gcp_panel", "new_gcp": "gcp_panel",
     "edit_gcp": "gcp_panel", "delete_gcp": "gcp_panel", "import_site_gcps": "gcp_panel",
-    "set_affine_position": "gcp_panel", "pixel_from_ray": "gcp_panel",
+    "set_affine_position": "gcp_panel", "pixel_from_ray": "picking",
     "run_upgrade": "results", "UpgradeOutcome": "results", "residual_table_markdown": "results",
 }
 __all__ = sorted(_EXPORTS)

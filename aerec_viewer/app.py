@@ -28,7 +28,6 @@ import numpy as np
 from recon_core.errors import AerecError
 from recon_core.euclidean.ground_reference import EDGE_SPREAD_M
 from recon_core.io.gcps import picked_positions
-from recon_core.model.tiling import Window
 
 from .display import (
     COLOR_MODES,
@@ -39,7 +38,7 @@ from .display import (
 )
 from .framerate import BudgetGovernor, ViewRateMeter
 from .gcp_marks import GcpMarks
-from .gcp_panel import GcpPanel, PickPlane, layout_pick_plane, pixel_from_ray
+from .gcp_panel import GcpPanel
 from .gcp_session import (
     GcpError,
     add_observation,
@@ -51,6 +50,7 @@ from .gcp_session import (
     undo,
 )
 from .imagery import ImageSource
+from .picking import PickingView, pixel_from_ray
 from .results import (
     DsmPanel,
     UpgradeOutcome,
@@ -68,42 +68,6 @@ log = logging.getLogger("aerec.viewer")
 # A click that arrives within this many seconds of its client's camera moving was a drag (an
 # orbit that ended where it started, a wobble while pressing): it records nothing
 DRAG_GUARD_S = 0.35
-# The loupe: the first click on the image plane (when "Click zooms in first" is on) shows the
-# LOUPE_PX x LOUPE_PX full-resolution pixels around it, each drawn as LOUPE_SCALE x LOUPE_SCALE
-# texels (nearest neighbour, lossless), with a crosshair whose centre is left open; the second
-# click there is the observation, to a fraction of a pixel.
-LOUPE_PX = 40
-LOUPE_SCALE = 16
-LOUPE_CROSS = (255, 200, 0)
-
-
-def loupe_window(width: int, height: int, image: str, col: float, row: float,
-                 size: int = LOUPE_PX) -> Window:
-    """The size x size window of an image (width x height) centred on pixel (col, row), shifted
-    inside the image at its borders."""
-    w, h = min(size, width), min(size, height)
-    c0 = int(min(max(round(col) - size // 2, 0), width - w))
-    r0 = int(min(max(round(row) - size // 2, 0), height - h))
-    return Window(image, c0, r0, w, h)
-
-
-def loupe_texture(gray: np.ndarray, win: Window, centre: tuple[float, float],
-                  scale: int = LOUPE_SCALE) -> np.ndarray:
-    """(h * scale, w * scale, 3) uint8: the window's pixels enlarged by pixel replication and a
-    one-texel crosshair through the centre of the pixel `centre` (full-image col, row), open
-    over that pixel and its neighbours so that it never covers what is being aimed at."""
-    rgb = np.repeat(np.repeat(np.repeat(gray[..., None], 3, axis=2), scale, axis=0), scale, axis=1)
-    fx, fy = win.fraction(*centre)
-    H, W = rgb.shape[:2]
-    cx, cy = int(np.clip(fx * W, 0, W - 1)), int(np.clip(fy * H, 0, H - 1))
-    gap = int(1.5 * scale)
-    cols = np.r_[0:max(cx - gap, 0), min(cx + gap + 1, W):W]
-    rows = np.r_[0:max(cy - gap, 0), min(cy + gap + 1, H):H]
-    rgb[cy, cols] = LOUPE_CROSS
-    rgb[rows, cx] = LOUPE_CROSS
-    return rgb
-
-
 class _OneLine(logging.Filter):
     """A client's malformed handshake or frame is the client's problem: one line on the console,
     not a traceback (the server goes on either way)."""
@@ -179,7 +143,6 @@ class ViewerApp:
         self.upgrade: UpgradeOutcome | None = None
         self._dsm_rerun_pending = False
         self.frame = "affine"
-        self.pick_plane: PickPlane | None = None
         self.last_click: tuple | None = None          # (gcp id, image, col, row) of the last pick
         self.update_hz = update_hz
         self._euclid: dict[int, DisplayTransform] = {}
@@ -193,15 +156,10 @@ class ViewerApp:
         self._thread: threading.Thread | None = None
         self._seen_version = -1
         self._framed = False
-        self._plane_handle = None
-        self._plane_key = None
-        self._plane_token = None
-        self._reframe_on_plane = False
         self._state_table_key = None
-        self.marks = GcpMarks(self)          # every /gcp node but the picking plane
+        self.picking = PickingView(self)     # the picking plane and its loupe (/gcp/plane)
+        self.marks = GcpMarks(self)          # every other /gcp node
         self._armed = None
-        self.loupe: tuple[Window, tuple[float, float]] | None = None   # (window, pixel zoomed on)
-        self._loupe_views: dict[int, tuple] = {}   # client id -> its camera before the loupe
         self._gui_cache: dict[str, object] = {}
         self._tri_cache: dict = {}
         self._build_gui()
@@ -318,14 +276,14 @@ class ViewerApp:
             if snap.status in ("done", "reopened"):
                 self.scene.finish()
             self._update_panel(snap)
-            self._relayout_plane()
+            self.picking.relayout()
             if sent and not self._framed:
                 self._framed = True
-                if self.pick_plane is None:
-                    self._reframe_on_plane = True
-                    self.show_image_plane()
+                if self.picking.plane is None:
+                    self.picking.reframe = True
+                    self.picking.show()
                 for client in self.server.get_clients().values():
-                    self._frame_client(client)
+                    self.frame_client(client)
             self.marks.draw()
             self.dsm_panel.refresh(snap)
         return sent
@@ -458,7 +416,7 @@ class ViewerApp:
         # the list opens on the first GCP still to place (N from there goes on), not on "new"
         gp = self.gcp_panel
         gp.refresh(select=gp.neighbour(None, +1)[0] if self.session.ids else "keep")
-        self._set_regions()
+        self.picking.set_regions()
 
     def _wire(self) -> None:
         s = self.scene.settings
@@ -484,7 +442,7 @@ class ViewerApp:
                                                 self.scene.apply_visibility())))
         self.g_dense.on_update(setter(lambda: (setattr(s, "show_dense", self.g_dense.value),
                                                self.scene.apply_visibility(), self._force())))
-        self.g_reset.on_click(lambda ev: sub(lambda: self._frame_client(ev.client)))
+        self.g_reset.on_click(lambda ev: sub(lambda: self.frame_client(ev.client)))
         self.g_upgrade.on_click(setter(self.do_upgrade))
         self.g_frame_sel.on_update(setter(lambda: self.set_frame(
             "euclidean" if self.g_frame_sel.value == "Euclidean" else "affine")))
@@ -589,7 +547,7 @@ class ViewerApp:
     def _on_connect(self, client) -> None:
         self.gcp_panel.note_choice(client, chooser=False)   # what this tab sees at first
         client.camera.on_update(self._camera_update)
-        self.submit(lambda: self._frame_client(client))
+        self.submit(lambda: self.frame_client(client))
 
     def _camera_update(self, camera) -> None:
         """Remember when each client's view last moved (the drag guard of on_plane_click)."""
@@ -612,7 +570,7 @@ class ViewerApp:
         moved = self._camera_moved.get(client_id)
         return moved is not None and 0.0 <= t_click - moved[2] < DRAG_GUARD_S
 
-    def _frame_client(self, client) -> None:
+    def frame_client(self, client) -> None:
         """Point a client's camera at the cloud, obliquely from the south, leaving room for the
         panel on the right (the picking plane lies further east: "Look at the image plane")."""
         b = self.scene_bounds()
@@ -640,7 +598,7 @@ class ViewerApp:
         d = np.asarray(ray_direction, float)
         d = d / np.linalg.norm(d)
         spot = None
-        pl = self.pick_plane
+        pl = self.picking.plane
         if pl is not None and pl.hit(o, d) is not None:
             fx, fy = pl.hit(o, d)
             spot = plane_point(fx, fy, position=pl.position, wxyz=pl.wxyz,
@@ -656,167 +614,18 @@ class ViewerApp:
             client.camera.look_at = tuple(look + shift)
         return spot
 
-    def look_at_plane(self, client) -> None:
-        """Put a client's camera straight above the picking plane (for precise clicks)."""
-        p = self.pick_plane
-        if p is None:
-            return
-        size = max(p.render_width, p.render_height)
-        client.camera.far = 50.0 * size
-        client.camera.up_direction = (0.0, 1.0, 0.0)
-        client.camera.position = tuple(p.position + np.array([0.0, -1e-3 * size, 1.25 * size]))
-        client.camera.look_at = tuple(p.position)
-
     # -- GCPs -----------------------------------------------------------------------------------
-    def _set_regions(self) -> None:
-        img = self.gcp_panel.image.value
-        self._regions = {"whole image": self.images.whole(img)}
-        for tid, win in sorted(self.scene.tile_windows.items()):
-            if win.image == img:
-                self._regions[f"tile {tid.split(':')[-1]} ({win.width} x {win.height} at "
-                              f"{win.col0}, {win.row0})"] = win
-        self.gcp_panel.set_regions(list(self._regions)[1:])
-
-    def current_window(self) -> Window:
-        self._set_regions()
-        if self.loupe is not None and self.loupe[0].image == self.gcp_panel.image.value:
-            return self.loupe[0]
-        return self._regions.get(self.gcp_panel.region.value, self.images.whole(self.gcp_panel.image.value))
-
-    def in_loupe(self, win: Window) -> bool:
-        """Is this window (the plane's, or the one about to be drawn) the open loupe?"""
-        return self.loupe is not None and self.loupe[0] == win
-
-    def open_loupe(self, pix: tuple[float, float], client=None, image: str | None = None) -> Window:
-        """Show the full-resolution pixels around pix (in the plane's image, or `image`, the one
-        chosen in the GCP tab) on the picking plane and put the client's camera straight above
-        it; the next click places."""
-        image = image or self.pick_plane.window.image
-        im = self.images.info(image)
-        win = loupe_window(im.width, im.height, image, *pix)
-        self.loupe = (win, (float(pix[0]), float(pix[1])))
-        self.show_image_plane(wait=True)
-        if client is not None:
-            cam = client.camera
-            self._loupe_views[client.client_id] = (tuple(cam.position), tuple(cam.look_at),
-                                                   tuple(cam.up_direction))
-            self.look_at_plane(client)
-        self.gcp_panel.leave_loupe.disabled = False
-        self.note(f"loupe on {image} around col {pix[0]:.0f}, row {pix[1]:.0f}: click the exact "
-                  "pixel (or Leave the loupe)")
-        return win
-
-    def close_loupe(self, client=None) -> None:
-        """Back to the region the loupe was opened from (and the client's view before it)."""
-        if self.loupe is None:
-            return
-        self.loupe = None
-        self.gcp_panel.leave_loupe.disabled = True
-        self.show_image_plane(wait=True)
-        for cid, c in list(self.server.get_clients().items()):
-            view = self._loupe_views.get(cid)
-            if view is not None and (client is None or cid == client.client_id):
-                c.camera.up_direction = view[2]
-                c.camera.position = view[0]
-                c.camera.look_at = view[1]
-        self._loupe_views.clear()
-
-    def show_image_plane(self, wait: bool = False) -> None:
-        """(Re)draw the picking plane for the image and region chosen in the GCP tab.
-
-        The texture (at most 2048 px a side) is read on a helper thread, so a first read of a
-        large image never stalls the scene updates; `wait` reads it here (tests)."""
-        if not self.gcp_panel.show_plane.value:
-            if self._plane_handle is not None:
-                self._plane_handle.remove()
-            self._plane_handle, self.pick_plane, self._plane_key = None, None, None
-            self.marks.invalidate()
-            return
-        win = self.current_window()
-        contrast = self.gcp_panel.contrast.value
-        token = self._plane_token = object()
-        loupe = self.loupe if self.in_loupe(win) else None
-
-        def texture() -> np.ndarray:
-            tex = self.images.read(win, 2048, contrast)
-            return tex if loupe is None else loupe_texture(tex, win, loupe[1])
-
-        if wait:
-            self._place_plane(win, texture(), token)
-            return
-
-        def read() -> None:
-            try:
-                tex = texture()
-            except Exception as exc:
-                msg = f"cannot read {win.image}: {exc}"   # exc is unbound once the block ends
-                self.submit(lambda: self.note(msg, "error"))
-                return
-            self.submit(lambda: self._place_plane(win, tex, token))
-
-        threading.Thread(target=read, name="aerec-plane-read", daemon=True).start()
-
-    def _place_plane(self, win: Window, tex: np.ndarray, token: object) -> None:
-        if token is not self._plane_token:            # a newer choice superseded this one
-            return
-        plane = layout_pick_plane(win, self.scene_bounds())
-        rgb = tex if tex.ndim == 3 else np.repeat(tex[..., None], 3, axis=2)
-        h = self.server.scene.add_image("/gcp/plane", rgb, plane.render_width, plane.render_height,
-                                        # the loupe's enlarged pixels must stay sharp
-                                        format="png" if self.in_loupe(win) else "jpeg", jpeg_quality=90,
-                                        wxyz=plane.wxyz, position=plane.position,
-                                        cast_shadow=False, receive_shadow=False)
-        def clicked(ev) -> None:
-            if self.moved_just_before(ev.client_id, time.time()):
-                self.submit(lambda: self.note("the view moved during that click (a drag): nothing "
-                                              "recorded; click without moving the mouse", "warning"))
-                return
-            self.submit(lambda: self.on_plane_click(ev.ray_origin, ev.ray_direction, ev.client))
-
-        h.on_click(clicked)
-        self._plane_handle, self.pick_plane = h, plane
-        self._plane_key = self._bounds_key()
-        self.marks.invalidate()
-        self.marks.draw()
-        if self._reframe_on_plane:                    # the first view should show the plane too
-            self._reframe_on_plane = False
-            for client in self.server.get_clients().values():
-                self._frame_client(client)
-
-    def _bounds_key(self):
-        b = self.scene_bounds()
-        return None if b is None else (self.frame, tuple(np.round(np.r_[b[0], b[1]], 3)))
-
-    def _relayout_plane(self) -> None:
-        if self.pick_plane is None or self._plane_handle is None:
-            return
-        key = self._bounds_key()
-        if key is None or key == self._plane_key:
-            return
-        old = self.pick_plane
-        new = layout_pick_plane(old.window, self.scene_bounds())
-        grow = new.render_width / old.render_width
-        if key[0] != (self._plane_key or (None,))[0] or not (0.8 < grow < 1.25):
-            self.show_image_plane(wait=True)            # the texture is cached by now
-            return
-        moved = np.linalg.norm(new.position - old.position) / old.render_width
-        if moved > 0.05:
-            self._plane_handle.position = tuple(new.position)
-            self.pick_plane = PickPlane(old.window, new.position, old.wxyz, old.render_width,
-                                        old.render_height)
-            self.marks.invalidate()
-        self._plane_key = key
-
     def on_plane_click(self, ray_origin, ray_direction, client=None) -> tuple[float, float] | None:
         """A click on the picking plane: an observation of the selected (or a new) GCP; with
         "Click zooms in first", a click outside the loupe opens the loupe there instead."""
-        if self._armed is not None or self.pick_plane is None:
+        pick = self.picking
+        if self._armed is not None or pick.plane is None:
             return None
-        pix = pixel_from_ray(self.pick_plane, ray_origin, ray_direction)
+        pix = pixel_from_ray(pick.plane, ray_origin, ray_direction)
         if pix is None:
             self.note("the click missed the image", "warning")
             return None
-        if self.reference is not None and self.pick_plane.window.image == self.reference.ortho.name:
+        if self.reference is not None and pick.plane.window.image == self.reference.ortho.name:
             return self.on_reference_click(pix, client)
         gid = self.gcp_panel.selected()
         if gid is None:
@@ -825,9 +634,9 @@ class ViewerApp:
                 raise GcpError("select a GCP, or type the new GCP's ground coordinates "
                                "(or take one from the site list) before clicking")
         self.gcp_panel.check_choice(client)
-        in_loupe = self.in_loupe(self.pick_plane.window)
+        in_loupe = pick.in_loupe(pick.plane.window)
         if not in_loupe and self.gcp_panel.zoom_click.value:
-            self.open_loupe(pix, client)
+            pick.open_loupe(pix, client)
             return None
         if gid is None:
             gid = new_gcp(self.session, self.gcp_panel.gid.value or None, x=x, y=y, h=h,
@@ -835,7 +644,7 @@ class ViewerApp:
             created = True
         else:
             created = False
-        image = self.pick_plane.window.image
+        image = pick.plane.window.image
         try:
             add_observation(self.session, gid, image, *pix)
         except GcpError:
@@ -847,7 +656,7 @@ class ViewerApp:
             self.gcp_panel.note_choice(client, gid)
         self.last_click = (gid, image, pix[0], pix[1])
         if in_loupe:
-            self.close_loupe(client)
+            pick.close_loupe(client)
         self.gcps_changed(select=gid, note=f"{gid}: observed in {image} at col {pix[0]:.2f}, "
                                            f"row {pix[1]:.2f}")
         if in_loupe:                          # a precise click: on to the GCP's next image
@@ -858,11 +667,11 @@ class ViewerApp:
         """A click on the reference orthoimage: the selected GCP's ground position (lon, lat from
         the orthoimage, h from the DEM), or a new GCP there when none is selected; with "Click
         zooms in first", a click outside the loupe opens the loupe there instead."""
-        ref = self.reference
+        ref, pick = self.reference, self.picking
         self.gcp_panel.check_choice(client)
-        in_loupe = self.in_loupe(self.pick_plane.window)
+        in_loupe = pick.in_loupe(pick.plane.window)
         if not in_loupe and self.gcp_panel.zoom_click.value:
-            self.open_loupe(pix, client)
+            pick.open_loupe(pix, client)
             return None
         lon, lat, h = ref.ground_at(*pix)
         gid = self.gcp_panel.selected()
@@ -885,7 +694,7 @@ class ViewerApp:
             g = edit_gcp(self.session, gid, x=lon, y=lat, h=h)
             what = g.id
         if in_loupe:
-            self.close_loupe(client)
+            pick.close_loupe(client)
         back = self.gcp_panel.walk.value and not g.observations
         self.gcps_changed(select=g.id, note=f"{what}: ground position from the reference orthoimage at col "
                                             f"{pix[0]:.2f}, row {pix[1]:.2f}: lon {lon:.7f}, lat {lat:.7f}; "
@@ -1040,7 +849,7 @@ class ViewerApp:
         self._force()
         self._framed = False
         self.marks.invalidate()
-        self._plane_key = ("reset",)
+        self.picking.reset_layout()
         self._tick()
         self.dsm_panel.frame_changed()
 

@@ -13,8 +13,8 @@ from typing import NamedTuple
 import numpy as np
 
 from .display import quat_to_matrix
-from .gcp_panel import PickPlane, pixel_from_ray
 from .gcp_session import add_observation
+from .picking import PickPlane, pixel_from_ray
 from .scene import safe_name
 
 MARK_RING_PX = 11.0     # radius of a GCP marker ring on screen (pixels), whatever the zoom
@@ -77,23 +77,23 @@ class GcpMarks:
 
         want = {}
         r = self.radius()
-        if app.pick_plane is not None and app.reference is not None \
-                and app.pick_plane.window.image == app.reference.ortho.name and app.session.gcps:
+        if app.picking.plane is not None and app.reference is not None \
+                and app.picking.plane.window.image == app.reference.ortho.name and app.session.gcps:
             # on the reference orthoimage: each GCP's ground position
-            win = app.pick_plane.window
+            win = app.picking.plane.window
             gs = app.session.gcps
             cols, rows = app.reference.pixel_of([g.lon for g in gs], [g.lat for g in gs])
             for gcp, c, rr in zip(gs, cols, rows):
                 if win.contains([(float(c), float(rr))])[0]:
                     want[f"/gcp/plane_marks/{safe_name(gcp.id)}"] = (
-                        app.pick_plane.point_of(float(c), float(rr), lift=0.5 * r), colour(gcp.id), gcp.id)
-        elif app.pick_plane is not None:
-            win = app.pick_plane.window
+                        app.picking.plane.point_of(float(c), float(rr), lift=0.5 * r), colour(gcp.id), gcp.id)
+        elif app.picking.plane is not None:
+            win = app.picking.plane.window
             for gcp in app.session.gcps:
                 ob = gcp.observations.get(win.image)
                 if ob is not None and win.contains([ob])[0]:
                     want[f"/gcp/plane_marks/{safe_name(gcp.id)}"] = (
-                        app.pick_plane.point_of(ob[0], ob[1], lift=0.5 * r), colour(gcp.id), gcp.id)
+                        app.picking.plane.point_of(ob[0], ob[1], lift=0.5 * r), colour(gcp.id), gcp.id)
         shown: set[str] = set()
         for g, T in sorted(snap_T.items()):
             for gid, xyz in app.gcp_affine_positions(g).items():
@@ -122,7 +122,7 @@ class GcpMarks:
         app = self.app
         snap_T = app.transforms(app.worker.snapshot())
         key = (app.session.version, app.gcp_panel.select.value, app.frame,
-               None if app.pick_plane is None else (app.pick_plane.window, tuple(app.pick_plane.position)),
+               None if app.picking.plane is None else (app.picking.plane.window, tuple(app.picking.plane.position)),
                tuple((g, id(T)) for g, T in sorted(snap_T.items())), len(app.models))
         if key == self.key:
             return
@@ -134,7 +134,7 @@ class GcpMarks:
             self.items.pop(name).label.remove()
         for name, (pos, col, text) in want.items():
             have = self.items.get(name)
-            on_plane = name.startswith("/gcp/plane_marks/") and app.pick_plane is not None
+            on_plane = name.startswith("/gcp/plane_marks/") and app.picking.plane is not None
             if have is not None and have.colour == col and abs(have.radius / r - 1) < 0.1:
                 if np.linalg.norm(have.pos - pos) > 1e-6 * r:
                     have.label.position = tuple(pos + label_offset(have.radius, on_plane))
@@ -155,8 +155,8 @@ class GcpMarks:
         WebGL pays about a millisecond for each, a frame for 40 markers."""
         app = self.app
         flat = np.eye(3, dtype=np.float32)                 # rings on the clouds lie in xy
-        on_plane = flat if app.pick_plane is None else \
-            quat_to_matrix(np.asarray(app.pick_plane.wxyz)).astype(np.float32)
+        on_plane = flat if app.picking.plane is None else \
+            quat_to_matrix(np.asarray(app.picking.plane.wxyz)).astype(np.float32)
         sets: dict[str, list] = {}
         for name, (_, col, r, pos) in self.items.items():
             place = name.rsplit("/", 1)[0]
@@ -177,8 +177,8 @@ class GcpMarks:
         """(GCP, image, pixel) the drag handle adjusts: the selected GCP's observation, when the
         loupe shows it (full-resolution pixels: a drag there is as precise as a click)."""
         app = self.app
-        gid, pl = app.gcp_panel.selected(), app.pick_plane
-        if gid is None or pl is None or app.loupe is None or not app.in_loupe(pl.window) \
+        gid, pl = app.gcp_panel.selected(), app.picking.plane
+        if gid is None or pl is None or app.picking.loupe is None or not app.picking.in_loupe(pl.window) \
                 or gid not in app.session.ids:
             return None
         ob = app.session.get(gid).observations.get(pl.window.image)
@@ -191,7 +191,7 @@ class GcpMarks:
         loupe: dragging them moves the observation, which is recorded when the drag ends."""
         app = self.app
         want = self.drag_target()
-        key = None if want is None else (want, tuple(app.pick_plane.position))
+        key = None if want is None else (want, tuple(app.picking.plane.position))
         if key == self.drag_key:
             return
         if self.drag_handle is not None:
@@ -201,7 +201,7 @@ class GcpMarks:
         if want is None:
             return
         gid, image, ob = want
-        pl = app.pick_plane
+        pl = app.picking.plane
         h = app.server.scene.add_transform_controls(
             "/gcp/drag", scale=0.18 * pl.render_width, line_width=2.0, disable_rotations=True,
             active_axes=(True, True, False), depth_test=False,
@@ -222,7 +222,7 @@ class GcpMarks:
         app = self.app
         if handle is not None and handle is not self.drag_handle:
             return None
-        pl = plane or app.pick_plane
+        pl = plane or app.picking.plane
         if pl is None or pl.window.image != image or gid not in app.session.ids:
             self.drag_key = None
             self._draw_drag_handle()
@@ -254,9 +254,9 @@ class GcpMarks:
         about 5 % of the window (a round 20, 50, 100, 200 or 500), so a 1 px residual shows on a
         whole 2000 px image as well as in the loupe."""
         app = self.app
-        if app.pick_plane is None:
+        if app.picking.plane is None:
             return self.RESIDUAL_SCALE
-        w = app.pick_plane.window
+        w = app.picking.plane.window
         target = 0.05 * max(w.width, w.height)
         return float(next((n for n in (20, 50, 100, 200, 500) if n >= target), 500))
 
@@ -266,9 +266,9 @@ class GcpMarks:
         from recon_core.euclidean.gcp_transfer import observation_residuals
 
         app = self.app
-        if app.pick_plane is None:
+        if app.picking.plane is None:
             return {}
-        img = app.pick_plane.window.image
+        img = app.picking.plane.window.image
         model = next((m for m in app.models.values() if img in m.images), None)
         if model is None:
             return {}
@@ -288,9 +288,9 @@ class GcpMarks:
             h.remove()
         self.residual_nodes = []
         vecs = self.residual_vectors()
-        if not vecs or app.pick_plane is None:
+        if not vecs or app.picking.plane is None:
             return
-        pl = app.pick_plane
+        pl = app.picking.plane
         k = self.residual_scale()
         seg = np.array([[pl.point_of(c, r, lift=0.002 * pl.render_width),
                          pl.point_of(c + k * dx, r + k * dy, lift=0.002 * pl.render_width)]

@@ -1,18 +1,15 @@
-"""GCP picking in the scene: the picking plane (an image laid out in the scene, where a click
-becomes a pixel) and the widgets of the GCP tab. The edits themselves are gcp_session's."""
+"""The GCP tab: its widgets and what they do. The edits themselves are gcp_session's; the
+picking plane and its loupe, where a click becomes a pixel, are the picking view's (picking)."""
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from typing import Callable, Protocol
 
 import numpy as np
 
 from recon_core.euclidean.gcp_transfer import place_in_other_images
-from recon_core.model.tiling import Window
 
-from .display import FLAT_WXYZ, plane_hit, plane_point
 from .gcp_session import (
     ROLES,
     GcpError,
@@ -35,50 +32,7 @@ from .gcp_session import (
     toggle_role,
     undo,
 )
-
-
-# -- the picking plane ------------------------------------------------------------------------
-@dataclass(frozen=True)
-class PickPlane:
-    """An image window drawn as a flat plane in the scene (display coordinates)."""
-
-    window: Window
-    position: np.ndarray
-    wxyz: np.ndarray
-    render_width: float
-    render_height: float
-
-    def hit(self, ray_origin, ray_direction) -> tuple[float, float] | None:
-        return plane_hit(ray_origin, ray_direction, position=self.position, wxyz=self.wxyz,
-                         render_width=self.render_width, render_height=self.render_height)
-
-    def point_of(self, col: float, row: float, lift: float = 0.0) -> np.ndarray:
-        """Display point of a full-image pixel on the plane (lifted above it by `lift`)."""
-        fx, fy = self.window.fraction(col, row)
-        return plane_point(fx, fy, position=self.position, wxyz=self.wxyz,
-                           render_width=self.render_width, render_height=self.render_height,
-                           lift=lift)
-
-
-def pixel_from_ray(plane: PickPlane, ray_origin, ray_direction) -> tuple[float, float] | None:
-    """Full-image pixel (col, row) where a click ray meets the picking plane, or None."""
-    f = plane.hit(ray_origin, ray_direction)
-    return None if f is None else plane.window.pixel(*f)
-
-
-def layout_pick_plane(window: Window, bounds: tuple[np.ndarray, np.ndarray] | None,
-                      gap: float = 0.1) -> PickPlane:
-    """Place the picking plane flat, beside (east of) the displayed cloud, as tall as it (groups
-    shown side by side make the cloud wider, not taller)."""
-    if bounds is None:
-        lo, hi = np.array([-500.0, -500.0, 0.0]), np.array([500.0, 500.0, 0.0])
-    else:
-        lo, hi = (np.asarray(b, dtype=np.float64) for b in bounds)
-    size = float(max(hi[1] - lo[1], 1e-6))
-    aspect = window.height / window.width
-    w, h = (size, size * aspect) if aspect <= 1 else (size / aspect, size)
-    pos = np.array([hi[0] + gap * size + w / 2, (lo[1] + hi[1]) / 2, lo[2]])
-    return PickPlane(window, pos, FLAT_WXYZ.copy(), float(w), float(h))
+from .picking import PickingView
 
 
 class GcpPanelHost(Protocol):
@@ -90,10 +44,7 @@ class GcpPanelHost(Protocol):
     models: dict                      # group -> SparseModel once the sparse stage is done
 
     def submit(self, fn: Callable[[], object]) -> object: ...
-    def show_image_plane(self) -> None: ...
-    def look_at_plane(self, client) -> None: ...
-    def open_loupe(self, pix: tuple[float, float], client=None, image: str | None = None) -> object: ...
-    def close_loupe(self, client=None) -> None: ...
+    picking: PickingView               # the picking plane and its loupe
     def arm_cloud_pick(self) -> None: ...
     def gcps_changed(self, select: str | None = "keep", note: str | None = None) -> None: ...
     def note(self, text: str, level: str = "info") -> None: ...
@@ -200,11 +151,11 @@ class GcpPanel:
         ("P", "previous GCP", lambda self, ev: self.step_gcp(-1, ev.client)),
         ("I", "next image", lambda self, ev: self.step_image(+1)),
         ("shift+I", "previous image", lambda self, ev: self.step_image(-1)),
-        ("L", "look at the image plane", lambda self, ev: self.app.look_at_plane(ev.client)),
+        ("L", "look at the image plane", lambda self, ev: self.app.picking.look_at_plane(ev.client)),
         ("R", "predict in this image", lambda self, ev: self._predict()),
         ("enter", "accept the prediction", lambda self, ev: self._accept(ev.client)),
         ("O", "place it in its other images", lambda self, ev: self._place_all(ev.client)),
-        ("escape", "leave the loupe", lambda self, ev: self.app.close_loupe(ev.client)),
+        ("escape", "leave the loupe", lambda self, ev: self.app.picking.close_loupe(ev.client)),
         ("ctrl+Z", "undo", lambda self, ev: self._undo()),
         ("ctrl+shift+Z", "redo", lambda self, ev: self._redo()),
     )
@@ -258,17 +209,17 @@ class GcpPanel:
             v = ev.target.value
             if v in self.app.session.images:
                 self.last_site_image = v           # where a click on the reference sends back to
-            app.submit(lambda: (self.drop_prediction(), self.app.close_loupe(), self.app.show_image_plane()))
+            app.submit(lambda: (self.drop_prediction(), self.app.picking.close_loupe(), self.app.picking.show()))
         self.image.on_update(image_chosen)
-        self.region.on_update(lambda _: app.submit(lambda: (self.app.close_loupe(),
-                                                            self.app.show_image_plane())))
-        self.leave_loupe.on_click(lambda ev: app.submit(lambda: self.app.close_loupe(ev.client)))
+        self.region.on_update(lambda _: app.submit(lambda: (self.app.picking.close_loupe(),
+                                                            self.app.picking.show())))
+        self.leave_loupe.on_click(lambda ev: app.submit(lambda: self.app.picking.close_loupe(ev.client)))
         self.prev_gcp.on_click(lambda ev: app.submit(lambda: self.step_gcp(-1, ev.client)))
         self.next_gcp.on_click(lambda ev: app.submit(lambda: self.step_gcp(+1, ev.client)))
         self.place_all.on_click(lambda ev: app.submit(lambda: self._place_all(ev.client)))
-        self.show_plane.on_update(lambda _: app.submit(self.app.show_image_plane))
-        self.contrast.on_update(lambda _: app.submit(self.app.show_image_plane))
-        self.goto.on_click(lambda ev: app.submit(lambda: self.app.look_at_plane(ev.client)))
+        self.show_plane.on_update(lambda _: app.submit(self.app.picking.show))
+        self.contrast.on_update(lambda _: app.submit(self.app.picking.show))
+        self.goto.on_click(lambda ev: app.submit(lambda: self.app.picking.look_at_plane(ev.client)))
         def chosen(ev) -> None:          # the GCP this tab chose, read now, not when queued
             v = self.id_of(ev.target.value) or self.NEW
             # the operator's own choice in the list is described; a selection made by the code
@@ -421,7 +372,7 @@ class GcpPanel:
                 return
             if before_open is not None:
                 before_open()
-            self.app.open_loupe(pix, client, image=image)
+            self.app.picking.open_loupe(pix, client, image=image)
             self.app.note(note)
         self.app.submit(show)
 
@@ -657,9 +608,9 @@ class GcpPanel:
         gid, pred = self.prediction
         self.drop_prediction()
         add_observation(self.app.session, gid, pred.image, pred.col, pred.row)
-        in_loupe = self.app.loupe is not None
+        in_loupe = self.app.picking.loupe is not None
         if in_loupe:
-            self.app.close_loupe(client)
+            self.app.picking.close_loupe(client)
         self.app.gcps_changed(select=gid, note=f"{gid}: observed in {pred.image} at col {pred.col:.2f}, "
                                                f"row {pred.row:.2f} (accepted prediction)")
         if in_loupe:

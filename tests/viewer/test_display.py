@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from aerec_viewer import display as dp
-from aerec_viewer.gcp_panel import PickPlane, layout_pick_plane, pixel_from_ray
+from aerec_viewer.picking import PickPlane, layout_pick_plane, pixel_from_ray
 from recon_core.model.tiling import Window as ImageWindow
 
 
@@ -70,8 +70,7 @@ def test_the_euclidean_display_is_the_upgrade_map_with_its_metric_warp():
     """With the metric bend step's warp, the 3D view places points where the DSM stage does
     (recon_core.geometry.enu_map.EnuMap), and a click's inverse finds the frame point back."""
     from aerec_viewer.display import euclidean_display_transform
-    from recon_core.geometry.enu_map import EnuMap
-    from recon_core.geometry.enu_map import BendWarp
+    from recon_core.geometry.enu_map import BendWarp, EnuMap
 
     rng = np.random.default_rng(1)
     X = rng.uniform(-500, 500, size=(200, 3)) * [1, 1, 0.05]
@@ -85,7 +84,7 @@ def test_the_euclidean_display_is_the_upgrade_map_with_its_metric_warp():
     np.testing.assert_allclose(T.inverse(EnuMap(H, warp)(X)), X, atol=1e-9)
     plain = euclidean_display_transform(H, np.array([55.0, -21.0, 10.0]))
     assert np.abs(plain.apply(X) - T.apply(X)).max() > 0.05
-    # and with the bend fitted to control GCPs after H_A (recon_core.euclidean.gcp_bend)
+    # and with the bend fitted to control GCPs after H_A (recon_core.bend.gcp)
     from recon_core.geometry.enu_map import EnuWarp
 
     post = EnuWarp(np.array([10.0, -5.0]), 300.0, np.array([0.3, -0.2, 0.1, 0.0, 0.2, 0.1, 1.5, -0.8, 1.2]))
@@ -224,7 +223,7 @@ def test_pick_plane_layout_sits_beside_the_cloud():
 
 
 def test_loupe_texture_enlarges_pixels_and_leaves_the_aimed_pixel_clear():
-    from aerec_viewer.app import LOUPE_CROSS, loupe_texture, loupe_window
+    from aerec_viewer.picking import LOUPE_CROSS, loupe_texture, loupe_window
 
     win = loupe_window(500, 300, "a.tif", 3.2, 297.0, size=40)     # shifted inside at the corner
     assert (win.col0, win.row0, win.width, win.height) == (0, 260, 40, 40)

@@ -88,12 +88,12 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
                           setattr(gp.image, "value", ref.ortho.name), gp.select_id(None)))
         app.wait_idle()                  # the list's change is applied (it clears the fields)
         app.call(lambda: setattr(gp.gid, "value", "ORTHO-1"))
-        app.call(lambda: app.show_image_plane(wait=True))
-        assert app.pick_plane.window.image == ref.ortho.name
+        app.call(lambda: app.picking.show(wait=True))
+        assert app.picking.plane.window.image == ref.ortho.name
         n_before = len(app.session.gcps)
 
         def click(col, row):
-            p = app.pick_plane
+            p = app.picking.plane
             target = p.point_of(col, row)
             origin = target + np.array([3.0, -4.0, 40.0]) * p.render_width / 40.0
             return app.call(lambda: app.on_plane_click(origin, target - origin))
@@ -115,7 +115,7 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
         # its ground position is marked on the orthoimage, where it was clicked
         marks = app.call(app.marks.marker_positions)
         pos = marks["/gcp/plane_marks/ORTHO-1"][0]
-        assert np.allclose(pos[:2], app.pick_plane.point_of(45.0, 61.0)[:2], atol=1e-6 * app.pick_plane.render_width)
+        assert np.allclose(pos[:2], app.picking.plane.point_of(45.0, 61.0)[:2], atol=1e-6 * app.picking.plane.render_width)
         # the orthoimage is no image of the site: no prediction there, no observation recorded
         with pytest.raises(GcpError, match="ground positions"):
             app.call(gp._predict)
@@ -125,7 +125,7 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
         app.call(lambda: (setattr(gp.image, "value", first), setattr(gp.walk, "value", True)))
         app.call(gp.new_on_reference)                          # the G key
         assert gp.selected() is None and gp.image.value == ref.ortho.name
-        app.call(lambda: app.show_image_plane(wait=True))
+        app.call(lambda: app.picking.show(wait=True))
         ids = set(app.session.ids)
         click(80.0, 30.0)
         new, = set(app.session.ids) - ids

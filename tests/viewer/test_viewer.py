@@ -78,7 +78,7 @@ def live(tmp_path_factory):
     # the image plane's texture is read on a thread and placed by a later tick: wait for it, or
     # a test that runs first (alone, with -k) finds no plane
     t1 = time.time()
-    while app.pick_plane is None and time.time() - t1 < 30:
+    while app.picking.plane is None and time.time() - t1 < 30:
         time.sleep(0.05)
         app.wait_idle()
     app.gcp_panel.zoom_click.value = False      # one click places (the loupe has its own test)
@@ -159,7 +159,7 @@ def test_display_controls_apply_to_the_scene(live):
 
 
 def _ray_to(app, col, row):
-    p = app.pick_plane
+    p = app.picking.plane
     target = p.point_of(col, row)
     origin = target + np.array([3.0, -4.0, 40.0]) * p.render_width / 40.0
     return origin, target - origin
@@ -167,8 +167,8 @@ def _ray_to(app, col, row):
 
 def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     app, events, trace, out, site, cfg = live
-    assert app.pick_plane is not None
-    img = app.pick_plane.window.image
+    assert app.picking.plane is not None
+    img = app.picking.plane.window.image
     # a new GCP from typed coordinates, then a click on the image plane observes it
     gp = app.gcp_panel
     app.call(lambda: gp.select_id(None))
@@ -252,7 +252,7 @@ def test_loupe_first_click_zooms_second_click_places(live):
     """With "Click zooms in first": a click on the whole image opens the loupe there (nothing
     recorded, the plane shows 40 x 40 full-resolution pixels losslessly), a click in the loupe is
     the observation, to the same sub-pixel precision, and the plane goes back to the region."""
-    from aerec_viewer.app import LOUPE_PX
+    from aerec_viewer.picking import LOUPE_PX
 
     app, events, trace, out, site, cfg = live
     gp = app.gcp_panel
@@ -260,29 +260,29 @@ def test_loupe_first_click_zooms_second_click_places(live):
     app.call(lambda: gp.refresh(select=gid))
     app.call(lambda: setattr(gp.zoom_click, "value", True))
     try:
-        if app.pick_plane is None:
-            app.call(lambda: app.show_image_plane(wait=True))
-        whole = app.pick_plane.window
+        if app.picking.plane is None:
+            app.call(lambda: app.picking.show(wait=True))
+        whole = app.picking.plane.window
         img = whole.image
         before = dict(app.session.get(gid).observations)
         o, d = _ray_to(app, 150.4, 160.6)
         assert app.call(lambda: app.on_plane_click(o, d)) is None
         assert app.session.get(gid).observations == before              # nothing recorded
-        win = app.pick_plane.window
-        assert app.loupe is not None and win == app.loupe[0] and win.image == img
+        win = app.picking.plane.window
+        assert app.picking.loupe is not None and win == app.picking.loupe[0] and win.image == img
         assert (win.width, win.height) == (LOUPE_PX, LOUPE_PX) and win.contains([(150.4, 160.6)])[0]
         assert not gp.leave_loupe.disabled
         o, d = _ray_to(app, 152.37, 158.81)
         pix = app.call(lambda: app.on_plane_click(o, d))
         assert pix is not None and abs(pix[0] - 152.37) < 1e-3 and abs(pix[1] - 158.81) < 1e-3
         assert np.allclose(app.session.get(gid).observations[img], (152.37, 158.81), atol=1e-3)
-        assert app.loupe is None and app.pick_plane.window == whole and gp.leave_loupe.disabled
+        assert app.picking.loupe is None and app.picking.plane.window == whole and gp.leave_loupe.disabled
         # Leave the loupe records nothing
         o, d = _ray_to(app, 300.0, 100.0)
         app.call(lambda: app.on_plane_click(o, d))
-        assert app.loupe is not None
-        app.call(app.close_loupe)
-        assert app.loupe is None and app.pick_plane.window == whole
+        assert app.picking.loupe is not None
+        app.call(app.picking.close_loupe)
+        assert app.picking.loupe is None and app.picking.plane.window == whole
         assert np.allclose(app.session.get(gid).observations[img], (152.37, 158.81), atol=1e-3)
     finally:
         app.call(lambda: undo(app.session))
@@ -317,37 +317,37 @@ def test_a_click_in_the_loupe_walks_on_to_the_gcps_next_image(live):
     app.call(lambda: setattr(gp.image, "value", first))
     app.call(lambda: setattr(gp.zoom_click, "value", True))
     try:
-        app.call(lambda: app.show_image_plane(wait=True))
+        app.call(lambda: app.picking.show(wait=True))
         o, d = _ray_to(app, *tob[first])
         app.call(lambda: app.on_plane_click(o, d))                     # opens the loupe
         o, d = _ray_to(app, *tob[first])
         app.call(lambda: app.on_plane_click(o, d))                     # records, walks on
         app.wait_idle()
         nxt = gp.image.value
-        assert nxt != first and nxt in tob and app.loupe is not None and app.loupe[0].image == nxt
-        assert np.hypot(*(np.asarray(app.loupe[1]) - tob[nxt])) < 3.0, (app.loupe[1], tob[nxt])
+        assert nxt != first and nxt in tob and app.picking.loupe is not None and app.picking.loupe[0].image == nxt
+        assert np.hypot(*(np.asarray(app.picking.loupe[1]) - tob[nxt])) < 3.0, (app.picking.loupe[1], tob[nxt])
         assert gp.prediction is not None and gp.prediction[1].image == nxt
         # an offer made stale before it is shown (the operator pressed Undo meanwhile) is dropped
-        app.call(app.close_loupe)
+        app.call(app.picking.close_loupe)
         app.call(gp.drop_prediction)
         pred = gp.prediction
         app.call(lambda: gp.show_hint(gid, predict_now(nxt), None) or undo(app.session))
         app.wait_idle()
-        assert gp.prediction is None and app.loupe is None
+        assert gp.prediction is None and app.picking.loupe is None
         app.call(lambda: redo(app.session))
         app.call(lambda: gp.show_hint(gid, predict_now(nxt), None))
         app.wait_idle()
-        assert gp.prediction is not None and app.loupe is not None and pred is None
+        assert gp.prediction is not None and app.picking.loupe is not None and pred is None
         for _ in range(len(tob) - 1):                                   # Enter on each in turn
             app.call(gp._accept)
             app.wait_idle()
         obs = app.session.get(gid).observations
         assert set(obs) == set(tob)
-        assert app.loupe is None and "N for the next GCP" in gp.status.content
+        assert app.picking.loupe is None and "N for the next GCP" in gp.status.content
         err = [np.hypot(obs[k][0] - tob[k][0], obs[k][1] - tob[k][1]) for k in tob if k != first]
         assert max(err) < 1.5, err
     finally:
-        app.call(app.close_loupe)
+        app.call(app.picking.close_loupe)
         for im in list(app.session.get(gid).observations):
             app.call(lambda im=im: remove_observation(app.session, gid, im))
         for im, xy in saved.items():
@@ -378,10 +378,10 @@ def test_go_to_an_observation_opens_it_in_the_loupe_and_flags_a_large_residual(l
         app.call(lambda: setattr(gp.jump, "value", im))
         app.wait_idle()
         assert gp.jump.value == gp.JUMP_NONE and gp.image.value == im
-        assert app.loupe is not None and app.loupe[0].image == im
-        assert np.allclose(app.loupe[1], (c + 6.0, r))
+        assert app.picking.loupe is not None and app.picking.loupe[0].image == im
+        assert np.allclose(app.picking.loupe[1], (c + 6.0, r))
     finally:
-        app.call(app.close_loupe)
+        app.call(app.picking.close_loupe)
         app.call(lambda: undo(app.session))
         app.call(lambda: app.gcps_changed(select=gid))
     assert app.session.get(gid).observations[im] == obs[im]
@@ -494,14 +494,14 @@ def test_an_image_left_by_place_all_opens_in_the_loupe_and_enter_accepts(live, m
         app.wait_idle()
         assert result == {target: "not confirmed"}
         assert {g.id: dict(g.observations) for g in app.session.gcps} == before
-        assert gp.image.value == target and app.pick_plane.window.image == target
-        assert app.loupe is not None and app.loupe[0].image == target
-        assert np.allclose(app.loupe[1], (201.25, 143.5)) and app.loupe[0].contains([(201.25, 143.5)])[0]
+        assert gp.image.value == target and app.picking.plane.window.image == target
+        assert app.picking.loupe is not None and app.picking.loupe[0].image == target
+        assert np.allclose(app.picking.loupe[1], (201.25, 143.5)) and app.picking.loupe[0].contains([(201.25, 143.5)])[0]
         assert gp.prediction is not None and not gp.accept.disabled
         app.call(gp._accept)
         assert app.session.get(gid).observations[target] == (201.25, 143.5)
     finally:
-        app.call(app.close_loupe)
+        app.call(app.picking.close_loupe)
         app.call(lambda: undo(app.session))
         if had is not None:
             app.call(lambda: add_observation(app.session, gid, target, *had))
@@ -551,8 +551,8 @@ def test_a_click_never_lands_on_the_gcp_another_tab_chose(live):
     g2 = app.call(lambda: gp.step_gcp(+1, b))                  # B pressed N: g2 for everyone
     assert gp.selected() == g2 != g1
     before = {g: before_all[g] for g in (g1, g2)}
-    if app.pick_plane is None:
-        app.call(lambda: app.show_image_plane(wait=True))
+    if app.picking.plane is None:
+        app.call(lambda: app.picking.show(wait=True))
     o, d = _ray_to(app, 120.0, 130.0)
     with pytest.raises(GcpError, match=f"another tab changed the GCP to {g2}"):
         app.call(lambda: app.on_plane_click(o, d, a))
@@ -865,7 +865,7 @@ def test_observations_in_unregistered_tiles_are_not_counted_as_usable(tiny_run, 
 def test_predict_then_accept_from_the_gcp_panel(live):
     app, events, trace, out, site, cfg = live
     gp = app.gcp_panel
-    img = app.pick_plane.window.image
+    img = app.picking.plane.window.image
     cat = {c.id: c for c in app.session.catalogue}
     gid = next(g.id for g in app.session.gcps       # one that earlier tests left as the site has it
                if len([im for im in g.observations if im != img]) >= 2 and g.id in cat
@@ -889,9 +889,9 @@ def test_residual_vectors_on_the_image_plane(live):
 
     app, events, trace, out, site, cfg = live
     app.wait_idle()
-    if app.pick_plane is None:
-        app.call(lambda: app.show_image_plane(wait=True))
-    img = app.pick_plane.window.image
+    if app.picking.plane is None:
+        app.call(lambda: app.picking.show(wait=True))
+    img = app.picking.plane.window.image
     model = next(m for m in app.models.values() if img in m.images)
     vecs = app.call(app.marks.residual_vectors)
     expect = {g.id for g in app.session.gcps if img in g.observations
@@ -907,7 +907,7 @@ def test_residual_vectors_on_the_image_plane(live):
     assert len(seg.points) == len(expect)
     k = list(app.call(app.marks.residual_vectors)).index(gid)
     a, b = np.asarray(seg.points[k], float)
-    pl = app.pick_plane
+    pl = app.picking.plane
     np.testing.assert_allclose(b - a, pl.point_of(c2 + app.marks.residual_scale() * dx, r2 + app.marks.residual_scale() * dy)
                                - pl.point_of(c2, r2), atol=1e-3)
     assert tuple(np.asarray(seg.colors)[k, 0]) == (220, 30, 30)
@@ -1020,7 +1020,7 @@ def test_shift_click_zooms_toward_the_spot_under_the_cursor(live):
     from types import SimpleNamespace
 
     app = live[0]
-    pl = app.pick_plane
+    pl = app.picking.plane
     assert pl is not None
     spot_true = pl.point_of(pl.window.col0 + 0.3 * pl.window.width, pl.window.row0 + 0.6 * pl.window.height)
     o = spot_true + np.array([120.0, -80.0, 900.0])

@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aerec_viewer.app import DRAG_GUARD_S, LOUPE_PX
+from aerec_viewer.app import DRAG_GUARD_S
 from aerec_viewer.display import quat_to_matrix
+from aerec_viewer.picking import LOUPE_PX
 from recon_core.events import TileRegistered
 
 pytestmark = pytest.mark.browser
@@ -119,7 +120,7 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     gid = app.session.ids[0]
     app.call(lambda: app.gcp_panel.select_id(gid))
     page.get_by_role("button", name="Look at the image plane").click()
-    plane = app.pick_plane
+    plane = app.picking.plane
     top = plane.position + np.array([0.0, 0.0, 1.0])
     wait_for(lambda: np.linalg.norm(client.camera.position[:2] - plane.position[:2])
              < 0.01 * plane.render_width and client.camera.position[2] > top[2], 20,
@@ -134,16 +135,16 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     # the first click opens the loupe there: the plane shows the full-resolution pixels around
     # it, enlarged, and this tab's camera goes straight above it
     page.mouse.click(x, y)
-    wait_for(lambda: app.loupe is not None and app.pick_plane.window == app.loupe[0], 20,
+    wait_for(lambda: app.picking.loupe is not None and app.picking.plane.window == app.picking.loupe[0], 20,
              "the first click to open the loupe")
     assert app.last_click is before                      # nothing recorded
-    loupe = app.pick_plane
+    loupe = app.picking.plane
     assert loupe.window.width < 0.2 * win.width
     wait_for(lambda: np.linalg.norm(client.camera.position[:2] - loupe.position[:2])
              < 0.01 * loupe.render_width, 20, "the camera to move above the loupe")
     time.sleep(1.5)
     shot(page, shots, "3a_loupe")
-    aim = (app.loupe[1][0] + 0.31, app.loupe[1][1] - 0.42)   # the exact pixel, seen enlarged
+    aim = (app.picking.loupe[1][0] + 0.31, app.picking.loupe[1][1] - 0.42)   # the exact pixel, seen enlarged
     x, y = project(client, loupe.point_of(*aim))
     page.mouse.click(x, y)
     wait_for(lambda: app.last_click is not before and app.last_click is not None, 20,
@@ -158,7 +159,7 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     assert abs(col - target[0]) < 0.5 * LOUPE_PX and abs(row - target[1]) < 0.5 * LOUPE_PX
     assert np.allclose(app.session.get(gid).observations[image], (col, row))
     # then back to the whole image, and to the view this tab had
-    wait_for(lambda: app.loupe is None and app.pick_plane.window == win, 20, "the loupe to close")
+    wait_for(lambda: app.picking.loupe is None and app.picking.plane.window == win, 20, "the loupe to close")
     wait_for(lambda: np.linalg.norm(client.camera.position - view_before) < 1e-3 * plane.render_width,
              20, "the view before the loupe")
     time.sleep(1.5)
@@ -207,11 +208,11 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     wait_for(lambda: app.gcp_panel.selected() != gid, 20, "the second tab's Next GCP")
     other = app.gcp_panel.selected()
     held = {g: dict(app.session.get(g).observations) for g in (gid, other)}
-    x3, y3 = project(client, app.pick_plane.point_of(win.col0 + 0.3 * win.width, win.row0 + 0.3 * win.height))
+    x3, y3 = project(client, app.picking.plane.point_of(win.col0 + 0.3 * win.width, win.row0 + 0.3 * win.height))
     page.mouse.click(x3, y3)
     wait_for(lambda: any(f"another tab changed the GCP to {other}" in t
                          for _, t in app.worker.snapshot().messages), 20, "the refused click")
-    assert {g: dict(app.session.get(g).observations) for g in (gid, other)} == held and app.loupe is None
+    assert {g: dict(app.session.get(g).observations) for g in (gid, other)} == held and app.picking.loupe is None
     app.call(lambda: app.gcp_panel.select_id(gid))
     page2.close()
 
@@ -220,7 +221,7 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     page.get_by_role("button", name="Upgrade to Euclidean").click()
     wait_for(lambda: app.frame == "euclidean", 30, "the upgrade button to reach the server")
     app.wait_idle()
-    app.call(lambda: app._frame_client(client))
+    app.call(lambda: app.frame_client(client))
     page.get_by_role("cell", name="check").first.wait_for(timeout=15_000)
     time.sleep(2.5)
     shot(page, shots, "4_after_upgrade")
@@ -268,8 +269,8 @@ def test_drag_the_handle_in_the_loupe_to_adjust_an_observation(browser_app, tiny
             ob = app.session.get(gid).observations[im]
             app.call(lambda: gp.jump_to(im, client))
             app.wait_idle()
-            wait_for(lambda: app.marks.drag_handle is not None and app.loupe is not None, 20, "the drag handle")
-            pl = app.pick_plane
+            wait_for(lambda: app.marks.drag_handle is not None and app.picking.loupe is not None, 20, "the drag handle")
+            pl = app.picking.plane
             time.sleep(2.0)                      # the camera's move above the loupe
             shot(page, tmp_path, "6_drag_handle")
             lift = 0.004 * pl.render_width
