@@ -257,10 +257,10 @@ class UpgradeConfig:
                                       # the vertical bend the views cannot see when the GCPs do not
                                       # (recon_core.bend.dem); "" = none
     reference_dem_degree: int = _p(2, choices=(2, 3))  # the degree of the vertical bend taken from it: 2 (a dome or a
-                                      # saddle) or 3, for a DEM whose errors do not reach over km
-                                      # (Copernicus GLO-30 class): on `wide` (10 km, one date) 3 gives
-                                      # check U 1.98 m instead of 2.95 m with such a DEM, but 5.69
-                                      # instead of 3.55 m with errors correlated over 1 km (SRTM class)
+                                      # saddle) or 3, only for a DEM whose errors do not reach over
+                                      # km (Copernicus GLO-30 class; with errors correlated over 1 km,
+                                      # SRTM class, 3 does worse;
+                                      # docs: research-notes.md, "The vertical bend from a reference DEM")
 
 
 @dataclass
@@ -277,13 +277,12 @@ class DsmConfig:
                                       # mean (0 = off)
     fusion_fill_agreeing: int = _p(1, lo=1, hi=1000)  # a hole of the best-ranked groups is filled only where this
                                       # many groups (with the one filling it) have a precise value
-                                      # agreeing within fusion_agree_sigmas; 1 = any. wide3: 0.677 m
-                                      # / 57.6 % with 1, 0.603 m / 53.6 % with 2 (best group 0.613
-                                      # m / 52.0 %); large: 0.261 m / 73.3 % with 1, 0.211 m / 55.7 %
-                                      # with 2 (best group 0.301 m / 64.6 %)
+                                      # agreeing within fusion_agree_sigmas; 1 = any (2 trades
+                                      # completeness for accuracy;
+                                      # docs: research-notes.md, "The noise model of the fusion")
     fuse_weak_pair_cells: bool = _p(False)  # the fused DSM also takes cells that only a weak pair's
-                                      # two-view points reach (1.2 m median error on `demo`:
-                                      # fused 0.179 m / 73.9 % without, 0.202 m / 76.9 % with)
+                                      # two-view points reach (more complete, less accurate;
+                                      # docs: research-notes.md, "Weak pairs")
     icp_max_corr_m: float = _p(3.0, lo=0, lo_open=True, hi=1e4)  # ICP correspondence distance when fusing date groups
     icp_voxel_m: float = _p(1.0, lo=0, lo_open=True, hi=1e4)  # both clouds are reduced to voxel centroids of this size
     icp_max_iter: int = _p(60, lo=1, hi=100_000)  # ICP iteration cap (it stops earlier when converged)

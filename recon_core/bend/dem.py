@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from recon_core.bend.result import BendFit
 from recon_core.errors import InputError
 from recon_core.geometry.affine import apply_affine_3d, as_4x4
 from recon_core.geometry.enu_map import EnuWarp, monomial_degree, monomials, n_monomials
@@ -277,7 +278,8 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
     is Y = X_enu - warp(X_enu)); it may raise (e.g. ReconstructionError). The warp is refitted
     on the structure the new H gives, until H stops moving it. `degree`: the surface's (2 or 3,
     fit_surface); a cubic the final structure's DEM comparison does not tell is redone as a
-    quadratic. Returns (H (4, 4), EnuWarp, summary) or (None, None, summary with the reason)."""
+    quadratic. Returns a BendFit: the EnuWarp, the summary and H (4, 4), or no warp and the
+    summary with the reason."""
     centre = np.asarray(centre, np.float64)
     sample = X_points[np.random.default_rng(seed).choice(len(X_points), min(len(X_points), 5000), replace=False)]
 
@@ -293,7 +295,7 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
         # to GCPs on the bent structure, scales its heights wrongly: the cells scatter more)
         coef, info = surface(Hn, gate=False)
         if coef is None:
-            return None, None, {**info, "applied": False}
+            return BendFit(None, {**info, "applied": False})
         warp = EnuWarp(centre, float(half), np.r_[np.zeros(2 * len(coef)), coef])
         H_new = as_4x4(refit(warp))
         moved = float(np.abs(apply_affine_3d(H_new, sample) - apply_affine_3d(Hn, sample)).max())
@@ -304,12 +306,13 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
     coef, final = surface(Hn, gate=True)
     if degree > 2 and (final.get("degrees_refused") or (coef is not None and final["degree"] < info["degree"])):
         # the degree the rounds applied is not told well enough on the final structure: again, lower
-        Hn, warp, again = fit_dem_bend(H, X_points, frame, dem, centre, half, refit, cell_m, iters, seed,
-                                       min(final.get("degree", 2), degree - 1))
-        return Hn, warp, {**again, "degree_asked": degree,
-                          "degrees_refused": final.get("degrees_refused", []) + again.get("degrees_refused", [])}
+        again = fit_dem_bend(H, X_points, frame, dem, centre, half, refit, cell_m, iters, seed,
+                             min(final.get("degree", 2), degree - 1))
+        return BendFit(again.warp, {**again.summary, "degree_asked": degree,
+                                    "degrees_refused": final.get("degrees_refused", [])
+                                    + again.summary.get("degrees_refused", [])}, again.H)
     if coef is None:
-        return None, None, {**final, "applied": False, "rounds": info["rounds"]}
+        return BendFit(None, {**final, "applied": False, "rounds": info["rounds"]})
     g = np.linspace(-1.0, 1.0, 11)
     ge, gn = (v.ravel() for v in np.meshgrid(g, g))
 
@@ -318,5 +321,5 @@ def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, 
 
     info.update(applied=True, final_change_m=float(np.abs(surf(final["bend_coef_m"]) - surf(info["bend_coef_m"])).max()),
                 bend_sigma_m=final["bend_sigma_m"], cell_scale_m=final["cell_scale_m"])
-    return Hn, warp, info
+    return BendFit(warp, info, Hn)
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from recon_core.bend.result import BendFit
 from recon_core.geometry.affine import apply_affine_3d
 from recon_core.geometry.enu_map import EnuWarp
 
@@ -124,20 +125,12 @@ def _consensus(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, V: np.ndarray, thre
 
 
 @dataclass(frozen=True)
-class GcpBendFit:
-    """What `fit_gcp_bend` found. When it applies: the new H_A, the warp, the control GCPs it
-    kept (inliers, (n,) bool) and their leave-one-out residuals ((inliers, 3), m); otherwise
-    these are None and the summary says why."""
+class GcpBendFit(BendFit):
+    """What `fit_gcp_bend` found. When it applies, besides the warp and the new H_A: the control
+    GCPs it kept (inliers, (n,) bool) and their leave-one-out residuals ((inliers, 3), m)."""
 
-    H: np.ndarray | None
-    warp: EnuWarp | None
-    summary: dict
     inliers: np.ndarray | None = None
     loo: np.ndarray | None = None
-
-    @property
-    def applied(self) -> bool:
-        return self.warp is not None
 
 
 def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
@@ -152,7 +145,7 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
     it does not apply)."""
     basis_rec = obs.get("basis") if obs else None
     if not basis_rec:
-        return GcpBendFit(None, None, {"applied": False, "reason": "no view of the structure to tell the invisible warps"})
+        return GcpBendFit(None, {"applied": False, "reason": "no view of the structure to tell the invisible warps"})
     s = np.asarray(obs["singular_px_per_m"])
     W = np.asarray(basis_rec["warps"], np.float64)
     Vi = W[s < invisible_px_per_m]                  # the warps the views cannot see
@@ -163,11 +156,11 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
                              "SfM also leaves the ones they see), whichever predicts each control GCP left "
                              "out best; kept only when that is better than an affine map alone"}
     if k == 0:
-        return GcpBendFit(None, None, {**info, "applied": False, "reason": "the views see every quadratic warp"})
+        return GcpBendFit(None, {**info, "applied": False, "reason": "the views see every quadratic warp"})
     need, need_all = _needed(Vi), _needed(W)
     info["control_gcps_needed"] = need
     if n < need:
-        return GcpBendFit(None, None, {**info, "applied": False,
+        return GcpBendFit(None, {**info, "applied": False,
                             "reason": f"{n} usable control GCPs, {need} needed to fit {k} invisible warps "
                                       f"with {MIN_REDUNDANCY} equations to spare"})
     warp = EnuWarp(np.asarray(basis_rec["centre_m"], np.float64), float(basis_rec["half_width_m"]),
@@ -180,7 +173,7 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
     inl = _consensus(Y, X_enu, warp, rich, thresh_m, np.random.default_rng(seed), z0)
     info["inliers"] = int(inl.sum())
     if inl.sum() < need:
-        return GcpBendFit(None, None, {**info, "applied": False,
+        return GcpBendFit(None, {**info, "applied": False,
                             "reason": f"only {int(inl.sum())} of {n} control GCPs agree within {thresh_m:g} m "
                                       f"with the warps, {need} needed"})
     families = {"invisible": Vi}
@@ -194,7 +187,7 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
     info.update(loo_rms_affine_m=loo_affine, loo_rms_bend_m=loo_bend, family=best, warps_fitted=len(V),
                 loo_rms_m={name: v for name, v in rms.items()})
     if not loo_bend < MAX_LOO_RATIO * loo_affine:
-        return GcpBendFit(None, None, {**info, "applied": False,
+        return GcpBendFit(None, {**info, "applied": False,
                             "reason": f"leave-one-out {loo_bend:.3f} m with the warps against {loo_affine:.3f} m "
                                       f"without: not below {MAX_LOO_RATIO:g} x"})
     # the warp is evaluated at the corrected positions: re-solved until the fit is the map
@@ -214,4 +207,4 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
     info.update(applied=True, control_rms_m=_rms3(Yf - Xe),
                 warp_max_m=[float(v) for v in np.abs(d).max(axis=0)],
                 warp_rms_m=[float(v) for v in np.sqrt(np.mean(d * d, axis=0))])
-    return GcpBendFit(Hn, warp, info, inl, loo_res)
+    return GcpBendFit(warp, info, Hn, inl, loo_res)

@@ -38,6 +38,7 @@ from dataclasses import replace
 import numpy as np
 
 from recon_core.bend.pushbroom import MIN_TILES_FOR_CORRECTION, estimate_bend, physical_depth
+from recon_core.bend.result import BendFit
 from recon_core.geometry.enu_map import BendWarp
 
 MIN_METRIC_SHARE = 0.1      # a warp is estimated when this share of its pixel motion is seen.
@@ -50,16 +51,16 @@ MAX_RANGE_CHANGE = 0.5      # the data's depths more than 50 % off the orbit's: 
 
 
 def metric_bend(model, H: np.ndarray, altitude_m: float,
-                min_share: float = MIN_METRIC_SHARE, pair_only: bool = True) -> tuple[BendWarp | None, dict]:
+                min_share: float = MIN_METRIC_SHARE, pair_only: bool = True) -> BendFit:
     """The metric bend step of a sparse model with its upgrade H (4, 4) (see the module
     docstring), each image's observations once per point, in images of at least
-    MIN_TILES_FOR_CORRECTION tiles. Returns the warp (None when nothing is to be applied) and a
-    summary: the warps' shares, how many were seen, the data's range change and the altitude it
-    implies, and the warp's size on the ground (m)."""
+    MIN_TILES_FOR_CORRECTION tiles. Returns a BendFit: the warp (a BendWarp; None when nothing
+    is to be applied) and a summary: the warps' shares, how many were seen, the data's range
+    change and the altitude it implies, and the warp's size on the ground (m)."""
     pts, images = model.point_views(min_tiles=MIN_TILES_FOR_CORRECTION)
     out = {"applied": False, "images": len(images), "altitude_km": altitude_m / 1e3}
     if len(images) < 2:
-        return None, {**out, "reason": f"{len(images)} image(s) with >= {MIN_TILES_FOR_CORRECTION} tiles"}
+        return BendFit(None, {**out, "reason": f"{len(images)} image(s) with >= {MIN_TILES_FOR_CORRECTION} tiles"})
     X = model.X[pts]
     A3 = H[:3, :3]
     Hinv = np.linalg.inv(H)
@@ -71,8 +72,8 @@ def metric_bend(model, H: np.ndarray, altitude_m: float,
     warp, info = estimate_bend(X, images, min_share=min_share, depth=depth, range_free=True,
                                directions=east_north, pair=A3[:2] if pair_only else None)
     if info["images"] < 2:
-        return None, {**out, "images": info["images"],
-                      "reason": f"{info['images']} image(s) with enough points for the estimate"}
+        return BendFit(None, {**out, "images": info["images"],
+                              "reason": f"{info['images']} image(s) with enough points for the estimate"})
     k = info["range_change"]
     moved = np.linalg.norm((warp(X) @ A3.T)[:, :2], axis=1)
     out.update(images=info["images"], warps_seen=info["warps_seen"], warp_shares=info["warp_shares"],
@@ -82,16 +83,16 @@ def metric_bend(model, H: np.ndarray, altitude_m: float,
     if abs(k) > MAX_RANGE_CHANGE:
         out["reason"] = (f"the images' column perspective is {1 + k:.2f} times what an orbit at "
                          f"{altitude_m / 1e3:g} km gives (are the columns across track?)")
-        return None, out
+        return BendFit(None, out)
     need = 3 if pair_only else 7                  # the warps and the common range
     if info["warps_seen"] < need:
         # what is not seen is mixed with what is: an unseen range leaves the warps to the
         # assumed altitude, and nothing in the data says the columns' perspective is an orbit's
         out["reason"] = (f"the views see {info['warps_seen']} of the {need} (the {need - 1} warps and "
                          f"the orbit's range) at a share >= {min_share:g}")
-        return None, out
+        return BendFit(None, out)
     out["applied"] = True
-    return warp, out
+    return BendFit(warp, out)
 
 
 def warped_model(model, warp: BendWarp):

@@ -43,8 +43,7 @@ from typing import Any
 import numpy as np
 
 from recon_core.errors import ReconstructionError
-from recon_core.euclidean.metric_prior import (ImageRows, fit_with_metric_prior, gcp_only_cov, height_sigma,
-                                               row_cosines)
+from recon_core.euclidean.metric_prior import ImageRows, fit_with_metric_prior, gcp_only_cov, height_sigma, row_cosines
 from recon_core.geometry.affine import apply_affine_3d, as_4x4, fit_affine_3d
 from recon_core.geometry.enu_map import EnuWarp
 

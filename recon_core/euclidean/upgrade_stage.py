@@ -164,7 +164,8 @@ def _metric_bend(st: ModelUpgrade) -> None:
     on the warped model (GCP positions picked on the cloud move with it)."""
     if not st.cfg.upgrade.metric_bend:
         return
-    warp, st.metric = metric_bend(st.model, st.result.H, st.cfg.upgrade.orbit_altitude_km * 1e3)
+    fit = metric_bend(st.model, st.result.H, st.cfg.upgrade.orbit_altitude_km * 1e3)
+    st.metric, warp = fit.summary, fit.warp
     if warp is None:
         return
     moved = warped_model(st.model, warp)
@@ -279,10 +280,11 @@ def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model,
 
     basis = bend["basis"]
     try:
-        H, warp, info = fit_dem_bend(res.H, model.X[ids], frame, dem, basis["centre_m"], basis["half_width_m"],
-                                     refit, seed=cfg.seed, degree=cfg.upgrade.reference_dem_degree)
+        fit = fit_dem_bend(res.H, model.X[ids], frame, dem, basis["centre_m"], basis["half_width_m"],
+                           refit, seed=cfg.seed, degree=cfg.upgrade.reference_dem_degree)
     except ReconstructionError as exc:        # e.g. the control GCPs too flat once moved
         return res, None, {"applied": False, "reason": f"H_A refit with the DEM's bend: {exc}"}
+    info, warp = fit.summary, fit.warp
     info["dem"] = str(dem.path)
     if warp is None:
         return res, None, info

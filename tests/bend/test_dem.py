@@ -85,8 +85,9 @@ def test_a_dem_takes_out_the_saddle_four_gcps_leave(tmp_path):
     H0[:3] = fit_affine_3d(X[ctrl], T[ctrl])
     before = apply_affine_3d(H0, X) - T
     # the upgrade's fit, here a plain affine map, on the GCPs' surveyed positions less the bend
-    H, warp, info = fit_dem_bend(H0, X, frame, dem, np.zeros(2), HALF,
-                                 lambda w: fit_affine_3d(X[ctrl], T[ctrl] - w(T[ctrl])))
+    fit = fit_dem_bend(H0, X, frame, dem, np.zeros(2), HALF,
+                       lambda w: fit_affine_3d(X[ctrl], T[ctrl] - w(T[ctrl])))
+    H, warp, info = fit.H, fit.warp, fit.summary
     assert info["applied"] and warp is not None and info["last_move_m"] < 0.01
     Y = apply_affine_3d(H, X)
     after = Y + warp(Y) - T
@@ -115,8 +116,9 @@ def test_without_a_bend_the_dem_changes_little_and_too_little_cover_is_refused(t
     frame = LocalFrame(30.0, 31.0, 120.0)
     T, _ = _scene(frame)
     dem = open_reference_dem(_write_dem(tmp_path / "dem.tif", frame, seed=3))
-    H, warp, info = fit_dem_bend(np.eye(4), T, frame, dem, np.zeros(2), HALF,
-                                 lambda w: fit_affine_3d(T[:50], T[:50] - w(T[:50])))
+    fit = fit_dem_bend(np.eye(4), T, frame, dem, np.zeros(2), HALF,
+                       lambda w: fit_affine_3d(T[:50], T[:50] - w(T[:50])))
+    warp, info = fit.warp, fit.summary
     d = warp(T)[:, 2]
     assert np.sqrt(np.mean(d ** 2)) < 0.5 and info["bend_range_m"] < 2.0
     # a structure of which the DEM sees only a corner: no bend is fitted from it
@@ -290,8 +292,9 @@ def test_a_cubic_bend_needs_degree_three_and_a_dem_that_tells_it(tmp_path):
     H0[:3] = fit_affine_3d(X[ctrl], T[ctrl])
     rms, shape = {}, {}
     for degree in (2, 3):
-        H, warp, info = fit_dem_bend(H0, X, frame, dem, np.zeros(2), HALF,
-                                     lambda w: fit_affine_3d(X[ctrl], T[ctrl] - w(T[ctrl])), degree=degree)
+        fit = fit_dem_bend(H0, X, frame, dem, np.zeros(2), HALF,
+                           lambda w: fit_affine_3d(X[ctrl], T[ctrl] - w(T[ctrl])), degree=degree)
+        H, warp, info = fit.H, fit.warp, fit.summary
         assert info["applied"] and info["degree"] == degree and warp.degree == degree
         assert len(warp.coef) == 3 * (3 if degree == 2 else 7) and np.allclose(warp.coef[:2 * len(warp.coef) // 3], 0)
         Y = apply_affine_3d(H, X)
@@ -320,8 +323,9 @@ def test_a_cubic_bend_needs_degree_three_and_a_dem_that_tells_it(tmp_path):
     # and it is redone as a quadratic
     dem = open_reference_dem(_write_dem(tmp_path / "dem_srtm.tif", frame, noise_m=6.0, corr_px=30.0))
     H0[:3] = fit_affine_3d(X0[ctrl], T[ctrl])
-    H, warp, info = fit_dem_bend(H0, X0, frame, dem, np.zeros(2), HALF,
-                                 lambda w: fit_affine_3d(X0[ctrl], T[ctrl] - w(T[ctrl])), degree=3)
+    fit = fit_dem_bend(H0, X0, frame, dem, np.zeros(2), HALF,
+                       lambda w: fit_affine_3d(X0[ctrl], T[ctrl] - w(T[ctrl])), degree=3)
+    H, warp, info = fit.H, fit.warp, fit.summary
     assert info["applied"] and info["degree"] == 2 and warp.degree == 2 and info["degree_asked"] == 3
     assert [r["degree"] for r in info["degrees_refused"]] == [3]
 

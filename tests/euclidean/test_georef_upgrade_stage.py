@@ -126,6 +126,7 @@ def test_a_metric_warp_goes_through_the_upgrade_its_record_and_the_dsm(tiny_run,
     """When the metric bend step applies a warp (forced here: `tiny` is too small for the views
     to see the orbit's range), H_A is refitted on the warped structure, the record holds the warp,
     the map read back is the same, and the DSM stage puts the points where that map does."""
+    from recon_core.bend.result import BendFit
     from recon_core.euclidean import upgrade_stage
     from recon_core.euclidean.dsm_stage import make_dsm
     from recon_core.euclidean.georef import enu_to_output, output_epsg
@@ -145,9 +146,9 @@ def test_a_metric_warp_goes_through_the_upgrade_its_record_and_the_dsm(tiny_run,
                     np.array([0.01, 0.0, 0.0, 0, 0, 0, 0, 0, 0]))
     assert np.abs(warp(X)).max() > 0.001 * half
     info = {"applied": True, "warps_seen": 3, "warp_rms_m": 0.0, "warp_max_m": 0.0}
-    monkeypatch.setattr(upgrade_stage, "metric_bend", lambda *a, **k: (warp, dict(info)))
+    monkeypatch.setattr(upgrade_stage, "metric_bend", lambda *a, **k: BendFit(warp, dict(info)))
     up = upgrade_models(state.gcps, state.models, state.cfg)
-    monkeypatch.setattr(upgrade_stage, "metric_bend", lambda *a, **k: (None, {"applied": False}))
+    monkeypatch.setattr(upgrade_stage, "metric_bend", lambda *a, **k: BendFit(None, {"applied": False}))
     plain = upgrade_models(state.gcps, state.models, state.cfg)
     assert up.maps[0].warp is warp and plain.maps[0].warp is None
     assert not np.allclose(up.results[0].H, plain.results[0].H)        # refitted on the warped model
