@@ -74,8 +74,6 @@ class ImageModelCheck:
     unexplained: set[int] = field(default_factory=set)
 
     def summary(self) -> dict:
-        if not self.misfit_px and not self.unexplained_names:
-            return {}
         return {"misfit_px": self.misfit_px, "max_misfit_px": MAX_MODEL_MISFIT_PX,
                 "unexplained": self.unexplained_names}
 

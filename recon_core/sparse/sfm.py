@@ -527,8 +527,7 @@ class IncrementalSfM:
                 m.has_point[ids] &= cond[ids] >= self.cfg.min_triangulation_ratio * ref
                 self._cond_ref = float(ref)
 
-    # -- the image models -----------------------------------------------------------------------
-    # -- bundle adjustment --------------------------------------------------------------------
+    # -- tiles left unregistered ---------------------------------------------------------------
     def _unregistered_reason(self, t: int, last_try: str | None, count: int) -> str:
         """What the report says of a tile left unregistered: its last try's reason, or, when
         that is a count of correspondences alone (or it was never tried), why so few."""
@@ -554,6 +553,7 @@ class IncrementalSfM:
                     "(dropped: views too close in angle, sfm.min_triangulation_ratio, or a poor reprojection)")
         return "too little overlap with the registered tiles, or too little texture"
 
+    # -- bundle adjustment --------------------------------------------------------------------
     def _bundle(self, scope: str, around: int | None = None, final: bool = False,
                 correct: bool = False, converge: bool | None = None) -> None:
         """A local adjustment around tile `around` or a global one; `final`: a closing global
