@@ -430,11 +430,33 @@ def preset(name: str, method: str = "default") -> Config:
     return Config().with_overrides(PRESETS[name]).with_overrides(METHODS[method])
 
 
+def field_comments(cls) -> dict[str, str]:
+    """A config dataclass's fields -> their whole comment (the field line's and the comment
+    lines under it)."""
+    import inspect
+    import re
+
+    out, cur = {}, None
+    for line in inspect.getsource(cls).splitlines():
+        s = line.strip()
+        m = re.match(r"(\w+): [^=]+=.*?#\s?(.*)$", s)
+        if m:
+            cur = m.group(1)
+            out[cur] = m.group(2).strip()
+        elif re.match(r"(\w+): [^=]+=", s):
+            cur = None
+        elif s.startswith("#") and cur:
+            out[cur] += " " + s.lstrip("#").strip()
+        elif s:
+            cur = None
+    return out
+
+
 def config_to_toml(cfg: Config) -> str:
     """The configuration as TOML, one [section] per stage, each field with its comment (what
     `aerec config --dump` prints and `--config FILE` reads back). None is written commented."""
     import dataclasses
-    import inspect
+    import textwrap
 
     def value(v) -> str:
         if isinstance(v, bool):
@@ -447,24 +469,18 @@ def config_to_toml(cfg: Config) -> str:
             return "[" + ", ".join(value(x) for x in v) + "]"
         raise TypeError(f"cannot write {v!r} as TOML")
 
-    def comments(cls) -> dict[str, str]:
-        out = {}
-        for line in inspect.getsource(cls).splitlines():
-            name, _, rest = line.strip().partition(":")
-            if "#" in rest and name.isidentifier():
-                out[name] = rest.split("#", 1)[1].strip()
-        return out
-
     top, parts = [], []
     for f in dataclasses.fields(cfg):
         v = getattr(cfg, f.name)
         if dataclasses.is_dataclass(v):
-            com = comments(type(v))
+            com = field_comments(type(v))
             lines = [f"[{f.name}]"]
             for sf in dataclasses.fields(v):
                 sv = getattr(v, sf.name)
-                c = f"  # {com[sf.name]}" if sf.name in com else ""
-                lines.append(f"# {sf.name} = (none){c}" if sv is None else f"{sf.name} = {value(sv)}{c}")
+                head = f"# {sf.name} = (none)" if sv is None else f"{sf.name} = {value(sv)}"
+                text = textwrap.wrap(com.get(sf.name, ""), max(100 - len(head) - 4, 40))
+                lines.append(head + (f"  # {text[0]}" if text else ""))
+                lines += [" " * len(head) + f"  # {t}" for t in text[1:]]
             parts.append("\n".join(lines))
         else:
             top.append(f"{f.name} = {value(v)}")

@@ -6,26 +6,8 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
-import re
 
-
-def field_comments(cls) -> dict[str, str]:
-    """A config dataclass's fields -> their whole comment (the field line's and the comment
-    lines under it)."""
-    out, cur = {}, None
-    for line in inspect.getsource(cls).splitlines():
-        s = line.strip()
-        m = re.match(r"(\w+): [^=]+=.*?#\s?(.*)$", s)
-        if m:
-            cur = m.group(1)
-            out[cur] = m.group(2).strip()
-        elif re.match(r"(\w+): [^=]+=", s):
-            cur = None
-        elif s.startswith("#") and cur:
-            out[cur] += " " + s.lstrip("#").strip()
-        elif s:
-            cur = None
-    return out
+from recon_core.config import field_comments
 
 
 def _rule_text(rule) -> str:

@@ -131,6 +131,8 @@ def test_config_dump_round_trips_and_a_config_file_is_checked(tmp_path, capsys, 
     assert main(["config", "--dump", "--preset", "tiny"]) == 0
     text = capsys.readouterr().out
     assert "[sgbm]" in text and "# d: tile side" in text
+    # every field's whole comment, continued on comment lines under it (not its first line only)
+    assert "SIFT's own positions are off" in text and "0 = off" in text.split("refine_half_px")[1].split("\n\n")[0]
     assert config_from_dict(tomllib.loads(text)) == preset("tiny")
     old = text.replace("[bundle]\n", "[bundle]\nsmoothness_weight = 0.0\n").replace(
         "[matching]\n", "[matching]\nmin_parallax_ratio = 0.0\n")        # removed: read, skipped
