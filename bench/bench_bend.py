@@ -189,11 +189,11 @@ def grow(site, sigma_obs: float, sigma_tie: float, rounds: int, ring_step: float
 def closing(site, rounds: int, sigma_tie: float, noise_px: float,
             bend: bool = False, ring_step: float = 300.0, physics: list[str] = ()) -> None:
     """The SfM's closing adjustments on a model grown without the correction (WideSite.grow):
-    one tied adjustment, then `rounds` with the within-tile correction refitted; with `bend`, then the same rounds each started by the bend step
-    (pushbroom.estimate_bend: the structure unbent, the tile cameras following), and one last
-    step after the last round, as the SfM ends. Per round: the
-    structure against the truth, and the quadratic coefficients (e^2, e n, n^2 over the site
-    scaled to a unit square) of its vertical and east residuals."""
+    one tied adjustment, then `rounds` with the within-tile correction refitted; with `bend`,
+    then the same rounds each started by the bend step (pushbroom.estimate_bend: the structure
+    unbent, the tile cameras following), and one last step after the last round, as the SfM
+    ends. Per round: the structure against the truth, and the quadratic coefficients (e^2, e n,
+    n^2 over the site scaled to a unit square) of its vertical and east residuals."""
     from recon_core.bend.pushbroom import estimate_bend, tile_corrections
 
     t0 = time.time()

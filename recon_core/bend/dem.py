@@ -3,8 +3,8 @@
 Three views of one date over 10 km leave quadratic warps of the structure that move no pixel
 once every image's pushbroom model re-fits (recon_core.bend.observability); 4 GCPs fix an
 affine map, not a bend: on the `wide` site the heights away from 4 GCPs were off by 28 m RMS
-(docs: research-notes.md, "One date over 10 km: what 4 GCPs leave"). Nine or more control GCPs can hold it (recon_core.bend.gcp);
-so can a global DEM that every site has (SRTM, Copernicus GLO-30, a national DEM), the way other
+(docs: research-notes.md, "One date over 10 km: what 4 GCPs leave").
+Nine or more control GCPs can hold it (recon_core.bend.gcp); so can a global DEM that every site has (SRTM, Copernicus GLO-30, a national DEM), the way other
 satellite pipelines lean on one (s2p and CARS for their height range, ASP for its initial
 heights): its cells of 30 m know no building and are metres off each, but over kilometres they
 know the shape of the ground.

@@ -70,7 +70,8 @@ def bend_seen(b: dict) -> str | None:
     if not b:
         return "no two views of the structure to tell a bend"
     if b["site_width_km"] < BEND_WARN_WIDTH_KM:
-        return f"the site is {b['site_width_km']:.2f} km wide, too small to bend (a DEM is used from {BEND_WARN_WIDTH_KM:g} km)"
+        return (f"the site is {b['site_width_km']:.2f} km wide, too small to bend (a DEM is used from "
+                f"{BEND_WARN_WIDTH_KM:g} km)")
     s = b.get("weakest_vertical_px_per_m")
     if s is None or s >= BEND_INVISIBLE_PX_PER_M:
         return "the views see the bend (several dates, or views from more than one direction)"
