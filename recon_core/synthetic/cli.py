@@ -4,6 +4,8 @@ that the reconstruction's command line never imports the generator."""
 from __future__ import annotations
 
 import argparse
+import os
+import shutil
 import time
 from pathlib import Path
 
@@ -11,20 +13,49 @@ PRESET_NAMES = ("tiny", "tiny2", "tiny2fp", "mini", "quick", "demo", "demofp", "
 
 
 def cmd_synth(args) -> int:
+    """Write the site into a hidden folder beside OUT and rename it into place when it is whole:
+    an interrupted run leaves no partial site, and a site is never written over another one's
+    files (OUT must be new or empty)."""
     from recon_core.cli import ProgressPrinter
+    from recon_core.errors import InputError
     from recon_core.synthetic.generator import generate_site
 
+    out = Path(args.out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(out, "exists and is not empty: a synthetic site is written into a new or "
+                              "empty folder (remove it, or choose another)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_partials(out)
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     t0 = time.time()
     prog = ProgressPrinter(not args.quiet)
-    generate_site(args.out, preset=args.preset, seed=args.seed, progress=prog)
-    prog.close()
-    print(f"wrote {args.preset} site (seed {args.seed}) to {args.out} in {time.time() - t0:.1f} s")
+    try:
+        generate_site(tmp, preset=args.preset, seed=args.seed, progress=prog)
+        prog.close()
+        if out.exists():
+            out.rmdir()                       # the empty folder it replaces
+        tmp.rename(out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    print(f"wrote {args.preset} site (seed {args.seed}) to {out} in {time.time() - t0:.1f} s")
     return 0
+
+
+def _remove_stale_partials(out: Path) -> None:
+    """Delete the hidden partial folders of earlier runs into OUT that were killed outright
+    (their process is gone: an interrupt removes its own)."""
+    for tmp in out.parent.glob(f".{out.name}.partial-*"):
+        try:
+            os.kill(int(tmp.name.rsplit("-", 1)[1]), 0)
+        except (ValueError, ProcessLookupError):
+            shutil.rmtree(tmp, ignore_errors=True)
+        except PermissionError:               # another user's live process
+            pass
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser("synth", help="write a synthetic pushbroom site with known truth")
-    s.add_argument("out", type=Path, help="site folder to write")
+    s.add_argument("out", type=Path, help="site folder to write (new, or empty)")
     s.add_argument("--preset", default="demo", choices=PRESET_NAMES)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -289,3 +289,39 @@ def test_the_render_warmup_compiles_the_signature_the_renderer_uses():
     fake = syn.warm_render_kernel()
     real = SceneModel.create(0, 30.0, 31.2, 50.0).ctx
     assert [numba.typeof(v) for v in fake] == [numba.typeof(v) for v in real]
+
+
+def test_synth_command_writes_whole_sites_only(tmp_path, monkeypatch, capsys):
+    """`aerec synth` refuses a folder that holds anything (one line, exit 2, nothing written);
+    an interrupted generation leaves neither the site nor its hidden partial folder; a finished
+    one lands whole in a new or empty folder."""
+    from recon_core.cli import main
+
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "img_05.tif").write_bytes(b"left over")
+    assert main(["synth", str(busy), "--preset", "tiny", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("aerec: error:") == 1 and str(busy) in err and "not empty" in err
+    assert [p.name for p in busy.iterdir()] == ["img_05.tif"]
+
+    def interrupted(out, **kw):
+        (Path(out) / "images").mkdir(parents=True)
+        (Path(out) / "images" / "img_00.tif").write_bytes(b"half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(syn, "generate_site", interrupted)
+    assert main(["synth", str(tmp_path / "cut"), "--preset", "tiny", "--quiet"]) == 130
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["busy"]
+
+    def whole(out, **kw):
+        (Path(out) / "images").mkdir(parents=True)
+        (Path(out) / "site.json").write_text("{}")
+
+    monkeypatch.setattr(syn, "generate_site", whole)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for out in (tmp_path / "new", empty):
+        assert main(["synth", str(out), "--preset", "tiny", "--quiet"]) == 0
+        assert sorted(p.name for p in out.iterdir()) == ["images", "site.json"]
+    assert not list(tmp_path.glob(".*partial*"))
