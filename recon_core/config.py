@@ -478,7 +478,8 @@ def config_to_toml(cfg: Config) -> str:
             for sf in dataclasses.fields(v):
                 sv = getattr(v, sf.name)
                 head = f"# {sf.name} = (none)" if sv is None else f"{sf.name} = {value(sv)}"
-                text = textwrap.wrap(com.get(sf.name, ""), max(100 - len(head) - 4, 40))
+                text = textwrap.wrap(com.get(sf.name, ""), max(100 - len(head) - 4, 40),
+                                     break_on_hyphens=False)
                 lines.append(head + (f"  # {text[0]}" if text else ""))
                 lines += [" " * len(head) + f"  # {t}" for t in text[1:]]
             parts.append("\n".join(lines))

@@ -43,20 +43,22 @@ CHAIN: tuple[Step, ...] = (
          "a time by RANSAC resection of an 8-parameter affine camera; linear multi-view "
          "triangulation; robust bundle adjustment", "recon_core.sparse.sfm", True),
     Step("image_models", "each image's pushbroom model (focal plane included) checked against "
-         "the image: the two steps below stand aside for an image it does not explain",
+         "the image: the tie and the within-tile correction stand aside for an image it does not "
+         "explain",
          "recon_core.bend.closing", False),
     Step("tie", "each image's tile cameras tied to one pushbroom model in the closing "
          "adjustments", "recon_core.bend.image_model", False, "sfm.tie_sigma_px", 0.0,
          "an image with fewer than 4 registered tiles, or one its model does not explain"),
+    Step("bend_step", "the quadratic bend of the structure that the images' straight-line models "
+         "see taken out at the start of each correction round, before its adjustment, and once "
+         "after the last (several dates only)", "recon_core.bend.closing", False,
+         "sfm.bend_step", False, "any sensor that is not a straight line array (checked on the run's "
+         "data: its straight-line model misses it by more than 0.02 px, mostly by what the focal-"
+         "plane terms take away; a bowed line looks like a bend; every real sensor so far); one date"),
     Step("within_tile", "each image's model's departure from affine inside a tile taken out of "
          "its observations (several dates only)", "recon_core.bend.closing", False,
          "sfm.correction_rounds", 0, "one date (one pass's views cannot see what it would free); "
          "an image its model does not explain"),
-    Step("bend_step", "the quadratic bend of the structure that the images' straight-line models "
-         "see taken out at each correction round (several dates only)", "recon_core.bend.closing", False,
-         "sfm.bend_step", False, "any sensor that is not a straight line array (checked on the run's "
-         "data: its straight-line model misses it by more than 0.02 px, mostly by what the focal-"
-         "plane terms take away; a bowed line looks like a bend; every real sensor so far); one date"),
     Step("dense", "per overlapping tile pair: affine F from the cameras, rectifying affine maps, "
          "MGM (semi-global matching on a census cost; dense.matcher) with a left-right check, "
          "multi-view tracks with a photometric check, triangulation", "recon_core.dense", True),

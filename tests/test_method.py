@@ -37,8 +37,9 @@ def test_steps_are_unique_and_their_modules_exist():
 
 def test_the_stages_run_their_steps_in_the_chains_order():
     """The two places that run corrections in order follow CHAIN: the upgrade's UPGRADE_CHAIN
-    (its steps that are CHAIN's, in CHAIN's order) and the sparse closing adjustments, whose
-    plan's bend steps come after the first adjustment and start each correction round."""
+    (its steps that are CHAIN's, in CHAIN's order), and the sparse closing plan, whose steps
+    first appear in CHAIN's order (the tied adjustment: `tie`; the bend step: `bend_step`; the
+    adjustment with the correction refitted: `within_tile`)."""
     from recon_core.bend.closing import closing_plan
     from recon_core.euclidean.upgrade_stage import UPGRADE_CHAIN
 
@@ -46,10 +47,21 @@ def test_the_stages_run_their_steps_in_the_chains_order():
     ran = [name for name, _ in UPGRADE_CHAIN if name in order]
     assert ran == [n for n in order if n in ran]
     assert {"upgrade", "metric_bend", "gcp_bend", "dem_bend"} <= set(ran)
+
+    def chain_names(plan):
+        names = []
+        for s in plan:
+            name = {"bend": "bend_step"}.get(s.name) or ("within_tile" if s.correct else "tie")
+            if s.name != "filter" and name not in names:
+                names.append(name)
+        return names
+
+    first = chain_names(closing_plan(2, bend=True))
+    assert first == [n for n in order if n in first] == ["tie", "bend_step", "within_tile"]
+    assert chain_names(closing_plan(2, bend=False)) == ["tie", "within_tile"]
     plan = [s.name for s in closing_plan(2, bend=True)]
     assert plan == ["filter", "adjust", "filter", "bend", "adjust", "filter", "bend", "adjust", "bend"]
     steps = closing_plan(2, bend=True)
     assert [s.correct for s in steps if s.name == "adjust"] == [False, True, True]
     assert [s.converge for s in steps if s.name == "adjust"] == [False, False, True]
-    assert "bend" not in [s.name for s in closing_plan(2, bend=False)]
-    assert all(s.converge for s in closing_plan(0, bend=True) if s.name == "adjust")
+    assert all(s.converge and not s.correct for s in closing_plan(0, bend=True) if s.name == "adjust")

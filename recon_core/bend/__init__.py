@@ -7,5 +7,6 @@ and its check (pushbroom), the per-image tie (image_model), the sparse stage's c
 adjustments in their order (closing), what the views can see of a bend (observability), the
 metric bend step (metric), and the bend held by control GCPs (gcp) or by a reference DEM (dem).
 Each of the last three returns a BendFit (result): its warp or None, the summary the report gives
-(with "applied", and "reason" when it stood aside), and the H_A that goes with it.
+(with "applied", and "reason" when it stood aside), and, for the GCP and DEM bends, the H_A that
+goes with the warp.
 """

@@ -11,7 +11,9 @@ which recon_core.sparse.sfm follows).
 - `bend_step`: the quadratic bend of the structure the images' straight-line models see, taken
   out (sfm.bend_step).
 
-Each returns a typed result whose `summary()` is what the run's report says of it.
+The two checks return typed results (`ImageModelCheck`, `StraightLines`) whose `summary()` is
+what the run's report says of them; `image_ties` returns the ties the adjustment takes,
+`within_tile` and `bend_step` the summaries the report gives.
 """
 
 from __future__ import annotations

@@ -9,9 +9,10 @@ import numpy as np
 
 @dataclass(frozen=True)
 class BendFit:
-    """One correction's result: its warp (None when it stands aside: `reason` says why), the H_A
-    that goes with it when the correction refits one, and the summary the report gives (with
-    "applied" and, when it stood aside, "reason")."""
+    """One correction's result: its warp (None when it stands aside: `reason` says why), the
+    summary the report gives (with "applied" and, when it stood aside, "reason"), and the H_A
+    that goes with the warp when the correction refits one (the GCP and DEM bends; the metric
+    bend step leaves the refit to the upgrade)."""
 
     warp: object | None              # geometry.enu_map.BendWarp (affine frame) or EnuWarp (ENU)
     summary: dict

@@ -200,21 +200,20 @@ def _warn(st: ModelUpgrade) -> None:
     _warn_bend(st.result, st.bend, st.gcp_bend, st.dem_bend)
 
 
-# One model's upgrade, in order: H_A (with the cameras' metric constraint when asked), the
-# metric bend step (H_A refitted), what the views can see of a bend in the frame H_A gives, the
-# bend fitted to control GCPs, the vertical bend from a reference DEM, and the warning when
-# nothing holds what the views cannot see. Named as recon_core.method.CHAIN names its steps
-# (the two without a switch of their own are checks); a test holds the two in the same order.
-UPGRADE_CHAIN = (("upgrade", _h_a), ("metric_bend", _metric_bend), ("bend_observability", _observe),
-                 ("gcp_bend", _gcp_bend), ("dem_bend", _dem_bend), ("bend_warning", _warn))
+# One model's upgrade, in order: H_A (with the cameras' metric constraint when asked) and the
+# metric bend step (H_A refitted): the fit, which may refuse a model; then what the views can see
+# of a bend in the frame H_A gives, the bend fitted to control GCPs, the vertical bend from a
+# reference DEM, and the warning when nothing holds what the views cannot see. Named as
+# recon_core.method.CHAIN names its steps (the two without a switch of their own are checks); a
+# test holds the two in the same order.
+UPGRADE_FIT = (("upgrade", _h_a), ("metric_bend", _metric_bend))
+UPGRADE_HOLD = (("bend_observability", _observe), ("gcp_bend", _gcp_bend), ("dem_bend", _dem_bend),
+                ("bend_warning", _warn))
+UPGRADE_CHAIN = UPGRADE_FIT + UPGRADE_HOLD
 
 
-def upgrade_model(model: SparseModel, picks: list[GCP], gcps: list[GCP], frame: LocalFrame,
-                  cfg: Config) -> ModelUpgrade:
-    """Run UPGRADE_CHAIN on one model (`picks`: the GCPs as its fit has them; `gcps`: the run's
-    set). Raises ReconstructionError when H_A cannot be fitted."""
-    st = ModelUpgrade(model, picks, gcps, frame, cfg)
-    for _, step in UPGRADE_CHAIN:
+def run_steps(st: ModelUpgrade, steps) -> ModelUpgrade:
+    for _, step in steps:
         step(st)
     return st
 
@@ -332,8 +331,9 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
     up = Upgrade(frame_for(gcps))
     joint = merge_joint([models[g] for g in sorted(models)])
     if joint is not None:
-        try:
-            st = upgrade_model(joint, [_picks_joint(g, joint.group) for g in gcps], gcps, up.frame, cfg)
+        try:                                  # the whole chain: any refusal, each group apart
+            st = run_steps(ModelUpgrade(joint, [_picks_joint(g, joint.group) for g in gcps], gcps, up.frame,
+                                        cfg), UPGRADE_CHAIN)
             for g, model in sorted(models.items()):
                 gsd = estimate_gsd(model if st.warp is None else warped_model(model, st.warp), st.result.H)
                 up.add(g, st, gsd)
@@ -342,13 +342,13 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
         except ReconstructionError:           # each group on its own, below
             up = Upgrade(up.frame)
     for g, model in sorted(models.items()):
-        try:
-            st = upgrade_model(model, gcps, gcps, up.frame, cfg)
+        try:                                  # a group H_A cannot be fitted for is left out
+            st = run_steps(ModelUpgrade(model, gcps, gcps, up.frame, cfg), UPGRADE_FIT)
             gsd = estimate_gsd(st.model, st.result.H)   # a model without a registered camera stops here
         except ReconstructionError as exc:
             up.errors[g] = f"group {g}: {exc}"
             continue
-        up.add(g, st, gsd)
+        up.add(g, run_steps(st, UPGRADE_HOLD), gsd)
     if not up.results:
         raise ReconstructionError("; ".join(up.errors.values()))
     return up

@@ -83,7 +83,7 @@ def test_enu_map_record_round_trip():
 
 def test_the_report_is_rescored_with_the_bend_and_a_blunder_left_out():
     """Through upgrade.upgrade (whose affine RANSAC rejects good GCPs that the bend moved) and
-    rescore: every good control GCP used again, the blunder rejected, the check points scored by
+    rescore_with_bend: every good control GCP used again, the blunder rejected, the check points scored by
     the map with the warps, and the affine fit's warnings replaced."""
     from recon_core.euclidean.upgrade import GcpInput, rescore_with_bend, upgrade
 
