@@ -204,7 +204,9 @@ class MgmConfig:
     filter."""
 
     census_window: int = _p(5, choices=(3, 5, 7))  # census window side (px); costs run from 0 to census_window^2 - 1
-    p1: float = _p(8.0, lo=0, hi=10_000)  # penalty of a 1 px disparity step (census units)
+    p1: float = _p(12.0, lo=0, hi=10_000)  # penalty of a 1 px disparity step (census units; 12 rather
+                                      # than CARS's 8: closer to the truth on omaha and to s2p on
+                                      # both real pairs; docs: research-notes.md, "MGM's penalties")
     p2: float = _p(32.0, lo=0, hi=100_000)  # penalty of a larger step (>= p1)
     lr_max_diff_px: float = _p(1.0, lo=0, hi=1000)  # left-right check tolerance (px)
     median: bool = _p(True)           # 3 x 3 median of the valid disparities

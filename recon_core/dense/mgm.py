@@ -241,7 +241,7 @@ def strips(h: int, rows: int, overlap: int) -> list[tuple[int, int, int, int]]:
 
 
 def mgm_disparity(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float, census_window: int = 5,
-                  p1: float = 8.0, p2: float = 32.0, lr_max_diff_px: float = 1.0, median: bool = True,
+                  p1: float = 12.0, p2: float = 32.0, lr_max_diff_px: float = 1.0, median: bool = True,
                   speckle_window: int = 100, speckle_range: float = 2.0, uniqueness: float = 0.1,
                   max_volume_mb: float = 512.0, overlap_rows: int = 64) -> np.ndarray:
     """Disparity (h, w) float32 of a rectified pair (d = u_right - u_left, NaN invalid), searched
