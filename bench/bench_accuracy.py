@@ -8,7 +8,9 @@ this project did not make. Prints one table; asserts nothing.
 Configurations: `paper` (recon_core.config.BEYOND_PAPER switched off: the baseline), `default`
 (what AE-Rec runs), `paper+NAME` (the paper with one correction on, with what it needs),
 `default-NAME` (the defaults with one correction off) and `default+NAME` (the defaults with one
-they leave off switched on). NAME is one of CORRECTIONS.
+they leave off switched on). NAME is one of CORRECTIONS. Any of them followed by
+`@section.key=VALUE` (repeatable) sets parameters too: `--configs default@mgm.p1=16` (a JSON
+value, else a string; parameters of the sparse or dense stage get an OUT of their own).
 
 Sites: `omaha` (../shared/data/omaha_3dates: an independent pushbroom simulator, 3 dates, a
 ground-truth DSM), `gizeh` (d = 300), `reunion` (d = 400) (real Pleiades pairs, scored for agreement with
@@ -61,7 +63,18 @@ def _default(key: str):
 
 def overrides_for(name: str) -> dict:
     """The overrides of a configuration name (module docstring; `default+X`: the defaults with
-    X switched on, for a correction they leave off)."""
+    X switched on, for a correction they leave off; `NAME@section.key=VALUE@...`: NAME with
+    parameters set, e.g. `default@mgm.p1=16`)."""
+    if "@" in name:
+        base, *sets = name.split("@")
+        ov = overrides_for(base)
+        for item in sets:
+            key, _, text = item.partition("=")
+            try:
+                ov[key] = json.loads(text)
+            except ValueError:
+                ov[key] = text
+        return ov
     if name == "default":
         return {}
     if name == "paper":
