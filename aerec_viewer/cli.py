@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -25,18 +24,6 @@ def cache_dir() -> Path:
     if base:
         return Path(base)
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "aerec"
-
-
-def _remove_stale_tmp(site: Path) -> None:
-    """Delete half-written demo folders left by an interrupted first run (their process is gone)."""
-    for tmp in site.parent.glob(".demo_site.tmp*"):
-        try:
-            pid = int(tmp.name.rsplit("tmp", 1)[1])
-            os.kill(pid, 0)                   # still generating in another process: keep it
-        except (ValueError, ProcessLookupError):
-            shutil.rmtree(tmp, ignore_errors=True)
-        except PermissionError:
-            pass
 
 
 # The demo of `aerec view`: the `mini` preset (6 images of 800 px in two date groups), shipped
@@ -128,32 +115,31 @@ def _wait_render_warm(warm, timeout: float = 120.0) -> None:
 
 
 def demo_site(progress=None) -> Path:
-    """The demo site, generated (offline, seed 0) on first use; atomic (tmp folder + rename)."""
+    """The demo site, generated (offline, seed 0) on first use; atomic (io.files.atomic_folder)."""
     site = _demo_dir()
     if (site / "images").is_dir():
         return site
+    from recon_core.io.files import atomic_folder
     from recon_core.synthetic.generator import generate_site
 
-    _remove_stale_tmp(site)
-    tmp = site.with_name(f".demo_site.tmp{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.parent.mkdir(parents=True, exist_ok=True)
     warm = _start_warmup()
     try:
-        generate_site(tmp, preset=demo_preset(), seed=0, progress=progress,
-                      before_render=lambda: _wait_render_warm(warm))
-    except BaseException:
-        if warm is not None and warm.poll() is None:
-            warm.kill()
-        raise
-    if warm is not None:                  # it goes on compiling the BA kernels: reap it when done
-        import threading
+        with atomic_folder(site) as tmp:
+            try:
+                generate_site(tmp, preset=demo_preset(), seed=0, progress=progress,
+                              before_render=lambda: _wait_render_warm(warm))
+            except BaseException:
+                if warm is not None and warm.poll() is None:
+                    warm.kill()
+                raise
+            if warm is not None:          # it goes on compiling the BA kernels: reap it when done
+                import threading
 
-        threading.Thread(target=warm.wait, daemon=True, name="aerec-warmup-reaper").start()
-    try:
-        os.replace(tmp, site)
-    except OSError:                       # another process won the race
-        shutil.rmtree(tmp, ignore_errors=True)
+                threading.Thread(target=warm.wait, daemon=True, name="aerec-warmup-reaper").start()
+    except OSError:
+        if not (site / "images").is_dir():
+            raise
+        # another process won the race: its site is the same (seed 0)
     return site
 
 

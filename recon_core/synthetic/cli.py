@@ -4,8 +4,6 @@ that the reconstruction's command line never imports the generator."""
 from __future__ import annotations
 
 import argparse
-import os
-import shutil
 import time
 from pathlib import Path
 
@@ -18,39 +16,20 @@ def cmd_synth(args) -> int:
     files (OUT must be new or empty)."""
     from recon_core.cli import ProgressPrinter
     from recon_core.errors import InputError
+    from recon_core.io.files import atomic_folder
     from recon_core.synthetic.generator import generate_site
 
     out = Path(args.out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(out, "exists and is not empty: a synthetic site is written into a new or "
                               "empty folder (remove it, or choose another)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_partials(out)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     t0 = time.time()
     prog = ProgressPrinter(not args.quiet)
-    try:
+    with atomic_folder(out) as tmp:
         generate_site(tmp, preset=args.preset, seed=args.seed, progress=prog)
         prog.close()
-        if out.exists():
-            out.rmdir()                       # the empty folder it replaces
-        tmp.rename(out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     print(f"wrote {args.preset} site (seed {args.seed}) to {out} in {time.time() - t0:.1f} s")
     return 0
-
-
-def _remove_stale_partials(out: Path) -> None:
-    """Delete the hidden partial folders of earlier runs into OUT that were killed outright
-    (their process is gone: an interrupt removes its own)."""
-    for tmp in out.parent.glob(f".{out.name}.partial-*"):
-        try:
-            os.kill(int(tmp.name.rsplit("-", 1)[1]), 0)
-        except (ValueError, ProcessLookupError):
-            shutil.rmtree(tmp, ignore_errors=True)
-        except PermissionError:               # another user's live process
-            pass
 
 
 def register(sub: argparse._SubParsersAction) -> None:
