@@ -77,23 +77,17 @@ class GcpMarks:
 
         want = {}
         r = self.radius()
-        if app.picking.plane is not None and app.reference is not None \
-                and app.picking.plane.window.image == app.reference.ortho.name and app.session.gcps:
-            # on the reference orthoimage: each GCP's ground position
-            win = app.picking.plane.window
-            gs = app.session.gcps
-            cols, rows = app.reference.pixel_of([g.lon for g in gs], [g.lat for g in gs])
-            for gcp, c, rr in zip(gs, cols, rows):
-                if win.contains([(float(c), float(rr))])[0]:
-                    want[f"/gcp/plane_marks/{safe_name(gcp.id)}"] = (
-                        app.picking.plane.point_of(float(c), float(rr), lift=0.5 * r), colour(gcp.id), gcp.id)
-        elif app.picking.plane is not None:
-            win = app.picking.plane.window
-            for gcp in app.session.gcps:
-                ob = gcp.observations.get(win.image)
-                if ob is not None and win.contains([ob])[0]:
-                    want[f"/gcp/plane_marks/{safe_name(gcp.id)}"] = (
-                        app.picking.plane.point_of(ob[0], ob[1], lift=0.5 * r), colour(gcp.id), gcp.id)
+        pl, gs = app.picking.plane, app.session.gcps
+        if pl is not None:
+            if app.reference is not None and pl.window.image == app.reference.ortho.name and gs:
+                # on the reference orthoimage: each GCP's ground position
+                cols, rows = app.reference.pixel_of([g.lon for g in gs], [g.lat for g in gs])
+                pix = {g.id: (float(c), float(rr)) for g, c, rr in zip(gs, cols, rows)}
+            else:
+                pix = {g.id: g.observations[pl.window.image] for g in gs if pl.window.image in g.observations}
+            for gid, (c, rr) in pix.items():
+                if pl.window.contains([(c, rr)])[0]:
+                    want[f"/gcp/plane_marks/{safe_name(gid)}"] = (pl.point_of(c, rr, lift=0.5 * r), colour(gid), gid)
         shown: set[str] = set()
         for g, T in sorted(snap_T.items()):
             for gid, xyz in app.gcp_affine_positions(g).items():
