@@ -27,6 +27,7 @@ import numpy as np
 
 from recon_core.errors import AerecError
 from recon_core.euclidean.ground_reference import EDGE_SPREAD_M
+from recon_core.euclidean.upgrade_stage import control_needed
 from recon_core.io.gcps import picked_positions
 
 from .display import (
@@ -769,10 +770,11 @@ class ViewerApp:
     def _update_upgrade_button(self) -> None:
         ready = gcp_readiness(self.session, self.models)
         n = n_ready(self.session, self.models)
-        can = bool(self.models) and n >= 4
+        need = control_needed(self.site.images, self.cfg)
+        can = bool(self.models) and n >= need
         self.g_upgrade.disabled = not can
         why = ("waiting for the sparse model" if not self.models else
-               f"{n} control GCP(s) placeable, 4 needed" if n < 4 else
+               f"{n} control GCP(s) placeable, {need} needed" if n < need else
                f"{n} control GCPs placeable")
         stale = ""
         if self.upgrade is not None and self.upgrade.gcps_version != self.session.version:
@@ -791,7 +793,7 @@ class ViewerApp:
         the Euclidean frame, show the residuals, then recompute the DSM and the error map from
         this GCP set (the pipeline from its upgrade stage, as `aerec run --redo-from upgrade`)."""
         try:
-            outcome = run_upgrade(self.session, self.models, self.cfg)
+            outcome = run_upgrade(self.session, self.models, self.cfg, {im.name: im for im in self.site.images})
         except AerecError as exc:
             self._set_md(self.g_upgrade_md, f"**Upgrade failed:** {exc}")
             raise

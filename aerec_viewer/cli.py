@@ -364,7 +364,8 @@ class ConsoleProgress:
             self.status_told = snap.status
             if snap.status == "done" and snap.awaiting_gcps:
                 self._say(f"affine reconstruction finished in {t:.0f} s; outputs in {self.out}")
-                self._say("next: place 4 control GCPs in the GCP tab of the page (each in 2 images), "
+                self._say("next: place 4 control GCPs (3 when the images state their viewing directions) "
+                          "in the GCP tab of the page (each in 2 images), "
                           "then press Upgrade")
             elif snap.status == "done":
                 self._say(f"finished in {t:.0f} s; outputs in {self.out}")

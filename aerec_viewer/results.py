@@ -123,9 +123,10 @@ def n_ready(session: GcpSession, models: dict, role: str | None = "control") -> 
     return sum(1 for g in session.gcps if ready[g.id][0] and (role is None or g.role == role))
 
 
-def run_upgrade(session: GcpSession, models: dict, cfg: Config) -> UpgradeOutcome:
+def run_upgrade(session: GcpSession, models: dict, cfg: Config, images: dict | None = None) -> UpgradeOutcome:
     """Fit H_A for every group from the working GCP set (what the Upgrade button does), with the
-    run's configuration (RANSAC threshold, seed), exactly as the pipeline's upgrade stage does.
+    run's configuration (RANSAC threshold, seed) and the site's images (name -> ImageInfo: their
+    viewing directions hold H_A), exactly as the pipeline's upgrade stage does.
 
     Raises:
         ReconstructionError: no model yet, or no group could be upgraded (the message of each
@@ -134,7 +135,7 @@ def run_upgrade(session: GcpSession, models: dict, cfg: Config) -> UpgradeOutcom
     if not models:
         raise ReconstructionError("no sparse model yet: wait for the sparse stage to finish")
     gcps = read_gcps_geojson(session.path)        # what a run on OUT reads: the same numbers
-    up = upgrade_models(gcps, models, cfg)
+    up = upgrade_models(gcps, models, cfg, images)
     return UpgradeOutcome(**{f.name: getattr(up, f.name) for f in fields(up)}, gcps_version=session.version)
 
 
@@ -160,6 +161,7 @@ def residual_table_markdown(result: dict) -> str:
                          f"N {st['rmse_N_m']:.3f}, U {st['rmse_U_m']:.3f} m; "
                          f"CE90 {st['ce90_m']:.3f} m, LE90 {st['le90_m']:.3f} m")
     cond = result.get("conditioning") or {}
+    lines += height_scale_lines(cond)
     if cond.get("warning"):
         lines.append(f"\n**Conditioning warning:** {cond['warning']}")
     elif cond:
@@ -173,6 +175,32 @@ def residual_table_markdown(result: dict) -> str:
     for r in result.get("rejections", []):
         lines.append(f"- {r['id']} not used: {r['reason']}")
     return "\n".join(lines)
+
+
+def _loose_text(lo: dict) -> str:
+    """'+-x % (y m on a 40 m roof), heights leaning +-a / +-b mm per m' of a looseness dict."""
+    if lo.get("height_scale_sigma") is None:
+        return "not fixed"
+    lean = [lo.get("shear_sigma_E"), lo.get("shear_sigma_N")]
+    return (f"+-{100 * lo['height_scale_sigma']:.1f} % ({lo['expected_height_error_m']:.2f} m on a "
+            f"{lo['structure_height_m']:.0f} m building)"
+            + (f", heights leaning +-{1e3 * lean[0]:.0f} / {1e3 * lean[1]:.0f} mm per m east / north"
+               if None not in lean else ""))
+
+
+def height_scale_lines(cond: dict) -> list[str]:
+    """What the GCPs and the images fix of the heights (the upgrade's conditioning after its
+    fit), and the check point that would help most as a control point."""
+    if cond.get("basis") != "fit":
+        return []
+    out = [f"- **heights**: the control GCPs alone fix them to {_loose_text(cond['gcp_only'])}"]
+    if cond.get("with_images"):
+        out.append(f"- with the {cond['images']} images' viewing directions: {_loose_text(cond['with_images'])}")
+    nxt = cond.get("best_next_gcp")
+    if nxt:
+        out.append(f"- {nxt['id']} (now a check point) as a control point would bring the expected height "
+                   f"error to {nxt['expected_height_error_m']:.2f} m")
+    return out
 
 
 def outcome_markdown(outcome: UpgradeOutcome) -> str:

@@ -220,7 +220,7 @@ class DisplaySnapshot:
     t_first_points: float | None
     failed_stage: str | None = None    # the pipeline stage that was running when the run failed
     hint: str | None = None            # one line: what to do about the failure
-    awaiting_gcps: bool = False        # the run stopped after the dense stage: no 4 control GCPs yet
+    awaiting_gcps: bool = False        # the run stopped after the dense stage: not enough control GCPs yet
 
     @property
     def n_points(self) -> int:
@@ -501,10 +501,11 @@ class ReconWorker:
         self._awaiting_gcps = False
         if (until is None or pipeline.STAGES.index(until) > pipeline.STAGES.index("dense")) \
                 and not upgradable(site, self.out, cfg):
-            # no 4 control GCPs yet (a first demo, a site without a GCP file): the affine
+            # not enough control GCPs yet (a first demo, a site without a GCP file): the affine
             # reconstruction runs to the end, and the operator places them next
             until, self._awaiting_gcps = "dense", True
-            self.message("no 4 control GCPs observed in 2 images yet: the reconstruction stops after "
+            self.message("not enough control GCPs observed in 2 images yet (4, or 3 when the images state "
+                         "their viewing directions): the reconstruction stops after "
                          "the dense stage; place them in the GCP tab, then press Upgrade")
         state = pipeline.run(self.site, self.out, cfg, until=until,
                              bus=EventBus(self.handle), resume=True, redo_from=self.redo_from)
@@ -534,7 +535,7 @@ class ReconWorker:
 
 
 def upgradable(site, out: Path, cfg) -> bool:
-    """Does the working GCP set give some date group the 4 control GCPs the upgrade needs?"""
+    """Does the working GCP set give some date group the control GCPs the upgrade needs?"""
     from recon_core import pipeline
     from recon_core.io.gcps import read_gcps_geojson, working_gcp_file
     from recon_core.model.grouping import group_by_date

@@ -51,6 +51,7 @@ CORRECTIONS = {
     "tie": (["sfm.tie_sigma_px"], [], {"sfm.tie_sigma_px": 0.01}),
     "within": (["sfm.correction_rounds"], ["sfm.joint_groups"], {}),
     "bend": (["sfm.bend_step"], ["sfm.joint_groups", "sfm.correction_rounds"], {}),
+    "views": (["upgrade.view_sigma_deg"], [], {}),
     "prior": (["upgrade.metric_prior_sigma_cos"], [], {"upgrade.metric_prior_sigma_cos": 2e-3}),
     "metric_bend": (["upgrade.metric_bend"], [], {}),
 }

@@ -91,7 +91,28 @@ def synthetic_site(name: str, root: Path) -> tuple[Path, int | None, Path]:
         t0 = time.time()
         generate_site(site, preset=name, seed=0)
         print(f"generated {name} in {time.time() - t0:.0f} s -> {site}", flush=True)
+    add_views(site)
     return site, (300 if name.startswith("tiny") else None), site / "gt_dsm.tif"
+
+
+def add_views(site: Path) -> None:
+    """A site generated before the generator wrote the images' viewing directions: add them to
+    the sidecars as it now writes them (from the site's truth/, as a vendor states them), so that
+    its images, and its runs, stay the same."""
+    try:
+        from recon_core.synthetic.generator import load_truth_cameras, load_truth_scene
+    except ImportError:                        # an older version of the code: nothing to add
+        return
+    cams = load_truth_cameras(site)
+    if not hasattr(next(iter(cams.values())), "centre_view"):
+        return
+    h0 = load_truth_scene(site).h0
+    for name, cam in cams.items():
+        side = site / "images" / (Path(name).stem + ".json")
+        doc = json.loads(side.read_text())
+        if "view" not in doc:
+            doc["view"] = cam.centre_view(h0)
+            side.write_text(json.dumps(doc, indent=1))
 
 
 def subsets(n: int, size: int, count: int, seed: int) -> list[tuple[int, ...]]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import math
 import os
 import sys
 import time
@@ -81,7 +82,9 @@ def cmd_info(args) -> int:
     for im in site.images:
         t = im.acquired.strftime("%Y-%m-%d %H:%M:%S") if im.acquired else "NO TIME"
         print(f"  {im.name:24s} {im.width:6d} x {im.height:<6d} {im.bands} band {im.dtype:8s} "
-              f"{t} ({im.time_source}) rpc={'yes' if im.has_rpc else 'no'}" + _sensor(im.path))
+              f"{t} ({im.time_source}) rpc={'yes' if im.has_rpc else 'no'}" + _sensor(im.path)
+              + (f" view {im.view.incidence_deg:g} deg from vertical, azimuth {im.view.azimuth_deg:g}"
+                 if im.view is not None else ""))
     missing = [im.name for im in site.images if im.acquired is None]
     if missing:
         print(f"groups: cannot group, no acquisition time for {', '.join(missing)}")
@@ -299,6 +302,7 @@ def cmd_site(args) -> int:
     """`aerec site init SITE PRODUCT...`: a site from vendor products (recon_core.io.products)."""
     from recon_core.errors import InputError
     from recon_core.io.products import init_site
+    from recon_core.model.images import ViewAngles
 
     times = {}
     for t in args.time:
@@ -306,13 +310,27 @@ def cmd_site(args) -> int:
         if not sep or not name or not when:
             raise InputError(None, f"--time {t!r}: give NAME=YYYY-MM-DDTHH:MM:SSZ")
         times[name] = when
+    views = {}
+    for v in args.view:
+        name, sep, text = v.partition("=")
+        parts = text.split(",")
+        try:
+            inc, az = (float(x) for x in parts) if len(parts) == 2 else (None, None)
+        except ValueError:
+            inc = az = None
+        if not sep or not name or inc is None or not 0.0 <= inc < 90.0 or not math.isfinite(az):
+            raise InputError(None, f"--view {v!r}: give NAME=INCIDENCE,AZIMUTH (degrees: from the vertical, "
+                                   "0 to 90; of the direction to the satellite, clockwise from north)")
+        views[name] = ViewAngles(inc, az % 360.0)
     images, notes = init_site(args.site, args.products, band=args.band, times=times, gcps=args.gcps,
-                              name=args.name)
+                              name=args.name, views=views)
     print(f"wrote {args.site} with {len(images)} image(s) (VRTs of the products, no pixel copied):")
     for im in images:
         tiles = f", {len(im.files)} tiles" if len(im.files) > 1 else ""
         print(f"  {im.name}: {im.width} x {im.height} px{tiles}, {im.satellite or 'sensor unknown'}, "
-              f"{im.acquired:%Y-%m-%d %H:%M:%S} UTC from {im.time_source}")
+              f"{im.acquired:%Y-%m-%d %H:%M:%S} UTC from {im.time_source}"
+              + (f", view {im.view.incidence_deg:g} deg from vertical, azimuth {im.view.azimuth_deg:g} "
+                 f"from {im.view_source}" if im.view is not None else ", no viewing direction"))
     for n in notes:
         print(f"note: {n}")
     if args.gcps is None:
@@ -362,6 +380,12 @@ def print_summary(report: dict) -> None:
             f"{c['n']} check points: RMSE E {c['rmse_E_m']:.3f} N {c['rmse_N_m']:.3f} U {c['rmse_U_m']:.3f} m, "
             f"CE90 {c['ce90_m']:.2f} m, LE90 {c['le90_m']:.2f} m" if c.get("n") else
             "no check point (give some GCPs \"role\": \"check\" to measure the accuracy)"))
+        cond = u.get("conditioning") or {}
+        held, alone = (cond.get("with_images") or {}), (cond.get("gcp_only") or {})
+        if held.get("height_scale_sigma") is not None:
+            a = alone.get("height_scale_sigma")
+            line += (f"; height scale held to +-{100 * held['height_scale_sigma']:.2f} % by {cond['images']} images' "
+                     f"viewing directions (the GCPs alone: " + (f"+-{100 * a:.2f} %)" if a is not None else "not fixed)"))
         told.setdefault(line, []).append(g)
     for line, gs in told.items():
         who = f"group {gs[0]}" if len(gs) == 1 else f"groups {', '.join(gs)} (one joint upgrade)"
@@ -448,6 +472,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--band", type=int, default=None, help="the band to use of a multi-band product (1-based)")
     s.add_argument("--time", action="append", default=[], metavar="NAME=ISO8601",
                    help="an image's acquisition time (UTC), where its metadata has none; repeatable")
+    s.add_argument("--view", action="append", default=[], metavar="NAME=INCIDENCE,AZIMUTH",
+                   help="an image's viewing direction at its centre (degrees from the vertical; azimuth of "
+                        "the direction to the satellite, clockwise from north), where its metadata has none "
+                        "(it holds the upgrade's height scale); repeatable")
     s.add_argument("--gcps", type=Path, default=None, help="a gcps.geojson to copy into the site")
     s.add_argument("--name", default=None, help="the site's name (site.json)")
     s.set_defaults(func=cmd_site)

@@ -238,8 +238,13 @@ class PandoraConfig:
 @dataclass
 class UpgradeConfig:
     ransac_thresh_m: float = _p(2.0, lo=0, lo_open=True, hi=10_000)  # GCP inlier threshold of the H_A RANSAC (metres)
-    allow_flat_gcps: bool = _p(False)  # go on when the control GCPs of a group are (nearly) on one
-                                      # plane: expected height error > 10 m on a 40 m structure
+    allow_flat_gcps: bool = _p(False)  # go on when the control GCPs and the images cannot fix the
+                                      # height scale: expected height error > 10 m on a 40 m structure
+    view_sigma_deg: float = _p(0.1, lo=0, hi=10)  # the images' lines of sight hold the fit of H_A where the
+                                      # metadata states their viewing direction ("view" in each
+                                      # image's sidecar): the prior sigma of one (degrees; estimated
+                                      # from the fit's residuals when the images are redundant);
+                                      # 0 = the GCPs alone (recon_core.euclidean.held)
     metric_prior_sigma_cos: float = _p(0.0, lo=0, hi=1)  # the cameras' metric constraint in the fit of H_A: the
                                       # cosine between a tile camera's rows in metres, per image
                                       # (recon_core.euclidean.metric_prior; 0 = GCPs only, the

@@ -64,6 +64,13 @@ CHAIN: tuple[Step, ...] = (
          "multi-view tracks with a photometric check, triangulation", "recon_core.dense", True),
     Step("upgrade", "one 4 x 4 affine map H_A fitted on >= 4 control GCPs in a local ENU frame "
          "(least squares, RANSAC when many)", "recon_core.euclidean.upgrade", True),
+    Step("view_hold", "each image's line of sight (its tile cameras' null vector) held to its "
+         "viewing direction from the metadata in the fit of H_A, the GCPs weighted by their "
+         "triangulation covariances: what flat GCPs leave loose (the height scale, the lean of "
+         "heights) is fixed by the images, 3 control GCPs suffice", "recon_core.euclidean.held",
+         False, "upgrade.view_sigma_deg", 0.0, "fewer than 2 images with a viewing direction in "
+         "their sidecar (\"view\"); an image that disagrees with the others by over 1 degree is "
+         "left out"),
     Step("metric_prior", "the cameras' metric constraint (the rows of each tile camera "
          "orthogonal in metres) weighed into the fit of H_A", "recon_core.euclidean.metric_prior",
          False, "upgrade.metric_prior_sigma_cos", 0.0),

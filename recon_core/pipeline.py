@@ -71,6 +71,9 @@ def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None,
             gcp_file = working_gcp_file(site.root, out) if out is not None else site.root / "gcps.geojson"
             gcp_text = gcp_file.read_text() if gcp_file.exists() else ""
         blob["gcps"] = gcp_text
+        views = {im.name: im.view.to_dict() for im in site.images if im.view is not None}
+        if views:                   # the images' viewing directions hold the upgrade's height scale
+            blob["views"] = views
         dem = cfg.upgrade.reference_dem
         if dem:                     # a DEM replaced in place makes the upgrade stale
             st = Path(dem).stat() if Path(dem).is_file() else None
@@ -251,7 +254,7 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
         csv = sorted(site.root.glob("*.csv"))
         hint = (f"; {csv[0].name} is not read: `aerec gcps convert {csv[0]} {site.root / 'gcps.geojson'}`"
                 if csv and not (site.root / "gcps.geojson").exists() else "")
-        raise InputError(gcp_path, "no GCP: the Euclidean upgrade needs >= 4 control GCPs observed "
+        raise InputError(gcp_path, "no GCP: the Euclidean upgrade needs >= 4 control GCPs (3 with the images' viewing directions) observed "
                                    "in >= 2 images of each date group (stop before it with --stage dense)"
                                    + hint)
     groups = group_by_date(site.images, cfg.grouping.max_gap_days, cfg.grouping.max_span_days)
@@ -270,7 +273,7 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
         raise InputError(gcp_path, f"group {flat[0][0]}: {flat[0][1]}")
     warnings += [f"group {g} will not be upgraded: {text}" for g, text in flat]
     if not ok:
-        raise InputError(gcp_path, "no date group has 4 control GCPs observed in >= 2 of its images: "
+        raise InputError(gcp_path, "no date group has enough control GCPs observed in >= 2 of its images: "
                                    + "; ".join(warnings) + " (stop before the upgrade with --stage dense)")
     if cfg.upgrade.reference_dem:
         from recon_core.bend.dem import check_covers, open_reference_dem
@@ -316,40 +319,49 @@ def check_groups(site: Site, cfg: Config) -> list[str]:
 
 
 def gcp_findings(groups, gcps, cfg: Config) -> list[tuple[str, int, str]]:
+    from recon_core.euclidean.upgrade_stage import control_needed
+
     """Per date group, what the upgrade will make of the GCPs, from the GCP file alone:
-    ("ok" | "joint" | "warning" | "error", group, text). A warning: fewer than 4 usable control
-    GCPs (the group is not upgraded); "joint": fewer than 4 of its own but >= 4 over all the
-    groups' images (upgraded only if the groups are reconstructed jointly); an error: a control set too flat to fix the height scale (the upgrade
-    refuses that group; the run refuses when no group is left)."""
+    ("ok" | "joint" | "warning" | "error", group, text). A warning: fewer usable control GCPs
+    than it needs (4, or 3 when the images state their viewing directions: the group is not
+    upgraded); "joint": fewer of its own but enough over all the groups' images (upgraded only if
+    the groups are reconstructed jointly); an error: a control set that nothing can make fix the
+    height scale (the upgrade would refuse that group; the run refuses when no group is left)."""
+    from recon_core.euclidean.upgrade_stage import control_needed
+
     out = []
     joint = None
+    every = [im for g in groups for im in g.images]
     if cfg.sfm.joint_groups and len(groups) > 1 and all(len(g.images) >= 2 for g in groups):
         # the groups will share one frame and one upgrade when they match across dates: a GCP
         # then counts when it is seen in >= 2 images of any groups
-        every = {im.name for g in groups for im in g.images}
+        names = {im.name for im in every}
         joint = [p for p in gcps if p.role == "control" and p.enabled
-                 and (sum(1 for im in p.observations if im in every) >= 2 or p.affine_picked)]
+                 and (sum(1 for im in p.observations if im in names) >= 2 or p.affine_picked)]
     for g in groups:
         names = {im.name for im in g.images}
         usable = [p for p in gcps if p.role == "control" and p.enabled
                   and (sum(1 for im in p.observations if im in names) >= 2 or g.index in p.affine_picked)]
-        n = len(usable)
-        if n < 4 and joint is not None and len(joint) >= 4:
-            refusal = None if cfg.upgrade.allow_flat_gcps else _flat_control_refusal(joint)
+        n, need = len(usable), control_needed(g.images, cfg)
+        if n < need and joint is not None and len(joint) >= control_needed(every, cfg):
+            held = control_needed(every, cfg) == 3
+            refusal = None if cfg.upgrade.allow_flat_gcps else _flat_control_refusal(joint, held)
             if refusal:
                 out.append(("error", g.index, refusal))
             else:
                 out.append(("joint", g.index, f"group {g.index} ({', '.join(sorted(names))}): {n} control "
-                            f"GCP(s) observed in >= 2 of its images, 4 needed on its own: it will be "
+                            f"GCP(s) observed in >= 2 of its images, {need} needed on its own: it will be "
                             f"upgraded only with the other date groups, through the joint reconstruction "
                             f"({len(joint)} control GCPs over all images), which needs the groups to match "
                             "across dates (sfm.joint_groups)"))
             continue
-        if n < 4:
+        if n < need:
             out.append(("warning", g.index, f"group {g.index} ({', '.join(sorted(names))}): {n} control "
-                        "GCP(s) observed in >= 2 of its images, 4 needed: it will not be upgraded"))
+                        f"GCP(s) observed in >= 2 of its images, {need} needed"
+                        + ("" if need == 3 else " (3 when its images state their viewing directions)")
+                        + ": it will not be upgraded"))
             continue
-        refusal = None if cfg.upgrade.allow_flat_gcps else _flat_control_refusal(usable)
+        refusal = None if cfg.upgrade.allow_flat_gcps else _flat_control_refusal(usable, need == 3)
         if refusal:
             out.append(("error", g.index, refusal))
         else:
@@ -380,15 +392,27 @@ def gcp_file_note(site_root: Path, out: Path) -> str | None:
             f"uses {own}, not the site's file; delete {own} to use the site's GCPs")
 
 
-def _flat_control_refusal(control: list) -> str | None:
-    """The upgrade's refusal of a (nearly) coplanar control set, from the GCPs' ground
-    coordinates alone (so before any compute)."""
+# the best a GCP's affine height is known to: the pre-flight refuses only what the fit would
+# refuse even so (the fit decides the rest from the triangulation covariances)
+PREFLIGHT_GCP_SIGMA_M = 0.1
+
+
+def _flat_control_refusal(control: list, held: bool = False) -> str | None:
+    """The upgrade's refusal of a control set that nothing can make fix the height scale, from
+    the GCPs' ground coordinates alone (so before any compute): collinear GCPs always; without
+    the images' viewing directions (`held` False), GCPs so near one plane that even an optimistic
+    triangulation (PREFLIGHT_GCP_SIGMA_M) leaves the height scale undetermined."""
     from recon_core.euclidean.georef import frame_for
-    from recon_core.euclidean.upgrade import conditioning, flat_gcp_refusal
+    from recon_core.euclidean.upgrade import conditioning, flat_gcp_refusal, on_one_line
 
     frame = frame_for(control)
     enu = frame.geodetic_to_enu(np.array([p.llh for p in control]))
-    return flat_gcp_refusal(conditioning(enu))
+    if len(enu) >= 2 and on_one_line(enu):
+        return (f"refused: the {len(enu)} control GCPs ({', '.join(p.id for p in control)}) lie on one line: "
+                "nothing fixes H_A across it; add a GCP off that line")
+    if held:
+        return None
+    return flat_gcp_refusal(conditioning(enu, PREFLIGHT_GCP_SIGMA_M))
 
 
 def _mark_done(state: RunState, stage: str, summary: dict) -> None:

@@ -159,6 +159,36 @@ def test_coplanar_control_gcps_pass_with_the_explicit_override(small_site, tmp_p
     assert preflight(small_site, tmp_path / "out2", Config()) == []
 
 
+def _views(site: Path) -> None:
+    """Each image's viewing direction in its sidecar (the site format's optional `view`)."""
+    for name, (inc, az) in (("a", (12.0, 100.0)), ("b", (18.0, 260.0))):
+        (site / "images" / f"{name}.json").write_text(json.dumps({"view": {"incidence_deg": inc, "azimuth_deg": az}}))
+
+
+def test_the_images_viewing_directions_hold_what_flat_or_three_gcps_cannot(small_site, tmp_path, capsys):
+    """With the images' viewing directions, GCPs on one plane and 3 control GCPs pass the
+    pre-flight (the images hold the height scale); collinear GCPs are refused all the same."""
+    from recon_core.config import Config
+    from recon_core.pipeline import preflight
+
+    _coplanar_control_gcps(small_site)
+    _views(small_site)
+    assert preflight(small_site, tmp_path / "out", Config()) == []
+    _gcps(small_site, lambda d: d["features"][3]["properties"].update(role="check"))
+    assert preflight(small_site, tmp_path / "out", Config()) == []
+    # the same 3 without the images' directions (the parameter off): refused, saying what would do
+    cfg = Config()
+    cfg.upgrade.view_sigma_deg = 0.0
+    with pytest.raises(Exception, match="3 needed|4 needed|enough control GCPs"):
+        preflight(small_site, tmp_path / "out", cfg)
+    feats = [gcp_feature(f"L{k}", 10.0 + 1e-4 * k, 45.0 + 1e-4 * k, 100.0 + k,
+                         {"a.tif": [3.0 + k, 4.0], "b.tif": [5.5 + k, 6.5]}) for k in range(4)]
+    (small_site / "gcps.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    assert main(["run", str(small_site), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("aerec: error:") == 1 and "lie on one line" in err and "gcps.geojson" in err
+
+
 def test_run_says_which_gcp_file_it_uses_when_the_sites_was_edited_later(small_site, tmp_path):
     import os
     import shutil

@@ -15,7 +15,9 @@ import numpy as np
 
 from recon_core.errors import ReconstructionError
 from recon_core.euclidean.metric_prior import camera_rows
-from recon_core.euclidean.upgrade import GcpInput, UpgradeResult, upgrade
+from recon_core.euclidean.held import SIGMA_VIEW_DEG
+from recon_core.euclidean.sight import lines_of_sight
+from recon_core.euclidean.upgrade import GcpInput, ImageHold, UpgradeResult, upgrade
 from recon_core.geometry import affine
 from recon_core.geometry.geodesy import LocalFrame, geodetic_to_projected, utm_epsg_for
 from recon_core.io.gcps import GCP
@@ -31,6 +33,13 @@ class GcpAffine:
     n_images: int
     reproj_rms_px: float | None
     source: str                   # "triangulated", "picked" or the reason it is missing
+    information: np.ndarray | None = None   # (3, 3) sum of M^T M over its observations (px^-2)
+    residual_ss: float = 0.0      # their squared reprojection residuals (px^2), one click per image
+
+    @property
+    def residual_dof(self) -> int:
+        """Degrees of freedom of its reprojection residuals: 2 per image less the 3 of the point."""
+        return max(0, 2 * self.n_images - 3) if self.information is not None else 0
 
 
 def triangulate_gcp(model: SparseModel, observations: dict[str, tuple[float, float]]) -> GcpAffine:
@@ -55,7 +64,16 @@ def triangulate_gcp(model: SparseModel, observations: dict[str, tuple[float, flo
     if not ok[0]:
         return GcpAffine("", None, len(imgs), None, "ill-conditioned triangulation")
     err = affine.reprojection_errors(model.cams, cam_idx, np.zeros(len(cam_idx), int), xy, X)
-    return GcpAffine("", X[0], len(imgs), float(np.sqrt(np.mean(err ** 2))), "triangulated")
+    # what the observations know of the point: one click per image (tiles of one image that
+    # overlap see the same click: each counts for its share)
+    share = {name: 1.0 / sum(1 for t in cam_idx if model.tiles[t].image == name) for name in imgs}
+    info = np.zeros((3, 3))
+    for t in cam_idx:
+        M = np.asarray(model.cams[t], np.float64)[:, :3]
+        info += share[model.tiles[t].image] * (M.T @ M)
+    ss = float(sum(share[model.tiles[t].image] * e ** 2 for t, e in zip(cam_idx, err)))
+    return GcpAffine("", X[0], len(imgs), float(np.sqrt(np.mean(err ** 2))), "triangulated",
+                     information=info, residual_ss=ss)
 
 
 def gcp_affine_points(model: SparseModel, gcps: list[GCP]) -> dict[str, GcpAffine]:
@@ -81,20 +99,53 @@ def frame_for(gcps: list[GCP]) -> LocalFrame:
     return LocalFrame(float(llh[:, 0].mean()), float(llh[:, 1].mean()), float(llh[:, 2].mean()))
 
 
+# The GCPs' pixel noise, pooled over the control GCPs' reprojection residuals: never below
+# PIXEL_SIGMA_FLOOR (a click is not better than that), PIXEL_SIGMA_DEFAULT with fewer than
+# PIXEL_SIGMA_MIN_DOF residuals to pool.
+PIXEL_SIGMA_FLOOR = 0.1       # px
+PIXEL_SIGMA_DEFAULT = 0.3     # px: a careful click, as the survey observations of the shared sites
+PIXEL_SIGMA_MIN_DOF = 4
+
+
+def pixel_sigma(aff: dict[str, GcpAffine], ids: list[str]) -> float:
+    """The pixel noise of the GCPs' observations from their own reprojection residuals."""
+    dof = sum(aff[i].residual_dof for i in ids if i in aff)
+    ss = sum(aff[i].residual_ss for i in ids if i in aff and aff[i].residual_dof)
+    if dof < PIXEL_SIGMA_MIN_DOF:
+        return PIXEL_SIGMA_DEFAULT
+    return max(PIXEL_SIGMA_FLOOR, float(np.sqrt(ss / dof)))
+
+
 def upgrade_group(model: SparseModel, gcps: list[GCP], frame: LocalFrame | None = None, *,
-                  ransac_thresh_m: float = 2.0, seed: int = 0,
-                  sigma_cos: float = 0.0) -> tuple[UpgradeResult, LocalFrame, dict[str, GcpAffine]]:
-    """Fit H_A for one group: affine frame -> local ENU metres (with sigma_cos > 0, with the
-    metric constraint of the model's tile cameras: recon_core.euclidean.metric_prior)."""
+                  ransac_thresh_m: float = 2.0, seed: int = 0, sigma_cos: float = 0.0,
+                  images: dict | None = None,
+                  sigma_view_deg: float = SIGMA_VIEW_DEG) -> tuple[UpgradeResult, LocalFrame, dict[str, GcpAffine]]:
+    """Fit H_A for one group: affine frame -> local ENU metres. With `images` (name ->
+    ImageInfo) whose metadata states their viewing direction, held by the images' lines of sight
+    (recon_core.euclidean.held; sigma_view_deg > 0); with sigma_cos > 0 (and no lines of sight),
+    with the metric constraint of the model's tile cameras (recon_core.euclidean.metric_prior)."""
     frame = frame or frame_for(gcps)
     aff = gcp_affine_points(model, gcps)
     enu = frame.geodetic_to_enu(np.array([g.llh for g in gcps])) if gcps else np.zeros((0, 3))
+    sig_px = pixel_sigma(aff, [g.id for g in gcps if g.role == "control" and g.enabled])
     inputs = [GcpInput(g.id, g.role, aff[g.id].xyz, enu[k], g.sigma_m, aff[g.id].reproj_rms_px,
-                       enabled=g.enabled)
+                       enabled=g.enabled, affine_cov=_affine_cov(aff[g.id], sig_px))
               for k, g in enumerate(gcps)]
+    rays = lines_of_sight(model, images) if images and sigma_view_deg > 0 else []
     result = upgrade(inputs, ransac_thresh_m=ransac_thresh_m, rng=np.random.default_rng(seed),
-                     camera_rows=camera_rows(model) if sigma_cos > 0 else None, sigma_cos=sigma_cos)
+                     camera_rows=camera_rows(model) if sigma_cos > 0 else None, sigma_cos=sigma_cos,
+                     hold=ImageHold(rays, frame, sigma_view_deg) if len(rays) >= 2 else None)
     return result, frame, aff
+
+
+def _affine_cov(a: GcpAffine, sigma_px: float) -> np.ndarray | None:
+    """The covariance of a GCP's affine point from its observations (None: picked or unplaced)."""
+    if a.xyz is None or a.information is None:
+        return None
+    try:
+        return np.linalg.inv(a.information) * sigma_px ** 2
+    except np.linalg.LinAlgError:
+        return None
 
 
 def output_epsg(hints: dict, frame: LocalFrame) -> int:

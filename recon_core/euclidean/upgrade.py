@@ -43,6 +43,9 @@ from typing import Any
 import numpy as np
 
 from recon_core.errors import ReconstructionError
+from recon_core.euclidean.conditioning import REFUSE_HEIGHT_ERROR_M, conditioning, flat_gcp_refusal  # noqa: F401
+from recon_core.euclidean.conditioning import plane as _plane
+from recon_core.euclidean.held import SIGMA_VIEW_DEG, ControlPoints, Covariance, fit_held, gcp_normal, looseness
 from recon_core.euclidean.metric_prior import ImageRows, fit_with_metric_prior, gcp_only_cov, height_sigma, row_cosines
 from recon_core.geometry.affine import apply_affine_3d, as_4x4, fit_affine_3d
 from recon_core.geometry.enu_map import EnuWarp
@@ -72,6 +75,8 @@ class GcpInput:
             triangulation (pixels), if known. It catches a bad click even when N = 4.
         enabled: False leaves the point out of the fit and the scores (listed as unusable, with
             the reason "disabled").
+        affine_cov: (3, 3) covariance of affine_xyz from its image observations (affine units),
+            if known (None: a point picked on the cloud, held.PICK_SIGMA_M per axis).
     """
 
     id: str
@@ -81,6 +86,7 @@ class GcpInput:
     sigma_m: float | None = None
     reproj_rms_px: float | None = None
     enabled: bool = True
+    affine_cov: np.ndarray | None = None
 
 
 def singular_ratio(X: np.ndarray) -> float:
@@ -213,107 +219,6 @@ def _refit_inliers(X_aff: np.ndarray, X_enu: np.ndarray, mask: np.ndarray,
 
 
 # --------------------------------------------------------------------------------------------
-# Conditioning
-# --------------------------------------------------------------------------------------------
-def conditioning(X_enu: np.ndarray, affine_height_sigma_m: float = 0.4,
-                 structure_height_m: float = 40.0, warn_height_error_m: float = 2.0,
-                 poor_height_error_m: float = 5.0, prior_ratio: float | None = None) -> dict[str, Any]:
-    """How well the control GCPs fix the height scale of H_A.
-
-    Fits a plane to the control points (SVD of the centred coordinates) and predicts the height
-    error, as GEOMETRY_NOTES says: relative height-scale error ~ sigma / d_rms (sigma: height
-    uncertainty of a GCP's affine point; d_rms: RMS distance of the GCPs from their plane), i.e.
-    structure_height_m * sigma / d_rms metres on a structure of that height. This is a per-point,
-    deliberately conservative figure (it ignores the averaging over N points).
-
-    Args:
-        X_enu: (n, 3) control GCPs in ENU metres.
-        affine_height_sigma_m: sigma above (metres).
-        structure_height_m: height of the structure the error is quoted for (e.g. a 40 m roof).
-        warn_height_error_m, poor_height_error_m: thresholds on the expected height error (m).
-    Returns:
-        dict with n, plane_normal, plane_rms_m (d_rms), plane_max_m, singular_ratio,
-        expected_height_scale_error (fraction), expected_height_error_m, structure_height_m,
-        level ("ok" | "warning" | "poor" | "degenerate") and warning (plain words or None).
-    """
-    X = np.asarray(X_enu, dtype=np.float64).reshape(-1, 3)
-    out: dict[str, Any] = {"n": len(X), "affine_height_sigma_m": float(affine_height_sigma_m),
-                           "structure_height_m": float(structure_height_m),
-                           "warn_height_error_m": float(warn_height_error_m),
-                           "poor_height_error_m": float(poor_height_error_m)}
-    if len(X) < 3:
-        out.update(level="degenerate", plane_rms_m=0.0, singular_ratio=0.0,
-                   expected_height_scale_error=float("inf"), expected_height_error_m=float("inf"),
-                   warning=f"only {len(X)} control GCPs: the height scale is undetermined; "
-                           "add GCPs, at least 4 and not all on one plane")
-        return out
-    normal, s = _plane(X)
-    d = (X - X.mean(axis=0)) @ normal
-    d_rms = float(np.sqrt(np.mean(d ** 2)))
-    frac = affine_height_sigma_m / d_rms if d_rms > 0 else float("inf")
-    if prior_ratio is not None and np.isfinite(prior_ratio):
-        out.update(gcp_only_expected_height_error_m=float(frac * structure_height_m),
-                   metric_prior_ratio=float(prior_ratio))
-        frac = frac * prior_ratio if np.isfinite(frac) else frac
-    err_m = frac * structure_height_m
-    level = "ok" if err_m <= warn_height_error_m else ("warning" if err_m <= poor_height_error_m
-                                                      else "poor")
-    out.update(plane_normal=normal.tolist(), plane_rms_m=d_rms, plane_max_m=float(np.abs(d).max()),
-               singular_ratio=float(s[-1] / s[0]) if s[0] > 0 else 0.0,
-               expected_height_scale_error=float(frac), expected_height_error_m=float(err_m),
-               level=level, warning=_conditioning_warning(level, d_rms, frac, err_m,
-                                                          structure_height_m,
-                                                          affine_height_sigma_m,
-                                                          warn_height_error_m, prior_ratio))
-    return out
-
-
-WITH_PRIOR = " (with the cameras' metric constraint)"
-def _plane(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The best-fit plane of (n, 3) points: its unit normal (pointing up) and the singular
-    values of the centred coordinates."""
-    _, s, Vt = np.linalg.svd(X - X.mean(axis=0), full_matrices=False)
-    return Vt[-1] * (1.0 if Vt[-1][2] >= 0 else -1.0), s
-
-
-REFUSE_HEIGHT_ERROR_M = 10.0   # expected error on the quoted structure (25 % of 40 m)
-
-
-def flat_gcp_refusal(cond: dict[str, Any]) -> str | None:
-    """The refusal for a control set too flat to fix the height scale (expected height error
-    above REFUSE_HEIGHT_ERROR_M on the quoted structure, or fewer than 3 points), or None. Between
-    the "poor" level (5 m) and this it is a warning. `upgrade.allow_flat_gcps` overrides it."""
-    if cond.get("level") != "degenerate" and not cond.get("expected_height_error_m", 0.0) > REFUSE_HEIGHT_ERROR_M:
-        return None
-    return (f"refused: {cond.get('warning') or 'the control GCPs cannot fix the height scale'} "
-            "To go on anyway, set upgrade.allow_flat_gcps = true (aerec run --config FILE).")
-
-
-def _conditioning_warning(level: str, d_rms: float, frac: float, err_m: float,
-                          h: float, sigma: float, target_m: float,
-                          prior_ratio: float | None = None) -> str | None:
-    """Plain-words warning for a poorly conditioned (flat) GCP set, or None."""
-    if level == "ok":
-        return None
-    prior = prior_ratio is not None and np.isfinite(prior_ratio)
-    need = sigma * h / target_m          # with the GCPs alone: what the operator can change
-    if err_m > 1000.0:          # (nearly) exactly coplanar: the figure itself means nothing
-        return (f"the control GCPs lie within {d_rms:.3f} m (RMS) of one plane: the height scale "
-                f"is undetermined (expected height error over 1 km on a {h:.0f} m structure). "
-                f"Add a GCP well off that plane (a roof, a hill top or a valley bottom); about "
-                f"{need:.0f} m RMS off-plane spread brings it to {target_m:g} m.")
-    return (f"the control GCPs lie within {d_rms:.2f} m (RMS) of one plane, so the height scale "
-            f"is poorly fixed: expected height error about {100 * frac:.0f} %, i.e. "
-            f"{err_m:.1f} m on a {h:.0f} m structure"
-            + (f"{WITH_PRIOR}; the GCPs alone: {err_m / prior_ratio:.1f} m"
-               + ("; the constraint is a linear estimate that cannot be relied on to make up for "
-                  "a set this flat: the check points will tell" if err_m / prior_ratio > REFUSE_HEIGHT_ERROR_M
-                  else "") if prior and prior_ratio > 0 else "")
-            + f". Add a GCP well off that plane (a roof, a hill top or a valley bottom); about "
-              f"{need:.0f} m RMS off-plane spread brings it to {target_m:g} m with the GCPs alone.")
-
-
-# --------------------------------------------------------------------------------------------
 # The full upgrade with its report
 # --------------------------------------------------------------------------------------------
 @dataclass
@@ -328,8 +233,10 @@ class UpgradeResult:
             N >= 5.
         stats: {"control": {...}, "check": {...}, "loo": {...}} with n, rmse_E_m, rmse_N_m,
             rmse_U_m, rmse_horizontal_m, rmse_radial_m, rmse_3d_m, ce90_m, le90_m.
-        dof: 3 N - 12, plus one per image with the metric prior.
+        dof: 3 N - 12, plus one per image with the metric prior, two per image held by its line
+            of sight.
         metric_prior: what the cameras' metric constraint did (None when off).
+        views: what the images' lines of sight did (None when the fit had none).
         rejections: [{"id", "reason"}] RANSAC rejections and unusable GCPs.
         conditioning: dict of `conditioning`.
         notes: plain-words remarks (no redundancy, ...); warnings: things to act on.
@@ -345,6 +252,7 @@ class UpgradeResult:
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     metric_prior: dict[str, Any] | None = None
+    views: dict[str, Any] | None = None
 
     def apply(self, X_aff: np.ndarray) -> np.ndarray:
         """Affine-frame points (n, 3) -> ENU metres (n, 3)."""
@@ -359,7 +267,7 @@ class UpgradeResult:
                                           "CE90 = 2.146 * that, LE90 = 1.645 * RMSE_U",
             "points": self.points, "stats": self.stats, "rejections": self.rejections,
             "conditioning": self.conditioning, "notes": self.notes, "warnings": self.warnings,
-            "metric_prior": self.metric_prior,
+            "metric_prior": self.metric_prior, "views": self.views,
         }
 
 
@@ -426,49 +334,217 @@ def _combined_sigma(gcps: list[GcpInput], affine_height_sigma_m: float) -> float
     return float(np.hypot(affine_height_sigma_m, extra))
 
 
+# control GCPs whose width across their best line is under this share of their length are on
+# one line: nothing fixes H_A across it (10 m off a 1 km road leaves metres across it)
+LINE_RATIO = 0.01
+
+
+def on_one_line(X: np.ndarray) -> bool:
+    """Do the (n, 3) points lie within LINE_RATIO of their length of one line?"""
+    if len(X) < 3:
+        return True
+    s = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
+    return bool(s[0] <= 0 or s[1] < LINE_RATIO * s[0])
+
+
+def _check_line(ids: list[str], X_enu: np.ndarray, X_aff: np.ndarray) -> None:
+    """Raise if the control set is collinear (or coincident) in either space."""
+    for name, X in (("surveyed (ENU)", X_enu), ("affine", X_aff)):
+        r = _rank(X) if not on_one_line(X) else min(_rank(X), 1)
+        if r < 2:
+            raise ReconstructionError(
+                f"the {len(ids)} usable control GCPs ({', '.join(ids)}) "
+                f"{'all coincide' if r == 0 else 'are collinear'} in {name} coordinates: nothing fixes "
+                "H_A across their line; add a GCP off it")
+
+
+def control_points(gcps: list[GcpInput], idx: list[int]) -> ControlPoints:
+    """The control GCPs idx as the weighted fit takes them (recon_core.euclidean.held)."""
+    S = np.array([np.full((3, 3), np.nan) if gcps[i].affine_cov is None else np.asarray(gcps[i].affine_cov, float)
+                  for i in idx]).reshape(-1, 3, 3)
+    sig = np.array([g.sigma_m if g.sigma_m is not None and np.isfinite(g.sigma_m) else 0.0
+                    for g in (gcps[i] for i in idx)], dtype=np.float64)
+    return ControlPoints(np.array([gcps[i].affine_xyz for i in idx], np.float64).reshape(-1, 3),
+                         np.array([gcps[i].enu for i in idx], np.float64).reshape(-1, 3), S, sig)
+
+
+@dataclass
+class ImageHold:
+    """The images' lines of sight as the fit of H_A uses them (recon_core.euclidean.sight)."""
+
+    rays: list
+    frame: Any = None                  # the site's LocalFrame (turns each image's vertical into it)
+    sigma_view_deg: float = SIGMA_VIEW_DEG
+
+    def fit(self, pts: ControlPoints, H0: np.ndarray | None = None):
+        return fit_held(pts, self.rays, self.frame, self.sigma_view_deg, H0=H0)
+
+    def refit(self, Xa: np.ndarray, Xe: np.ndarray) -> np.ndarray:
+        """H from these points alone (no covariances: RANSAC samples)."""
+        n = len(Xa)
+        return fit_held(ControlPoints(Xa, Xe, np.full((n, 3, 3), np.nan), np.zeros(n)), self.rays,
+                        self.frame, self.sigma_view_deg).H
+
+
+VIEW_BLUNDER_DEG = 1.0   # an image's line of sight this far from the fit (10 sigmas of the
+                         # prior) is a wrong "view" (elevation for incidence, a flipped azimuth)
+
+
+def _screen_views(hold: ImageHold, pts: ControlPoints) -> tuple[ImageHold, list[tuple[str, float]]]:
+    """The images whose stated viewing direction disagrees with the rest by more than
+    VIEW_BLUNDER_DEG, left out one at a time while three or more remain: each time the one
+    without which the others agree best (a wrong image pulls the fit off the right ones), if the
+    others and the GCPs put it that far off. Returns (the hold without them, [(image, degrees
+    off)]). Needs 3 control GCPs not on one line (else unchanged)."""
+    dropped = []
+    while len(hold.rays) >= 3 and len(pts) >= 3 and _rank(pts.Xe) >= 2:
+        if max(hold.fit(pts).view_residual_deg.values()) <= VIEW_BLUNDER_DEG:
+            break
+        best = None
+        for r in hold.rays:
+            rest = replace(hold, rays=[q for q in hold.rays if q is not r])
+            fit = rest.fit(pts)
+            u = fit.H[:3, :3] @ r.d
+            off = float(np.degrees(np.arccos(min(1.0, abs(float(u @ r.direction(hold.frame, fit.H)))
+                                                 / np.linalg.norm(u)))))
+            key = (max(fit.view_residual_deg.values()), -off)
+            if best is None or key < best[0]:
+                best = (key, r.image, off, rest)
+        _, im, off, rest = best
+        if off <= VIEW_BLUNDER_DEG:
+            break
+        dropped.append((im, off))
+        hold = rest
+    return hold, dropped
+
+
+def fit_held_ransac(Xa: np.ndarray, Xe: np.ndarray, hold: ImageHold, thresh_m: float, iters: int,
+                    rng: np.random.Generator, min_ratio: float = 0.05) -> np.ndarray:
+    """RANSAC for H_A on 3-point samples, each held by the images' lines of sight: the inliers
+    (n,) bool of the best consensus (inlier count, then truncated cost). A sample nearly on one
+    line (second singular value below `min_ratio` of the first, whitened) is skipped."""
+    n = len(Xa)
+    Xe_w = (Xe - Xe.mean(axis=0)) @ _whitener(Xe)
+    todo = (np.array(list(combinations(range(n), 3)), dtype=np.int64) if n * (n - 1) * (n - 2) // 6 <= iters
+            else np.argsort(rng.random((iters, n)), axis=1)[:, :3])
+    best, best_mask = None, None
+    for idx in todo:
+        sv = np.linalg.svd(Xe_w[idx] - Xe_w[idx].mean(0), compute_uv=False)
+        if sv[0] <= 0 or sv[1] / sv[0] < min_ratio:
+            continue
+        H = hold.refit(Xa[idx], Xe[idx])
+        r2 = np.sum((apply_affine_3d(H, Xa) - Xe) ** 2, axis=1)
+        mask = r2 < thresh_m ** 2
+        score = (int(mask.sum()), -float(np.minimum(r2, thresh_m ** 2).sum()))
+        if best is None or score > best:
+            best, best_mask = score, mask
+    if best_mask is None:
+        raise ReconstructionError("every 3-point sample of GCPs is degenerate (nearly collinear)")
+    for _ in range(5):
+        if best_mask.sum() < 3 or _rank(Xe[best_mask]) < 2:
+            raise ReconstructionError(f"only {int(best_mask.sum())} GCPs agree within {thresh_m} m "
+                                      "(need >= 3 not on one line, with the images' lines of sight)")
+        H = hold.refit(Xa[best_mask], Xe[best_mask])
+        new = np.linalg.norm(apply_affine_3d(H, Xa) - Xe, axis=1) < thresh_m
+        if np.array_equal(new, best_mask) or new.sum() < 3:
+            break
+        best_mask = new
+    return best_mask
+
+
+def _best_next(gcps: list[GcpInput], reasons: dict, N: np.ndarray, H: np.ndarray, height_m: float,
+               now_m: float) -> dict | None:
+    """The check point that, made a control point, would bring the expected height error down
+    most (at least by a fifth): {"id", "expected_height_error_m"}, or None."""
+    best = None
+    for i, g in enumerate(gcps):
+        if g.role != "check" or reasons[i] is not None:
+            continue
+        err = looseness(H, Covariance.of(N + gcp_normal(control_points(gcps, [i]), H)), height_m).expected_height_error_m
+        if np.isfinite(err) and (best is None or err < best[1]):
+            best = (g.id, err)
+    if best is None or not (best[1] < 0.8 * now_m):
+        return None
+    return {"id": best[0], "expected_height_error_m": float(best[1])}
+
+
 def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: int = 4,
             rng: np.random.Generator | None = None, ransac_iters: int = 1000,
             affine_height_sigma_m: float = 0.4, structure_height_m: float = 40.0,
             warn_height_error_m: float = 2.0, poor_height_error_m: float = 5.0,
             reproj_warn_px: float = 2.0, camera_rows: list[ImageRows] | None = None,
-            sigma_cos: float = 0.0) -> UpgradeResult:
+            sigma_cos: float = 0.0, hold: ImageHold | None = None) -> UpgradeResult:
     """Fit H_A on the control GCPs (RANSAC when N >= 5) and build the full residual report.
 
     Check points never enter the fit. GCPs without an affine position are listed as unusable.
-    With `camera_rows` (each image's tile cameras) and sigma_cos > 0, the fit on the inliers
-    also asks every image's tile cameras to have orthogonal rows in metres
-    (recon_core.euclidean.metric_prior): one equation per image with that sigma, which fixes
-    the height scale and shear that nearly coplanar GCPs leave loose.
+    With `hold` (two or more images' lines of sight: recon_core.euclidean.held), H_A is fitted
+    to the GCPs, weighted by their covariances, and to the images' directions together: 3 control
+    GCPs not on one line suffice, and GCPs on one plane are no longer degenerate. Without it, the
+    GCPs alone (least squares); with `camera_rows` and sigma_cos > 0 the fit on the inliers also
+    asks every image's tile cameras to have orthogonal rows in metres
+    (recon_core.euclidean.metric_prior). Either way the report states what the fit leaves loose
+    (the conditioning: the fit's own covariance).
 
     Raises:
-        ReconstructionError: fewer than max(4, min_points) usable control GCPs (says how many and
-            which lack an affine point), or the control set is collinear / exactly coplanar.
+        ReconstructionError: fewer usable control GCPs than needed (4, or 3 with `hold`; says
+            how many and which lack an affine point), or the control set is collinear, or (without
+            `hold`) exactly coplanar.
     """
-    min_points = max(4, int(min_points))
     reasons = {i: _usable(g) for i, g in enumerate(gcps)}
     ctrl = [i for i, g in enumerate(gcps) if g.role == "control" and reasons[i] is None]
+    dropped: list[tuple[str, float]] = []
+    if hold is not None and len(hold.rays) >= 2 and hold.sigma_view_deg > 0:
+        hold, dropped = _screen_views(hold, control_points(gcps, ctrl))
+    held = hold is not None and len(hold.rays) >= 2 and hold.sigma_view_deg > 0
+    min_points = max(3 if held else 4, int(min_points) if not held else min(int(min_points), 3))
     if len(ctrl) < min_points:
         lacking = [g.id for i, g in enumerate(gcps) if g.role == "control" and reasons[i]]
         raise ReconstructionError(
             f"only {len(ctrl)} usable control GCPs, need >= {min_points}"
+            + ("" if held else " (3 when the images' viewing angles are known)")
             + (f"; without an affine position: {', '.join(lacking)}" if lacking else "")
             + "; observe more control GCPs in at least two images of this group")
     Xa = np.array([gcps[i].affine_xyz for i in ctrl], dtype=np.float64)
     Xe = np.array([gcps[i].enu for i in ctrl], dtype=np.float64)
-    _check_rank([gcps[i].id for i in ctrl], Xe, Xa)
-    if len(ctrl) > 4:
+    ids = [gcps[i].id for i in ctrl]
+    _check_line(ids, Xe, Xa)
+    if not held:
+        _check_rank(ids, Xe, Xa)
+    rng = np.random.default_rng(0) if rng is None else rng
+    if held:
+        inl = (fit_held_ransac(Xa, Xe, hold, ransac_thresh_m, ransac_iters, rng) if len(ctrl) > 4
+               else np.ones(len(ctrl), bool))
+    elif len(ctrl) > 4:
         H, inl = fit_upgrade_ransac(Xa, Xe, ransac_thresh_m, ransac_iters, rng)
     else:
         H, inl = fit_affine_upgrade(Xa, Xe), np.ones(len(ctrl), bool)
     used = [i for i, ok in zip(ctrl, inl) if ok]
+    pts = control_points(gcps, used)
+    fit = hold.fit(pts) if held else None
+    if fit is not None:
+        H = fit.H
     sigma = _combined_sigma([gcps[i] for i in used], affine_height_sigma_m)
+    N_gcp = gcp_normal(pts, H)
+    loose_gcp = looseness(H, Covariance.of(N_gcp), structure_height_m)
     prior = None
-    if camera_rows and sigma_cos > 0:
+    if camera_rows and sigma_cos > 0 and not held:
         prior = _MetricPrior(camera_rows, sigma_cos, sigma)
         H = prior.fit(Xa[inl], Xe[inl], H, structure_height_m)
-    result = _build_result(gcps, reasons, ctrl, used, H, Xa[inl], Xe[inl], ransac_thresh_m,
-                           sigma, structure_height_m, warn_height_error_m, poor_height_error_m,
-                           reproj_warn_px, prior)
+    loose = looseness(H, fit.cov, structure_height_m) if fit is not None else loose_gcp
+    best_next = _best_next(gcps, reasons, fit.normal if fit is not None else N_gcp, H, structure_height_m,
+                           loose.expected_height_error_m)
+    cond = conditioning(Xe[inl], sigma, structure_height_m, warn_height_error_m, poor_height_error_m,
+                        prior.ratio if prior is not None else None, loose=loose, loose_gcp=loose_gcp,
+                        images=len(hold.rays) if held else 0, best_next=best_next)
+    result = _build_result(gcps, reasons, ctrl, used, H, Xa[inl], Xe[inl], ransac_thresh_m, cond,
+                           reproj_warn_px, prior, fit, hold if held else None)
+    if dropped:
+        result.warnings.append(
+            "the viewing direction of " + ", ".join(f"{im} ({deg:.1f} degrees off)" for im, deg in dropped)
+            + f" disagrees with the other images and the control GCPs by more than {VIEW_BLUNDER_DEG:g} "
+              "degrees: not used (check \"view\" in its sidecar: incidence from the vertical, not "
+              "elevation; azimuth of the direction to the satellite, clockwise from north)"
+            + ("" if held else "; the GCPs alone fix the height scale"))
     checks = [i for i, g in enumerate(gcps) if g.role == "check" and reasons[i] is None]
 
     def check_rmse(Hx: np.ndarray) -> float | None:
@@ -478,7 +554,7 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
                       - np.asarray(gcps[i].enu, float) for i in checks])
         return float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
     now = check_rmse(H)
-    if len(ctrl) > 4 and not inl.all():
+    if len(ctrl) > 4 and not inl.all() and not held:
         rivals = _rival_consensus(Xa, Xe, inl, ransac_thresh_m)
         if rivals:
             now_out = ", ".join(gcps[ctrl[j]].id for j in np.flatnonzero(~inl))
@@ -579,9 +655,10 @@ def _point_row(g: GcpInput, status: str, reason: str | None, r: np.ndarray | Non
     return row
 
 
-def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, sigma, struct_h,
-                  warn_m, poor_m, reproj_warn_px, prior: _MetricPrior | None = None) -> UpgradeResult:
-    """Residual rows, statistics, LOO, rejections and notes for a fitted H."""
+def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, cond, reproj_warn_px,
+                  prior: _MetricPrior | None = None, fit=None, hold: ImageHold | None = None) -> UpgradeResult:
+    """Residual rows, statistics, LOO, rejections and notes for a fitted H (`fit`: the fit held
+    by the images' lines of sight, when there is one)."""
     rows, rejections, res = [], [], {"control": [], "check": []}
     for i, g in enumerate(gcps):
         if reasons[i] is not None:
@@ -604,7 +681,27 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, sigma,
     stats = {k: accuracy_stats(np.array(v).reshape(-1, 3)) for k, v in res.items()}
     notes, warnings = [], []
     k = len(prior.rows) if prior is not None else 0
-    if n >= 5:
+    views = None
+    if fit is not None:
+        k = 2 * len(hold.rays)
+        views = {"images": len(hold.rays), "sigma_view_deg": fit.sigma_view_deg,
+                 "sigma_view_prior_deg": hold.sigma_view_deg, "redundancy": fit.view_redundancy,
+                 "residual_deg": {im: round(v, 4) for im, v in fit.view_residual_deg.items()},
+                 "what": "each image's line of sight in the affine frame (its tile cameras' null vector at "
+                         "the image centre) held to its direction from the metadata (\"view\" in its "
+                         "sidecar), two equations per image, with the GCPs weighted by their "
+                         "triangulation covariances; residual_deg: the angle left per image; "
+                         "sigma_view_deg: the images' sigma estimated from those residuals"}
+        if n >= 4:
+            loo = _loo_held(control_points(gcps, used), hold)
+            _attach_loo(rows, [gcps[i].id for i in used], loo)
+            stats["loo"] = accuracy_stats(loo[np.all(np.isfinite(loo), axis=1)])
+        notes.append(f"{n} control GCPs and {len(hold.rays)} images' lines of sight: 3N - 12 + {k} = "
+                     f"{3 * n - 12 + k} degrees of freedom. The control residuals are not zero: they show how "
+                     "far the GCPs and the images' viewing directions disagree"
+                     + ("; leave-one-out predicts each control GCP from the others and the images" if n >= 4 else "")
+                     + ". Check points and each GCP's reprojection residual (reproj_rms_px) tell the rest.")
+    elif n >= 5:
         loo = _loo(Xa_used, Xe_used, prior.refit if prior is not None else fit_affine_upgrade)
         _attach_loo(rows, [gcps[i].id for i in used], loo)
         stats["loo"] = accuracy_stats(loo[np.all(np.isfinite(loo), axis=1)])
@@ -625,17 +722,15 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, sigma,
             f"{r['id']}" + (f" ({r['norm3d_m']:.2f} m off)" if r.get("norm3d_m") is not None else "")
             for r in rejected) + f" (threshold {thresh:g} m): not used for the upgrade; "
             "check their ground coordinates and image observations")
-    if n_ransac and n == 4:
-        warnings.append(f"RANSAC rejected {n_ransac} control GCP(s) and only 4 remain: no "
+    if n_ransac and n == (3 if fit is not None else 4):
+        warnings.append(f"RANSAC rejected {n_ransac} control GCP(s) and only {n} remain: no "
                         "redundancy is left to confirm the rejection; add control GCPs")
-    cond = conditioning(Xe_used, sigma, struct_h, warn_m, poor_m,
-                        prior.ratio if prior is not None else None)
     if cond.get("warning"):
         chk = stats.get("check") or {}
-        # the expected error is a model's bound at the structure's full height; check points,
+        # the expected error is a model's figure at the structure's full height; check points,
         # where there are some, measure it: say both, so the two do not read as a contradiction
         measured = (f" (the {chk['n']} check points measure LE90 {chk['le90_m']:.2f} m, U RMSE "
-                    f"{chk['rmse_U_m']:.2f} m: the expected figure is a bound, for points the structure's "
+                    f"{chk['rmse_U_m']:.2f} m: the expected figure is for points the structure's "
                     "full height off the GCPs' plane)") if chk.get("n") else ""
         cond["warning"] = cond["warning"].rstrip(".") + measured + "."
         warnings.append(cond["warning"])
@@ -645,7 +740,22 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, sigma,
                      "accuracy figure")
     return UpgradeResult(H=H, points=rows, stats=stats, dof=3 * n - 12 + k, n_control_used=n,
                          rejections=rejections, conditioning=cond, notes=notes,
-                         warnings=warnings, metric_prior=prior.report if prior is not None else None)
+                         warnings=warnings, metric_prior=prior.report if prior is not None else None,
+                         views=views)
+
+
+def _loo_held(pts: ControlPoints, hold: ImageHold) -> np.ndarray:
+    """Leave-one-out residuals (n, 3) of the fit held by the images (NaN where the others lie on
+    one line)."""
+    n = len(pts)
+    out = np.full((n, 3), np.nan)
+    for i in range(n):
+        keep = np.arange(n) != i
+        if _rank(pts.Xe[keep]) < 2:
+            continue
+        H = hold.fit(pts.take(keep)).H
+        out[i] = apply_affine_3d(H, pts.Xa[i:i + 1])[0] - pts.Xe[i]
+    return out
 
 
 def _attach_loo(rows: list[dict], ids: list[str], loo: np.ndarray) -> None:

@@ -46,6 +46,14 @@ def estimate_gsd(model, H: np.ndarray) -> float:
     return float(np.median(gsd))
 
 
+def control_needed(images, cfg: Config) -> int:
+    """The control GCPs the upgrade of these images (ImageInfo) needs: 3 when two or more of
+    them state their viewing direction (their lines of sight hold the height scale:
+    recon_core.euclidean.held), else 4. The pipeline's pre-flight and the viewer ask here."""
+    seen = sum(1 for im in images if getattr(im, "view", None) is not None)
+    return 3 if seen >= 2 and cfg.upgrade.view_sigma_deg > 0 else 4
+
+
 # a reference DEM tilted against the control GCPs by more than this at the site's edge is said
 DEM_TILT_WARN_M = 5.0
 
@@ -125,10 +133,13 @@ class Upgrade:
         return out
 
 
-def _fit(model, gcps: list[GCP], frame: LocalFrame, cfg: Config) -> tuple[UpgradeResult, dict[str, GcpAffine]]:
-    """H_A of one model, refused (ReconstructionError) when the control GCPs are too flat."""
+def _fit(model, gcps: list[GCP], frame: LocalFrame, cfg: Config,
+         images: dict | None = None) -> tuple[UpgradeResult, dict[str, GcpAffine]]:
+    """H_A of one model (held by the lines of sight of `images` whose metadata states them),
+    refused (ReconstructionError) when the control GCPs and the images cannot fix its height scale."""
     res, _, aff = upgrade_group(model, gcps, frame, ransac_thresh_m=cfg.upgrade.ransac_thresh_m, seed=cfg.seed,
-                                sigma_cos=cfg.upgrade.metric_prior_sigma_cos)
+                                sigma_cos=cfg.upgrade.metric_prior_sigma_cos, images=images,
+                                sigma_view_deg=cfg.upgrade.view_sigma_deg)
     refusal = None if cfg.upgrade.allow_flat_gcps else flat_gcp_refusal(res.conditioning)
     if refusal:
         raise ReconstructionError(refusal)
@@ -153,10 +164,11 @@ class ModelUpgrade:
     enu_warp: EnuWarp | None = None  # the bend fitted to GCPs or taken from the reference DEM
     gcp_bend: dict = field(default_factory=dict)   # the GCP fit's summary
     dem_bend: dict = field(default_factory=dict)   # the reference DEM's fit's summary
+    images: dict | None = None     # image name -> ImageInfo (viewing directions that hold H_A)
 
 
 def _h_a(st: ModelUpgrade) -> None:
-    st.result, st.affine = _fit(st.model, st.picks, st.frame, st.cfg)
+    st.result, st.affine = _fit(st.model, st.picks, st.frame, st.cfg, st.images)
 
 
 def _metric_bend(st: ModelUpgrade) -> None:
@@ -172,7 +184,7 @@ def _metric_bend(st: ModelUpgrade) -> None:
     picks = [replace(g, affine_picked={k: np.asarray(x, np.float64) + warp(np.asarray(x, np.float64)[None])[0]
                                        for k, x in g.affine_picked.items()}) for g in st.picks]
     try:
-        res_w, aff_w = _fit(moved, picks, st.frame, st.cfg)
+        res_w, aff_w = _fit(moved, picks, st.frame, st.cfg, st.images)
     except ReconstructionError as exc:       # e.g. the control GCPs too flat once warped
         st.metric = {**st.metric, "applied": False, "reason": f"H_A refit on the warped model: {exc}"}
         return
@@ -191,7 +203,7 @@ def _gcp_bend(st: ModelUpgrade) -> None:
 
 def _dem_bend(st: ModelUpgrade) -> None:
     st.result, warp, st.dem_bend = _fit_dem_bend(st.result, st.picks, st.frame, st.model, st.bend,
-                                                 st.gcp_bend, st.cfg)
+                                                 st.gcp_bend, st.cfg, st.images)
     if warp is not None:
         st.enu_warp = warp
 
@@ -249,7 +261,8 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
 
 
 def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model, bend: dict, gcp_fit: dict,
-                  cfg: Config, max_points: int = 300_000) -> tuple[UpgradeResult, EnuWarp | None, dict]:
+                  cfg: Config, images: dict | None = None,
+                  max_points: int = 300_000) -> tuple[UpgradeResult, EnuWarp | None, dict]:
     """The vertical bend the views cannot see, taken from the reference DEM
     (recon_core.bend.dem) when one is given, the GCPs did not hold the bend and the
     views cannot see it; H_A refitted by the upgrade's own fit (`_fit`, on `model` with `gcps`
@@ -274,7 +287,7 @@ def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model,
     def refit(warp: EnuWarp) -> np.ndarray:
         llh = frame.enu_to_geodetic(enu - warp(enu))
         moved = [replace(g, lon=float(p[0]), lat=float(p[1]), h=float(p[2])) for g, p in zip(gcps, llh)]
-        fits["res"], _ = _fit(model, moved, frame, cfg)
+        fits["res"], _ = _fit(model, moved, frame, cfg, images)
         return fits["res"].H
 
     basis = bend["basis"]
@@ -316,15 +329,16 @@ def _picks_joint(gcp: GCP, group: int) -> GCP:
     return replace(gcp, affine_picked={group: gcp.affine_picked[min(gcp.affine_picked)]})
 
 
-def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
+def upgrade_models(gcps: list[GCP], models: dict, cfg: Config, images: dict | None = None) -> Upgrade:
     """Fit H_A for every group's model from one GCP set (positions picked on a group's cloud,
-    GCP.affine_picked, take the place of triangulation in that group).
+    GCP.affine_picked, take the place of triangulation in that group), held by the lines of
+    sight of `images` (name -> ImageInfo) whose metadata states their viewing direction.
 
     Raises:
         ReconstructionError: no GCP at all, or no group could be upgraded (every group's reason).
     """
     if not gcps:
-        raise ReconstructionError("no GCP; the Euclidean upgrade needs >= 4 control GCPs observed "
+        raise ReconstructionError("no GCP; the Euclidean upgrade needs >= 4 control GCPs (3 with the images' viewing directions) observed "
                                   "in >= 2 images of each group")
     if not models:
         raise ReconstructionError("no sparse model to upgrade")
@@ -333,7 +347,7 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
     if joint is not None:
         try:                                  # the whole chain: any refusal, each group apart
             st = run_steps(ModelUpgrade(joint, [_picks_joint(g, joint.group) for g in gcps], gcps, up.frame,
-                                        cfg), UPGRADE_CHAIN)
+                                        cfg, images=images), UPGRADE_CHAIN)
             for g, model in sorted(models.items()):
                 gsd = estimate_gsd(model if st.warp is None else warped_model(model, st.warp), st.result.H)
                 up.add(g, st, gsd)
@@ -343,7 +357,7 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config) -> Upgrade:
             up = Upgrade(up.frame)
     for g, model in sorted(models.items()):
         try:                                  # a group H_A cannot be fitted for is left out
-            st = run_steps(ModelUpgrade(model, gcps, gcps, up.frame, cfg), UPGRADE_FIT)
+            st = run_steps(ModelUpgrade(model, gcps, gcps, up.frame, cfg, images=images), UPGRADE_FIT)
             gsd = estimate_gsd(st.model, st.result.H)   # a model without a registered camera stops here
         except ReconstructionError as exc:
             up.errors[g] = f"group {g}: {exc}"
@@ -379,9 +393,9 @@ def write(up: Upgrade, out) -> None:
 def run(state: RunState, bus: EventBus) -> dict:
     if not state.gcps:
         where = state.gcp_file or state.site.root / "gcps.geojson"
-        raise ReconstructionError(f"{where}: no GCP; the Euclidean upgrade needs >= 4 control GCPs "
+        raise ReconstructionError(f"{where}: no GCP; the Euclidean upgrade needs >= 4 control GCPs (3 with the images' viewing directions) "
                                   "observed in >= 2 images of each group")
-    up = upgrade_models(state.gcps, state.models, state.cfg)
+    up = upgrade_models(state.gcps, state.models, state.cfg, {im.name: im for im in state.site.images})
     write(up, state.layout)
     state.upgrade = (up.maps, up.frame)
     report = up.report()

@@ -7,6 +7,14 @@ metadata as GDAL's metadata readers expose it (the IMAGERY domain, filled from a
 SATELLITEID), from a NITF image subheader (NITF_IDATIM), from TIFFTAG_DATETIME, or from the
 user (`--time NAME=ISO`). No vendor XML is parsed here. RPCs are never needed; when a product
 has them they give only the site's footprint (site.json), and the user is told so.
+
+The viewing direction at the image centre (the sidecar's `view`, which holds the upgrade's
+height scale: recon_core.euclidean.held) comes from the same metadata: Maxar's satEl / satAz
+(meanSatEl / meanSatAz; incidence = 90 - elevation), DIMAP's Located_Geometric_Values of the
+Center (INCIDENCE_ANGLE; the azimuth from the image's orientation AZIMUTH_ANGLE and the
+along- and across-track incidences, as optical-remote-sensing tools read it), or the user
+(`--view NAME=INCIDENCE,AZIMUTH`). The run checks each against the others and the GCPs and
+leaves out one that disagrees.
 """
 
 from __future__ import annotations
@@ -24,6 +32,7 @@ import numpy as np
 from recon_core.errors import InputError
 from recon_core.io.files import atomic_path, write_json
 from recon_core.io.site import MAX_DSM_CELLS, default_resolution, parse_iso_time
+from recon_core.model.images import ViewAngles
 
 RASTER_SUFFIXES = (".tif", ".tiff", ".jp2", ".ntf", ".vrt")
 TILE_NAME = re.compile(r"^(?P<base>.+)_R(?P<r>\d+)C(?P<c>\d+)$", re.I)    # IMG_..._R1C2
@@ -40,6 +49,8 @@ class ProductImage:
     width: int
     height: int
     dtype: str
+    view: ViewAngles | None = None       # the viewing direction at the image centre, if stated
+    view_source: str | None = None
     rpc_footprint: list | None = None    # [[lon, lat], ...] from the product's RPC, if any
     crs_footprint: tuple | None = None   # (epsg or wkt, [[x, y], ...]) of a georeferenced product
 
@@ -99,6 +110,45 @@ def product_time(path: Path, ds) -> tuple[datetime, str, str | None]:
                            f"--time {path.stem}=YYYY-MM-DDTHH:MM:SSZ")
 
 
+def _angle(path: Path, field: str, text: str) -> float:
+    try:
+        v = float(str(text).strip().strip('";'))
+    except ValueError:
+        raise InputError(path, f"{field} {text!r} is not an angle") from None
+    if not np.isfinite(v) or abs(v) > 360.0:
+        raise InputError(path, f"{field} {text!r} is not an angle in degrees")
+    return v
+
+
+def product_view(path: Path, ds) -> tuple[ViewAngles | None, str | None]:
+    """(the viewing direction at the image centre, where it came from) from a product's
+    metadata as GDAL reads it (module docstring), or (None, None)."""
+    imd = ds.tags(ns="IMD") if "IMD" in (ds.tag_namespaces() or []) else {}
+    el = next((k for k in imd if k.endswith(("meanSatEl", ".satEl"))), None)
+    az = next((k for k in imd if k.endswith(("meanSatAz", ".satAz"))), None)
+    if el and az:
+        e = _angle(path, f"{el} ({_vendor_file(ds)})", imd[el])
+        if not 0.0 < e <= 90.0:
+            raise InputError(path, f"{el} {imd[el]!r} ({_vendor_file(ds)}) is not a satellite elevation")
+        return ViewAngles(round(90.0 - e, 6), _angle(path, az, imd[az]) % 360.0), "the product's IMD metadata"
+    centre = next((k[:-len(".LOCATION_TYPE")] for k, v in imd.items()
+                   if k.endswith("Located_Geometric_Values.LOCATION_TYPE") or
+                   (k.endswith(".LOCATION_TYPE") and "Located_Geometric_Values" in k)
+                   if str(v).strip().lower() == "center"), None)
+    if centre is None:
+        return None, None
+    ang = {k.rsplit(".", 1)[1]: v for k, v in imd.items() if k.startswith(centre + ".Acquisition_Angles.")}
+    need = ("INCIDENCE_ANGLE", "AZIMUTH_ANGLE", "INCIDENCE_ANGLE_ALONG_TRACK", "INCIDENCE_ANGLE_ACROSS_TRACK")
+    if not all(n in ang for n in need):
+        return None, None
+    where = f"DIMAP Acquisition_Angles of the Center ({_vendor_file(ds)})"
+    inc, orient, along, across = (_angle(path, f"{n} ({where})", ang[n]) for n in need)
+    if not 0.0 <= inc < 90.0:
+        raise InputError(path, f"INCIDENCE_ANGLE {ang['INCIDENCE_ANGLE']!r} ({where}) is not an incidence")
+    azimuth = orient - np.degrees(np.arctan2(np.tan(np.radians(across)), np.tan(np.radians(along))))
+    return ViewAngles(inc, float(azimuth % 360.0)), "the product's DIMAP metadata"
+
+
 def _vendor_file(ds) -> str:
     """The metadata file GDAL read beside the image (for messages)."""
     others = [f for f in (ds.files or [])[1:] if f.lower().endswith((".xml", ".imd", ".txt"))]
@@ -132,8 +182,10 @@ def find_product_images(paths: list[Path]) -> list[list[tuple[Path, int, int]]]:
     return [sorted(v, key=lambda t: (t[1], t[2])) for _, v in sorted(groups.items(), key=lambda kv: str(kv[0]))]
 
 
-def describe_image(tiles: list[tuple[Path, int, int]], band: int | None, times: dict[str, str]) -> ProductImage:
-    """What the site needs of one product image: its size (tiles mosaicked), band, time."""
+def describe_image(tiles: list[tuple[Path, int, int]], band: int | None, times: dict[str, str],
+                   views: dict[str, ViewAngles] | None = None) -> ProductImage:
+    """What the site needs of one product image: its size (tiles mosaicked), band, time, and
+    its viewing direction when its metadata (or `views`, by image name) states it."""
     first = tiles[0][0]
     base = TILE_NAME.match(first.stem).group("base") if TILE_NAME.match(first.stem) else first.stem
     with _open(first) as ds:
@@ -148,6 +200,9 @@ def describe_image(tiles: list[tuple[Path, int, int]], band: int | None, times: 
             sat = imagery.get("SATELLITEID") or None
         else:
             acquired, source, sat = product_time(first, ds)
+        views = views or {}
+        given = views.get(base) or views.get(first.stem)
+        view, view_source = (given, "--view") if given else product_view(first, ds)
         rpc = ds.rpcs
         crs, transform = ds.crs, ds.transform
     if band is not None and not 1 <= band <= count:
@@ -164,7 +219,8 @@ def describe_image(tiles: list[tuple[Path, int, int]], band: int | None, times: 
             heights.setdefault(r, ds.height)
     width, height = sum(widths[c] for c in cols), sum(heights[r] for r in rows)
     img = ProductImage(name=base, files=tiles, acquired=acquired, time_source=source, satellite=sat,
-                       band=band or 0, width=width, height=height, dtype=dtype)
+                       band=band or 0, width=width, height=height, dtype=dtype, view=view,
+                       view_source=view_source)
     if rpc is not None and len(tiles) == 1:
         img.rpc_footprint = _rpc_footprint(rpc, width, height)
     elif crs is not None and not transform.is_identity and len(tiles) == 1:
@@ -289,14 +345,16 @@ def _gsd_estimate(images: list[ProductImage], epsg: int) -> float | None:
 
 
 def init_site(site: Path, products: list[Path], *, band: int | None = None, times: dict[str, str] | None = None,
-              gcps: Path | None = None, name: str | None = None) -> tuple[list[ProductImage], list[str]]:
+              gcps: Path | None = None, name: str | None = None,
+              views: dict[str, ViewAngles] | None = None) -> tuple[list[ProductImage], list[str]]:
     """Write SITE from products (module docstring). Returns the images and notes for the user.
     Every problem is an InputError before anything is written."""
     site = Path(site)
     if site.exists() and any(site.iterdir()):
         raise InputError(site, "exists and is not empty: `aerec site init` writes a new site")
     times = dict(times or {})
-    images = [describe_image(tiles, band, times) for tiles in find_product_images(products)]
+    views = dict(views or {})
+    images = [describe_image(tiles, band, times, views) for tiles in find_product_images(products)]
     names = [im.name for im in images]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -304,6 +362,9 @@ def init_site(site: Path, products: list[Path], *, band: int | None = None, time
     unknown = sorted(set(times) - set(names) - {im.files[0][0].stem for im in images})
     if unknown:
         raise InputError(None, f"--time {unknown[0]}=...: no product image of that name ({', '.join(names)})")
+    unknown = sorted(set(views) - set(names) - {im.files[0][0].stem for im in images})
+    if unknown:
+        raise InputError(None, f"--view {unknown[0]}=...: no product image of that name ({', '.join(names)})")
     if gcps is not None:
         from recon_core.io.gcps import read_gcps_geojson
 
@@ -312,9 +373,11 @@ def init_site(site: Path, products: list[Path], *, band: int | None = None, time
     (site / "images").mkdir(parents=True, exist_ok=True)
     for im in images:
         write_vrt(site / "images" / f"{im.name}.vrt", im)
-        write_json(site / "images" / f"{im.name}.json",
-                   {"acquired": im.acquired.strftime("%Y-%m-%dT%H:%M:%SZ"), "time_source": im.time_source,
-                    "satellite": im.satellite, "product": [str(f.resolve()) for f, _, _ in im.files]})
+        side = {"acquired": im.acquired.strftime("%Y-%m-%dT%H:%M:%SZ"), "time_source": im.time_source,
+                "satellite": im.satellite, "product": [str(f.resolve()) for f, _, _ in im.files]}
+        if im.view is not None:
+            side.update(view=im.view.to_dict(), view_source=im.view_source)
+        write_json(site / "images" / f"{im.name}.json", side)
     with atomic_path(site / "gcps.geojson") as tmp:
         tmp.write_text(Path(gcps).read_text() if gcps else json.dumps(
             {"type": "FeatureCollection", "features": []}, indent=1) + "\n")

@@ -23,7 +23,7 @@ from rasterio.windows import Window
 from recon_core.errors import InputError
 from recon_core.io.checks import finite_number, projected_epsg  # noqa: F401 (projected_epsg re-exported)
 from recon_core.io.gcps import GCP, read_gcps_geojson
-from recon_core.model.images import ImageInfo, iso_utc  # noqa: F401 (re-exported)
+from recon_core.model.images import ImageInfo, ViewAngles, iso_utc  # noqa: F401 (re-exported)
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".vrt", ".jp2")      # compared in lower case
 # what GDAL must read them as: GeoTIFF, a VRT (mosaics, band subsets, products delivered as
@@ -79,22 +79,58 @@ def _unique_keys(pairs):
 FIRST_YEAR, LAST_YEAR = 1957, 2100      # an acquisition time outside these years is an error
 
 
-def _acquisition_time(path: Path, tags: dict) -> tuple[datetime | None, str]:
+def _read_sidecar(sidecar: Path) -> dict:
+    """The image's sidecar (images/NAME.json) as a JSON object; InputError naming it otherwise."""
+    if not sidecar.is_file():
+        raise InputError(sidecar, "the image's sidecar is not a file (a folder, a FIFO, a device or "
+                                  "a broken link)")
+    if sidecar.stat().st_size > 1 << 20:
+        raise InputError(sidecar, f"{sidecar.stat().st_size:,} bytes: not an image sidecar "
+                                  "({\"acquired\": ISO time, \"view\": {...}})")
+    try:
+        meta = json.loads(sidecar.read_bytes().decode("utf-8"), object_pairs_hook=_unique_keys)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputError(sidecar, f"the image's sidecar is not JSON ({exc})") from None
+    except OSError as exc:
+        raise InputError(sidecar, f"cannot read the sidecar ({exc.strerror or exc})") from None
+    if not isinstance(meta, dict):
+        raise InputError(sidecar, "the image's sidecar must hold a JSON object ({\"acquired\": ISO time, \"view\": {...}})")
+    return meta
+
+
+def _view(sidecar: Path, meta: dict) -> ViewAngles | None:
+    """The sidecar's optional `view` (docs/site-format.md), checked: incidence 0-90 degrees from
+    the local vertical, azimuth a finite bearing (taken modulo 360)."""
+    if "view" not in meta:
+        return None
+    v = meta["view"]
+    form = "\"view\" must be {\"incidence_deg\": 0 to 90, \"azimuth_deg\": 0 to 360}"
+    if not isinstance(v, dict) or set(v) - {"incidence_deg", "azimuth_deg"} or len(v) != 2:
+        raise InputError(sidecar, f"{form}, got {json.dumps(v)[:120]}")
+    inc, az = v["incidence_deg"], v["azimuth_deg"]
+    for name, x in (("incidence_deg", inc), ("azimuth_deg", az)):
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or not np.isfinite(x):
+            raise InputError(sidecar, f"{form}: {name} is {json.dumps(x)[:40]}")
+    if not 0.0 <= inc < 90.0:
+        raise InputError(sidecar, f"{form}: incidence_deg {inc:g} is not an angle from the vertical "
+                                  "a satellite sees the ground at (Maxar states elevation: incidence "
+                                  "= 90 - meanSatEl)")
+    return ViewAngles(float(inc), float(az) % 360.0)
+
+
+def _acquisition_time(path: Path, tags: dict) -> tuple[datetime | None, str, ViewAngles | None]:
+    """The acquisition time (and where it came from) and the viewing direction of an image: the
+    sidecar's `acquired` wins over TIFFTAG_DATETIME; `view` comes only from the sidecar."""
     sidecar = path.with_suffix(".json")
+    meta, view = None, None
     if sidecar.exists() or sidecar.is_symlink():
-        if not sidecar.is_file():
-            raise InputError(sidecar, "the image's time sidecar is not a file (a folder, a FIFO, a "
-                                      "device or a broken link)")
-        if sidecar.stat().st_size > 1 << 20:
-            raise InputError(sidecar, f"{sidecar.stat().st_size:,} bytes: not a time sidecar "
-                                      "({\"acquired\": ISO time})")
+        meta = _read_sidecar(sidecar)
+        view = _view(sidecar, meta)
+    if meta is not None and ("acquired" in meta or view is None):
         try:
-            meta = json.loads(sidecar.read_bytes().decode("utf-8"), object_pairs_hook=_unique_keys)
             t, source = parse_iso_time(meta["acquired"]), "sidecar"
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
             raise InputError(sidecar, f"sidecar must hold {{\"acquired\": ISO time}} ({exc})") from None
-        except OSError as exc:
-            raise InputError(sidecar, f"cannot read the time sidecar ({exc.strerror or exc})") from None
         where = sidecar
     else:
         try:
@@ -103,12 +139,12 @@ def _acquisition_time(path: Path, tags: dict) -> tuple[datetime | None, str]:
             raise InputError(path, f"TIFFTAG_DATETIME {tags.get('TIFFTAG_DATETIME')!r} is not "
                                    "'YYYY:MM:DD HH:MM:SS'") from None
         if t is None:
-            return None, "none"
+            return None, "none", view
         source, where = "TIFFTAG_DATETIME", path
     if not FIRST_YEAR <= t.year <= LAST_YEAR:
         raise InputError(where, f"acquisition time {t.isoformat()} is "
                                 f"not a plausible date (years {FIRST_YEAR}-{LAST_YEAR})")
-    return t, source
+    return t, source, view
 
 
 def refuse_blank(image: "ImageInfo") -> np.ndarray:
@@ -188,7 +224,7 @@ def open_image(path: Path) -> ImageInfo:
                 raise InputError(path, f"a VRT whose source {missing[0]} is missing") from None
             raise InputError(path, f"a VRT that GDAL cannot read through ({msg})") from None
         raise InputError(path, f"unreadable or truncated image ({msg})") from None
-    info.acquired, info.time_source = _acquisition_time(path, tags)
+    info.acquired, info.time_source, info.view = _acquisition_time(path, tags)
     return info
 
 

@@ -7,7 +7,7 @@
       images/img_XX.tif    uint16 11-bit panchromatic, tiled GeoTIFF, TIFFTAG_DATETIME (UTC),
                            RPC00B fitted to the physical camera in GDAL's RPC domain
                            ((0, 0) = centre of the top-left pixel)
-      images/img_XX.json   {"acquired": "YYYY-MM-DDTHH:MM:SSZ"}
+      images/img_XX.json   {"acquired": "YYYY-MM-DDTHH:MM:SSZ", "view": {"incidence_deg", "azimuth_deg"}}
       gcps.geojson         12-20 GCPs (EPSG:4979 lon, lat, ellipsoidal h), observations =
                            true projection + 0.3 px noise in the images where visible;
                            4 "role": "control" (largest tetrahedron), the others "check"
@@ -137,6 +137,10 @@ PRESETS: dict[str, SynthPreset] = {
     # the demo shipped in assets/ (a few MB): `demo`'s layout on 800 px images, one ray per pixel
     "mini": SynthPreset(name="mini", groups=(3, 3), group_months=(3, 8), image_size=(800, 800),
                         supersample=1, n_gcps=12),
+    # `mini` with sensors as real ones are (the focal plane and drift of `demofp`): the small
+    # site of the upgrade's tests with 6 views
+    "minifp": SynthPreset(name="minifp", groups=(3, 3), group_months=(3, 8), image_size=(800, 800),
+                          supersample=1, n_gcps=12, bow_px=1.0, distortion_px=3.0, drift=10.0),
     "quick": SynthPreset(name="quick", groups=(3, 3), group_months=(3, 8),
                          image_size=(1200, 1200), supersample=1, n_gcps=16),
     # a flat suburb of ~2.5 km seen by 3 views (one pair with a small angle): low buildings,
@@ -444,6 +448,18 @@ class PushbroomCamera:
         """Angle between the mid-time boresight and the geocentric nadir (degrees)."""
         S, R = self.rotation(np.array([self.r_mid]))
         return float(np.degrees(np.arccos(np.clip(-R[0, :, 2] @ _unit(S[0]), -1, 1))))
+
+    def centre_view(self, h: float) -> dict:
+        """The viewing direction at the image centre, as a vendor's metadata states it (the site
+        format's sidecar member "view"): the centre pixel's line of sight where it meets the
+        height h, incidence from that point's vertical and azimuth of the direction to the
+        satellite, clockwise from north (degrees, to 0.001 as vendors give them)."""
+        centre = np.array([[(self.width - 1) / 2.0, (self.height - 1) / 2.0]])
+        O, d = self.ray(centre)
+        llh = ecef_to_llh_fast(intersect_height(O, d, h))[0]
+        v = enu_rotation(llh[0], llh[1]) @ -d[0]
+        return {"incidence_deg": round(float(np.degrees(np.arccos(np.clip(v[2], -1, 1)))), 3),
+                "azimuth_deg": round(float(np.degrees(np.arctan2(v[0], v[1])) % 360.0), 3)}
 
     def view_angles(self, llh: np.ndarray) -> tuple[float, float]:
         """(zenith, azimuth) in degrees of the satellite seen from a ground point at mid time."""
@@ -1215,7 +1231,7 @@ def generate_site(out_dir: str | Path, preset: str | SynthPreset = "tiny", seed:
         render_image(cam, scene, P, shade, seed, k, out / "images" / name, rpcs[name],
                      a.when.strftime("%Y:%m:%d %H:%M:%S"), progress=pr)
         _write_json(out / "images" / (Path(name).stem + ".json"),
-                   {"acquired": a.when.strftime("%Y-%m-%dT%H:%M:%SZ")})
+                   {"acquired": a.when.strftime("%Y-%m-%dT%H:%M:%SZ"), "view": cam.centre_view(scene.h0)})
         zen, vaz = cam.view_angles(np.array([scene.lon0, scene.lat0, scene.h0]))
         images[name] = {"group": a.group, "acquired": a.when.strftime("%Y-%m-%dT%H:%M:%SZ"),
                         "width": cam.width, "height": cam.height,

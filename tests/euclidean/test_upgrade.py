@@ -106,7 +106,14 @@ def test_nearly_coplanar_warns_with_expected_error_in_metres():
     c = res.conditioning
     d = conditioning(enu)["plane_rms_m"]
     assert c["plane_rms_m"] == pytest.approx(d) and d < 0.51
-    assert c["expected_height_error_m"] == pytest.approx(0.4 / d * 40.0, rel=1e-6)
+    # before any fit (the pre-flight): sigma / d_rms on a 40 m structure, one point's figure
+    assert conditioning(enu)["expected_height_error_m"] == pytest.approx(0.4 / d * 40.0, rel=1e-6)
+    # after the fit: its covariance (0.4 m per axis for points without observations), which
+    # averages over the 6 points: sigma / sqrt(sum of the squared distances off the plane),
+    # give or take what the fit's other unknowns take
+    off = (enu - enu.mean(0)) @ np.array(c["plane_normal"])
+    assert c["basis"] == "fit" and c["gcp_only"]["expected_height_error_m"] == c["expected_height_error_m"]
+    assert 0.99 <= c["expected_height_error_m"] / (0.4 / np.sqrt(np.sum(off ** 2)) * 40.0) < 1.3
     assert c["level"] == "poor"
     assert res.warnings and "m on a 40 m structure" in res.warnings[0]
     assert "off that plane" in res.warnings[0]

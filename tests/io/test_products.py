@@ -60,6 +60,56 @@ def test_dimap_products_with_tiles_become_vrts_with_their_times(tmp_path, capsys
     assert "sensor PHR 1A" in info and "1 date group" in info
 
 
+DIMAP_ANGLES = """ <Geometric_Data><Use_Area>
+  <Located_Geometric_Values><LOCATION_TYPE>Top Center</LOCATION_TYPE><Acquisition_Angles>
+   <AZIMUTH_ANGLE>180.1</AZIMUTH_ANGLE><INCIDENCE_ANGLE>10.0</INCIDENCE_ANGLE>
+   <INCIDENCE_ANGLE_ALONG_TRACK>4.0</INCIDENCE_ANGLE_ALONG_TRACK><INCIDENCE_ANGLE_ACROSS_TRACK>-9.0</INCIDENCE_ANGLE_ACROSS_TRACK>
+  </Acquisition_Angles></Located_Geometric_Values>
+  <Located_Geometric_Values><LOCATION_TYPE>Center</LOCATION_TYPE><Acquisition_Angles>
+   <AZIMUTH_ANGLE>180.5</AZIMUTH_ANGLE><INCIDENCE_ANGLE>12.0</INCIDENCE_ANGLE>
+   <INCIDENCE_ANGLE_ALONG_TRACK>0.0</INCIDENCE_ANGLE_ALONG_TRACK><INCIDENCE_ANGLE_ACROSS_TRACK>-12.0</INCIDENCE_ANGLE_ACROSS_TRACK>
+  </Acquisition_Angles></Located_Geometric_Values>
+ </Use_Area></Geometric_Data>
+</Dimap_Document>
+"""
+
+MAXAR_IMD = """version = "AA";
+BEGIN_GROUP = IMAGE_1
+	satId = "WV03";
+	firstLineTime = 2015-02-01T10:31:22.123456Z;
+	meanSatEl = 70.5;
+	meanSatAz = 215.3;
+END_GROUP = IMAGE_1
+END;
+"""
+
+
+def test_the_viewing_direction_comes_from_the_products_metadata_or_the_user(tmp_path, capsys):
+    """DIMAP: the Center's incidence, the azimuth from the orientation and the along- and
+    across-track incidences; Maxar: 90 - satEl and satAz; --view for a product without them."""
+    rng = np.random.default_rng(1)
+    _dimap(tmp_path / "p1", "PHR1A_P_1", rng.integers(0, 2047, (48, 64)).astype(np.uint16))
+    dim = tmp_path / "p1" / "DIM_PHR1A_P_1.XML"
+    dim.write_text(dim.read_text().replace("</Dimap_Document>\n", DIMAP_ANGLES))
+    _write(tmp_path / "p2" / "15FEB01-P1BS-X.TIF", rng.integers(0, 2047, (48, 64)).astype(np.uint16))
+    (tmp_path / "p2" / "15FEB01-P1BS-X.IMD").write_text(MAXAR_IMD)
+    _write(tmp_path / "p3" / "plain.tif", rng.integers(0, 2047, (48, 64)).astype(np.uint16))
+    site = tmp_path / "site"
+    assert main(["site", "init", str(site), *(str(tmp_path / p) for p in ("p1", "p2", "p3")),
+                 "--view", "plain=15.5,-20", "--time", "plain=2015-02-03T10:00:00Z"]) == 0
+    side = {p.stem: json.loads(p.read_text()) for p in (site / "images").glob("*.json")}
+    # across-track -12 (looking to the left of an image oriented 180.5 from north), along 0
+    assert side["IMG_PHR1A_P_1"]["view"] == {"incidence_deg": 12.0, "azimuth_deg": pytest.approx(270.5)}
+    assert side["15FEB01-P1BS-X"]["view"] == {"incidence_deg": pytest.approx(19.5), "azimuth_deg": 215.3}
+    assert side["plain"]["view"] == {"incidence_deg": 15.5, "azimuth_deg": 340.0}
+    assert side["plain"]["view_source"] == "--view"
+    from recon_core.io.site import load_site
+    assert all(im.view is not None for im in load_site(site).images)
+    assert main(["site", "init", str(tmp_path / "s2"), str(tmp_path / "p3"), "--view", "plain=95,10",
+                 "--time", "plain=2015-02-03T10:00:00Z"]) == 2
+    assert "--view 'plain=95,10'" in capsys.readouterr().err
+
+
 def test_nitf_geotiff_and_a_given_time(tmp_path, capsys):
     rng = np.random.default_rng(1)
     _write(tmp_path / "wv" / "17MAY.NTF", rng.integers(0, 2047, (64, 64)).astype(np.uint16), driver="NITF",

@@ -32,6 +32,34 @@ def test_sidecar_time_wins(small_site):
     assert site.image("a.tif").time_source == "sidecar"
 
 
+def test_a_sidecar_may_state_the_view_alone(small_site):
+    """`view` (the vendor's viewing direction) in a sidecar without `acquired`: the time stays
+    the TIFF's, the view is read (azimuth modulo 360)."""
+    (small_site / "images" / "a.json").write_text(json.dumps({"view": {"incidence_deg": 17.2, "azimuth_deg": -145.5}}))
+    (small_site / "images" / "b.json").write_text(json.dumps({"acquired": "2020-01-03T10:00:00Z",
+                                                               "view": {"incidence_deg": 5, "azimuth_deg": 10}}))
+    site = load_site(small_site)
+    a, b = site.image("a.tif"), site.image("b.tif")
+    assert a.time_source == "TIFFTAG_DATETIME" and a.acquired == datetime(2020, 1, 2, 10, tzinfo=timezone.utc)
+    assert (a.view.incidence_deg, a.view.azimuth_deg) == (17.2, 214.5)
+    assert b.time_source == "sidecar" and b.view.incidence_deg == 5.0
+    assert a.to_dict()["view"] == {"incidence_deg": 17.2, "azimuth_deg": 214.5}
+
+
+@pytest.mark.parametrize("view, words", [
+    ({"incidence_deg": 95.0, "azimuth_deg": 10.0}, "not an angle from the vertical"),
+    ({"incidence_deg": "17", "azimuth_deg": 10.0}, "incidence_deg is \"17\""),
+    ({"incidence_deg": 17.0}, "\"view\" must be"),
+    ({"incidence_deg": 17.0, "azimuth_deg": 10.0, "elevation_deg": 73.0}, "\"view\" must be"),
+    ({"incidence_deg": 17.0, "azimuth_deg": float("nan")}, "azimuth_deg is NaN"),
+    ([17.0, 10.0], "\"view\" must be"),
+])
+def test_a_wrong_view_is_refused_naming_the_sidecar(small_site, view, words):
+    (small_site / "images" / "a.json").write_text(json.dumps({"view": view}))
+    err = _expect_error(small_site, words)
+    assert err.path.endswith("a.json")
+
+
 def test_gcps_round_trip(tmp_path, small_site):
     site = load_site(small_site)
     site.gcps.append(GCP("G2", 10.001, 45.002, 120.5, "check", 0.1, {"a.tif": (1.0, 2.0)}))
