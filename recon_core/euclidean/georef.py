@@ -99,12 +99,10 @@ def frame_for(gcps: list[GCP]) -> LocalFrame:
     return LocalFrame(float(llh[:, 0].mean()), float(llh[:, 1].mean()), float(llh[:, 2].mean()))
 
 
-# The GCPs' pixel noise, pooled over the control GCPs' reprojection residuals: never below
-# PIXEL_SIGMA_FLOOR (a click is not better than that), PIXEL_SIGMA_DEFAULT with fewer than
-# PIXEL_SIGMA_MIN_DOF residuals to pool.
-PIXEL_SIGMA_FLOOR = 0.1       # px
-PIXEL_SIGMA_DEFAULT = 0.3     # px: a careful click, as the survey observations of the shared sites
-PIXEL_SIGMA_MIN_DOF = 4
+# The GCPs' pixel noise, pooled over the control GCPs' reprojection residuals:
+PIXEL_SIGMA_FLOOR = 0.1       # px: never below it (a click is not better than that)
+PIXEL_SIGMA_DEFAULT = 0.3     # px: with too few residuals, a careful click (the shared sites' GCPs)
+PIXEL_SIGMA_MIN_DOF = 4       # residual degrees of freedom needed to pool the noise from them
 
 
 def pixel_sigma(aff: dict[str, GcpAffine], ids: list[str]) -> float:

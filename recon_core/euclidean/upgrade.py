@@ -415,6 +415,9 @@ def _screen_views(hold: ImageHold, pts: ControlPoints) -> tuple[ImageHold, list[
             break
         dropped.append((im, off))
         hold = rest
+    if dropped and len(dropped) >= len(hold.rays):     # as many wrong as right: none can be trusted
+        dropped += [(r.image, float("nan")) for r in hold.rays]
+        hold = replace(hold, rays=[])
     return hold, dropped
 
 
@@ -540,7 +543,8 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
                            reproj_warn_px, prior, fit, hold if held else None)
     if dropped:
         result.warnings.append(
-            "the viewing direction of " + ", ".join(f"{im} ({deg:.1f} degrees off)" for im, deg in dropped)
+            "the viewing direction of " + ", ".join(f"{im} ({deg:.1f} degrees off)" if np.isfinite(deg) else im
+                                                    for im, deg in dropped)
             + f" disagrees with the other images and the control GCPs by more than {VIEW_BLUNDER_DEG:g} "
               "degrees: not used (check \"view\" in its sidecar: incidence from the vertical, not "
               "elevation; azimuth of the direction to the satellite, clockwise from north)"
