@@ -2,10 +2,12 @@
 
 Two jobs writing into one OUT destroy each other (the second one's start-up removes the first
 one's live scratch; both write the same products). Every job that writes into OUT (`aerec run`,
-the viewer's worker, the pipeline called from Python) holds OUT/.aerec.lock, an exclusive
-`flock` that the kernel releases when the holder ends, however it ends (kill -9 included): a
-lock left by a dead job never blocks. The lock file says who holds it (PID, command, since when)
-so a refused job can name the holder.
+the viewer's worker, the pipeline called from Python) holds an exclusive `flock` on the folder
+OUT itself, which the kernel releases when the holder ends, however it ends (kill -9 included):
+a lock left by a dead job never blocks, and no file can be deleted from under it (a lock on a
+file in OUT was lost when the file was deleted: a second job then came in and removed the
+first one's scratch). OUT/.aerec.lock says who holds it (PID, command, since when) so a refused
+job can name the holder; without it the holder is "another job".
 
 The lock is re-entrant within a process (the viewer's worker runs the pipeline, which takes it
 again), and a job that holds it knows that any scratch it finds in OUT is a dead job's.
@@ -30,21 +32,36 @@ _held: dict[str, list] = {}            # real path of OUT -> [fd, depth]
 _guard = threading.Lock()
 
 
-def holder(out: str | Path) -> dict | None:
-    """Who holds OUT's lock as its file says ({} when unreadable), or None when no one does."""
-    path = Path(out) / LOCK_NAME
+def _open_folder(out: Path) -> int:
+    """A descriptor of the folder OUT, the thing locked."""
     try:
-        fd = os.open(path, os.O_RDONLY)
+        return os.open(out, os.O_RDONLY | os.O_DIRECTORY)
+    except NotADirectoryError:
+        raise InputError(out, "is not a folder") from None
+    except OSError as exc:
+        raise InputError(out, f"cannot open this folder ({exc.strerror or exc})") from None
+
+
+def _info(out: Path) -> dict:
+    """What OUT/.aerec.lock says of the holder ({} when it is missing or unreadable)."""
+    try:
+        return json.loads((Path(out) / LOCK_NAME).read_text() or "{}")
+    except (OSError, ValueError, UnicodeDecodeError):
+        return {}
+
+
+def holder(out: str | Path) -> dict | None:
+    """Who holds OUT's lock as its information file says ({} when unknown), or None when no one
+    does."""
+    try:
+        fd = os.open(Path(out), os.O_RDONLY | os.O_DIRECTORY)
     except OSError:
         return None
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
         except BlockingIOError:
-            try:
-                return json.loads(os.pread(fd, 4096, 0).decode() or "{}")
-            except (ValueError, UnicodeDecodeError):
-                return {}
+            return _info(Path(out))
         fcntl.flock(fd, fcntl.LOCK_UN)
         return None
     finally:
@@ -86,7 +103,7 @@ def out_lock(out: str | Path, wait: bool = False,
             if entry[1] == 0:
                 del _held[key]
                 try:
-                    os.ftruncate(entry[0], 0)
+                    (out / LOCK_NAME).unlink(missing_ok=True)
                 except OSError:
                     pass
                 os.close(entry[0])                # releases the flock
@@ -94,10 +111,9 @@ def out_lock(out: str | Path, wait: bool = False,
 
 def _acquire(out: Path, wait: bool, on_wait) -> int:
     path = out / LOCK_NAME
-    try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as exc:
-        raise InputError(out, f"cannot write this folder ({exc.strerror or exc})") from None
+    if path.is_dir() or (path.exists() and not path.is_file()):
+        raise InputError(path, "is not a file: it is where a job says it holds this folder; remove it")
+    fd = _open_folder(out)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -110,8 +126,13 @@ def _acquire(out: Path, wait: bool, on_wait) -> int:
             on_wait(f"{out}: in use by {who}; waiting for it to end")
         fcntl.flock(fd, fcntl.LOCK_EX)
     info = {"pid": os.getpid(), "command": " ".join(_command()), "since": time.time()}
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, json.dumps(info).encode(), 0)
+    try:
+        tmp = out / f".aerec.lock.{os.getpid()}.tmp"
+        tmp.write_text(json.dumps(info))
+        tmp.replace(path)
+    except OSError as exc:
+        os.close(fd)
+        raise InputError(path, f"cannot write it ({exc.strerror or exc}): the folder must be writable") from None
     return fd
 
 

@@ -70,6 +70,32 @@ def test_a_dead_holder_never_blocks_and_wait_waits(tiny_site, tmp_path, capsys):
     assert holder(out) is None                                   # released at the end
 
 
+def test_deleting_the_lock_file_does_not_let_a_second_job_in(tiny_site, tmp_path, capsys):
+    """The lock is on the folder: its information file deleted mid-run, a second job is still
+    refused (it names "another job") and the first one's scratch is untouched."""
+    out = tmp_path / "out"
+    out.mkdir()
+    p = _holder(out, 30)
+    try:
+        (out / ".aerec.lock").unlink()
+        assert holder(out) == {}
+        code = main(["run", str(tiny_site), "--out", str(out), "--stage", "sparse", "--quiet"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and "in use by another job" in err[0], err
+        assert (out / ".dense_parts_live1234").is_dir()
+    finally:
+        p.kill()
+        p.wait()
+
+
+def test_a_lock_path_that_is_a_folder_is_named(tiny_site, tmp_path, capsys):
+    out = tmp_path / "out"
+    (out / ".aerec.lock").mkdir(parents=True)
+    code = main(["run", str(tiny_site), "--out", str(out), "--stage", "sparse", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and ".aerec.lock" in err[0] and "not a file" in err[0], err
+
+
 def test_the_lock_is_reentrant_in_one_process(tmp_path):
     with out_lock(tmp_path):
         with out_lock(tmp_path):
