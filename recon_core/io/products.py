@@ -20,6 +20,7 @@ leaves out one that disagrees.
 from __future__ import annotations
 
 import json
+import os
 import re
 import warnings
 from dataclasses import dataclass
@@ -205,19 +206,13 @@ def describe_image(tiles: list[tuple[Path, int, int]], band: int | None, times: 
         view, view_source = (given, "--view") if given else product_view(first, ds)
         rpc = ds.rpcs
         crs, transform = ds.crs, ds.transform
+        declared = declared_size(ds)
     if band is not None and not 1 <= band <= count:
         raise InputError(first, f"--band {band}: the image has {count} band(s)")
-    rows = sorted({r for _, r, _ in tiles})
-    cols = sorted({c for _, _, c in tiles})
-    widths, heights = {}, {}
-    for f, r, c in tiles:
-        with _open(f) as ds:
-            if ds.count != count or ds.dtypes[0] != dtype:
-                raise InputError(f, f"a tile of {base} with {ds.count} band(s) of {ds.dtypes[0]}, where "
-                                    f"{first.name} has {count} of {dtype}")
-            widths.setdefault(c, ds.width)
-            heights.setdefault(r, ds.height)
-    width, height = sum(widths[c] for c in cols), sum(heights[r] for r in rows)
+    if dtype not in PIXEL_TYPES:
+        raise InputError(first, f"pixel type {dtype}; a site's images are uint8, uint16 or float32 "
+                                "(convert it, e.g. gdal_translate -ot UInt16)")
+    width, height = tile_mosaic(base, tiles, count, dtype, declared)
     img = ProductImage(name=base, files=tiles, acquired=acquired, time_source=source, satellite=sat,
                        band=band or 0, width=width, height=height, dtype=dtype, view=view,
                        view_source=view_source)
@@ -229,6 +224,57 @@ def describe_image(tiles: list[tuple[Path, int, int]], band: int | None, times: 
                    for x, y in ((0, 0), (width, 0), (width, height), (0, height))]
         img.crs_footprint = (crs.to_wkt(), corners)
     return img
+
+
+PIXEL_TYPES = ("uint8", "uint16", "float32")     # what a site's images may be (recon_core.io.site)
+
+
+def declared_size(ds) -> tuple[int, int] | None:
+    """The whole image's (width, height) as the vendor's metadata declares it (DIMAP's
+    Raster_Dimensions NCOLS / NROWS, Maxar's numColumns / numRows), or None."""
+    imd = ds.tags(ns="IMD") if "IMD" in (ds.tag_namespaces() or []) else {}
+    for wk, hk in (("Raster_Dimensions.NCOLS", "Raster_Dimensions.NROWS"), ("numColumns", "numRows")):
+        w = next((v for k, v in imd.items() if k.endswith(wk)), None)
+        h = next((v for k, v in imd.items() if k.endswith(hk)), None)
+        try:
+            if w is not None and h is not None:
+                return int(str(w).strip('"; ')), int(str(h).strip('"; '))
+        except ValueError:
+            return None
+    return None
+
+
+def tile_mosaic(base: str, tiles: list[tuple[Path, int, int]], count: int, dtype: str,
+                declared: tuple[int, int] | None) -> tuple[int, int]:
+    """The (width, height) of an image's tiles put together: every tile of the grid R1C1 ..
+    RmCn present, of one band count and type, the tiles of a row of one height and those of a
+    column of one width, and the whole of the size the metadata declares. InputError naming
+    the tile otherwise (a missing tile would shift the others; a short one leave a band of
+    zeros)."""
+    first = tiles[0][0]
+    have = {(r, c): f for f, r, c in tiles}
+    n_r, n_c = max(r for _, r, _ in tiles), max(c for _, _, c in tiles)
+    for r in range(1, n_r + 1):
+        for c in range(1, n_c + 1):
+            if (r, c) not in have:
+                where = first.parent / f"{base}_R{r}C{c}{first.suffix}"
+                raise InputError(where, f"missing: {base} is tiled R1C1 .. R{n_r}C{n_c} and this tile is "
+                                        "not there (the others would be put in the wrong place)")
+    widths, heights = {}, {}
+    for (r, c), f in sorted(have.items()):
+        with _open(f) as ds:
+            if ds.count != count or ds.dtypes[0] != dtype:
+                raise InputError(f, f"a tile of {base} with {ds.count} band(s) of {ds.dtypes[0]}, where "
+                                    f"{first.name} has {count} of {dtype}")
+            w, h = widths.setdefault(c, ds.width), heights.setdefault(r, ds.height)
+            if (ds.width, ds.height) != (w, h) and n_r * n_c > 1:
+                raise InputError(f, f"{ds.width} x {ds.height} px where the tiles of its column are {w} px wide "
+                                    f"and those of its row {h} px high: {base}'s tiles do not fit together")
+    width, height = sum(widths.values()), sum(heights.values())
+    if declared is not None and declared != (width, height):
+        raise InputError(first, f"{base}'s tiles make {width} x {height} px where its metadata declares "
+                                f"{declared[0]} x {declared[1]}: a tile is missing or of the wrong size")
+    return width, height
 
 
 def _rpc_footprint(rpcs, width: int, height: int) -> list:
@@ -344,14 +390,56 @@ def _gsd_estimate(images: list[ProductImage], epsg: int) -> float | None:
     return float(np.median(out)) if out else None
 
 
+MAX_PRODUCT_SPREAD_M = 100_000.0   # the footprints of one site's images lie closer than any scene is wide
+
+
+def _refuse_nesting(site: Path, products: list[Path]) -> None:
+    """A site inside a product folder would be read as a product by the next `site init` of it
+    (its VRTs), and a product inside the site folder is not a product the site can hold."""
+    s = Path(os.path.abspath(site))
+    for p in products:
+        q = Path(os.path.abspath(p))
+        folder = q if q.is_dir() else q.parent
+        if s == folder or folder in s.parents:
+            raise InputError(site, f"is inside the product folder {folder}: write the site elsewhere "
+                                   "(a later `site init` of that folder would take the site's images for products)")
+        if s in q.parents:
+            raise InputError(p, f"is inside the new site {site}: give products from outside it")
+
+
+def _refuse_far_products(images: list[ProductImage]) -> None:
+    """Images whose footprints (RPC or georeferencing) lie farther apart than any scene is wide
+    are not one site."""
+    from recon_core.geometry.geodesy import LocalFrame
+
+    cen = [(im, _footprint_lonlat(im)) for im in images]
+    cen = [(im, ll.mean(0)) for im, ll in cen if ll is not None and np.all(np.isfinite(ll))]
+    if len(cen) < 2:
+        return
+    lonlat = np.array([c for _, c in cen])
+    mid = np.median(lonlat, axis=0)
+    enu = LocalFrame(float(mid[0]), float(mid[1])).geodetic_to_enu(np.c_[lonlat, np.zeros(len(lonlat))])
+    d = np.hypot(enu[:, 0], enu[:, 1])
+    k = int(np.argmax(d))
+    if d[k] > MAX_PRODUCT_SPREAD_M:
+        im = cen[k][0]
+        raise InputError(im.files[0][0], f"lies {d[k] / 1000:,.0f} km from the other products' footprints "
+                                         f"(lon {cen[k][1][0]:.4f}, lat {cen[k][1][1]:.4f}): not an image of the same site")
+
+
 def init_site(site: Path, products: list[Path], *, band: int | None = None, times: dict[str, str] | None = None,
               gcps: Path | None = None, name: str | None = None,
               views: dict[str, ViewAngles] | None = None) -> tuple[list[ProductImage], list[str]]:
     """Write SITE from products (module docstring). Returns the images and notes for the user.
-    Every problem is an InputError before anything is written."""
+    Every problem is an InputError and nothing is written: the site is made in a hidden folder
+    beside SITE, read back with the checks `aerec info` and `aerec run` make, and renamed into
+    place only when whole and valid."""
+    from recon_core.io.files import atomic_folder
+
     site = Path(site)
-    if site.exists() and any(site.iterdir()):
+    if site.exists() and (not site.is_dir() or any(site.iterdir())):
         raise InputError(site, "exists and is not empty: `aerec site init` writes a new site")
+    _refuse_nesting(site, products)
     times = dict(times or {})
     views = dict(views or {})
     images = [describe_image(tiles, band, times, views) for tiles in find_product_images(products)]
@@ -365,28 +453,64 @@ def init_site(site: Path, products: list[Path], *, band: int | None = None, time
     unknown = sorted(set(views) - set(names) - {im.files[0][0].stem for im in images})
     if unknown:
         raise InputError(None, f"--view {unknown[0]}=...: no product image of that name ({', '.join(names)})")
+    _refuse_far_products(images)
     if gcps is not None:
         from recon_core.io.gcps import read_gcps_geojson
 
-        read_gcps_geojson(gcps)                 # a bad GCP file is refused before any write
+        read_gcps_geojson(gcps, {im.name + ".vrt": _Size(im.width, im.height) for im in images})
     hints, note = site_grid(images)
-    (site / "images").mkdir(parents=True, exist_ok=True)
+    with atomic_folder(site) as tmp:
+        _write_site(tmp, images, hints, name, gcps)
+        _check_written(tmp, site, images, gcps)
+    notes = [note] if hints else []
+    return images, notes
+
+
+@dataclass
+class _Size:
+    """What the GCP reader checks an observation against: the image's size."""
+
+    width: int
+    height: int
+
+
+def _write_site(root: Path, images: list[ProductImage], hints: dict | None, name: str | None,
+                gcps: Path | None) -> None:
+    (root / "images").mkdir(parents=True, exist_ok=True)
     for im in images:
-        write_vrt(site / "images" / f"{im.name}.vrt", im)
+        write_vrt(root / "images" / f"{im.name}.vrt", im)
         side = {"acquired": im.acquired.strftime("%Y-%m-%dT%H:%M:%SZ"), "time_source": im.time_source,
                 "satellite": im.satellite, "product": [str(f.resolve()) for f, _, _ in im.files]}
         if im.view is not None:
             side.update(view=im.view.to_dict(), view_source=im.view_source)
-        write_json(site / "images" / f"{im.name}.json", side)
-    with atomic_path(site / "gcps.geojson") as tmp:
+        write_json(root / "images" / f"{im.name}.json", side)
+    with atomic_path(root / "gcps.geojson") as tmp:
         tmp.write_text(Path(gcps).read_text() if gcps else json.dumps(
             {"type": "FeatureCollection", "features": []}, indent=1) + "\n")
-    notes = []
     if hints:
-        if name:
-            hints["name"] = name
-        write_json(site / "site.json", hints)
-        notes.append(note)
+        write_json(root / "site.json", {**hints, **({"name": name} if name else {})})
     elif name:
-        write_json(site / "site.json", {"name": name})
-    return images, notes
+        write_json(root / "site.json", {"name": name})
+
+
+def _check_written(root: Path, final: Path, images: list[ProductImage], gcps: Path | None) -> None:
+    """Read the written site back as `aerec info` and `aerec run` do (images through their VRTs,
+    times, GCPs against the images, site.json); a refusal names the product or the GCP file it
+    comes from, not the hidden folder."""
+    from recon_core.io.site import load_site
+
+    try:
+        load_site(root)
+    except InputError as exc:
+        path = Path(exc.path) if exc.path else None
+        where = None
+        if path is not None and path.parent.name == "images":
+            im = next((i for i in images if i.name == path.stem), None)
+            where = im.files[0][0] if im is not None else final / "images" / path.name
+        elif path is not None and path.name == "gcps.geojson":
+            where = gcps or final / "gcps.geojson"
+        elif path is not None:
+            where = final / path.relative_to(root) if root in path.parents else path
+        raise InputError(where, exc.problem) from None
+
+

@@ -201,3 +201,93 @@ def test_a_footprint_that_fits_at_the_gsd_leaves_the_resolution_to_the_run():
     assert fine["resolution_m"] == 1.0 and "resolution_m is 1 m" in note and "from the GSD" in note
     coarse, note = site_grid([scene(6_000)])
     assert "resolution_m" not in coarse and coarse["bounds"] == [330000.0, 7640000.0, 350000.0, 7660000.0]
+
+
+def _tiles(folder, stem, arrays: dict):
+    """IMG_<stem>_R<r>C<c>.TIF tiles from {(r, c): array} and a DIMAP beside them."""
+    for (r, c), a in arrays.items():
+        _write(folder / f"IMG_{stem}_R{r}C{c}.TIF", a)
+    (folder / f"DIM_{stem}.XML").write_text(DIMAP.format(date="2013-02-08", time="08:36:09.1Z", index="1A"))
+
+
+@pytest.mark.parametrize("layout, words", [
+    ({(1, 1): (32, 40), (1, 3): (32, 40)}, "R1C2 .. missing"),               # a tile gone
+    ({(1, 1): (32, 40), (1, 2): (30, 40)}, "do not fit together"),           # a short tile
+    ({(1, 1): (32, 40), (2, 2): (32, 40), (2, 1): (32, 40)}, "R1C2"),        # a grid with a hole
+])
+def test_a_tiled_product_with_a_missing_or_mis_sized_tile_is_refused(layout, words, tmp_path, capsys):
+    rng = np.random.default_rng(2)
+    _tiles(tmp_path / "p", "PHR1A_P_9", {k: rng.integers(0, 2047, v).astype(np.uint16) for k, v in layout.items()})
+    site = tmp_path / "site"
+    assert main(["site", "init", str(site), str(tmp_path / "p")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "PHR1A_P_9" in err[0], err
+    for w in words.split(" .. "):
+        assert w in err[0], err
+    assert not site.exists() and not list(tmp_path.glob(".site.partial-*"))
+
+
+def test_a_product_whose_tiles_do_not_make_its_declared_size_is_refused(tmp_path, capsys):
+    rng = np.random.default_rng(3)
+    _tiles(tmp_path / "p", "PHR1A_P_8", {(1, 1): rng.integers(0, 2047, (32, 40)).astype(np.uint16)})
+    dim = tmp_path / "p" / "DIM_PHR1A_P_8.XML"
+    dim.write_text(dim.read_text().replace("</Dimap_Document>", "<Raster_Data><Raster_Dimensions><NROWS>32</NROWS>"
+                                           "<NCOLS>80</NCOLS></Raster_Dimensions></Raster_Data></Dimap_Document>"))
+    assert main(["site", "init", str(tmp_path / "site"), str(tmp_path / "p")]) == 2
+    assert "declares 80 x 32" in capsys.readouterr().err
+
+
+def _product(path, arr, when="2015:02:03 10:00:00", origin=None):
+    from rasterio.transform import from_origin
+
+    kw = {} if origin is None else {"crs": "EPSG:32631", "transform": from_origin(*origin, 0.5, 0.5)}
+    _write(path, arr, **kw)
+    with rasterio.open(path, "r+") as ds:
+        ds.update_tags(TIFFTAG_DATETIME=when)
+    return path
+
+
+def test_site_init_refuses_what_info_and_run_would_and_writes_nothing(tmp_path, capsys):
+    """Every refusal is one line, exit 2, and no site (nor a hidden partial one) is left: a pixel
+    type a site cannot hold, a GCP file naming an image of no product, products 1,000 km apart,
+    a site inside the product folder; the corrected command then succeeds."""
+    rng = np.random.default_rng(4)
+    a = _product(tmp_path / "p" / "a.tif", rng.integers(0, 2047, (40, 48)).astype(np.uint16), origin=(500000, 4500000))
+    b = _product(tmp_path / "p" / "b.tif", rng.integers(0, 2047, (40, 48)).astype(np.uint16),
+                 "2015:02:04 10:00:00", origin=(500100, 4500050))
+    far = _product(tmp_path / "far" / "c.tif", rng.integers(0, 2047, (40, 48)).astype(np.uint16),
+                   origin=(500000, 5500000))
+    i16 = _product(tmp_path / "i16" / "d.tif", rng.integers(0, 2047, (40, 48)).astype(np.int16))
+    gcps = tmp_path / "g.geojson"
+    gcps.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "geometry": {"type": "Point", "coordinates": [3.0, 40.6, 50.0]},
+         "properties": {"id": "G1", "observations": {"a.vrt": [3, 4], "other.tif": [5, 6]}}}]}))
+    site = tmp_path / "site"
+    for argv, words in (([str(a), str(b), str(i16)], "pixel type int16"),
+                        ([str(a), str(b), "--gcps", str(gcps)], "unknown image 'other.tif'"),
+                        ([str(a), str(b), str(far)], "km from the other products"),
+                        ([str(tmp_path / "p")], "inside the product folder")):
+        target = tmp_path / "p" / "site" if words.startswith("inside") else site
+        assert main(["site", "init", str(target), *argv]) == 2, words
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], err
+        assert not site.exists() and not (tmp_path / "p" / "site").exists()
+        assert not list(tmp_path.glob(".*partial*")) and not list((tmp_path / "p").glob(".*partial*"))
+    assert main(["site", "init", str(site), str(a), str(b)]) == 0
+    assert main(["info", str(site)]) == 0
+
+
+def test_a_vrt_product_with_a_missing_source_is_refused_naming_it(tmp_path, capsys):
+    rng = np.random.default_rng(5)
+    src = _product(tmp_path / "src" / "s.tif", rng.integers(0, 2047, (40, 48)).astype(np.uint16))
+    vrt = tmp_path / "p" / "v.vrt"
+    vrt.parent.mkdir()
+    vrt.write_text(f'<VRTDataset rasterXSize="48" rasterYSize="40"><Metadata><MDI key="TIFFTAG_DATETIME">'
+                   f'2015:02:03 10:00:00</MDI></Metadata><VRTRasterBand dataType="UInt16" band="1"><SimpleSource>'
+                   f'<SourceFilename relativeToVRT="0">{src}</SourceFilename><SourceBand>1</SourceBand>'
+                   f'</SimpleSource></VRTRasterBand></VRTDataset>')
+    src.unlink()
+    assert main(["site", "init", str(tmp_path / "site"), str(vrt), "--time", "v=2015-02-03T10:00:00Z"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "v.vrt" in err[0], err
+    assert not (tmp_path / "site").exists()
