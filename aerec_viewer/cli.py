@@ -284,6 +284,13 @@ def cmd_view(args) -> int:
                 printer.close()
         args.port = prep.port                 # the viewer takes over the page's address
     mode, site, out = resolve_target(args.target, args.out, args.site)
+    if reference is not None:
+        from recon_core.euclidean.ground_reference import check_reference_files
+        from recon_core.io.site import load_site
+
+        where = site if site is not None else _site_of(out)
+        if where is not None:
+            check_reference_files(load_site(where), ortho=reference, dem=reference.dem)
     # the viewer writes into OUT (its GCP set, the upgrade, the DSM): it holds OUT's lock for
     # its whole session, so a second job on OUT is refused naming it (recon_core.io.lock)
     from recon_core.errors import InputError
@@ -408,6 +415,17 @@ def check_view_options(args) -> None:
     if getattr(args, "reference_dem", None) is not None and getattr(args, "reference_ortho", None) is None:
         raise InputError(args.reference_dem, "--reference-dem gives heights to points clicked on "
                                              "--reference-ortho: give the orthoimage too")
+
+
+def _site_of(out: Path) -> Path | None:
+    """The site a finished OUT was made from (its report says), or None."""
+    import json
+
+    try:
+        site = json.loads((Path(out) / "report.json").read_text()).get("site")
+    except (OSError, ValueError):
+        return None
+    return Path(site) if site and Path(site).is_dir() else None
 
 
 def register(subparsers) -> None:

@@ -110,9 +110,14 @@ def cmd_info(args) -> int:
     if not missing:
         # what `aerec run` would refuse or warn about, as warnings here
         from recon_core.config import Config
-        from recon_core.pipeline import gcp_findings
+        from recon_core.errors import InputError
+        from recon_core.pipeline import gcp_findings, refuse_gcps_off_the_images
         from recon_core.sparse.features import group_tone_curves
 
+        try:
+            refuse_gcps_off_the_images(site.root / "gcps.geojson", site.gcps, site)
+        except InputError as exc:
+            print(f"warning: `aerec run` would refuse: {exc.problem}")
         for level, _, text in gcp_findings(groups, site.gcps, Config()):
             if level == "error":
                 print(f"warning: `aerec run` would refuse: {text}")

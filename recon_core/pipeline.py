@@ -236,6 +236,7 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     check_config(cfg, until)
     site, out = _load(site_path, out, until, redo_from)
     check_images(site)
+    check_reference_dem(site, cfg)
     early = check_groups(site, cfg)
     if cfg.dsm.resolution_m and site.hints.get("bounds"):
         from recon_core.io.site import check_grid_size
@@ -249,6 +250,7 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     gcps = site.gcps if gcp_path == site.root / "gcps.geojson" else read_gcps_geojson(
         gcp_path, {im.name: im for im in site.images})
     refuse_far_gcps(gcp_path, gcps)
+    refuse_gcps_off_the_images(gcp_path, gcps, site)
     notes = early + ([] if (w := gcp_file_note(site.root, out)) is None else [w])
     if not gcps:
         csv = sorted(site.root.glob("*.csv"))
@@ -283,6 +285,18 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     return notes + warnings
 
 
+def check_reference_dem(site: Site, cfg: Config, gcps=None) -> None:
+    """upgrade.reference_dem, whatever stage the run stops at: a DEM GDAL reads, with heights,
+    where the site is (recon_core.euclidean.ground_reference.check_reference_files)."""
+    if not cfg.upgrade.reference_dem:
+        return
+    from recon_core.bend.dem import open_reference_dem
+    from recon_core.euclidean.ground_reference import check_reference_files
+
+    check_reference_files(site, gcps, dem=open_reference_dem(cfg.upgrade.reference_dem),
+                          dem_option="upgrade.reference_dem")
+
+
 MAX_GCP_SPREAD_M = 100_000.0     # a scene of any satellite is smaller: a GCP farther from the others
                                  # has wrong coordinates (a sign, a digit, a swapped lon/lat)
 
@@ -302,6 +316,35 @@ def refuse_far_gcps(path: Path, gcps: list) -> None:
         raise InputError(path, f"GCP {used[k].id} is {d[k] / 1000:,.0f} km from the others (lon "
                                f"{used[k].lon:.6f}, lat {used[k].lat:.6f}): its coordinates are wrong "
                                "(a sign, a digit, lon and lat swapped?)")
+
+
+MAX_GCP_OFF_IMAGES_M = 10_000.0   # a GCP farther than this outside every image's footprint is not of
+                                  # this site (wrong coordinates): the footprints' own error is metres
+
+
+def refuse_gcps_off_the_images(path: Path, gcps: list, site: Site) -> None:
+    from recon_core.io.footprints import image_footprints, off_the_images
+
+    """GCPs, footprints and RPCs must agree on where the site is: a GCP farther than
+    MAX_GCP_OFF_IMAGES_M outside every image's footprint (from the images' RPCs, when they have
+    some) is refused, naming it, and saying so when its lon and lat swapped would fall inside."""
+    used = [g for g in gcps if g.enabled]
+    if not used:
+        return
+    foot = image_footprints(site)
+    if not foot:
+        return
+    d = off_the_images(np.array([[g.lon, g.lat] for g in used]), foot)
+    k = int(np.argmax(d))
+    if d[k] <= MAX_GCP_OFF_IMAGES_M:
+        return
+    g = used[k]
+    swapped = abs(g.lon) <= 90 and off_the_images(np.array([[g.lat, g.lon]]), foot)[0] <= MAX_GCP_OFF_IMAGES_M
+    raise InputError(path, f"GCP {g.id} (lon {g.lon:.6f}, lat {g.lat:.6f}) lies {d[k] / 1000:,.0f} km from "
+                           "every image's footprint (from the images' RPCs, read for this check only): "
+                           + ("its lon and lat are swapped" if swapped else "its coordinates are wrong")
+                           + (f"; {int(np.sum(d > MAX_GCP_OFF_IMAGES_M))} of {len(used)} GCPs are off the images"
+                              if np.sum(d > MAX_GCP_OFF_IMAGES_M) > 1 else ""))
 
 
 def check_groups(site: Site, cfg: Config) -> list[str]:

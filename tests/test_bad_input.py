@@ -397,20 +397,30 @@ def test_a_broken_pipe_that_is_not_stdout_is_not_swallowed(monkeypatch):
         main(["info", "x"])
 
 
-def _dem(path: Path, lon0: float, lat0: float, crs: str | None = "EPSG:4326") -> None:
+def _dem(path: Path, lon0: float, lat0: float, crs: str | None = "EPSG:4326", fill: float = 120.0) -> None:
     import rasterio
     from rasterio.transform import from_origin
 
     with rasterio.open(path, "w", driver="GTiff", width=20, height=20, count=1, dtype="float32",
                        crs=crs, transform=from_origin(lon0, lat0, 1e-3, 1e-3)) as dst:
-        dst.write(np.full((20, 20), 120.0, np.float32), 1)
+        dst.write(np.full((20, 20), fill, np.float32), 1)
+
+
+def test_a_missing_reference_dem_is_refused_whatever_the_stage(small_site, tmp_path, capsys):
+    """--stage sparse with --reference-dem MISSING: the run was asked to use it, it is refused."""
+    _four_control_gcps(small_site)
+    code = main(["run", str(small_site), "--out", str(tmp_path / "o"), "--stage", "sparse", "--quiet",
+                 "--reference-dem", str(tmp_path / "srtm.tif")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "srtm.tif" in err[0] and "no such file" in err[0], err
 
 
 DEM_CASES = [
     ("missing", lambda d: None, "no such file"),
     ("not a raster", lambda d: d.write_text("not a DEM"), "not a raster"),
     ("no CRS", lambda d: _dem(d, 9.99, 45.01, crs=None), "no CRS"),
-    ("elsewhere", lambda d: _dem(d, 20.0, 10.0), "does not cover the site"),
+    ("elsewhere", lambda d: _dem(d, 20.0, 10.0), "no height where the site is: it lies"),
+    ("all nodata", lambda d: _dem(d, 9.99, 45.01, fill=np.nan), "no height anywhere"),
     ("a local CRS", lambda d: _dem(d, 9.99, 45.01, crs='LOCAL_CS["arbitrary",UNIT["metre",1]]'),
      "cannot be reached from WGS84"),
 ]

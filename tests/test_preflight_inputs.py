@@ -289,3 +289,25 @@ def test_a_partial_run_after_the_gcps_changed_drops_the_stale_products(tiny_run,
     lay = OutLayout(out)
     assert not lay.dsm.exists() and not lay.stage_record("upgrade").exists()
     assert lay.dense_ply(0).exists()
+
+
+def test_gcps_with_lon_and_lat_swapped_are_refused_by_the_images_footprints(tiny_site, tmp_path, capsys):
+    """No site.json, GCPs with lon and lat swapped: the images' RPCs (read for this check only)
+    put the site elsewhere; run refuses before any compute naming the GCP file and the fault,
+    info warns."""
+    import shutil
+
+    site = tmp_path / "site"
+    shutil.copytree(tiny_site, site)
+    (site / "site.json").unlink()
+    doc = json.loads((site / "gcps.geojson").read_text())
+    for f in doc["features"]:
+        c = f["geometry"]["coordinates"]
+        c[0], c[1] = c[1], c[0]
+    (site / "gcps.geojson").write_text(json.dumps(doc))
+    assert main(["run", str(site), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "gcps.geojson" in err[0] and "lon and lat are swapped" in err[0], err
+    assert not (tmp_path / "o" / "stages").exists()
+    assert main(["info", str(site)]) == 0
+    assert "would refuse" in capsys.readouterr().out

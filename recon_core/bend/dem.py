@@ -135,6 +135,19 @@ def open_reference_dem(path: str | Path, option: str = "upgrade.reference_dem") 
         raise InputError(p, f"{option} is not a raster GDAL can read ({str(exc).splitlines()[0]})") from None
 
 
+def has_heights(dem: ReferenceDem, max_side: int = 1024) -> bool:
+    """Does the DEM hold a finite, non-nodata height anywhere (read decimated)?"""
+    import rasterio
+
+    f = max(1, int(np.ceil(max(dem.width, dem.height) / max_side)))
+    with rasterio.open(dem.path) as src:
+        z = src.read(1, out_shape=(max(1, dem.height // f), max(1, dem.width // f))).astype(np.float64)
+    ok = np.isfinite(z)
+    if dem.nodata is not None:
+        ok &= z != dem.nodata
+    return bool(ok.any())
+
+
 def check_covers(dem: ReferenceDem, llh: np.ndarray) -> None:
     """Refuse a DEM that has no height at any of the points llh (n, 3) (the control GCPs):
     InputError naming the DEM file."""

@@ -117,3 +117,73 @@ def open_ground_reference(ortho: str | Path, dem: str | Path | None = None) -> G
     if dem is not None:
         ref.dem = open_reference_dem(dem, option="--reference-dem")
     return ref
+
+
+# -- where the site is, and reference files that must cover it ---------------------------------
+MAX_REFERENCE_GAP_M = 10_000.0    # a reference file farther than this from every point of the
+                                  # site is of another place (a footprint's own error is metres)
+
+
+def site_lonlat(site, gcps=None) -> np.ndarray | None:
+    """(n, 2) lon, lat of what says where a site is: its enabled GCPs, its images' footprints
+    (from their RPCs, for this check only), the corners of site.json's bounds; None without any."""
+    from recon_core.geometry.geodesy import projected_to_geodetic
+    from recon_core.io.footprints import image_footprints
+
+    pts = [np.array([[g.lon, g.lat] for g in (site.gcps if gcps is None else gcps) if g.enabled]).reshape(-1, 2)]
+    pts += [ll for _, ll in image_footprints(site)]
+    b, epsg = site.hints.get("bounds"), site.hints.get("crs_epsg")
+    if b and epsg:
+        xy = np.array([[b[0], b[1], 0.0], [b[2], b[1], 0.0], [b[2], b[3], 0.0], [b[0], b[3], 0.0]])
+        pts.append(projected_to_geodetic(xy, int(epsg))[:, :2])
+    pts = np.concatenate(pts) if pts else np.zeros((0, 2))
+    return pts if len(pts) else None
+
+
+def _raster_lonlat_box(path: Path, crs, transform, width: int, height: int) -> np.ndarray:
+    """(4, 2) lon, lat of a raster's corners."""
+    from pyproj import Transformer
+
+    t = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+    corners = [transform * (x, y) for x, y in ((0, 0), (width, 0), (width, height), (0, height))]
+    return np.array([t.transform(x, y) for x, y in corners], np.float64)
+
+
+def gap_m(points: np.ndarray, box: np.ndarray) -> float:
+    """Metres from the nearest of `points` (n, 2 lon, lat) to the lon-lat box of `box` (k, 2)."""
+    from recon_core.geometry.geodesy import LocalFrame
+
+    f = LocalFrame(float(np.mean(box[:, 0])), float(np.mean(box[:, 1])))
+    b = f.geodetic_to_enu(np.c_[box, np.zeros(len(box))])[:, :2]
+    q = f.geodetic_to_enu(np.c_[points, np.zeros(len(points))])[:, :2]
+    gap = np.maximum(np.maximum(b.min(0) - q, q - b.max(0)), 0.0)
+    return float(np.min(np.hypot(gap[:, 0], gap[:, 1])))
+
+
+def check_reference_files(site, gcps=None, *, ortho: "GroundReference | None" = None, dem=None,
+                          dem_option: str = "--reference-dem") -> None:
+    """The reference files of a site, whichever command reads them (`aerec run --reference-dem`,
+    `aerec view --reference-ortho / --reference-dem`): a DEM must have heights (not all nodata)
+    and have them where the site is; an orthoimage must lie where the site is. InputError naming
+    the file otherwise. Where nothing says where the site is (no GCP, no RPC, no site.json), only
+    the DEM's heights are checked."""
+    from recon_core.bend.dem import has_heights
+
+    if dem is not None and not has_heights(dem):
+        raise InputError(dem.path, f"{dem_option} has no height anywhere (every value is nodata or not finite)")
+    pts = site_lonlat(site, gcps)
+    if pts is None:
+        return
+    if dem is not None:
+        h = dem.heights(pts[:, 0], pts[:, 1])
+        if not np.isfinite(h).any():
+            d = gap_m(pts, _raster_lonlat_box(dem.path, dem.crs, dem.transform, dem.width, dem.height))
+            raise InputError(dem.path, f"{dem_option} has no height where the site is: "
+                                       + (f"it lies {d / 1000:,.0f} km from it" if d > 0 else
+                                          "it is all nodata there"))
+    if ortho is not None:
+        d = gap_m(pts, _raster_lonlat_box(Path(ortho.ortho.path), ortho.crs, ortho.transform,
+                                          ortho.ortho.width, ortho.ortho.height))
+        if d > MAX_REFERENCE_GAP_M:
+            raise InputError(ortho.ortho.path, f"--reference-ortho lies {d / 1000:,.0f} km from the site (its GCPs, "
+                                               "its images' footprints or site.json's bounds): another place")

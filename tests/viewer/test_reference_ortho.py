@@ -69,6 +69,37 @@ def test_bad_references_are_refused_in_one_line(tiny_site, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def _moved(src, dst, dx_m: float = 0.0, fill=None):
+    """A copy of a raster shifted dx_m east (in its projected CRS), or filled with `fill`."""
+    from affine import Affine
+
+    with rasterio.open(src) as s:
+        prof, a = s.profile, s.read()
+    prof["transform"] = Affine.translation(dx_m, 0.0) * prof["transform"]
+    if fill is not None:
+        a = np.full(a.shape, fill, a.dtype)
+    with rasterio.open(dst, "w", **prof) as d:
+        d.write(a)
+    return dst
+
+
+def test_references_of_another_place_or_without_heights_are_refused(tiny_site, tmp_path, capsys):
+    """As `aerec run --reference-dem` refuses them: an orthoimage or a DEM 1,500 km from the site
+    (its GCPs, its images' footprints), a DEM that is all nodata."""
+    ortho, dem_path, *_ = _reference(tmp_path, tiny_site)
+    far_ortho = _moved(ortho, tmp_path / "far_ortho.tif", 1.5e6)
+    far_dem = _moved(dem_path, tmp_path / "far_dem.tif", 1.5e6)
+    nan_dem = _moved(dem_path, tmp_path / "nan_dem.tif", 0.0, fill=np.nan)
+    for argv, name, words in (([far_ortho], "far_ortho.tif", "km from the site"),
+                              ([ortho, "--reference-dem", far_dem], "far_dem.tif", "no height where the site is"),
+                              ([ortho, "--reference-dem", nan_dem], "nan_dem.tif", "no height anywhere")):
+        code = view_main([str(tiny_site), "--reference-ortho", *map(str, argv), "--out", str(tmp_path / "o"),
+                          "--port", "0"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and name in err[0] and words in err[0], err
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path):
     from aerec_viewer.app import ViewerApp
 
