@@ -186,8 +186,9 @@ def cmd_run(args) -> int:
     except InputError as exc:          # name where the value came from
         where = args.config if args.config is not None else None
         raise InputError(where, exc.problem + ("" if where else " (from the command line)")) from None
-    if cfg.dense.scheduler:            # from --scheduler or from --config
-        probe_scheduler(cfg.dense.scheduler)
+    if cfg.dense.scheduler:            # from --scheduler or from --config: named as it was given
+        probe_scheduler(cfg.dense.scheduler, option="--scheduler" if args.scheduler else
+                        f"dense.scheduler (in {args.config})")
     prog = ProgressPrinter(not args.quiet)
     for w in preflight(args.site, args.out, cfg, until=args.stage, redo_from=args.redo_from):
         prog(Message("warning", w))
@@ -214,11 +215,11 @@ print(n)
 '''
 
 
-def probe_scheduler(address: str, timeout_s: float = 20.0) -> int:
+def probe_scheduler(address: str, timeout_s: float = 20.0, option: str = "--scheduler") -> int:
     """Check --scheduler before any compute: dask.distributed installed, the address well formed,
     a Dask scheduler answering there (in a child process with a deadline: a client talking to
     something that is not a scheduler waits forever), with at least one worker. Returns the
-    number of workers; raises InputError naming --scheduler."""
+    number of workers; raises InputError naming `option`, where the address came from."""
     import re
     import subprocess
     import sys
@@ -228,26 +229,26 @@ def probe_scheduler(address: str, timeout_s: float = 20.0) -> int:
     try:
         import distributed  # noqa: F401
     except ImportError:
-        raise InputError(None, "--scheduler needs dask.distributed: pip install 'aerec[dask]'") from None
+        raise InputError(None, f"{option} needs dask.distributed: pip install 'aerec[dask]'") from None
     if not re.fullmatch(r"(tcp|tls|inproc|ucx)://(\[[0-9a-fA-F:]+\]|[^\s:/\[\]]+)(:\d+)?"
                         r"|[^\s:/]+:\d+", address):
-        raise InputError(None, f"--scheduler {address!r} is not an address like tcp://host:8786")
+        raise InputError(None, f"{option} {address!r} is not an address like tcp://host:8786")
     code = _PROBE.format(t=max(1, int(timeout_s) - 5))
     try:
         done = subprocess.run([sys.executable, "-c", code, address], capture_output=True, text=True,
                               timeout=timeout_s)
     except subprocess.TimeoutExpired:
-        raise InputError(None, f"--scheduler {address}: no Dask scheduler answered within "
+        raise InputError(None, f"{option} {address}: no Dask scheduler answered within "
                                f"{timeout_s:g} s (is it a Dask scheduler's address and port?)") from None
     if done.returncode != 0:
         last = (done.stderr.strip().splitlines() or ["no answer"])[-1]
-        raise InputError(None, f"--scheduler {address}: cannot reach a Dask scheduler ({last[:200]})")
+        raise InputError(None, f"{option} {address}: cannot reach a Dask scheduler ({last[:200]})")
     try:
         n = int(done.stdout.strip().splitlines()[-1])
     except (ValueError, IndexError):
-        raise InputError(None, f"--scheduler {address}: unexpected answer from the scheduler") from None
+        raise InputError(None, f"{option} {address}: unexpected answer from the scheduler") from None
     if n < 1:
-        raise InputError(None, f"--scheduler {address}: the scheduler has no worker; start "
+        raise InputError(None, f"{option} {address}: the scheduler has no worker; start "
                                f"`dask worker {address}` on the machines that should compute")
     return n
 

@@ -94,22 +94,70 @@ class LocalExecutor(Executor):
         self.pool.shutdown(wait=True, cancel_futures=True)
 
 
-class DaskExecutor(Executor):
-    """Sends jobs to a dask.distributed scheduler (as CNES CARS does for production DSMs)."""
+WORKER_POLL_S = 10.0        # how often a distributed run waiting on its jobs asks for workers
+NO_WORKER_WARN_S = 60.0     # a scheduler without a worker this long: said
+NO_WORKER_GIVE_UP_S = 600.0  # ... and this long: the run ends with an error
 
-    def __init__(self, address_or_client):
+
+class DaskExecutor(Executor):
+    """Sends jobs to a dask.distributed scheduler (as CNES CARS does for production DSMs).
+
+    While it waits for results it watches the scheduler's workers: with none for
+    NO_WORKER_WARN_S it says so (`on_wait`), and with none for NO_WORKER_GIVE_UP_S it ends the
+    run with an error, instead of waiting for ever on work no one will do."""
+
+    def __init__(self, address_or_client, on_wait=None, warn_s: float = NO_WORKER_WARN_S,
+                 give_up_s: float = NO_WORKER_GIVE_UP_S, poll_s: float = WORKER_POLL_S):
         try:
             from distributed import Client
         except ImportError as exc:  # pragma: no cover - depends on the optional extra
             raise RuntimeError("--scheduler needs dask.distributed: pip install 'aerec[dask]'") from exc
         self._own = not isinstance(address_or_client, Client)
         self.client = Client(address_or_client) if self._own else address_or_client
+        self.on_wait = on_wait
+        self.warn_s, self.give_up_s, self.poll_s = warn_s, give_up_s, poll_s
+
+    def _workers(self) -> int:
+        try:
+            return len(self.client.scheduler_info().get("workers", {}))
+        except Exception:                      # the scheduler itself gone: no worker either
+            return 0
 
     def map_unordered(self, fn, jobs):
+        from distributed import TimeoutError as DaskTimeout
         from distributed import as_completed
 
+        from recon_core.errors import ReconstructionError
+
         futures = [self.client.submit(fn, job, pure=False) for job in jobs]
-        for fut in as_completed(futures):
+        pending = as_completed(futures, timeout=self.poll_s)
+        alone_since, told, left = None, False, len(futures)
+        while left:
+            try:
+                fut = next(pending)
+            except DaskTimeout:
+                if self._workers() > 0:
+                    alone_since, told = None, False
+                    pending = as_completed([f for f in futures if not f.done()], timeout=self.poll_s)
+                    continue
+                alone_since = alone_since or time.monotonic()
+                alone = time.monotonic() - alone_since
+                if alone >= self.give_up_s:
+                    for f in futures:
+                        f.cancel()
+                    raise ReconstructionError(
+                        f"the Dask scheduler {self.client.scheduler.address} has had no worker for "
+                        f"{alone:.0f} s with {left} dense job(s) left: none came back; start "
+                        "`dask worker ADDRESS` and run again (finished stages are kept)") from None
+                if alone >= self.warn_s and not told and self.on_wait is not None:
+                    self.on_wait(f"the Dask scheduler has had no worker for {alone:.0f} s ({left} dense job(s) "
+                                 f"left): waiting for one to come back, at most {self.give_up_s:.0f} s")
+                    told = True
+                pending = as_completed([f for f in futures if not f.done()], timeout=self.poll_s)
+                continue
+            except StopIteration:
+                return
+            left -= 1
             yield fut.result()
 
     def close(self) -> None:
@@ -117,10 +165,11 @@ class DaskExecutor(Executor):
             self.client.close()
 
 
-def make_executor(scheduler: str | None = None, workers: int | None = None) -> Executor:
-    """None -> local process pool (serial with workers=1); an address -> Dask."""
+def make_executor(scheduler: str | None = None, workers: int | None = None, on_wait=None) -> Executor:
+    """None -> local process pool (serial with workers=1); an address -> Dask (on_wait: told when
+    the scheduler has no worker)."""
     if scheduler:
-        return DaskExecutor(scheduler)
+        return DaskExecutor(scheduler, on_wait=on_wait)
     if workers == 1:
         return SerialExecutor()
     return LocalExecutor(workers)

@@ -499,7 +499,8 @@ def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfi
     jobs = plan_jobs(model, images, cfg, matcher)
     n_pairs = sum(len(j.partners) for j in jobs)
     own = executor is None
-    ex = executor or make_executor(cfg.scheduler, cfg.workers)
+    ex = executor or make_executor(cfg.scheduler, cfg.workers,
+                                   on_wait=lambda text: bus.message(text, "warning", model.group))
     pairs, kernel, job_s = [], 0.0, 0.0
     next_id = 0
     views_hist = np.zeros(256, np.int64)

@@ -415,7 +415,8 @@ def run(state: RunState, bus: EventBus) -> dict:
             bus.message(f"{who}: reference DEM {name}: " + (
                 f"the vertical bend taken from it, {db['bend_range_m']:.2f} m peak to peak over the site "
                 f"(standard error at the edge {db['bend_sigma_m']:.2f} m)" if db.get("applied")
-                else f"not used ({db.get('reason')})"), "info", int(g))
+                else f"not used ({db.get('reason')})"),
+                "info" if db.get("applied") else "warning", int(g))   # asked for and unused: said even --quiet
     return report
 
 

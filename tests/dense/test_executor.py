@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon_core.cli import probe_scheduler
+from recon_core.cli import main, probe_scheduler
 from recon_core.config import preset
 from recon_core.dense.executor import LocalExecutor, SerialExecutor
 from recon_core.dense.reconstruct import reconstruct_dense_group
@@ -35,7 +35,6 @@ def test_scheduler_that_is_not_dask_is_refused_in_time(tmp_path, capsys):
     import time
 
     pytest.importorskip("distributed")
-    from recon_core.cli import main
 
     srv = socket.socket()
     srv.bind(("127.0.0.1", 0))
@@ -56,6 +55,15 @@ def test_scheduler_that_is_not_dask_is_refused_in_time(tmp_path, capsys):
     assert "--scheduler tcp://127.0.0.1:1: cannot reach a Dask scheduler" in err and "Traceback" not in err
 
 
+def test_a_scheduler_from_the_configuration_file_is_named_so(tiny_site, tmp_path, capsys):
+    pytest.importorskip("distributed")
+    cfg = tmp_path / "my.toml"
+    cfg.write_text('[dense]\nscheduler = "tcp://127.0.0.1:1"\n')
+    assert main(["run", str(tiny_site), "--out", str(tmp_path / "o"), "--quiet", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert f"dense.scheduler (in {cfg}) tcp://127.0.0.1:1: cannot reach" in err and "--scheduler" not in err
+
+
 def test_dask_local_cluster_matches_local(tiny_run):
     distributed = pytest.importorskip("distributed")
     from recon_core.dense.executor import DaskExecutor
@@ -69,3 +77,32 @@ def test_dask_local_cluster_matches_local(tiny_run):
         assert probe_scheduler(cluster.scheduler_address) == 2      # what `--scheduler` checks first
     np.testing.assert_array_equal(a.xyz, b.xyz)
     assert summary["points"] == len(a)
+
+
+def _slow(x):
+    import time
+
+    time.sleep(0.5)
+    return x
+
+
+def test_a_distributed_run_whose_workers_are_gone_says_so_and_ends(tmp_path):
+    """The only worker gone mid-run: after a bounded wait the executor says so, and if none comes
+    back it ends with a clear error instead of waiting for ever."""
+    distributed = pytest.importorskip("distributed")
+    from recon_core.dense.executor import DaskExecutor
+    from recon_core.errors import ReconstructionError
+
+    told = []
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        ex = DaskExecutor(client, on_wait=told.append, warn_s=1.0, give_up_s=4.0, poll_s=0.5)
+        got = []
+        with pytest.raises(ReconstructionError, match="no worker for .* none came back"):
+            for k, r in enumerate(ex.map_unordered(_slow, range(40))):
+                got.append(r)
+                if k == 1:
+                    cluster.scale(0)
+        assert 2 <= len(got) < 40
+        assert told and "no worker" in told[0] and "waiting for one to come back" in told[0]
