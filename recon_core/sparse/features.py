@@ -112,6 +112,12 @@ def group_tone_curves(images: list[ImageInfo], percentiles=(0.5, 99.5)) -> tuple
     fit = [v for v, o in zip(vals, owns) if fits(o)]
     shared = _curve_of(fit or vals, percentiles)
     curves, warnings = [], []
+    for im in images:
+        share = nonfinite_share(im)
+        if share >= NONFINITE_WARN_SHARE:
+            warnings.append(f"{im.name}: {100 * share:.0f} % of its pixels (where sampled) are NaN or infinite: "
+                            f"no measurement there; gaps up to {2 * GAP_FILL_RADIUS_PX} px wide (lines, dropped "
+                            "pixels) are filled for the feature detection, wider ones give no tie points")
     for im, own in zip(images, owns):
         if not fits(own):
             curves.append(own)
@@ -122,6 +128,51 @@ def group_tone_curves(images: list[ImageInfo], percentiles=(0.5, 99.5)) -> tuple
         else:
             curves.append(shared)
     return curves, warnings
+
+
+NONFINITE_WARN_SHARE = 0.01    # an image with this share of NaN or infinite pixels is said
+GAP_FILL_RADIUS_PX = 2          # gaps of no measurement up to twice this wide are filled for SIFT
+
+
+def nonfinite_share(im: ImageInfo) -> float:
+    """The share of NaN or infinite pixels of a float image in the full-resolution windows the
+    blank check samples (0 for an integer image)."""
+    if not str(im.dtype).startswith("float"):
+        return 0.0
+    import warnings
+
+    import rasterio
+    from rasterio.windows import Window
+
+    bad = total = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with rasterio.open(im.path) as ds:
+            w, h = min(ds.width, 64), min(ds.height, 64)
+            for fy in (0.1, 0.5, 0.9):
+                for fx in (0.1, 0.5, 0.9):
+                    a = ds.read(1, window=Window(int(fx * (ds.width - w)), int(fy * (ds.height - h)), w, h))
+                    bad += int(np.count_nonzero(~np.isfinite(a)))
+                    total += a.size
+    return bad / max(total, 1)
+
+
+def fill_thin_gaps(raw: np.ndarray, radius: int = GAP_FILL_RADIUS_PX) -> np.ndarray:
+    """`raw` (float, NaN where there is no measurement) with its thin gaps (missing lines or
+    pixels, up to 2 radius wide) filled by the mean of the measured pixels around them, so that
+    SIFT neither loses the keypoints near them (the detection mask) nor describes the keypoints
+    beside them with a false edge. Wider gaps stay NaN (masked)."""
+    bad = ~np.isfinite(raw)
+    if not bad.any():
+        return raw
+    k = 2 * radius + 1
+    val = np.where(bad, 0.0, raw).astype(np.float32)
+    num = cv2.boxFilter(val, -1, (k, k), normalize=False, borderType=cv2.BORDER_REFLECT)
+    den = cv2.boxFilter((~bad).astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_REFLECT)
+    fill = bad & (den >= 0.3 * k * k)
+    out = raw.copy()
+    out[fill] = num[fill] / den[fill]
+    return out
 
 
 def _blocks(length: int, block: int, margin: int):
@@ -149,7 +200,7 @@ def detect_image(image: ImageInfo, cfg: FeatureConfig, tone: ToneCurve | None = 
     try:
         for r0, r1, rc0, rc1 in _blocks(image.height, cfg.detect_block, margin):
             for c0, c1, cc0, cc1 in _blocks(image.width, cfg.detect_block, margin):
-                raw = read_window(image, c0, r0, c1 - c0, r1 - r0)
+                raw = fill_thin_gaps(read_window(image, c0, r0, c1 - c0, r1 - r0))
                 img8 = tone.apply(raw)
                 mask = np.isfinite(raw).astype(np.uint8) * 255
                 del raw

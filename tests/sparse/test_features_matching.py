@@ -134,6 +134,34 @@ def test_a_float32_image_among_uint16_ones_gets_its_own_stretch_and_its_keypoint
     assert len(warnings) == 1 and warnings[0].startswith("d.tif") and curves[0] is curves[1]
 
 
+def test_a_float_image_with_lines_of_no_measurement_keeps_its_tie_points(tmp_path):
+    """Every 10th row NaN (dropped lines of a float product): its thin gaps are filled for the
+    detection, so it keeps about the keypoints and matches of the same image without them (it
+    lost 40 % of its keypoints, and more of its matches, before); the group's warning names it."""
+    a, b = _pair(tmp_path)
+    import rasterio
+
+    with rasterio.open(b.path) as ds:
+        counts = ds.read(1).astype(np.float32)
+    write_tiff(tmp_path / "clean.tif", counts)
+    holes = counts.copy()
+    holes[::10] = np.nan
+    holes[300:340, 300:340] = np.inf                      # a wide gap stays a gap
+    write_tiff(tmp_path / "lines.tif", holes)
+    clean, lines = open_image(tmp_path / "clean.tif"), open_image(tmp_path / "lines.tif")
+    tone = tone_curve_for([clean])
+    fa = detect_image(a, FeatureConfig(), tone_curve_for([a]))
+    fc, fl = detect_image(clean, FeatureConfig(), tone), detect_image(lines, FeatureConfig(), tone)
+    assert len(fl) > 0.85 * len(fc)
+    inside = (fl.xy[:, 0] > 305) & (fl.xy[:, 0] < 335) & (fl.xy[:, 1] > 305) & (fl.xy[:, 1] < 335)
+    assert not inside.any()
+    ma = match_descriptors(fa.desc, fc.desc, 0.8, True)[0]
+    mb = match_descriptors(fa.desc, fl.desc, 0.8, True)[0]
+    assert len(mb) > 0.8 * len(ma) and len(ma) > 200
+    _, warnings = group_tone_curves([clean, lines])
+    assert len(warnings) == 1 and warnings[0].startswith("lines.tif") and "NaN or infinite" in warnings[0]
+
+
 @pytest.mark.parametrize("mutual", [False, True])
 def test_match_descriptors_is_opencvs_brute_force_ratio_test(mutual):
     """The BLAS distance matrix gives the matches OpenCV's exact brute force gives (ratio test on
