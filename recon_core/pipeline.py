@@ -24,6 +24,7 @@ from recon_core.euclidean import dsm_stage, upgrade_stage
 from recon_core.evaluation import stage as eval_stage
 from recon_core.events import EventBus, Message, ModelsReady, StageDone, StageStarted
 from recon_core.io.files import writable_folder, write_json
+from recon_core.io.fingerprint import content_hash
 from recon_core.io.gcps import read_gcps_geojson, working_gcp_file
 from recon_core.io.layout import OutLayout
 from recon_core.io.lock import out_lock
@@ -63,7 +64,7 @@ def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None,
         keys.append(cfg.dense.matcher)
     blob = {k: ({f: v for f, v in d[k].items() if f"{k}.{f}" not in NOT_IN_STAGE_HASH}
                 if isinstance(d[k], dict) else d[k]) for k in keys}
-    blob["inputs"] = site_fingerprint(site)
+    blob["inputs"] = site_fingerprint(site, out)
     if stage == "eval":
         blob["scored_against"] = scored_against(site)
     if STAGES.index(stage) >= STAGES.index("upgrade"):
@@ -76,44 +77,28 @@ def stage_hash(cfg: Config, stage: str, site: Site, out: Path | None = None,
             blob["views"] = views
         dem = cfg.upgrade.reference_dem
         if dem:                     # a DEM replaced in place makes the upgrade stale
-            st = Path(dem).stat() if Path(dem).is_file() else None
-            blob["reference_dem"] = None if st is None else [st.st_size, st.st_mtime_ns,
-                                                             _pixel_sample_hash(Path(dem), st)]
+            blob["reference_dem"] = ([Path(dem).stat().st_size, content_hash(dem)]
+                                     if Path(dem).is_file() else None)
     return hashlib.sha1(json.dumps(blob, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
-def site_fingerprint(site: Site) -> dict:
-    """What identifies a site's inputs for resume: each image's name, size, modification time
-    and acquisition time (a sidecar added or edited regroups the dates), and site.json's hints
-    (another image, another folder's images, another time or a changed resolution_m make every
-    stage stale). The configuration enters through its values, the GCP file from the upgrade on."""
+def site_fingerprint(site: Site, out: Path | None = None) -> dict:
+    """What identifies a site's inputs for resume: each image's name, size, a hash of all its
+    bytes (recon_core.io.fingerprint: pixels edited in place, whatever the modification time
+    says, are other inputs; a copied or touched site keeps its fingerprint) and acquisition
+    time (a sidecar added or edited regroups the dates), and site.json's hints (another image,
+    another folder's images, another time or a changed resolution_m make every stage stale). The
+    configuration enters through its values, the GCP file from the upgrade on."""
+    from recon_core.io.fingerprint import HashCache
+
+    hashes = HashCache(out)
     imgs = []
     for im in site.images:
         st = Path(im.path).stat()
         when = None if im.acquired is None else im.acquired.isoformat()
-        # and a hash of sampled pixels: pixels rewritten in place with the modification time put
-        # back (touch -r) are other inputs (a copied site keeps its fingerprint)
-        imgs.append([im.name, st.st_size, st.st_mtime_ns, _pixel_sample_hash(Path(im.path), st),
-                     when, im.time_source])
+        imgs.append([im.name, st.st_size, hashes(im.path), when, im.time_source])
+    hashes.save()
     return {"images": imgs, "site_json": site.hints}
-
-
-_SAMPLE_HASHES: dict[tuple, str] = {}
-
-
-def _pixel_sample_hash(path: Path, st) -> str:
-    """A hash of the pixels the blank check samples (3 x 3 windows and the last rows): cheap,
-    read once per version of the file in a process."""
-    key = (str(path), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)   # ctime: any write
-    if key not in _SAMPLE_HASHES:
-        from recon_core.io.site import sample_values
-
-        try:
-            v = sample_values(path)[0]
-            _SAMPLE_HASHES[key] = hashlib.sha1(np.ascontiguousarray(v, np.float64).tobytes()).hexdigest()[:12]
-        except Exception:                   # unreadable now: the checks say so elsewhere
-            _SAMPLE_HASHES[key] = "unreadable"
-    return _SAMPLE_HASHES[key]
 
 
 def scored_against(site: Site) -> list:
@@ -121,7 +106,7 @@ def scored_against(site: Site) -> list:
     from recon_core.evaluation.stage import reference_dsms
 
     scored = [p for p in [site.gt_dsm, *reference_dsms(site.root)] if p is not None]
-    return [[p.name, p.stat().st_size, p.stat().st_mtime_ns, _pixel_sample_hash(p, p.stat())] for p in scored]
+    return [[p.name, p.stat().st_size, content_hash(p)] for p in scored]
 
 
 def stage_done(out: Path, stage: str, cfg: Config, site: Site, gcp_text: str | None = None) -> bool:

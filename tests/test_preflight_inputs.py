@@ -233,6 +233,15 @@ def test_pixels_rewritten_with_the_time_put_back_are_other_inputs(tiny_site, tmp
     os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns))
     assert img.stat().st_size == st.st_size and img.stat().st_mtime_ns == st.st_mtime_ns
     assert not stage_done(out, "sparse", cfg, load_site(site))
+    # one pixel, away from every window a sample would read, edited with the time put back
+    run(site, out, cfg, until="sparse")
+    st = img.stat()
+    with rasterio.open(img, "r+") as ds:
+        a = ds.read(1)
+        a[a.shape[0] // 3 + 1, a.shape[1] // 3 + 1] ^= 1
+        ds.write(a, 1)
+    os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert not stage_done(out, "sparse", cfg, load_site(site))
 
 
 def test_other_writers_into_a_run_folder(tiny_site, small_site, tmp_path, capsys):
