@@ -59,6 +59,8 @@ def conditioning(X_enu: np.ndarray, affine_height_sigma_m: float = 0.4,
     Returns:
         dict with n, plane_normal, plane_rms_m (d_rms), plane_max_m, singular_ratio,
         expected_height_scale_error (fraction), expected_height_error_m, structure_height_m,
+        expected_edge_error_m and site_radius_m (the tilt's height error at the site's edge, when
+        the fit knows how far the site reaches),
         basis ("plane": before any fit; "fit": the fit's covariance), gcp_only and with_images
         (looseness: height scale, shear and tilt sigmas) after a fit, level ("ok" | "warning" |
         "poor" | "degenerate") and warning (plain words or None).
@@ -92,10 +94,14 @@ def conditioning(X_enu: np.ndarray, affine_height_sigma_m: float = 0.4,
                    metric_prior_ratio=float(prior_ratio))
         frac = frac * prior_ratio if np.isfinite(frac) else frac
     err_m = frac * structure_height_m
-    if not np.isfinite(err_m):
+    edge_m = loose.expected_edge_error_m if loose is not None and loose.site_radius_m > 0 else 0.0
+    if loose is not None and loose.site_radius_m > 0:
+        out.update(expected_edge_error_m=float(edge_m), site_radius_m=float(loose.site_radius_m))
+    worst = max(err_m, edge_m)
+    if not np.isfinite(worst):
         level = "degenerate"
     else:
-        level = "ok" if err_m <= warn_height_error_m else ("warning" if err_m <= poor_height_error_m
+        level = "ok" if worst <= warn_height_error_m else ("warning" if worst <= poor_height_error_m
                                                           else "poor")
     if best_next:
         out["best_next_gcp"] = best_next
@@ -113,6 +119,12 @@ def _warning(c: dict, d_rms: float, frac: float, err_m: float, sigma: float,
     level, h, target = c["level"], c["structure_height_m"], c["warn_height_error_m"]
     if level == "ok":
         return None
+    edge = c.get("expected_edge_error_m", 0.0)
+    if np.isfinite(err_m) and np.isfinite(edge) and edge > err_m:
+        return (f"the control GCPs lie nearly on one line, so the tilt across it is poorly fixed: expected "
+                f"height error about {edge:.1f} m at the site's edge, {c['site_radius_m']:.0f} m from their "
+                "centre" + (f", with the {c['images']} images' lines of sight" if c.get("images") else "")
+                + ". Add a control GCP away from that line.")
     images = c.get("images", 0)
     nxt = c.get("best_next_gcp")
     better = (f"; {nxt['id']}, now a check point, would bring it to {nxt['expected_height_error_m']:.1f} m "
@@ -146,7 +158,8 @@ def flat_gcp_refusal(cond: dict[str, Any]) -> str | None:
     """The refusal for a control set that cannot fix the height scale (expected height error
     above REFUSE_HEIGHT_ERROR_M on the quoted structure, or fewer than 3 points), or None. Between
     the "poor" level (5 m) and this it is a warning. `upgrade.allow_flat_gcps` overrides it."""
-    if cond.get("level") != "degenerate" and not cond.get("expected_height_error_m", 0.0) > REFUSE_HEIGHT_ERROR_M:
+    worst = max(cond.get("expected_height_error_m", 0.0), cond.get("expected_edge_error_m", 0.0))
+    if cond.get("level") != "degenerate" and not worst > REFUSE_HEIGHT_ERROR_M:
         return None
     return (f"refused: {cond.get('warning') or 'the control GCPs cannot fix the height scale'} "
             "To go on anyway, set upgrade.allow_flat_gcps = true (aerec run --config FILE).")

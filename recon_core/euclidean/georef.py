@@ -103,6 +103,7 @@ def frame_for(gcps: list[GCP]) -> LocalFrame:
 PIXEL_SIGMA_FLOOR = 0.1       # px: never below it (a click is not better than that)
 PIXEL_SIGMA_DEFAULT = 0.3     # px: with too few residuals, a careful click (the shared sites' GCPs)
 PIXEL_SIGMA_MIN_DOF = 4       # residual degrees of freedom needed to pool the noise from them
+SITE_SAMPLE = 5000            # sparse points that tell how far the site reaches (the tilt's lever)
 
 
 def pixel_sigma(aff: dict[str, GcpAffine], ids: list[str]) -> float:
@@ -130,9 +131,13 @@ def upgrade_group(model: SparseModel, gcps: list[GCP], frame: LocalFrame | None 
                        enabled=g.enabled, affine_cov=_affine_cov(aff[g.id], sig_px))
               for k, g in enumerate(gcps)]
     rays = lines_of_sight(model, images) if images and sigma_view_deg > 0 else []
+    ids = model.point_ids()
+    if len(ids) > SITE_SAMPLE:
+        ids = ids[np.linspace(0, len(ids) - 1, SITE_SAMPLE).astype(int)]
     result = upgrade(inputs, ransac_thresh_m=ransac_thresh_m, rng=np.random.default_rng(seed),
                      camera_rows=camera_rows(model) if sigma_cos > 0 else None, sigma_cos=sigma_cos,
-                     hold=ImageHold(rays, frame, sigma_view_deg) if len(rays) >= 2 else None)
+                     hold=ImageHold(rays, frame, sigma_view_deg) if len(rays) >= 2 else None,
+                     site_points=model.X[ids])
     return result, frame, aff
 
 

@@ -248,29 +248,52 @@ class Looseness:
     tilt_E: float
     tilt_N: float
     structure_height_m: float
+    tilt_max: float = 0.0           # the tilt's sigma in its worst horizontal direction
+    site_radius_m: float = 0.0      # how far the site reaches from the GCPs' centre
 
     @property
     def expected_height_error_m(self) -> float:
         return self.height_scale * self.structure_height_m
+
+    @property
+    def expected_edge_error_m(self) -> float:
+        """The height error the tilt leaves at the site's edge (the worst direction)."""
+        return self.tilt_max * self.site_radius_m
 
     def to_dict(self) -> dict:
         def f(x: float):
             return float(x) if np.isfinite(x) else None
         return {"height_scale_sigma": f(self.height_scale), "shear_sigma_E": f(self.shear_E),
                 "shear_sigma_N": f(self.shear_N), "tilt_sigma_E": f(self.tilt_E),
-                "tilt_sigma_N": f(self.tilt_N), "structure_height_m": self.structure_height_m,
-                "expected_height_error_m": f(self.expected_height_error_m)}
+                "tilt_sigma_N": f(self.tilt_N), "tilt_sigma_max": f(self.tilt_max),
+                "structure_height_m": self.structure_height_m,
+                "expected_height_error_m": f(self.expected_height_error_m),
+                "site_radius_m": self.site_radius_m, "expected_edge_error_m": f(self.expected_edge_error_m)}
 
 
-def looseness(H: np.ndarray, cov: Covariance, structure_height_m: float = 40.0) -> Looseness:
-    """The height scale, shear and tilt sigmas of H_A from the covariance of its entries."""
+def looseness(H: np.ndarray, cov: Covariance, structure_height_m: float = 40.0,
+              site_radius_m: float = 0.0) -> Looseness:
+    """The height scale, shear and tilt sigmas of H_A from the covariance of its entries (and the
+    height error the tilt leaves `site_radius_m` from the GCPs' centre)."""
     Ai = np.linalg.inv(np.asarray(H, np.float64)[:3, :3])
 
-    def sigma(out_axis: int, enu_dir: np.ndarray) -> float:
+    def grad(out_axis: int, enu_dir: np.ndarray) -> np.ndarray:
         g = np.zeros(12)
         g[4 * out_axis:4 * out_axis + 3] = Ai @ enu_dir
-        return float(np.sqrt(cov.variance(g)))
+        return g
+
+    def sigma(out_axis: int, enu_dir: np.ndarray) -> float:
+        return float(np.sqrt(cov.variance(grad(out_axis, enu_dir))))
 
     up, east, north = np.eye(3)[2], np.eye(3)[0], np.eye(3)[1]
-    return Looseness(sigma(2, up), sigma(0, up), sigma(1, up), sigma(2, east), sigma(2, north),
-                     float(structure_height_m))
+    # the worst horizontal direction of the tilt: the largest of its 2 x 2 covariance's axes
+    tilt = [sigma(2, east), sigma(2, north)]
+    if all(np.isfinite(tilt)):
+        gE, gN = grad(2, east), grad(2, north)
+        c = cov.variance(gE + gN) - tilt[0] ** 2 - tilt[1] ** 2      # 2 cov(E, N)
+        C = np.array([[tilt[0] ** 2, c / 2], [c / 2, tilt[1] ** 2]])
+        tilt_max = float(np.sqrt(max(np.linalg.eigvalsh(C)[-1], 0.0)))
+    else:
+        tilt_max = float("inf")
+    return Looseness(sigma(2, up), sigma(0, up), sigma(1, up), tilt[0], tilt[1],
+                     float(structure_height_m), tilt_max, float(site_radius_m))

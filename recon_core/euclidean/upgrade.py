@@ -455,6 +455,15 @@ def fit_held_ransac(Xa: np.ndarray, Xe: np.ndarray, hold: ImageHold, thresh_m: f
     return best_mask
 
 
+def _site_radius(H: np.ndarray, site_points: np.ndarray | None, Xe: np.ndarray) -> float:
+    """How far the site reaches from the control GCPs' centre (m, horizontally): the 95th
+    percentile over points of the structure through H (0 without them)."""
+    if site_points is None or not len(site_points):
+        return 0.0
+    en = apply_affine_3d(H, np.asarray(site_points, np.float64))[:, :2] - Xe[:, :2].mean(axis=0)
+    return float(np.percentile(np.hypot(en[:, 0], en[:, 1]), 95))
+
+
 def _best_next(gcps: list[GcpInput], reasons: dict, N: np.ndarray, H: np.ndarray, height_m: float,
                now_m: float) -> dict | None:
     """The check point that, made a control point, would bring the expected height error down
@@ -476,7 +485,8 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
             affine_height_sigma_m: float = 0.4, structure_height_m: float = 40.0,
             warn_height_error_m: float = 2.0, poor_height_error_m: float = 5.0,
             reproj_warn_px: float = 2.0, camera_rows: list[ImageRows] | None = None,
-            sigma_cos: float = 0.0, hold: ImageHold | None = None) -> UpgradeResult:
+            sigma_cos: float = 0.0, hold: ImageHold | None = None,
+            site_points: np.ndarray | None = None) -> UpgradeResult:
     """Fit H_A on the control GCPs (RANSAC when N >= 5) and build the full residual report.
 
     Check points never enter the fit. GCPs without an affine position are listed as unusable.
@@ -527,13 +537,14 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
     if fit is not None:
         H = fit.H
     sigma = _combined_sigma([gcps[i] for i in used], affine_height_sigma_m)
+    radius = _site_radius(H, site_points, Xe[inl])
     N_gcp = gcp_normal(pts, H)
-    loose_gcp = looseness(H, Covariance.of(N_gcp), structure_height_m)
+    loose_gcp = looseness(H, Covariance.of(N_gcp), structure_height_m, radius)
     prior = None
     if camera_rows and sigma_cos > 0 and not held:
         prior = _MetricPrior(camera_rows, sigma_cos, sigma)
         H = prior.fit(Xa[inl], Xe[inl], H, structure_height_m)
-    loose = looseness(H, fit.cov, structure_height_m) if fit is not None else loose_gcp
+    loose = looseness(H, fit.cov, structure_height_m, radius) if fit is not None else loose_gcp
     best_next = _best_next(gcps, reasons, fit.normal if fit is not None else N_gcp, H, structure_height_m,
                            loose.expected_height_error_m)
     cond = conditioning(Xe[inl], sigma, structure_height_m, warn_height_error_m, poor_height_error_m,

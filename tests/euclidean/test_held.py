@@ -169,3 +169,19 @@ def test_the_check_point_that_would_help_most_is_named():
     assert c["best_next_gcp"]["id"] == "G4"
     assert c["best_next_gcp"]["expected_height_error_m"] < 0.2 * c["expected_height_error_m"]
     assert any("G4, now a check point" in w for w in res.warnings)
+
+
+def test_gcps_nearly_on_one_line_leave_the_tilt_loose_and_say_so():
+    """Three control GCPs 8 m off one line 400 m long: the tilt across it is loose; the report
+    gives the height error it leaves at the site's edge, and warns."""
+    rng = np.random.default_rng(5)
+    H, views, cams = _truth(rng, 5)
+    enu = np.array([[-200.0, 0.0, 0.0], [0.0, 8.0, 0.0], [200.0, 0.0, 0.0]])
+    aff = apply_affine_3d(np.linalg.inv(H), enu)
+    site = apply_affine_3d(np.linalg.inv(H), np.c_[rng.uniform(-300, 300, (500, 2)), np.zeros(500)])
+    gcps = [GcpInput(f"G{k}", "control", aff[k], enu[k], sigma_m=0.1) for k in range(3)]
+    res = upgrade(gcps, hold=ImageHold(_rays(views, cams)), site_points=site)
+    c = res.conditioning
+    assert c["site_radius_m"] > 250 and c["expected_edge_error_m"] > 2.0
+    assert c["expected_edge_error_m"] > 5 * c["expected_height_error_m"]
+    assert any("nearly on one line" in w and "site's edge" in w for w in res.warnings)
