@@ -64,8 +64,27 @@ class Raster:
         return min(xs), min(ys), max(xs), max(ys)
 
 
-def read_raster(path: str | Path, what: str) -> Raster:
-    """Read band 1 as float32 with NaN for nodata and non-finite values; refuse no CRS or rotation."""
+def read_factor(width: int, height: int, cell: float, finer_than: float | None = None,
+                max_cells: float | None = None) -> int:
+    """The decimation a raster is read with: a cell finer than half of `finer_than` (the ground
+    truth's) is averaged down to about that (the evaluation samples the DSM at the GT's cells:
+    a 0.01 m DSM read whole filled 21 GB), and a raster over `max_cells` down to that many."""
+    f = 1
+    if finer_than is not None and cell > 0 and cell < finer_than / 2.0:
+        f = int(finer_than / (2.0 * cell))
+    if max_cells is not None and width * height / f ** 2 > max_cells:
+        f = int(np.ceil(np.sqrt(width * height / max_cells)))
+    return max(1, f)
+
+
+MAX_EVAL_CELLS = 4e8     # a ground truth read averaged down to this many cells (1.6 GB a grid)
+
+
+def read_raster(path: str | Path, what: str, finer_than: float | None = None,
+                max_cells: float | None = None, resampling: Resampling = Resampling.average) -> Raster:
+    """Read band 1 as float32 with NaN for nodata and non-finite values; refuse no CRS or
+    rotation. With `finer_than` / `max_cells`, read averaged down (read_factor); `factor` on
+    the result says by how much."""
     try:
         src = rasterio.open(path)
     except rasterio.errors.RasterioIOError as e:
@@ -77,8 +96,18 @@ def read_raster(path: str | Path, what: str) -> Raster:
         t = src.transform
         if t.b != 0 or t.d != 0 or t.a <= 0 or t.e >= 0:
             raise InputError(path, f"the {what} must be a north-up grid, transform {tuple(t)[:6]}")
-        vals = src.read(1, masked=True).astype(np.float32).filled(np.nan)
-        return Raster(path, vals, t, src.crs)
+        f = read_factor(src.width, src.height, float(t.a), finer_than, max_cells)
+        if f == 1:
+            vals = src.read(1, masked=True).astype(np.float32).filled(np.nan)
+        else:
+            shape = (max(1, src.height // f), max(1, src.width // f))
+            vals = src.read(1, masked=True, out_shape=shape,
+                            resampling=resampling).astype(np.float32).filled(np.nan)
+            t = t * Affine.scale(src.width / shape[1], src.height / shape[0])
+        vals[~np.isfinite(vals)] = np.nan
+        r = Raster(path, vals, t, src.crs)
+        r.factor = f
+        return r
 
 
 def _check_dsm(dsm: Raster, gt: Raster) -> None:
@@ -335,10 +364,10 @@ def evaluate_dsm(dsm_path: str | Path, gt_path: str | Path, out_dir: str | Path 
     Raises:
         InputError: naming the file: no CRS, unreadable or unreprojectable CRS, no overlap.
     """
-    gt = read_raster(gt_path, "ground truth")
+    gt = read_raster(gt_path, "ground truth", max_cells=MAX_EVAL_CELLS)
     if not gt.crs.is_projected:
         raise InputError(gt_path, f"the ground truth must be in a projected CRS, got {gt.crs}")
-    dsm = read_raster(dsm_path, "DSM")
+    dsm = read_raster(dsm_path, "DSM", finer_than=gt.transform.a)
     _check_dsm(dsm, gt)
     gt_valid = np.isfinite(gt.values)
     raw = resample_onto(dsm, gt)
@@ -353,6 +382,14 @@ def evaluate_dsm(dsm_path: str | Path, gt_path: str | Path, out_dir: str | Path 
               "aligned": height_metrics(err, gt_valid, thresh_m),
               "unaligned": height_metrics(raw - gt.values, gt_valid, thresh_m),
               "warnings": _warnings(al)}
+    if dsm.factor > 1 or gt.factor > 1:
+        result["read_averaged"] = {"dsm": dsm.factor, "gt": gt.factor}
+        result["warnings"].append(
+            (f"the DSM ({dsm.transform.a / dsm.factor:g} m cells) was read averaged by {dsm.factor} to about half "
+             f"the ground truth's cells" if dsm.factor > 1 else "")
+            + ("; " if dsm.factor > 1 and gt.factor > 1 else "")
+            + (f"the ground truth was read averaged by {gt.factor} (more than {MAX_EVAL_CELLS:.0e} cells)"
+               if gt.factor > 1 else ""))
     if out_dir is not None:
         result["outputs"] = write_outputs(Path(out_dir), result, err, shifted - al["dz_m"], gt,
                                           clip_m)
@@ -367,7 +404,7 @@ def same_cells(a_path: str | Path, a_align: dict, b_path: str | Path, b_align: d
     also covers the hard cells (occlusions, edges) has a larger median there.
     Returns {"cells": n, "cells_pct_of_gt", "a"/"b": {"median_abs_err_m", "within_pct"}} with
     within_pct the % of those cells within thresh_m."""
-    gt = read_raster(gt_path, "ground truth")
+    gt = read_raster(gt_path, "ground truth", max_cells=MAX_EVAL_CELLS)
     both = np.isfinite(gt.values)
     errs = []
     for path, al in ((a_path, a_align), (b_path, b_align)):
@@ -387,7 +424,7 @@ def same_cells(a_path: str | Path, a_align: dict, b_path: str | Path, b_align: d
 def aligned_error(path: str | Path, align: dict, gt: Raster) -> np.ndarray:
     """DSM - GT on the GT grid, the DSM shifted by its alignment (evaluate_dsm's "alignment":
     dx, dy, dz in metres); NaN where either has no height. float32."""
-    e = resample_onto(read_raster(path, "DSM"), gt, align["dx_m"], align["dy_m"])
+    e = resample_onto(read_raster(path, "DSM", finer_than=gt.transform.a), gt, align["dx_m"], align["dy_m"])
     e -= np.float32(align["dz_m"])
     e -= gt.values
     return e
@@ -400,10 +437,11 @@ def by_class(dsm_path: str | Path, align: dict, class_path: str | Path, gt_path:
     same shifted positions (nearest). Per class: its share of the GT's cells, the median
     absolute error and the % within thresh_m of its cells, and its share of the completeness
     (cells within thresh_m, in % of the GT's cells). Tells which cells of the DSM to trust."""
-    gt = read_raster(gt_path, "ground truth")
+    gt = read_raster(gt_path, "ground truth", max_cells=MAX_EVAL_CELLS)
     n_gt = max(int(np.isfinite(gt.values).sum()), 1)
     e = aligned_error(dsm_path, align, gt)
-    cls = resample_onto(read_raster(class_path, "class layer"), gt, align["dx_m"], align["dy_m"], Resampling.nearest)
+    cls = resample_onto(read_raster(class_path, "class layer", finer_than=gt.transform.a, resampling=Resampling.nearest),
+                        gt, align["dx_m"], align["dy_m"], Resampling.nearest)
     ok = np.isfinite(e) & np.isfinite(cls)
     v, c = np.abs(e[ok]), cls[ok].astype(np.int64)
     out: dict[str, Any] = {"threshold_m": thresh_m, "classes": {}}

@@ -253,3 +253,28 @@ def test_by_class_scores_the_cells_of_each_class_apart(site, tmp_path):
     assert c1["cells_pct_of_gt"] + c2["cells_pct_of_gt"] == pytest.approx(r["aligned"]["coverage_pct"], abs=0.5)
     assert c1["completeness_share_pct"] + c2["completeness_share_pct"] == pytest.approx(
         r["aligned"]["completeness_pct"], abs=0.5)
+
+
+def _grid(path, res, n, shift=(0.0, 0.0, 0.0)):
+    """The analytic surface on an n x n grid of res-metre cells from the GT's corner, shifted."""
+    c = (np.arange(n) + 0.5) * res
+    xx, yy = np.meshgrid(X0 + c - shift[0], Y0 - c - shift[1])
+    z = (surface(xx, yy) + shift[2]).astype(np.float32)
+    with rasterio.open(path, "w", driver="GTiff", width=n, height=n, count=1, dtype="float32",
+                       crs=CRS.from_epsg(EPSG), transform=Affine(res, 0, X0, 0, -res, Y0), nodata=np.nan) as d:
+        d.write(z, 1)
+    return path
+
+
+def test_a_dsm_much_finer_than_the_ground_truth_is_read_averaged_and_scores_as_well(tmp_path):
+    """A 0.04 m DSM (5,000 x 5,000 cells) against a 0.5 m ground truth: read averaged by 6 to
+    about half the GT's cell (a DSM at the validator's finest resolution was read whole: 21 GB),
+    scored as the same surface at 0.25 m is, and said."""
+    gt = _grid(tmp_path / "gt.tif", 0.5, 400)
+    fine = evaluate_dsm(_grid(tmp_path / "fine.tif", 0.04, 5000, SHIFT), gt)
+    quarter = evaluate_dsm(_grid(tmp_path / "quarter.tif", 0.25, 800, SHIFT), gt)
+    assert fine["read_averaged"] == {"dsm": 6, "gt": 1} and "read_averaged" not in quarter
+    assert any("read averaged by 6" in w for w in fine["warnings"])
+    for k in ("dx_m", "dy_m", "dz_m"):
+        assert fine["alignment"][k] == pytest.approx(quarter["alignment"][k], abs=0.3)
+    assert abs(fine["aligned"]["completeness_pct"] - quarter["aligned"]["completeness_pct"]) < 2.0
