@@ -281,6 +281,9 @@ def _grid_candidates(cx: float, cy: float, half_x: float, half_y: float, sx: flo
     return X[order], Y[order]
 
 
+COARSE_SHIFTS = 80     # the alignment's first search: at most this many steps across +-max_shift
+
+
 def align(dsm: Raster, gt: Raster, max_shift_m: float = 10.0, step_m: float | None = None,
           n_samples: int = 30_000, seed: int = 0) -> dict[str, Any]:
     """Brute-force horizontal alignment with sub-cell refinement (see the module docstring).
@@ -300,8 +303,20 @@ def align(dsm: Raster, gt: Raster, max_shift_m: float = 10.0, step_m: float | No
     sx = step_m or gt.transform.a
     sy = step_m or -gt.transform.e
     best = (0.0, 0.0)
-    for half, frac in ((max_shift_m, 1.0), (1.0, 0.25), (0.25, 0.05)):
-        hx, hy = (half, half) if frac == 1.0 else (half * sx, half * sy)
+    # a fine ground truth (0.05 m cells: 160,000 shifts of one cell over +-10 m) is searched
+    # coarse first, at most COARSE_SHIFTS a side, then refined down to 0.05 cell as always
+    c = max(1.0, 2.0 * max_shift_m / (COARSE_SHIFTS * max(sx, sy)))
+    passes = [(max_shift_m, c)]
+    if c == 1.0:
+        passes += [(1.0, 0.25), (0.25, 0.05)]
+    else:
+        half = c
+        while half > 0.25:
+            passes.append((half, half / 4.0))
+            half /= 4.0
+        passes.append((half, 0.05))
+    for k, (half, frac) in enumerate(passes):
+        hx, hy = (half, half) if k == 0 else (half * sx, half * sy)
         X, Y = _grid_candidates(*best, hx, hy, sx * frac, sy * frac)
         keep = (np.abs(X) <= max_shift_m + 1e-9) & (np.abs(Y) <= max_shift_m + 1e-9)
         s, off = sc.score(X[keep], Y[keep])

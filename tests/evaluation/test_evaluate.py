@@ -278,3 +278,17 @@ def test_a_dsm_much_finer_than_the_ground_truth_is_read_averaged_and_scores_as_w
     for k in ("dx_m", "dy_m", "dz_m"):
         assert fine["alignment"][k] == pytest.approx(quarter["alignment"][k], abs=0.3)
     assert abs(fine["aligned"]["completeness_pct"] - quarter["aligned"]["completeness_pct"]) < 2.0
+
+
+def test_a_fine_ground_truth_is_searched_coarse_first(tmp_path):
+    """A 0.1 m ground truth: shifts of one of its cells over +-10 m were 40,000 candidates (a
+    0.05 m one ran for more than 10 minutes); the search starts coarse and still finds the
+    shift to a fraction of a cell."""
+    import time
+
+    gt = _grid(tmp_path / "gt.tif", 0.1, 1500)
+    t0 = time.time()
+    r = evaluate_dsm(_grid(tmp_path / "dsm.tif", 0.5, 300, SHIFT), gt)
+    assert time.time() - t0 < 60
+    assert r["alignment"]["dx_m"] == pytest.approx(SHIFT[0], abs=0.1)
+    assert r["alignment"]["dy_m"] == pytest.approx(SHIFT[1], abs=0.1)
