@@ -8,15 +8,16 @@ asserts nothing.
 Runs the whole pipeline on the site (generated under --root for a preset) into a fresh OUT and
 samples, every 0.1 s, the anonymous memory (RssAnon: what the machine must have; pages of
 memory-mapped files, which the kernel can drop, are not counted) of this process and all its
-descendants (the dense workers), per stage. `--resolution` writes site.json's resolution_m
-(a finer DSM grid: the DSM and evaluation stages' allocations grow with it). The estimate is
+descendants (the dense workers), per stage. `--resolution` sets the DSM's cell size
+(a finer DSM grid: the DSM and evaluation stages' allocations grow with it); the stages before the
+DSM are resumed from an earlier run of the same site (only the DSM and evaluation are measured
+again). The estimate is
 recon_core.memory.estimate's, which the pre-flight compares with the memory available.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import sys
@@ -106,7 +107,7 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default=None, help="a synthetic preset (generated under --root)")
     ap.add_argument("--site", type=Path, default=None)
     ap.add_argument("--tile-size", type=int, default=None)
-    ap.add_argument("--resolution", type=float, default=None, help="site.json's resolution_m")
+    ap.add_argument("--resolution", type=float, default=None, help="the DSM's cell size (dsm.resolution_m)")
     ap.add_argument("--gt-resolution", type=float, default=None,
                     help="the ground truth resampled to this cell size (a large evaluation grid)")
     ap.add_argument("--root", type=Path, default=Path("/tmp/aerec_memory"))
@@ -125,22 +126,18 @@ def main(argv=None) -> int:
     else:
         src = args.site
     site = src
-    if args.resolution is not None or args.gt_resolution is not None:   # a copy with finer grids
-        site = args.root / f"{src.name}_res{args.resolution}_gt{args.gt_resolution}"
+    if args.gt_resolution is not None:      # a copy with a finer ground truth
+        site = args.root / f"{src.name}_gt{args.gt_resolution}"
         if not site.exists():
             shutil.copytree(src, site, symlinks=True)
-        if args.resolution is not None:
-            doc = json.loads((site / "site.json").read_text()) if (site / "site.json").exists() else {}
-            doc["resolution_m"] = args.resolution
-            (site / "site.json").write_text(json.dumps(doc))
-        if args.gt_resolution is not None:
             finer_gt(src / "gt_dsm.tif", site / "gt_dsm.tif", args.gt_resolution)
     cfg = make_preset("tiny" if (args.preset or "").startswith("tiny") else "default")
     if args.tile_size:
         cfg = cfg.with_overrides({"tiling.tile_size": args.tile_size})
+    if args.resolution:
+        cfg = cfg.with_overrides({"dsm.resolution_m": args.resolution})
     est = {e.stage: e for e in estimate(load_site(site), cfg)}
-    out = args.root / f"out_{site.name}"
-    shutil.rmtree(out, ignore_errors=True)
+    out = args.root / f"out_{site.name}"           # the stages before the DSM are kept and resumed
     peaks: dict[str, float] = {}
     meter = TreePeak()
 
@@ -150,7 +147,7 @@ def main(argv=None) -> int:
         elif isinstance(ev, StageDone):
             peaks[ev.stage] = meter.take()
     t0 = time.time()
-    run(site, out, cfg, bus=EventBus(on))
+    run(site, out, cfg, bus=EventBus(on), redo_from="dsm" if (out / "stages").is_dir() else None)
     print(f"{site.name}: whole run {time.time() - t0:.0f} s")
     print("| stage | estimate (MB) | what drives it | measured peak (MB) | estimate / measured |")
     print("|---|---|---|---|---|")
