@@ -22,15 +22,22 @@ import numpy as np
 from recon_core.errors import InputError
 
 MB = 1 << 20
-BASE_MB = 250.0              # the interpreter, numpy, GDAL, OpenCV, numba's compiled kernels
+# Measured (bench/bench_memory.py on `tiny` and `demo`, DSM grids of 1.9e5 to 1.2e8 cells,
+# ground truths of 1.9e5 to 7.4e7 cells, 2026-11-28):
+BASE_MB = 180.0              # the run's process: the interpreter, numpy, GDAL, OpenCV, numba's kernels
+SPARSE_BASE_MB = 110.0       # ... before the sparse stage has loaded its own libraries
 SPARSE_MB_PER_MPX = 6.0      # keypoints, matches, tracks and the adjustment per Mpx of the group's images
 SPARSE_BLOCK_BYTES = 40.0    # per pixel of a detection block (float window, 8-bit copy, SIFT's pyramid)
-DENSE_WORKER_BASE_MB = 250.0  # a dense worker's own interpreter and libraries
+DENSE_WORKER_BASE_MB = 150.0  # a dense worker's own interpreter and libraries
 DENSE_TILE_BYTES = 60.0      # per pixel of a tile pair's windows (images, rectified pairs, disparities)
-DSM_STRIP_BYTES = 30.0       # per cell of a strip of rows, for each date group (fusion, filling)
-DSM_POINT_BYTES = 60.0       # per point of a chunk streamed into the grid
-EVAL_GT_BYTES = 40.0         # per ground-truth cell (the grids, the resampled DSM, errors, masks)
+MGM_VOLUME_BYTES = 768.0     # per tile pixel: MGM's 3 cost volumes over about 128 disparities, 2 bytes
+POINTS_PER_PIXEL = 0.5       # dense points per pixel of a date group's images
+DSM_POINT_BYTES = 140.0      # per point of a chunk streamed into the grid (coordinates, cells, sorting)
+DSM_STRIP_BYTES = 12.5       # per cell of a strip of rows (fusion, filling), for each date group
+EVAL_FIXED_MB = 340.0        # the evaluation's alignment search (batches of shifts) and maps
+EVAL_GT_BYTES = 30.0         # per ground-truth cell (the grids, the resampled DSMs, errors, masks)
 EVAL_DSM_BYTES = 12.0        # per cell of the DSM as the evaluation reads it (averaged down)
+STRIP_CELLS = 8_000_000      # the DSM stage's strips (recon_core.euclidean.dsm_stage.STRIP_CELLS)
 HEADROOM = 0.9               # a stage may use this share of the memory available
 
 
@@ -91,35 +98,40 @@ def estimate(site, cfg) -> list[StageMemory]:
     from recon_core.model.grouping import group_by_date
 
     groups = group_by_date(site.images, cfg.grouping.max_gap_days, cfg.grouping.max_span_days)
-    mpx = max(sum(im.width * im.height for im in g.images) for g in groups) / 1e6
+    group_px = max(sum(im.width * im.height for im in g.images) for g in groups)
+    mpx = group_px / 1e6
     block = min(cfg.features.detect_block, max(max(im.width, im.height) for im in site.images))
-    sparse = BASE_MB + SPARSE_MB_PER_MPX * mpx + SPARSE_BLOCK_BYTES * block ** 2 / MB
+    sparse_own = SPARSE_MB_PER_MPX * mpx + SPARSE_BLOCK_BYTES * block ** 2 / MB
+    sparse = SPARSE_BASE_MB + sparse_own
     workers = max(1, cfg.dense.workers or _cores())
     d = cfg.tiling.tile_size
-    per_worker = (DENSE_WORKER_BASE_MB + DENSE_TILE_BYTES * (2 * d) ** 2 / MB
-                  + (cfg.mgm.max_volume_mb if cfg.dense.matcher == "mgm" else 0.0))
+    volume = min(cfg.mgm.max_volume_mb, MGM_VOLUME_BYTES * d * d / MB) if cfg.dense.matcher == "mgm" else 0.0
+    per_worker = DENSE_WORKER_BASE_MB + DENSE_TILE_BYTES * (2 * d) ** 2 / MB + volume
     dense = BASE_MB + workers * per_worker
     cells, how = dsm_cells(site, cfg)
     width = np.sqrt(cells)
-    strip_cells = min(cells, max(64 * width, min(8_000_000, cells)))
-    dsm = (BASE_MB + DSM_POINT_BYTES * cfg.dsm.chunk_points / MB
-           + DSM_STRIP_BYTES * strip_cells * max(1, len(groups)) / MB)
+    points = POINTS_PER_PIXEL * group_px
+    # the run's process keeps what the sparse stage built (its models) through the later stages
+    kept = BASE_MB + sparse_own
+    dsm = (kept + DSM_POINT_BYTES * min(points, cfg.dsm.chunk_points) / MB
+           + DSM_STRIP_BYTES * min(cells, STRIP_CELLS) * max(1, len(groups)) / MB)
     out = [StageMemory("sparse", sparse, f"{mpx:.0f} Mpx in the largest date group"),
            StageMemory("dense", dense, f"{workers} worker(s), tiles of {d} px"
-                       + (f", MGM volumes up to {cfg.mgm.max_volume_mb:g} MB" if cfg.dense.matcher == "mgm" else "")),
-           StageMemory("dsm", dsm, f"a grid of {cells:.3g} cells (from {how}), read by strips")]
+                       + (f", MGM volumes of {volume:.0f} MB" if volume else "")),
+           StageMemory("dsm", dsm, f"a grid of {cells:.3g} cells (from {how}), read by strips, "
+                                   f"about {points:.2g} points a group")]
     g = gt_cells(site)
     if g:
+        import rasterio
+
         from recon_core.evaluation.evaluate import read_factor
 
         res = cfg.dsm.resolution_m or site.hints.get("resolution_m") or 0.5
-        import rasterio
-
         with rasterio.open(site.gt_dsm) as ds:
             gt_res = float(ds.transform.a)
         f = read_factor(int(width), int(width), res, finer_than=gt_res)
         read = cells / f ** 2
-        out.append(StageMemory("eval", BASE_MB + EVAL_GT_BYTES * g / MB + EVAL_DSM_BYTES * read / MB,
+        out.append(StageMemory("eval", kept + EVAL_FIXED_MB + EVAL_GT_BYTES * g / MB + EVAL_DSM_BYTES * read / MB,
                                f"a ground truth of {g:.3g} cells, the DSM read as {read:.3g}"))
     return out
 
@@ -148,6 +160,8 @@ def check_memory(site, cfg, until: str | None = None, where=None) -> list[StageM
                     "dsm": "a coarser resolution_m or smaller bounds in site.json",
                     "eval": "a coarser resolution_m in site.json, or a smaller ground truth",
                     "sparse": "smaller images (a VRT window of the part to reconstruct)"}[e.stage]
-            raise InputError(where, f"the {e.stage} stage would need about {e.mb / 1024:.1f} GB ({e.what}); "
+            place = where if where is not None or e.stage not in ("dsm", "eval") else (
+                site.root / "site.json" if (site.root / "site.json").exists() else None)
+            raise InputError(place, f"the {e.stage} stage would need about {e.mb / 1024:.1f} GB ({e.what}); "
                                     f"this machine has {have / 1024:.1f} GB available: {hint}")
     return est

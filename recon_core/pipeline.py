@@ -222,6 +222,9 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     site, out = _load(site_path, out, until, redo_from)
     check_images(site)
     check_reference_dem(site, cfg)
+    from recon_core.memory import check_memory
+
+    check_memory(site, cfg, until)
     early = check_groups(site, cfg)
     if cfg.dsm.resolution_m and site.hints.get("bounds"):
         from recon_core.io.site import check_grid_size

@@ -320,3 +320,24 @@ def test_gcps_with_lon_and_lat_swapped_are_refused_by_the_images_footprints(tiny
     assert not (tmp_path / "o" / "stages").exists()
     assert main(["info", str(site)]) == 0
     assert "would refuse" in capsys.readouterr().out
+
+
+def test_a_run_that_cannot_fit_in_memory_is_refused_before_any_compute(small_site, tmp_path, capsys, monkeypatch):
+    """The pre-flight estimates each stage's memory (recon_core.memory): a machine without
+    enough for one of them refuses the run before any compute, naming the stage, what drives
+    it and what to change; a larger ground truth raises the evaluation's figure."""
+    import recon_core.memory as memory
+    from recon_core.config import Config
+    from recon_core.io.site import load_site
+
+    write_tiff(small_site / "gt_dsm.tif", np.zeros((64, 64), np.float32))
+    small = {e.stage: e.mb for e in memory.estimate(load_site(small_site), Config())}
+    assert set(small) == {"sparse", "dense", "dsm", "eval"} and all(v > 0 for v in small.values())
+    write_tiff(small_site / "gt_dsm.tif", np.zeros((4000, 4000), np.float32))
+    big = {e.stage: e.mb for e in memory.estimate(load_site(small_site), Config())}
+    assert big["eval"] - small["eval"] == pytest.approx(memory.EVAL_GT_BYTES * (4000 ** 2 - 64 ** 2) / 2 ** 20)
+    monkeypatch.setattr(memory, "available_mb", lambda: 10.0)
+    assert main(["run", str(small_site), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "stage would need about" in err[0] and "0.0 GB available" in err[0], err
+    assert not (tmp_path / "o" / "stages").exists()
