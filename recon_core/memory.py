@@ -142,18 +142,15 @@ def _cores() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
-def check_memory(site, cfg, until: str | None = None, where=None) -> list[StageMemory]:
-    """Refuse (InputError) a run whose stages up to `until` would need more memory than the
-    machine has available; returns the estimates."""
-    from recon_core.pipeline import STAGES
-
+def check_memory(site, cfg, stages, where=None) -> list[StageMemory]:
+    """Refuse (InputError) a run whose `stages` (the names the run will compute) would need more
+    memory than the machine has available; returns the estimates."""
     est = estimate(site, cfg)
-    last = STAGES.index(until) if until else len(STAGES) - 1
     have = available_mb()
     if have is None:
         return est
     for e in est:
-        if STAGES.index(e.stage) > last:
+        if e.stage not in stages:
             continue
         if e.mb > HEADROOM * have:
             hint = {"dense": "fewer dense workers (--workers) or a smaller mgm.max_volume_mb",

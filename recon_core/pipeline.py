@@ -224,7 +224,7 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     check_reference_dem(site, cfg)
     from recon_core.memory import check_memory
 
-    check_memory(site, cfg, until)
+    check_memory(site, cfg, STAGES[: STAGES.index(until) + 1] if until else STAGES)
     early = check_groups(site, cfg)
     if cfg.dsm.resolution_m and site.hints.get("bounds"):
         from recon_core.io.site import check_grid_size
