@@ -126,6 +126,15 @@ def cmd_info(args) -> int:
         for g in groups:
             for w in group_tone_curves(g.images)[1]:
                 print(f"warning: group {g.index}: {w}")
+        from recon_core.memory import HEADROOM, available_mb, estimate
+
+        est, have = estimate(site, Config()), available_mb()
+        print("memory (estimated peak per stage): " + ", ".join(f"{e.stage} {e.mb / 1024:.1f} GB" for e in est)
+              + (f"; {have / 1024:.1f} GB available" if have is not None else ""))
+        for e in est:
+            if have is not None and e.mb > HEADROOM * have:
+                print(f"warning: `aerec run` would refuse: the {e.stage} stage would need about "
+                      f"{e.mb / 1024:.1f} GB ({e.what})")
     return 0
 
 
