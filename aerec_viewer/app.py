@@ -27,7 +27,6 @@ import numpy as np
 
 from recon_core.errors import AerecError
 from recon_core.euclidean.ground_reference import EDGE_SPREAD_M
-from recon_core.euclidean.upgrade_stage import control_needed
 from recon_core.io.gcps import picked_positions
 
 from .display import (
@@ -57,9 +56,9 @@ from .results import (
     UpgradeOutcome,
     gcp_readiness,
     gcp_state_table,
-    n_ready,
     outcome_markdown,
     run_upgrade,
+    upgrade_readiness,
 )
 from .scene import TILE_MODES, SceneView, tile_windows_for
 from .worker import DisplaySnapshot, ReconWorker
@@ -769,9 +768,9 @@ class ViewerApp:
     # -- upgrade --------------------------------------------------------------------------------
     def _update_upgrade_button(self) -> None:
         ready = gcp_readiness(self.session, self.models)
-        n = n_ready(self.session, self.models)
-        need = control_needed(self.site.images, self.cfg)
-        can = bool(self.models) and n >= need
+        can, n, need = upgrade_readiness(self.session, self.models, {im.name: im for im in self.site.images},
+                                         self.cfg)
+        can = bool(self.models) and can
         self.g_upgrade.disabled = not can
         why = ("waiting for the sparse model" if not self.models else
                f"{n} control GCP(s) placeable, {need} needed" if n < need else

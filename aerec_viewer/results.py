@@ -117,6 +117,25 @@ def gcp_state_table(session: GcpSession, models: dict, images: list[str]) -> str
     return "\n".join(rows)
 
 
+def upgrade_readiness(session: GcpSession, models: dict, images: dict, cfg) -> tuple[bool, int, int]:
+    """(can the upgrade run, control GCPs placeable in the best date group, how many that group
+    needs): per group as the pipeline decides (recon_core.euclidean.upgrade_stage.
+    control_needed: 3 when two or more of the group's images state their viewing direction)."""
+    from recon_core.euclidean.upgrade_stage import control_needed
+
+    if not models:
+        return False, n_ready(session, models), control_needed(list(images.values()), cfg)
+    best = None
+    for m in models.values():
+        n = sum(1 for g in session.gcps if g.enabled and g.role == "control"
+                and (m.group in g.affine_picked or len(usable_observations(m, g.observations)[0]) >= 2))
+        need = control_needed([images[k] for k in m.images if k in images], cfg)
+        key = (n >= need, n - need)
+        if best is None or key > best[0]:
+            best = (key, n, need)
+    return best[0][0], best[1], best[2]
+
+
 def n_ready(session: GcpSession, models: dict, role: str | None = "control") -> int:
     """Number of GCPs (of a role) that can get an affine position."""
     ready = gcp_readiness(session, models)

@@ -273,7 +273,7 @@ class UpgradeConfig:
 @dataclass
 class DsmConfig:
     resolution_m: float | None = _p(None, lo=0.01, hi=1000)  # output cell size; None = site.json's, else the GSD
-    stat: str = _p("median", choices=("median", "upper_median", "max", "min", "mean"))  # per-cell statistic: median | upper_median | max
+    stat: str = _p("median", choices=("median", "upper_median", "max", "min", "mean"))  # per-cell statistic: median | upper_median | max | min | mean
     fill_holes_px: int = _p(2, lo=0, hi=1000)  # fill only holes this small (radius, cells) with support
     laz: bool = _p(True)              # also write cloud.laz (LAS 1.4 with the CRS) from cloud.ply
     fusion_correction_m: float = _p(32.0, lo=0, hi=1e6)  # a lower-ranked group is brought onto the fused surface by

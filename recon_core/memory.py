@@ -15,6 +15,7 @@ machine has available, naming the stage and what to change.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,7 @@ EVAL_GT_BYTES = 30.0         # per ground-truth cell (the grids, the resampled D
 EVAL_DSM_BYTES = 12.0        # per cell of the DSM as the evaluation reads it (averaged down)
 STRIP_CELLS = 8_000_000      # the DSM stage's strips (recon_core.euclidean.dsm_stage.STRIP_CELLS)
 HEADROOM = 0.9               # a stage may use this share of the memory available
+OFF_VARIABLE = "AEREC_MEMORY_CHECK"   # set to "off": the run is not refused for its estimate
 
 
 @dataclass
@@ -147,11 +149,11 @@ def check_memory(site, cfg, stages, where=None) -> list[StageMemory]:
     memory than the machine has available; returns the estimates."""
     est = estimate(site, cfg)
     have = available_mb()
-    if have is None:
+    if have is None or os.environ.get(OFF_VARIABLE, "").lower() in ("off", "0", "no"):
         return est
     for e in est:
-        if e.stage not in stages:
-            continue
+        if e.stage not in stages or (e.stage == "dense" and cfg.dense.scheduler):
+            continue                   # resumed, or the dense work runs on the Dask workers
         if e.mb > HEADROOM * have:
             hint = {"dense": "fewer dense workers (--workers) or a smaller mgm.max_volume_mb",
                     "dsm": "a coarser resolution_m or smaller bounds in site.json",
@@ -160,5 +162,6 @@ def check_memory(site, cfg, stages, where=None) -> list[StageMemory]:
             place = where if where is not None or e.stage not in ("dsm", "eval") else (
                 site.root / "site.json" if (site.root / "site.json").exists() else None)
             raise InputError(place, f"the {e.stage} stage would need about {e.mb / 1024:.1f} GB ({e.what}); "
-                                    f"this machine has {have / 1024:.1f} GB available: {hint}")
+                                    f"this machine has {have / 1024:.1f} GB available: {hint} (to try anyway: "
+                                    f"{OFF_VARIABLE}=off)")
     return est

@@ -224,7 +224,14 @@ def preflight(site_path: str | Path, out: str | Path, cfg: Config, until: str | 
     check_reference_dem(site, cfg)
     from recon_core.memory import check_memory
 
-    check_memory(site, cfg, STAGES[: STAGES.index(until) + 1] if until else STAGES)
+    todo = STAGES[: STAGES.index(until) + 1] if until else STAGES
+    if Path(out).is_dir() and redo_from is None:     # what a resumed run will not compute again
+        done = finished_stages(Path(out), cfg, site)
+        first = next((k for k, s in enumerate(todo) if s not in done), len(todo))
+        todo = todo[first:]
+    elif redo_from is not None:
+        todo = [s for s in todo if STAGES.index(s) >= STAGES.index(redo_from)]
+    check_memory(site, cfg, todo)
     early = check_groups(site, cfg)
     if cfg.dsm.resolution_m and site.hints.get("bounds"):
         from recon_core.io.site import check_grid_size
@@ -311,11 +318,11 @@ MAX_GCP_OFF_IMAGES_M = 10_000.0   # a GCP farther than this outside every image'
 
 
 def refuse_gcps_off_the_images(path: Path, gcps: list, site: Site) -> None:
-    from recon_core.io.footprints import image_footprints, off_the_images
-
     """GCPs, footprints and RPCs must agree on where the site is: a GCP farther than
     MAX_GCP_OFF_IMAGES_M outside every image's footprint (from the images' RPCs, when they have
     some) is refused, naming it, and saying so when its lon and lat swapped would fall inside."""
+    from recon_core.io.footprints import image_footprints, off_the_images
+
     used = [g for g in gcps if g.enabled]
     if not used:
         return
@@ -350,8 +357,6 @@ def check_groups(site: Site, cfg: Config) -> list[str]:
 
 
 def gcp_findings(groups, gcps, cfg: Config) -> list[tuple[str, int, str]]:
-    from recon_core.euclidean.upgrade_stage import control_needed
-
     """Per date group, what the upgrade will make of the GCPs, from the GCP file alone:
     ("ok" | "joint" | "warning" | "error", group, text). A warning: fewer usable control GCPs
     than it needs (4, or 3 when the images state their viewing directions: the group is not

@@ -3,8 +3,8 @@
 Why. Each tile has its own 8-parameter affine camera. A smooth bend W of the structure (a dome,
 a saddle) is then almost free: every tile camera can follow it with a change that is linear in
 the tile's position, P_t o W^-1 ~ P_t (I - J_W(X_t)), and the pushbroom's departure from affine
-inside each tile (~0.2 px at d = 1000) is what pushes the adjustment into it (GEOMETRY_NOTES,
-"Tying tile cameras"). 4 GCPs remove only the affine part of the bend.
+inside each tile (~0.2 px at d = 1000) is what pushes the adjustment into it (docs/research-notes.md,
+"The image model and the bend"). 4 GCPs remove only the affine part of the bend.
 
 The model. A pushbroom image is a line array swept in time: the points imaged at one row (one
 instant) lie on a plane, and along that line the column is a 1D perspective. With smooth

@@ -130,15 +130,22 @@ class DaskExecutor(Executor):
         from recon_core.errors import ReconstructionError
 
         futures = [self.client.submit(fn, job, pure=False) for job in jobs]
-        pending = as_completed(futures, timeout=self.poll_s)
-        alone_since, told, left = None, False, len(futures)
-        while left:
+        yielded: set = set()
+
+        def waiting():
+            # as_completed's timeout runs from when it was made: it is made again at every poll,
+            # over the futures not yielded yet (a future done but not yet yielded stays in it)
+            return as_completed([f for f in futures if f.key not in yielded], timeout=self.poll_s)
+        pending = waiting()
+        alone_since, told = None, False
+        while len(yielded) < len(futures):
+            left = len(futures) - len(yielded)
             try:
                 fut = next(pending)
             except DaskTimeout:
                 if self._workers() > 0:
                     alone_since, told = None, False
-                    pending = as_completed([f for f in futures if not f.done()], timeout=self.poll_s)
+                    pending = waiting()
                     continue
                 alone_since = alone_since or time.monotonic()
                 alone = time.monotonic() - alone_since
@@ -153,11 +160,14 @@ class DaskExecutor(Executor):
                     self.on_wait(f"the Dask scheduler has had no worker for {alone:.0f} s ({left} dense job(s) "
                                  f"left): waiting for one to come back, at most {self.give_up_s:.0f} s")
                     told = True
-                pending = as_completed([f for f in futures if not f.done()], timeout=self.poll_s)
+                pending = waiting()
                 continue
             except StopIteration:
-                return
-            left -= 1
+                pending = waiting()          # every future of this round yielded: the rest remain
+                continue
+            if fut.key in yielded:
+                continue
+            yielded.add(fut.key)
             yield fut.result()
 
     def close(self) -> None:

@@ -2,7 +2,7 @@
 a disparity field and its validity out. `DenseConfig.matcher` picks one by name; its parameters
 are the configuration section of the same name.
 
-- `sgbm`: OpenCV's StereoSGBM (the default).
+- `sgbm`: OpenCV's StereoSGBM.
 - `mgm`: MGM on a census cost, the paper's matcher (and s2p's), built in (recon_core.dense.mgm).
 - `pandora`: CNES's pandora with pandora_plugin_libsgm (census, SGM, V-fit, cross-checking), as
   CNES CARS configures it for satellite pairs; an optional extra (`pip install 'aerec[pandora]'`),

@@ -1,6 +1,7 @@
 """Dense affine reconstruction: rectification, semi-global matching, dense tracks, triangulation.
 
-Work is organised per *reference tile* (GEOMETRY_NOTES, "Dense tracks"): for a registered tile r
+Work is organised per *reference tile* (never a union-find over millions of pixels of the whole
+group): for a registered tile r
 of image a, every overlapping registered tile t of a later image b is a partner. For each pair:
   1. F_A from the two tile cameras (the Gold Standard estimate from the sparse matches is the
      check), two rectifying affine maps (s2p's construction, `affine.rectifying_maps`);
@@ -428,7 +429,7 @@ def plan_jobs(model, images: dict[str, ImageInfo], cfg: DenseConfig,
     reg = np.flatnonzero(model.registered)
     by_tile = {t: (track_of[tile_of == t], xy_of[tile_of == t]) for t in reg}
     fields = model.correction_fields(reg)
-    # Baseline test per IMAGE pair (GEOMETRY_NOTES: drop near-zero-baseline pairs): the best
+    # Baseline test per IMAGE pair (a near-zero-baseline pair is dropped): the best
     # sigma3/sigma4 over its tile pairs. A flat tile pair of a good image pair is still matched:
     # its low ratio says "no relief", not "no baseline".
     best_par: dict[tuple[str, str], float] = {}

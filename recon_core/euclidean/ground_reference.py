@@ -175,7 +175,10 @@ def check_reference_files(site, gcps=None, *, ortho: "GroundReference | None" = 
     if pts is None:
         return
     if dem is not None:
-        h = dem.heights(pts[:, 0], pts[:, 1])
+        lo, hi = pts.min(axis=0), pts.max(axis=0)          # and inside the site, not only its corners
+        gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], 9), np.linspace(lo[1], hi[1], 9))
+        grid = np.c_[gx.ravel(), gy.ravel()]
+        h = dem.heights(np.r_[pts[:, 0], grid[:, 0]], np.r_[pts[:, 1], grid[:, 1]])
         if not np.isfinite(h).any():
             d = gap_m(pts, _raster_lonlat_box(dem.path, dem.crs, dem.transform, dem.width, dem.height))
             raise InputError(dem.path, f"{dem_option} has no height where the site is: "

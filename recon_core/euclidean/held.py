@@ -105,7 +105,9 @@ def _design(x: np.ndarray) -> np.ndarray:
 
 
 def _whitener(C: np.ndarray) -> np.ndarray:
-    """W with W^T W = C^-1 (C symmetric positive definite, 3 x 3)."""
+    """W with W^T W = C^-1 (C symmetric positive semi-definite, 3 x 3; floored at 1 mm per axis
+    so that a point known exactly along one axis does not break the factorisation)."""
+    C = 0.5 * (C + C.T) + np.eye(3) * 1e-6
     return np.linalg.cholesky(np.linalg.inv(C)).T
 
 

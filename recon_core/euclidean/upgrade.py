@@ -22,7 +22,8 @@ Conventions of the report (the photogrammetric ones):
 - Leave-one-out (N >= 5): refit without each control point; its residual then is an honest
   prediction error.
 
-The cameras' metric constraint (`metric_prior`, on by default in the pipeline): every image's
+The cameras' metric constraint (`upgrade.metric_prior_sigma_cos`, off by default: the true
+cameras of an independent simulator are 2e-3 to 4e-3 off it, docs/research-notes.md): every image's
 tile cameras have orthogonal rows in metres; one equation per image joins the GCPs' 3N in a
 weighted least squares, which fixes the height scale and the shear of height into E and N that
 nearly coplanar GCPs leave loose (then dof = 3N - 12 + images, and the control residuals are not
@@ -397,6 +398,11 @@ def _screen_views(hold: ImageHold, pts: ControlPoints) -> tuple[ImageHold, list[
     others and the GCPs put it that far off. Returns (the hold without them, [(image, degrees
     off)]). Needs 3 control GCPs not on one line (else unchanged)."""
     dropped = []
+    if len(hold.rays) == 2 and len(pts) >= 3 and _rank(pts.Xe) >= 2:
+        fit = hold.fit(pts)                  # two that disagree: which one is wrong cannot be told
+        if max(fit.view_residual_deg.values()) > VIEW_BLUNDER_DEG:
+            return replace(hold, rays=[]), [(im, deg) for im, deg in fit.view_residual_deg.items()]
+        return hold, []
     while len(hold.rays) >= 3 and len(pts) >= 3 and _rank(pts.Xe) >= 2:
         if max(hold.fit(pts).view_residual_deg.values()) <= VIEW_BLUNDER_DEG:
             break
@@ -427,12 +433,13 @@ def fit_held_ransac(Xa: np.ndarray, Xe: np.ndarray, hold: ImageHold, thresh_m: f
     (n,) bool of the best consensus (inlier count, then truncated cost). A sample nearly on one
     line (second singular value below `min_ratio` of the first, whitened) is skipped."""
     n = len(Xa)
-    Xe_w = (Xe - Xe.mean(axis=0)) @ _whitener(Xe)
     todo = (np.array(list(combinations(range(n), 3)), dtype=np.int64) if n * (n - 1) * (n - 2) // 6 <= iters
             else np.argsort(rng.random((iters, n)), axis=1)[:, :3])
     best, best_mask = None, None
     for idx in todo:
-        sv = np.linalg.svd(Xe_w[idx] - Xe_w[idx].mean(0), compute_uv=False)
+        # in plan: three points fix H_A's horizontal across their line only when they are off it
+        # (whitened in 3D, a flat site's tiny heights would pass a line as a triangle)
+        sv = np.linalg.svd(Xe[idx, :2] - Xe[idx, :2].mean(0), compute_uv=False)
         if sv[0] <= 0 or sv[1] / sv[0] < min_ratio:
             continue
         H = hold.refit(Xa[idx], Xe[idx])
@@ -480,6 +487,47 @@ def _best_next(gcps: list[GcpInput], reasons: dict, N: np.ndarray, H: np.ndarray
     return {"id": best[0], "expected_height_error_m": float(best[1])}
 
 
+def _dropped_text(dropped: list[tuple[str, float]]) -> str:
+    return ("the viewing direction of " + ", ".join(f"{im} ({deg:.1f} degrees off)" if np.isfinite(deg) else im
+                                                    for im, deg in dropped)
+            + f" disagrees with the other images and the control GCPs by more than {VIEW_BLUNDER_DEG:g} "
+              "degrees: not used (check \"view\" in its sidecar: incidence from the vertical, not "
+              "elevation; azimuth of the direction to the satellite, clockwise from north)")
+
+
+def _consensus(gcps, reasons, ctrl, hold, given, dropped, min_points, thresh, iters, rng):
+    """The control GCPs' consensus (RANSAC from 5 on) with the images that agree with it:
+    (hold, inliers (len(ctrl),) bool, dropped views). Views left out against every control GCP
+    are screened again against the consensus alone (a wrong GCP can make a good view look wrong).
+    Raises ReconstructionError for a set nothing can fix."""
+    held = hold is not None and len(hold.rays) >= 2 and hold.sigma_view_deg > 0
+    need = max(3 if held else 4, int(min_points) if not held else min(int(min_points), 3))
+    if len(ctrl) < need:
+        lacking = [g.id for i, g in enumerate(gcps) if g.role == "control" and reasons[i]]
+        raise ReconstructionError(
+            f"only {len(ctrl)} usable control GCPs, need >= {need}"
+            + ("" if held else " (3 when the images' viewing angles are known)")
+            + (f"; without an affine position: {', '.join(lacking)}" if lacking else "")
+            + "; observe more control GCPs in at least two images of this group")
+    Xa = np.array([gcps[i].affine_xyz for i in ctrl], dtype=np.float64)
+    Xe = np.array([gcps[i].enu for i in ctrl], dtype=np.float64)
+    ids = [gcps[i].id for i in ctrl]
+    _check_line(ids, Xe, Xa)
+    if not held:
+        _check_rank(ids, Xe, Xa)
+    rng = np.random.default_rng(0) if rng is None else rng
+    if len(ctrl) <= 4:
+        return hold, np.ones(len(ctrl), bool), dropped
+    if not held:
+        return hold, fit_upgrade_ransac(Xa, Xe, thresh, iters, rng)[1], dropped
+    inl = fit_held_ransac(Xa, Xe, hold, thresh, iters, rng)
+    if dropped and not inl.all():
+        again, still = _screen_views(given, control_points(gcps, [i for i, ok in zip(ctrl, inl) if ok]))
+        if len(again.rays) >= 2:
+            hold, dropped = again, still
+    return hold, inl, dropped
+
+
 def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: int = 4,
             rng: np.random.Generator | None = None, ransac_iters: int = 1000,
             affine_height_sigma_m: float = 0.4, structure_height_m: float = 40.0,
@@ -505,32 +553,24 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
     """
     reasons = {i: _usable(g) for i, g in enumerate(gcps)}
     ctrl = [i for i, g in enumerate(gcps) if g.role == "control" and reasons[i] is None]
+    given = hold if hold is not None and len(hold.rays) >= 2 and hold.sigma_view_deg > 0 else None
     dropped: list[tuple[str, float]] = []
-    if hold is not None and len(hold.rays) >= 2 and hold.sigma_view_deg > 0:
-        hold, dropped = _screen_views(hold, control_points(gcps, ctrl))
+    if given is not None:
+        hold, dropped = _screen_views(given, control_points(gcps, ctrl))
+    try:
+        hold, inl, dropped = _consensus(gcps, reasons, ctrl, hold, given, dropped, min_points, ransac_thresh_m,
+                                        ransac_iters, rng)
+    except ReconstructionError as exc:
+        if not dropped:
+            raise
+        raise ReconstructionError(f"{exc}; {_dropped_text(dropped)}") from None
     held = hold is not None and len(hold.rays) >= 2 and hold.sigma_view_deg > 0
-    min_points = max(3 if held else 4, int(min_points) if not held else min(int(min_points), 3))
-    if len(ctrl) < min_points:
-        lacking = [g.id for i, g in enumerate(gcps) if g.role == "control" and reasons[i]]
-        raise ReconstructionError(
-            f"only {len(ctrl)} usable control GCPs, need >= {min_points}"
-            + ("" if held else " (3 when the images' viewing angles are known)")
-            + (f"; without an affine position: {', '.join(lacking)}" if lacking else "")
-            + "; observe more control GCPs in at least two images of this group")
     Xa = np.array([gcps[i].affine_xyz for i in ctrl], dtype=np.float64)
     Xe = np.array([gcps[i].enu for i in ctrl], dtype=np.float64)
-    ids = [gcps[i].id for i in ctrl]
-    _check_line(ids, Xe, Xa)
-    if not held:
-        _check_rank(ids, Xe, Xa)
-    rng = np.random.default_rng(0) if rng is None else rng
-    if held:
-        inl = (fit_held_ransac(Xa, Xe, hold, ransac_thresh_m, ransac_iters, rng) if len(ctrl) > 4
-               else np.ones(len(ctrl), bool))
-    elif len(ctrl) > 4:
-        H, inl = fit_upgrade_ransac(Xa, Xe, ransac_thresh_m, ransac_iters, rng)
-    else:
-        H, inl = fit_affine_upgrade(Xa, Xe), np.ones(len(ctrl), bool)
+    if not held and len(ctrl) > 4:
+        H = _refit_inliers(Xa, Xe, inl, ransac_thresh_m)[0]
+    elif not held:
+        H = fit_affine_upgrade(Xa, Xe)
     used = [i for i, ok in zip(ctrl, inl) if ok]
     pts = control_points(gcps, used)
     fit = hold.fit(pts) if held else None
@@ -553,13 +593,7 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
     result = _build_result(gcps, reasons, ctrl, used, H, Xa[inl], Xe[inl], ransac_thresh_m, cond,
                            reproj_warn_px, prior, fit, hold if held else None)
     if dropped:
-        result.warnings.append(
-            "the viewing direction of " + ", ".join(f"{im} ({deg:.1f} degrees off)" if np.isfinite(deg) else im
-                                                    for im, deg in dropped)
-            + f" disagrees with the other images and the control GCPs by more than {VIEW_BLUNDER_DEG:g} "
-              "degrees: not used (check \"view\" in its sidecar: incidence from the vertical, not "
-              "elevation; azimuth of the direction to the satellite, clockwise from north)"
-            + ("" if held else "; the GCPs alone fix the height scale"))
+        result.warnings.append(_dropped_text(dropped) + ("" if held else "; the GCPs alone fix the height scale"))
     checks = [i for i, g in enumerate(gcps) if g.role == "check" and reasons[i] is None]
 
     def check_rmse(Hx: np.ndarray) -> float | None:

@@ -53,8 +53,9 @@ NMAD_K = 1.4826         # NMAD = 1.4826 x median |e - median e|: the normal's si
 class Raster:
     """A single-band raster in memory: values (h, w) float32 with NaN nodata, transform, crs."""
 
-    def __init__(self, path: str | Path, values: np.ndarray, transform: Affine, crs: Any):
+    def __init__(self, path: str | Path, values: np.ndarray, transform: Affine, crs: Any, factor: int = 1):
         self.path, self.values, self.transform, self.crs = Path(path), values, transform, crs
+        self.factor = factor              # read averaged by this much (read_factor)
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
@@ -105,9 +106,7 @@ def read_raster(path: str | Path, what: str, finer_than: float | None = None,
                             resampling=resampling).astype(np.float32).filled(np.nan)
             t = t * Affine.scale(src.width / shape[1], src.height / shape[0])
         vals[~np.isfinite(vals)] = np.nan
-        r = Raster(path, vals, t, src.crs)
-        r.factor = f
-        return r
+        return Raster(path, vals, t, src.crs, f)
 
 
 def _check_dsm(dsm: Raster, gt: Raster) -> None:

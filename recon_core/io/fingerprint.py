@@ -35,29 +35,34 @@ def _sha1(path: Path) -> str:
     return h.hexdigest()
 
 
-def content_hash(path: str | Path, cache: dict | None = None, _seen: frozenset = frozenset()) -> str:
-    """sha1 of the file's bytes, and for a VRT of the files it reads (recursively); from `cache`
-    (identity -> hash) when the file is the same version. 'unreadable' when it cannot be read
-    (the checks say so elsewhere)."""
-    path = Path(path)
-    cache = _memory if cache is None else cache
+def own_hash(path: Path, cache: dict) -> str:
+    """sha1 of the file's own bytes, from `cache` (identity -> hash) when it is the same version;
+    'unreadable' when it cannot be read (the checks say so elsewhere)."""
     try:
         key = _identity(path)
     except OSError:
         return "unreadable"
-    if key in cache:
-        return cache[key]
-    try:
-        h = _sha1(path)
-    except OSError:
-        return "unreadable"
-    if path.suffix.lower() == ".vrt" and str(path) not in _seen:
+    if key not in cache:
+        try:
+            cache[key] = _sha1(path)
+        except OSError:
+            return "unreadable"
+        _memory[key] = cache[key]
+    return cache[key]
+
+
+def content_hash(path: str | Path, cache: dict | None = None, _seen: frozenset = frozenset()) -> str:
+    """sha1 of the file's bytes, and for a VRT of the files it reads (recursively): each file's own
+    hash comes from `cache` when it is the same version, the VRT's is put together every time
+    (a source edited under an unchanged VRT changes it)."""
+    path = Path(path)
+    cache = _memory if cache is None else cache
+    h = own_hash(path, cache)
+    if path.suffix.lower() == ".vrt" and h != "unreadable" and str(path) not in _seen:
         from recon_core.io.site import _vrt_sources
 
         parts = [h] + [content_hash(Path(s), cache, _seen | {str(path)}) for s in _vrt_sources(path)]
         h = hashlib.sha1("|".join(parts).encode()).hexdigest()
-    cache[key] = h
-    _memory[key] = h
     return h
 
 

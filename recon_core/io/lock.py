@@ -7,7 +7,8 @@ OUT itself, which the kernel releases when the holder ends, however it ends (kil
 a lock left by a dead job never blocks, and no file can be deleted from under it (a lock on a
 file in OUT was lost when the file was deleted: a second job then came in and removed the
 first one's scratch). OUT/.aerec.lock says who holds it (PID, command, since when) so a refused
-job can name the holder; without it the holder is "another job".
+job can name the holder; without it the holder is "another job". Where the filesystem cannot
+lock a folder exclusively (NFS), OUT/.aerec.lockfile, which no job removes, is locked instead.
 
 The lock is re-entrant within a process (the viewer's worker runs the pipeline, which takes it
 again), and a job that holds it knows that any scratch it finds in OUT is a dead job's.
@@ -27,7 +28,8 @@ from typing import Callable, Iterator
 
 from recon_core.errors import InputError
 
-LOCK_NAME = ".aerec.lock"
+LOCK_NAME = ".aerec.lock"           # who holds the folder (PID, command, since when)
+FALLBACK_NAME = ".aerec.lockfile"   # what is locked where a folder cannot be (NFS); never removed
 _held: dict[str, list] = {}            # real path of OUT -> [fd, depth]
 _guard = threading.Lock()
 
@@ -54,14 +56,16 @@ def holder(out: str | Path) -> dict | None:
     """Who holds OUT's lock as its information file says ({} when unknown), or None when no one
     does."""
     try:
-        fd = os.open(Path(out), os.O_RDONLY | os.O_DIRECTORY)
-    except OSError:
+        fd, _ = _lock_fd(Path(out))
+    except InputError:
         return None
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
         except BlockingIOError:
             return _info(Path(out))
+        except OSError:
+            return None
         fcntl.flock(fd, fcntl.LOCK_UN)
         return None
     finally:
@@ -109,11 +113,30 @@ def out_lock(out: str | Path, wait: bool = False,
                 os.close(entry[0])                # releases the flock
 
 
+def _lock_fd(out: Path) -> tuple[int, bool]:
+    """A descriptor to lock: the folder itself, or, where the filesystem cannot lock a folder
+    exclusively (NFS emulates flock with fcntl locks, which need a descriptor open for writing),
+    OUT/.aerec.lockfile, a file no job ever removes. (descriptor, whether it is the folder)"""
+    fd = _open_folder(out)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)      # can this filesystem lock a folder?
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return fd, True
+    except BlockingIOError:
+        return fd, True                                      # it can: someone holds it
+    except OSError:
+        os.close(fd)
+    try:
+        return os.open(out / FALLBACK_NAME, os.O_RDWR | os.O_CREAT, 0o644), False
+    except OSError as exc:
+        raise InputError(out / FALLBACK_NAME, f"cannot lock this folder ({exc.strerror or exc})") from None
+
+
 def _acquire(out: Path, wait: bool, on_wait) -> int:
     path = out / LOCK_NAME
     if path.is_dir() or (path.exists() and not path.is_file()):
         raise InputError(path, "is not a file: it is where a job says it holds this folder; remove it")
-    fd = _open_folder(out)
+    fd, _ = _lock_fd(out)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -125,6 +148,9 @@ def _acquire(out: Path, wait: bool, on_wait) -> int:
         if on_wait is not None:
             on_wait(f"{out}: in use by {who}; waiting for it to end")
         fcntl.flock(fd, fcntl.LOCK_EX)
+    except OSError as exc:
+        os.close(fd)
+        raise InputError(out, f"cannot lock this folder ({exc.strerror or exc})") from None
     info = {"pid": os.getpid(), "command": " ".join(_command()), "since": time.time()}
     try:
         tmp = out / f".aerec.lock.{os.getpid()}.tmp"

@@ -9,7 +9,8 @@ points and factored by dense fronts on a nested dissection for large ones, `_Blo
 `frontal.FrontalCholesky`), the points back-substituted. A
 Huber loss enters as
 iteratively reweighted least squares. The 12-dof affine gauge is fixed by the caller through
-`fixed` (GEOMETRY_NOTES, "Gauge").
+`fixed`: exactly the 12 numbers of a canonical frame, no more (holding two whole
+cameras would freeze the pair's epipolar geometry at its first estimate).
 """
 
 from __future__ import annotations

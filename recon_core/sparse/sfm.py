@@ -2,7 +2,7 @@
 
 One affine camera (2 x 4) per tile, one global affine structure per group, no RPC, no GCP.
 
-Order of work (the paper's, with the guards of GEOMETRY_NOTES):
+Order of work (the paper's, with its guards: parallax checks, the exact 12-dof gauge):
 1. initial image pair = the pair with the sparsest verified matching among pairs that show
    parallax (sigma3/sigma4 of the centred measurement matrix); initial tile pair inside it =
    the tile pair with the most matches that itself shows parallax;

@@ -185,3 +185,17 @@ def test_gcps_nearly_on_one_line_leave_the_tilt_loose_and_say_so():
     assert c["site_radius_m"] > 250 and c["expected_edge_error_m"] > 2.0
     assert c["expected_edge_error_m"] > 5 * c["expected_height_error_m"]
     assert any("nearly on one line" in w and "site's edge" in w for w in res.warnings)
+
+
+def test_two_images_that_disagree_are_both_left_out():
+    """With two images, one wrong view cannot be told from the other: both are left out, the
+    GCPs alone fix H_A (4 of them, off one plane), and the warning names both."""
+    rng = np.random.default_rng(6)
+    H, views, cams = _truth(rng, 2)
+    enu, aff = _points(rng, H, 8, 20.0)
+    bad = [views[0], ViewAngles(90.0 - views[1].incidence_deg, views[1].azimuth_deg)]
+    res = upgrade(_inputs(H, enu, aff, ["control"] * 4 + ["check"] * 4), hold=ImageHold(_rays(bad, cams)))
+    assert res.views is None and any("img_0" in w and "img_1" in w for w in res.warnings)
+    assert res.stats["check"]["rmse_3d_m"] < 1e-3
+    with pytest.raises(ReconstructionError, match="img_1"):
+        upgrade(_inputs(H, enu, aff, ["control"] * 3 + ["check"] * 5), hold=ImageHold(_rays(bad, cams)))

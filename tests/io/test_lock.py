@@ -150,3 +150,30 @@ def test_the_first_job_finishes_as_if_alone(tiny_site, tiny_run, tmp_path, capsy
             first.kill()
     with rasterio.open(out / "dsm.tif") as a, rasterio.open(state.layout.dsm) as b:
         np.testing.assert_array_equal(a.read(1), b.read(1))
+
+
+def test_where_a_folder_cannot_be_locked_a_file_that_stays_is(tmp_path, monkeypatch):
+    """NFS emulates flock with fcntl locks, which refuse an exclusive lock on a folder (EBADF):
+    the lock falls back to OUT/.aerec.lockfile, and still keeps a second job out."""
+    import errno
+    import fcntl as real_fcntl
+
+    import recon_core.io.lock as lock
+    from recon_core.errors import InputError
+
+    flock = real_fcntl.flock
+
+    def nfs_like(fd, op):
+        if os.path.isdir(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.EBADF, "Bad file descriptor")
+        return flock(fd, op)
+    monkeypatch.setattr(lock.fcntl, "flock", nfs_like)
+    fd = lock._acquire(tmp_path, False, None)
+    try:
+        assert (tmp_path / ".aerec.lockfile").is_file()
+        assert lock.holder(tmp_path)["pid"] == os.getpid()
+        with pytest.raises(InputError, match="in use by PID"):
+            lock._acquire(tmp_path, False, None)
+    finally:
+        os.close(fd)
+    assert lock.holder(tmp_path) is None

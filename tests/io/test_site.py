@@ -237,3 +237,22 @@ def test_hidden_files_in_images_are_not_images(small_site):
     shutil.copy(small_site / "images" / "a.tif", small_site / "images" / ".a.tif.x1y2.tif")
     shutil.copy(small_site / "images" / "a.tif", small_site / "images" / "._a.tif")
     assert [im.name for im in load_site(small_site).images] == ["a.tif", "b.tif"]
+
+
+def test_a_vrts_content_hash_follows_its_sources(tmp_path):
+    """The fingerprint of a VRT image (what `aerec site init` writes) changes when a source it
+    reads is edited, even though the VRT file itself is unchanged (its own hash is cached)."""
+    from recon_core.io.fingerprint import content_hash
+
+    src = write_tiff(tmp_path / "src.tif", np.arange(48 * 64, dtype=np.uint16).reshape(48, 64))
+    vrt = tmp_path / "v.vrt"
+    vrt.write_text(f'<VRTDataset rasterXSize="64" rasterYSize="48"><VRTRasterBand dataType="UInt16" band="1">'
+                   f'<SimpleSource><SourceFilename relativeToVRT="0">{src}</SourceFilename><SourceBand>1</SourceBand>'
+                   f'</SimpleSource></VRTRasterBand></VRTDataset>')
+    cache: dict = {}
+    before = content_hash(vrt, cache)
+    assert content_hash(vrt, cache) == before
+    data = bytearray(src.read_bytes())
+    data[-1] ^= 0xFF
+    src.write_bytes(bytes(data))
+    assert content_hash(vrt, cache) != before
