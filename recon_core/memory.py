@@ -27,7 +27,7 @@ MB = 1 << 20
 # ground truths of 1.9e5 to 7.4e7 cells, 2026-11-28):
 BASE_MB = 180.0              # the run's process: the interpreter, numpy, GDAL, OpenCV, numba's kernels
 SPARSE_BASE_MB = 110.0       # ... before the sparse stage has loaded its own libraries
-SPARSE_MB_PER_MPX = 6.0      # keypoints, matches, tracks and the adjustment per Mpx of the group's images
+SPARSE_MB_PER_MPX = 12.0     # keypoints, matches, tracks and the adjustment per Mpx of the group's images
 SPARSE_BLOCK_BYTES = 40.0    # per pixel of a detection block (float window, 8-bit copy, SIFT's pyramid)
 DENSE_WORKER_BASE_MB = 150.0  # a dense worker's own interpreter and libraries
 DENSE_TILE_BYTES = 60.0      # per pixel of a tile pair's windows (images, rectified pairs, disparities)
