@@ -11,9 +11,10 @@ thread only, inside `server.atomic()`. Scene paths are stable, so updates replac
   /gcp/plane                       the picking image plane; GCP markers: /gcp/plane_marks/rings
                                    and /gcp/cloud/g<g>/rings (one node each), a label per GCP
 
-Points are sent as new chunks as they arrive (reassigning a node's points resends all of them,
-see VIEWER_NOTES); a new generation (ModelUpdated), a new frame transform, a budget change or
-too many chunks rebuilds the group's chunks. Display decimation follows the point budget.
+Points are sent as new chunks as they arrive (reassigning a node's points resends all of them:
+growing one node to 1 M points in 10 steps sent 79 MB, one node a step 14 MB); a new generation
+(ModelUpdated), a new frame transform, a budget change or too many chunks rebuilds the group's
+chunks. Display decimation follows the point budget.
 """
 
 from __future__ import annotations

@@ -79,7 +79,22 @@ def cli_reference() -> str:
 
     from recon_core.cli import build_parser
 
-    parser = build_parser()
+    import os
+
+    old = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = "100"           # argparse wraps usage lines to the terminal: a fixed width
+    try:
+        parser = build_parser()
+        text = _cli_pages(parser, argparse)
+    finally:
+        if old is None:
+            os.environ.pop("COLUMNS", None)
+        else:
+            os.environ["COLUMNS"] = old
+    return text
+
+
+def _cli_pages(parser, argparse) -> str:
     subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     helps = {a.dest: a.help for a in subs._choices_actions}
     lines = []
@@ -166,3 +181,51 @@ def constants_reference() -> str:
     for module, name, value, comment in module_constants():
         lines.append(f"| `{module}` | `{name}` | `{value}` | {comment.replace('|', '/')} |")
     return "\n".join(lines) + "\n"
+
+
+# -- the generated blocks of the docs pages -----------------------------------------------------
+GENERATED = {"configuration": config_reference, "cli": cli_reference, "chain": method_chain,
+             "constants": constants_reference}
+
+
+def refresh(markdown: str) -> str:
+    """The page with every generated block made anew: what lies between `<!-- generated: KEY -->`
+    and `<!-- end generated: KEY -->` (the end marker added when missing)."""
+    import re
+
+    for key, make in GENERATED.items():
+        start, end = f"<!-- generated: {key} -->", f"<!-- end generated: {key} -->"
+        if start not in markdown:
+            continue
+        block = f"{start}\n{make().rstrip()}\n{end}"
+        pattern = re.escape(start) + r"(.*?)" + re.escape(end) if end in markdown else re.escape(start)
+        markdown = re.sub(pattern, lambda m: block, markdown, count=1, flags=re.S)
+    return markdown
+
+
+def main(argv=None) -> int:
+    """`python -m recon_core.docs_reference [--check]`: write the docs pages' generated blocks
+    (docs/cli.md, configuration.md, method.md) from the code, or with --check list the pages
+    that are stale (exit 1)."""
+    import argparse
+    from pathlib import Path
+
+    ap = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
+    ap.add_argument("--check", action="store_true")
+    ap.add_argument("--docs", type=Path, default=Path(__file__).resolve().parents[1] / "docs")
+    args = ap.parse_args(argv)
+    stale = []
+    for page in sorted(args.docs.glob("*.md")):
+        text = page.read_text()
+        new = refresh(text)
+        if new != text:
+            stale.append(page)
+            if not args.check:
+                page.write_text(new)
+    for page in stale:
+        print(f"{page}: {'stale' if args.check else 'written'}")
+    return 1 if (args.check and stale) else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

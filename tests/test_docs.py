@@ -22,6 +22,41 @@ def test_the_docs_build_without_a_warning(tmp_path):
     assert (tmp_path / "site" / "configuration" / "index.html").exists()
 
 
+def test_the_generated_reference_pages_are_committed_fresh():
+    """docs/cli.md, configuration.md and method.md carry their generated blocks in the
+    repository (a reader of a clone or a forge sees them): they must be what the code makes now
+    (`python -m recon_core.docs_reference` writes them)."""
+    from recon_core.docs_reference import GENERATED, refresh
+
+    seen = set()
+    for page in DOCS.glob("*.md"):
+        text = page.read_text()
+        assert refresh(text) == text, f"{page.name} is stale: run python -m recon_core.docs_reference"
+        seen |= {k for k in GENERATED if f"<!-- end generated: {k} -->" in text}
+    assert seen == set(GENERATED)
+
+
+def test_the_built_site_holds_no_hook_code(tmp_path):
+    pytest.importorskip("mkdocs")
+    r = subprocess.run([sys.executable, "-m", "mkdocs", "build", "-q", "-d", str(tmp_path / "site")],
+                       cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert not list((tmp_path / "site").rglob("hooks.py"))
+
+
+def test_every_document_the_code_names_is_in_the_repository():
+    """A docstring or comment that names a document (docs/PAGE.md, or a NOTES-like file of
+    capitals) names one of this repository: a reader must be able to open it."""
+    names = re.compile(r"\bdocs/([\w-]+\.md)\b|\b([A-Z][A-Z_]{3,}(?:\.md)?)\b")
+    shared = {"GEOMETRY_NOTES", "VIEWER_NOTES", "ARCHITECTURE", "STYLE", "SITE_FORMAT"}
+    for f in list((ROOT / "recon_core").rglob("*.py")) + list((ROOT / "aerec_viewer").rglob("*.py")):
+        for m in names.finditer(f.read_text()):
+            if m.group(1):
+                assert (DOCS / m.group(1)).exists(), f"{f}: names docs/{m.group(1)}, which does not exist"
+            elif m.group(2).removesuffix(".md") in shared:
+                raise AssertionError(f"{f}: names {m.group(2)}, a file outside the repository")
+
+
 def _headings(page: Path) -> set[str]:
     return {m.group(1).strip().strip("`") for m in re.finditer(r"^#+ (.+)$", page.read_text(), re.M)}
 
