@@ -282,8 +282,8 @@ def plane_hit(ray_origin: np.ndarray, ray_direction: np.ndarray, *, position: np
 
     In the node's local frame the image spans x in [-w/2, w/2] (left to right) and y in
     [-h/2, h/2] (top to bottom) on the plane z = 0 (measured: a clicked pixel comes back to
-    1e-5 px). Returns (fx, fy) with (0, 0) the top-left corner and (1, 1) the bottom-right one, or None when the ray is
-    parallel to the plane, points away from it, or misses the image.
+    1e-5 px). Returns (fx, fy) with (0, 0) the top-left corner and (1, 1) the bottom-right one,
+    or None when the ray is parallel to the plane, points away from it, or misses the image.
     """
     R = quat_to_matrix(wxyz)
     o = R.T @ (np.asarray(ray_origin, dtype=np.float64) - np.asarray(position, dtype=np.float64))
