@@ -376,6 +376,9 @@ class ConsoleProgress:
                           "then press Upgrade")
             elif snap.status == "done":
                 self._say(f"finished in {t:.0f} s; outputs in {self.out}")
+                self._say("next: the DSM and its height-error map are in the page's Results tab; "
+                          "check points and the GCPs' residuals in its upgrade report; "
+                          f"{self.out}/dsm.tif and cloud.laz open in QGIS or CloudCompare")
             elif snap.status == "failed":
                 self._say(f"stopped in the {snap.failed_stage or 'run'}: {snap.error}")
                 if snap.hint:

@@ -350,7 +350,7 @@ def eval_markdown(ev: dict) -> str:
                          f"{_f(v['aligned'].get('completeness_pct'), '.1f')} % | {same} |")
     classes = (ev.get("by_agreement") or {}).get("classes") or {}
     if classes:
-        lines += ["", "| groups agreeing | share of GT cells | median, m | within 1 m |",
+        lines += ["", "| groups agreeing | share of GT cells | median, m | completeness (within 1 m) |",
                   "|---|---:|---:|---:|"]
         for k in sorted(classes, key=int):
             v = classes[k]

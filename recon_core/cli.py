@@ -211,6 +211,9 @@ def cmd_run(args) -> int:
             prog.close()
     print_summary(state.report)
     print(f"done in {time.time() - t0:.1f} s; outputs in {args.out} (report.json)")
+    hint = next_step(state.report, args.site, args.out)
+    if hint:
+        print(hint)
     return 0
 
 
@@ -371,6 +374,23 @@ def cmd_eval(args) -> int:
     return run_cli(args)
 
 
+def next_step(report: dict, site, out) -> str | None:
+    """What to do after a run, in one line: place GCPs after an affine reconstruction, open the
+    viewer after a whole one."""
+    st = report.get("stages", {})
+    if "dense" in st and "upgrade" not in st:
+        return (f"next: `aerec run {site} --out {out}` continues from the upgrade, which needs 4 control GCPs "
+                f"(3 when the images state their viewing directions) observed in 2 images each: in "
+                f"{report.get('gcp_file') or Path(site) / 'gcps.geojson'}, or placed in the viewer "
+                f"(`aerec view {out}`, GCP tab)")
+    if "sparse" in st and "dense" not in st:
+        return f"next: `aerec run {site} --out {out}` goes on with the dense cloud (finished stages are kept)"
+    if "dsm" in st:
+        return (f"next: look at it in the browser (`aerec view {out}`), or open {out}/dsm.tif and "
+                f"{out}/cloud.laz in QGIS or CloudCompare")
+    return None
+
+
 def print_summary(report: dict) -> None:
     """What a user looks for at the end of a run: per date group the tiles and points, then the
     accuracy at the check points, the DSM, and its scores against the ground truth or another
@@ -385,6 +405,9 @@ def print_summary(report: dict) -> None:
         print(f"group {g}: tiles registered {s['tiles_registered']}/{s['tiles_total']}, "
               f"points {s['points']}, mean reprojection error {s['mean_reproj_px']:.3f} px; "
               + ", ".join(f"{k} {v:.1f} s" for k, v in t.items()))
+    for g, d in (st.get("dense") or {}).get("groups", {}).items():
+        if isinstance(d, dict) and "points" in d:
+            print(f"group {g}: dense cloud of {d['points']:,} points from {d.get('pairs_matched', '?')} tile pairs")
     told = {}
     for g, u in st.get("upgrade", {}).get("groups", {}).items():
         if "error" in u:
@@ -414,11 +437,11 @@ def print_summary(report: dict) -> None:
         if k in ev:
             e = ev[k]
             print(f"DSM vs ground truth ({k}): median |error| {e['median_abs_err_m']:.3f} m, "
-                  f"within 1 m {e['completeness_pct']:.1f} %")
+                  f"completeness (within 1 m) {e['completeness_pct']:.1f} %")
     for name, r in (ev.get("references") or {}).items():
         a, u = r["aligned"], r["unaligned"]
         print(f"DSM vs {name} (agreement with another tool, not accuracy): median |diff| "
-              f"{a['median_abs_err_m']:.3f} m, within 1 m {a['completeness_pct']:.1f} % (aligned); "
+              f"{a['median_abs_err_m']:.3f} m, completeness (within 1 m) {a['completeness_pct']:.1f} % (aligned); "
               f"{u['median_abs_err_m']:.3f} m, {u['completeness_pct']:.1f} % (unaligned)")
 
 
@@ -438,13 +461,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("info", help="describe a site: images, dates, groups, GCPs, RPC/GT presence")
-    s.add_argument("site", type=Path)
-    s.add_argument("--max-gap-days", type=float, default=15.0)
-    s.add_argument("--max-span-days", type=float, default=30.0)
+    s.add_argument("site", type=Path, help="the site folder (images/, gcps.geojson, site.json)")
+    s.add_argument("--max-gap-days", type=float, default=15.0,
+                   help="images closer in time than this form one date group (grouping.max_gap_days)")
+    s.add_argument("--max-span-days", type=float, default=30.0,
+                   help="a date group spans at most this many days (grouping.max_span_days)")
     s.set_defaults(func=cmd_info)
 
     s = sub.add_parser("run", help="reconstruct a site (resumes finished stages)")
-    s.add_argument("site", type=Path)
+    s.add_argument("site", type=Path, help="the site folder (docs/site-format.md)")
     s.add_argument("--out", required=True, help="output folder")
     s.add_argument("--stage", default=None, help="stop after this stage (default: run all)")
     s.add_argument("--preset", default="default", help="parameter preset (default, tiny)")
@@ -461,7 +486,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--reference-dem-degree", type=int, choices=(2, 3), default=None,
                    help="the degree of the bend taken from it: 2 (default) or 3, for a DEM whose errors do "
                         "not reach over kilometres, such as Copernicus GLO-30 (upgrade.reference_dem_degree)")
-    s.add_argument("--seed", type=int, default=None)
+    s.add_argument("--seed", type=int, default=None,
+                   help="the seed of every random choice (RANSAC, samples; default: the configuration's, 0)")
     s.add_argument("--workers", type=int, default=None, help="local dense worker processes (default: all cores)")
     s.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="send dense tile-pair work to a Dask distributed scheduler (tcp://host:8786)")
@@ -474,13 +500,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_run)
     s = sub.add_parser("config", help="print the parameters of a run (TOML, each with its comment)")
     s.add_argument("--dump", action="store_true", help="print the defaults (or --preset's)")
-    s.add_argument("--preset", default="default")
+    s.add_argument("--preset", default="default", help="the preset whose values are printed (default, tiny)")
     s.add_argument("--method", choices=("default", "paper"), default="default",
                    help="paper: the paper's plain path (every correction beyond it off)")
     s.set_defaults(func=cmd_config)
 
     s = sub.add_parser("site", help="make a site from vendor products (no pixel copied)")
-    s.add_argument("action", choices=["init"])
+    s.add_argument("action", choices=["init"], help="init: write a new site")
     s.add_argument("site", type=Path, help="the new site folder (must not exist or be empty)")
     s.add_argument("products", type=Path, nargs="+",
                    help="product folders or image files (DIMAP, Maxar, NITF, GeoTIFF, JPEG 2000, VRT)")
@@ -495,7 +521,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--name", default=None, help="the site's name (site.json)")
     s.set_defaults(func=cmd_site)
     s = sub.add_parser("gcps", help="convert a GCP list between gcps.geojson and CSV")
-    s.add_argument("action", choices=["convert"])
+    s.add_argument("action", choices=["convert"], help="convert: from SRC to DST")
     s.add_argument("src", type=Path, help="gcps.geojson or .csv")
     s.add_argument("dst", type=Path, help=".geojson or .csv (written atomically)")
     s.add_argument("--epsg", type=int, default=None,

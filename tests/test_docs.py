@@ -104,3 +104,17 @@ def test_every_value_fixed_in_the_code_says_what_it_is_and_why():
     names = {n for _, n, _, _ in rows}
     assert {"MAX_FOCAL_SHARE", "CE90_FACTOR", "TIE_REFERENCE_VIEWS"} <= names
     assert all(f"`{n}`" in constants_reference() for n in names)
+
+
+def test_every_option_of_every_command_says_what_it_does():
+    import argparse
+
+    from recon_core.cli import build_parser
+
+    parser = build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, sp in subs.choices.items():
+        for a in sp._actions:
+            if isinstance(a, argparse._HelpAction):
+                continue
+            assert a.help, f"aerec {name}: {', '.join(a.option_strings) or a.dest} has no help text"

@@ -543,7 +543,7 @@ def comparison_image(dsm: np.ndarray, gt: np.ndarray, res: float) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 def format_table(r: dict) -> str:
     """A short text table of the aligned and unaligned figures."""
-    rows = [("median |error| (m)", "median_abs_err_m"), ("completeness (%)", "completeness_pct"),
+    rows = [("median |error| (m)", "median_abs_err_m"), ("completeness, within 1 m (%)", "completeness_pct"),
             ("RMSE (m)", "rmse_m"), ("mean error (m)", "mean_err_m"), ("NMAD (m)", "nmad_m"),
             ("coverage (%)", "coverage_pct")]
     f = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
@@ -561,7 +561,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dsm", help="the DSM to score (GeoTIFF, projected CRS)")
     p.add_argument("gt", help="the ground-truth (or reference) DSM (GeoTIFF, projected CRS)")
     p.add_argument("--out", default=None, help="folder for eval.json, error maps and PNGs")
-    p.add_argument("--max-shift", type=float, default=10.0, help="horizontal search, +- metres")
+    p.add_argument("--max-shift", type=float, default=10.0, help="horizontal search, +- metres (default 10)")
     p.add_argument("--step", type=float, default=None, help="search step (default: one GT cell)")
 
 

@@ -47,7 +47,7 @@ def _score_references(state, bus: EventBus) -> dict:
                              if m in r[k]} for k in ("aligned", "unaligned")}
         a, u = r["aligned"], r["unaligned"]
         bus.message(f"DSM vs {ref.name} (another tool's DSM: agreement, not accuracy): median |diff| "
-                    f"{a['median_abs_err_m']:.3f} m, within 1 m {a['completeness_pct']:.1f} % (aligned); "
+                    f"{a['median_abs_err_m']:.3f} m, completeness (within 1 m) {a['completeness_pct']:.1f} % (aligned); "
                     f"unaligned {u['median_abs_err_m']:.3f} m, {u['completeness_pct']:.1f} %")
     return out
 

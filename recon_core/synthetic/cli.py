@@ -35,7 +35,8 @@ def cmd_synth(args) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser("synth", help="write a synthetic pushbroom site with known truth")
     s.add_argument("out", type=Path, help="site folder to write (new, or empty)")
-    s.add_argument("--preset", default="demo", choices=PRESET_NAMES)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--preset", default="demo", choices=PRESET_NAMES,
+                   help="the site's layout and size (docs/synthetic.md)")
+    s.add_argument("--seed", type=int, default=0, help="the seed of every random draw (same seed, same bytes)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_synth)

@@ -144,7 +144,7 @@ def test_metrics_on_known_errors():
 def test_cli_prints_table(site, capsys):
     assert main([str(site / "dsm.tif"), str(site / "gt.tif"), "--max-shift", "3"]) == 0
     out = capsys.readouterr().out
-    assert "completeness (%)" in out and "aligned" in out and "dx +1.5" in out
+    assert "completeness, within 1 m (%)" in out and "aligned" in out and "dx +1.5" in out
     assert main([str(site / "nope.tif"), str(site / "gt.tif")]) == 2
 
 
