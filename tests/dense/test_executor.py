@@ -64,14 +64,14 @@ def test_a_scheduler_from_the_configuration_file_is_named_so(tiny_site, tmp_path
     assert f"dense.scheduler (in {cfg}) tcp://127.0.0.1:1: cannot reach" in err and "--scheduler" not in err
 
 
-def test_dask_local_cluster_matches_local(tiny_run):
+def test_dask_local_cluster_matches_local(tiny_run, tmp_path):
     distributed = pytest.importorskip("distributed")
     from recon_core.dense.executor import DaskExecutor
 
     state, _ = tiny_run
     a, _ = _cloud(state, SerialExecutor())
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, \
+                                  dashboard_address=None, local_directory=str(tmp_path)) as cluster, \
             distributed.Client(cluster) as client:
         b, summary = _cloud(state, DaskExecutor(client))
         assert probe_scheduler(cluster.scheduler_address) == 2      # what `--scheduler` checks first
@@ -95,7 +95,7 @@ def test_a_distributed_run_whose_workers_are_gone_says_so_and_ends(tmp_path):
 
     told = []
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
-                                  dashboard_address=None) as cluster, \
+                                  dashboard_address=None, local_directory=str(tmp_path)) as cluster, \
             distributed.Client(cluster) as client:
         ex = DaskExecutor(client, on_wait=told.append, warn_s=1.0, give_up_s=4.0, poll_s=0.5)
         got = []

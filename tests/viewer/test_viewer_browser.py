@@ -1,10 +1,11 @@
 """The viewer in a real browser: Debian's headless Chromium (SwiftShader WebGL) driven by
 Playwright. Loads the page, waits for the client, clicks GUI buttons, clicks a known pixel of the
 image plane and checks the pixel the server recorded, checks a second tab sees the same state,
-runs the upgrade, and saves screenshots (pytest's tmp dir, copies in /tmp/viewer_shots/)."""
+runs the upgrade, and saves screenshots (pytest's tmp dir; copies in $AEREC_SHOTS when set)."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import time
 from pathlib import Path
@@ -23,7 +24,7 @@ CHROMIUM = Path("/usr/bin/chromium")
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
          "--disable-quic", "--no-first-run", "--disable-background-networking",
          "--disable-component-update", "--disable-sync"]
-SHOTS = Path("/tmp/viewer_shots")
+SHOTS = Path(os.environ["AEREC_SHOTS"]) if os.environ.get("AEREC_SHOTS") else None   # a folder to keep them
 VIEW = {"width": 1400, "height": 900}
 
 
@@ -87,8 +88,9 @@ def browser_app(tmp_path_factory):
 def shot(page, shots: Path, name: str) -> Path:
     path = shots / f"{name}.png"
     page.screenshot(path=str(path))
-    SHOTS.mkdir(parents=True, exist_ok=True)
-    shutil.copy(path, SHOTS / path.name)
+    if SHOTS is not None:
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, SHOTS / path.name)
     return path
 
 
