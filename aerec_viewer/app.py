@@ -635,8 +635,10 @@ class ViewerApp:
                                "(or take one from the site list) before clicking")
         self.gcp_panel.check_choice(client)
         in_loupe = pick.in_loupe(pick.plane.window)
+        if in_loupe and not pick.owns_loupe(gid, client):
+            raise GcpError(self._not_your_loupe(gid, client))
         if not in_loupe and self.gcp_panel.zoom_click.value:
-            pick.open_loupe(pix, client)
+            pick.open_loupe(pix, client, gcp=gid)
             return None
         if gid is None:
             gid = new_gcp(self.session, self.gcp_panel.gid.value or None, x=x, y=y, h=h,
@@ -669,12 +671,14 @@ class ViewerApp:
         zooms in first", a click outside the loupe opens the loupe there instead."""
         ref, pick = self.reference, self.picking
         self.gcp_panel.check_choice(client)
+        gid = self.gcp_panel.selected()
         in_loupe = pick.in_loupe(pick.plane.window)
+        if in_loupe and not pick.owns_loupe(gid, client):
+            raise GcpError(self._not_your_loupe(gid, client))
         if not in_loupe and self.gcp_panel.zoom_click.value:
-            pick.open_loupe(pix, client)
+            pick.open_loupe(pix, client, gcp=gid)
             return None
         lon, lat, h = ref.ground_at(*pix)
-        gid = self.gcp_panel.selected()
         if h is None:
             h = float(self.gcp_panel.h.value) if gid is None else self.session.get(gid).h
             where = ("no DEM given (--reference-dem): h kept at " if ref.dem is None
@@ -703,6 +707,15 @@ class ViewerApp:
         if back:           # "Then its next image": back to the site image shown before the reference
             self.gcp_panel.image.value = self.gcp_panel.last_site_image
         return pix
+
+    def _not_your_loupe(self, gid: str | None, client) -> str:
+        """Why a click in the open loupe was not recorded (it is another GCP's, or another tab's)."""
+        pick = self.picking
+        if pick.loupe_gcp != gid:
+            return (f"nothing recorded: the loupe shows {pick.loupe_gcp or 'the new GCP'}'s spot, not "
+                    f"{gid or 'the new GCP'}'s; Escape leaves it, then click {gid or 'the new GCP'} in the image")
+        return ("nothing recorded: the picture is another tab's loupe (40 px around its click, stretched over "
+                "the plane); wait for that tab to place it, or press Escape to leave it")
 
     def arm_cloud_pick(self) -> None:
         """The next click in the scene sets the selected GCP's affine position."""

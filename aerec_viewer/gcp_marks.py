@@ -173,7 +173,7 @@ class GcpMarks:
         app = self.app
         gid, pl = app.gcp_panel.selected(), app.picking.plane
         if gid is None or pl is None or app.picking.loupe is None or not app.picking.in_loupe(pl.window) \
-                or gid not in app.session.ids:
+                or gid not in app.session.ids or app.picking.loupe_gcp != gid:
             return None
         ob = app.session.get(gid).observations.get(pl.window.image)
         if ob is None or not pl.window.contains([ob])[0]:

@@ -224,7 +224,8 @@ class GcpPanel:
             v = self.id_of(ev.target.value) or self.NEW
             # the operator's own choice in the list is described; a selection made by the code
             # (N, a new GCP, an edit) comes with its own note, which this must not overwrite
-            app.submit(lambda: (self.note_choice(ev.client, v), self.drop_prediction(), self.fill_fields(),
+            app.submit(lambda: (self.note_choice(ev.client, v), self.drop_prediction(),
+                                self.app.picking.retarget(None if v == self.NEW else v), self.fill_fields(),
                                 ev.client is not None and v != self.NEW and v in self.app.session.ids
                                 and self.app.note(self.selection_note(v))))
         self.select.on_update(chosen)
@@ -372,7 +373,7 @@ class GcpPanel:
                 return
             if before_open is not None:
                 before_open()
-            self.app.picking.open_loupe(pix, client, image=image)
+            self.app.picking.open_loupe(pix, client, image=image, gcp=gid)
             self.app.note(note)
         self.app.submit(show)
 
@@ -513,6 +514,7 @@ class GcpPanel:
         if not ids:
             raise GcpError("the working set has no GCP yet")
         new, skipped = self.neighbour(self.selected(), step)
+        self.app.picking.retarget(new)             # the last GCP's loupe must not place this one
         self.app.gcps_changed(select=new, note=self.selection_note(new) + (
             f"; {skipped} finished GCP(s) passed over" if skipped else ""))
         self.note_choice(client, new)
@@ -606,6 +608,8 @@ class GcpPanel:
         if self.prediction is None:
             raise GcpError("no prediction to accept: press Predict first")
         gid, pred = self.prediction
+        if self.app.picking.loupe is not None and not self.app.picking.owns_loupe(gid, client):
+            raise GcpError(self.app._not_your_loupe(gid, client))
         self.drop_prediction()
         add_observation(self.app.session, gid, pred.image, pred.col, pred.row)
         in_loupe = self.app.picking.loupe is not None

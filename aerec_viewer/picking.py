@@ -125,6 +125,12 @@ class PickingView:
         self.app = app
         self.plane: PickPlane | None = None
         self.loupe: tuple[Window, tuple[float, float]] | None = None   # (window, pixel zoomed on)
+        # whose loupe it is: the GCP it was opened for (None: a new one) and the tab that opened
+        # it. A click in it places that GCP only, and only from that tab: another tab sees the
+        # loupe's pixels stretched over the plane it took for the whole image, and another GCP's
+        # click at the loupe's spot would be recorded where the first one is
+        self.loupe_gcp: str | None = None
+        self.loupe_client: int | None = None
         self.reframe = False             # frame the clients once the plane is first drawn
         self._handle = None
         self._key = None                 # the layout's frame and cloud bounds
@@ -165,14 +171,17 @@ class PickingView:
         """Is this window (the plane's, or the one about to be drawn) the open loupe?"""
         return self.loupe is not None and self.loupe[0] == win
 
-    def open_loupe(self, pix: tuple[float, float], client=None, image: str | None = None) -> Window:
+    def open_loupe(self, pix: tuple[float, float], client=None, image: str | None = None,
+                   gcp: str | None = None) -> Window:
         """Show the full-resolution pixels around pix (in the plane's image, or `image`, the one
         chosen in the GCP tab) on the picking plane and put the client's camera straight above
-        it; the next click places."""
+        it; the next click, from that client, places `gcp` (None: a new GCP)."""
         image = image or self.plane.window.image
         im = self.app.images.info(image)
         win = loupe_window(im.width, im.height, image, *pix)
         self.loupe = (win, (float(pix[0]), float(pix[1])))
+        self.loupe_gcp = gcp
+        self.loupe_client = None if client is None else client.client_id
         self.show(wait=True)
         if client is not None:
             cam = client.camera
@@ -184,11 +193,24 @@ class PickingView:
                       "pixel (or Leave the loupe)")
         return win
 
+    def owns_loupe(self, gcp: str | None, client=None) -> bool:
+        """Is the open loupe this GCP's, opened by this client (any, when either is unknown)?"""
+        if self.loupe is None or self.loupe_gcp != gcp:
+            return False
+        return client is None or self.loupe_client is None or client.client_id == self.loupe_client
+
+    def retarget(self, gcp: str | None) -> None:
+        """The selection changed to `gcp`: a loupe opened for another GCP is closed (it shows
+        that GCP's spot: a click there would record the new one where the old one is)."""
+        if self.loupe is not None and self.loupe_gcp != gcp:
+            self.close_loupe()
+
     def close_loupe(self, client=None) -> None:
         """Back to the region the loupe was opened from (and the client's view before it)."""
         if self.loupe is None:
             return
         self.loupe = None
+        self.loupe_gcp = self.loupe_client = None
         self.app.gcp_panel.leave_loupe.disabled = True
         self.show(wait=True)
         for cid, c in list(self.app.server.get_clients().items()):

@@ -290,6 +290,78 @@ def test_loupe_first_click_zooms_second_click_places(live):
         app.call(lambda: setattr(gp.zoom_click, "value", False))
 
 
+def test_next_gcp_with_a_loupe_open_records_nothing_at_the_last_ones_spot(live):
+    """The trial: a loupe open on GCP A's spot, N selects B, and the next click recorded B at A's
+    spot. Now N closes the loupe (it was A's): the next click opens B's own loupe, nothing is
+    recorded, and B's observations are unchanged."""
+    app, events, trace, out, site, cfg = live
+    gp = app.gcp_panel
+    ids = app.session.ids
+    g1 = ids[0]
+    app.call(lambda: gp.refresh(select=g1))
+    app.call(lambda: setattr(gp.zoom_click, "value", True))
+    before = {g: dict(app.session.get(g).observations) for g in ids}
+    try:
+        if app.picking.plane is None:
+            app.call(lambda: app.picking.show(wait=True))
+        o, d = _ray_to(app, 150.4, 160.6)
+        assert app.call(lambda: app.on_plane_click(o, d)) is None           # A's loupe
+        assert app.picking.loupe is not None and app.picking.loupe_gcp == g1
+        g2 = app.call(lambda: gp.step_gcp(+1))                              # N
+        app.wait_idle()
+        assert g2 != g1 and app.picking.loupe is None                        # A's loupe is gone
+        o, d = _ray_to(app, 151.0, 159.0)
+        assert app.call(lambda: app.on_plane_click(o, d)) is None           # B's own loupe opens
+        assert app.picking.loupe_gcp == g2
+        assert {g: dict(app.session.get(g).observations) for g in ids} == before
+        # a loupe left open by the list's selection of another GCP cannot place it either
+        app.picking.loupe_gcp = g1
+        o, d = _ray_to(app, 151.5, 159.5)
+        with pytest.raises(GcpError, match="the loupe shows"):
+            app.call(lambda: app.on_plane_click(o, d))
+        assert {g: dict(app.session.get(g).observations) for g in ids} == before
+    finally:
+        app.call(app.picking.close_loupe)
+        app.call(lambda: setattr(gp.zoom_click, "value", False))
+        app.call(lambda: app.gcps_changed(select=g1))
+
+
+def test_another_tabs_click_in_a_loupe_records_nothing(live):
+    """The trial: tab A opens the loupe; tab B sees its 40 pixels stretched over the plane it
+    took for the whole image, and its ordinary click moved a GCP by 9.5 px. Now a click in a
+    loupe is recorded only from the tab that opened it."""
+    from types import SimpleNamespace
+
+    app, events, trace, out, site, cfg = live
+    gp = app.gcp_panel
+    def tab(cid):
+        return SimpleNamespace(client_id=cid, camera=SimpleNamespace(
+            position=(0.0, 0.0, 1.0), look_at=(0.0, 0.0, 0.0), up_direction=(0.0, 0.0, 1.0), far=1e4))
+    a, b = tab(9101), tab(9102)
+    gid = app.session.ids[0]
+    app.call(lambda: gp.refresh(select=gid))
+    app.call(lambda: setattr(gp.zoom_click, "value", True))
+    before = dict(app.session.get(gid).observations)
+    n_undo = len(app.session._undo)
+    try:
+        if app.picking.plane is None:
+            app.call(lambda: app.picking.show(wait=True))
+        o, d = _ray_to(app, 150.4, 160.6)
+        assert app.call(lambda: app.on_plane_click(o, d, a)) is None         # A's loupe
+        o, d = _ray_to(app, 152.0, 158.0)
+        with pytest.raises(GcpError, match="another tab's loupe"):
+            app.call(lambda: app.on_plane_click(o, d, b))
+        assert dict(app.session.get(gid).observations) == before and app.picking.loupe is not None
+        assert app.call(lambda: app.on_plane_click(o, d, a)) is not None     # A places it
+        assert len(app.session._undo) == n_undo + 1
+    finally:
+        for _ in range(len(app.session._undo) - n_undo):
+            app.call(lambda: undo(app.session))
+        app.call(app.picking.close_loupe)
+        app.call(lambda: setattr(gp.zoom_click, "value", False))
+        app.call(lambda: app.gcps_changed(select=gid))
+
+
 def test_a_click_in_the_loupe_walks_on_to_the_gcps_next_image(live):
     """With "Then its next image": after a click in the loupe records an observation, the next
     image without one opens in the loupe at the GCP's prediction (close to its true pixel);
