@@ -56,6 +56,7 @@ from .results import (
     UpgradeOutcome,
     gcp_readiness,
     gcp_state_table,
+    gcps_key,
     outcome_markdown,
     run_upgrade,
     upgrade_readiness,
@@ -265,6 +266,7 @@ class ViewerApp:
             self.models = dict(self.worker.models)
             self.marks.invalidate()
             self.gcp_panel.relabel()          # "images placed n/N" counts registered images
+            self.gcp_panel.listing.content = self.gcp_panel.working_set_table()   # residuals need the models
             self._update_upgrade_button()
         if self._dsm_rerun_pending and self.worker.done.is_set():
             self._start_dsm_rerun()
@@ -457,7 +459,9 @@ class ViewerApp:
             handle.content = text
 
     def _update_panel(self, snap: DisplaySnapshot) -> None:
-        status = {"running": "running", "paused": "**paused**", "done": "finished",
+        done = ("affine reconstruction finished: **place the control GCPs** (GCPs tab), then Upgrade"
+                if snap.awaiting_gcps else "finished")
+        status = {"running": "running", "paused": "**paused**", "done": done,
                   "reopened": "reopened (nothing recomputed)", "failed": "**failed**",
                   "stopped": "stopped", "starting": "starting"}.get(snap.status, snap.status)
         stage = ""
@@ -786,10 +790,10 @@ class ViewerApp:
         can = bool(self.models) and can
         self.g_upgrade.disabled = not can
         why = ("waiting for the sparse model" if not self.models else
-               f"{n} control GCP(s) placeable, {need} needed" if n < need else
-               f"{n} control GCPs placeable")
+               f"{n} control GCP(s) seen in 2 images or more, {need} needed" if n < need else
+               f"{n} control GCPs seen in 2 images or more")
         stale = ""
-        if self.upgrade is not None and self.upgrade.gcps_version != self.session.version:
+        if self.upgrade is not None and self.upgrade.gcps_key != gcps_key(self.session):
             stale = "\n\n*The GCPs changed since the last upgrade: press Upgrade again.*"
         self._set_md(self.g_ready, f"{why}.{stale}")
         self._set_md(self.g_ready_list, "\n".join(f"- {gid} ({self.session.get(gid).role}): {txt}"

@@ -308,7 +308,7 @@ class GcpPanel:
         added = import_site_gcps(self.app.session, [self.catalogue.value], with_observations=False)
         self.app.gcps_changed(select=added[0] if added else self.catalogue.value,
                               note=f"added {added[0]}: click its pixel in each image" if added
-                              else f"{self.catalogue.value} is already in the working set")
+                              else f"{self.catalogue.value} is already in the GCP list")
 
     def _take_all(self) -> None:
         added = import_site_gcps(self.app.session, None, with_observations=True)
@@ -512,7 +512,7 @@ class GcpPanel:
         over the finished ones (observed in every registered image) while any is not."""
         ids = self.app.session.ids
         if not ids:
-            raise GcpError("the working set has no GCP yet")
+            raise GcpError("the GCP list is empty: add a GCP first")
         new, skipped = self.neighbour(self.selected(), step)
         self.app.picking.retarget(new)             # the last GCP's loupe must not place this one
         self.app.gcps_changed(select=new, note=self.selection_note(new) + (
@@ -593,9 +593,11 @@ class GcpPanel:
             self.show_hint(gid, pred, client)
             return image
         n = len(obs)
+        others = [g for g in self.app.session.ids if g != gid and not self.finished(g)]
         self.app.note(f"{gid} is observed in {n} image(s)"
                       + (f"; no registered tile of {', '.join(skipped)} sees it" if skipped else "")
-                      + ": N for the next GCP")
+                      + (": N for the next GCP" if others else
+                         ": every GCP is placed in every image that sees it; press Upgrade (Results tab)"))
         return None
 
     def drop_prediction(self) -> None:
@@ -668,7 +670,7 @@ class GcpPanel:
             self.role_toggle.label = "Make it a check point" if g.role == "control" else "Make it a control point"
             self.enable_toggle.label = "Disable it" if g.enabled else "Enable it"
         if gid is None or gid not in s.ids:
-            self.info.content = (f"{len(s.gcps)} GCP(s) in the working set "
+            self.info.content = (f"{len(s.gcps)} GCP(s) in the list "
                                  f"(`{s.path.name}` in the output folder). Type the new GCP's "
                                  "ground coordinates below before clicking its pixel.")
             if tuple(self.jump.options) != (self.JUMP_NONE,):

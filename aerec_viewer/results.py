@@ -32,6 +32,7 @@ class UpgradeOutcome(Upgrade):
     """The core's Upgrade, with the GCP session version it used (stale once the GCPs change)."""
 
     gcps_version: int = -1
+    gcps_key: str = ""           # what the GCPs were (an undo back to them is not a change)
 
     @property
     def ok(self) -> bool:
@@ -155,7 +156,19 @@ def run_upgrade(session: GcpSession, models: dict, cfg: Config, images: dict | N
         raise ReconstructionError("no sparse model yet: wait for the sparse stage to finish")
     gcps = read_gcps_geojson(session.path)        # what a run on OUT reads: the same numbers
     up = upgrade_models(gcps, models, cfg, images)
-    return UpgradeOutcome(**{f.name: getattr(up, f.name) for f in fields(up)}, gcps_version=session.version)
+    return UpgradeOutcome(**{f.name: getattr(up, f.name) for f in fields(up)}, gcps_version=session.version,
+                          gcps_key=gcps_key(session))
+
+
+def gcps_key(session: GcpSession) -> str:
+    """A fingerprint of the GCPs' content (positions, roles, observations, picks): two sets that
+    the upgrade would fit the same have the same key, whatever edits and undos lie between."""
+    import hashlib
+    import json
+
+    from recon_core.io.gcps import gcps_to_geojson
+
+    return hashlib.sha1(json.dumps(gcps_to_geojson(session.gcps), sort_keys=True, default=str).encode()).hexdigest()
 
 
 def _f(v, fmt: str = "+.2f") -> str:
@@ -225,31 +238,34 @@ def height_scale_lines(cond: dict) -> list[str]:
 def outcome_markdown(outcome: UpgradeOutcome) -> str:
     parts = []
     for g, r in sorted(outcome.results.items()):
-        parts.append(f"#### Group {g}: Euclidean upgrade ({r.n_control_used} control GCPs, "
-                     f"{r.dof} dof)\n\n" + residual_table_markdown(r.to_dict()))
+        spare = (f", {r.dof} equation(s) to spare: the residuals check the GCPs" if r.dof > 0 else
+                 ", no equation to spare: only check points and the pixel residuals tell")
+        parts.append(f"#### Group {g}: in metres ({r.n_control_used} control GCPs{spare})\n\n"
+                     + residual_table_markdown(r.to_dict()))
         mb = outcome.metric.get(g) or {}
         if mb.get("applied"):
-            parts.append(f"Metric bend step: a horizontal warp of {mb['warp_rms_m']:.3f} m RMS "
-                         f"({mb['warp_max_m']:.3f} m at most) taken out before H_A (in the 3D view, "
+            parts.append(f"Horizontal distortion corrected from the orbit's geometry: {mb['warp_rms_m']:.3f} m RMS "
+                         f"({mb['warp_max_m']:.3f} m at most), before the GCPs' map (in the 3D view, "
                          "the DSM and cloud.ply alike).")
         gb = outcome.gcp_bend.get(g) or {}
         if gb.get("applied"):
             mx = gb["warp_max_m"]
             what = "the views cannot see" if gb["family"] == "invisible" else "(all nine quadratic ones)"
-            parts.append(f"Bend fitted to the control GCPs: {gb['warps_fitted']} warps {what}, at most {mx[0]:.2f} / {mx[1]:.2f} / {mx[2]:.2f} m (E / N / U) over the site; "
-                         f"leave-one-out {gb['loo_rms_bend_m']:.2f} m RMS against {gb['loo_rms_affine_m']:.2f} m "
-                         "with H_A alone (in the 3D view, the DSM and cloud.ply alike).")
+            parts.append(f"Large-scale distortion fitted to the control GCPs ({gb['warps_fitted']} terms {what}): at most "
+                         f"{mx[0]:.2f} / {mx[1]:.2f} / {mx[2]:.2f} m (E / N / U) over the site; each GCP left out is "
+                         f"predicted to {gb['loo_rms_bend_m']:.2f} m RMS, against {gb['loo_rms_affine_m']:.2f} m "
+                         "without it (in the 3D view, the DSM and cloud.ply alike).")
         elif gb.get("control_gcps_needed") and outcome.bend.get(g, {}).get("site_width_km", 0) >= 1.0:
-            parts.append(f"Bend not fitted to the GCPs: {gb['reason']}.")
+            parts.append(f"Large-scale distortion not fitted to the GCPs: {gb['reason']}.")
         db = outcome.dem_bend.get(g) or {}
         if db.get("applied"):
             kind = bend_kind(db.get("degree", 2))
             fell = "; the cubic asked for fell back to a quadratic: the DEM does not tell it" \
                 if db.get("degrees_refused") else ""
-            parts.append(f"Vertical bend taken from the reference DEM ({Path(db['dem']).name}), {kind}{fell}: "
+            parts.append(f"Large-scale height distortion taken from the reference DEM ({Path(db['dem']).name}), {kind}{fell}: "
                          f"{db['bend_range_m']:.2f} m peak to peak over the site, standard error "
                          f"{db['bend_sigma_m']:.2f} m at its edge (in the 3D view, the DSM and cloud.ply alike); "
-                         "the horizontal bend stays.")
+                         "the horizontal one stays.")
         elif db.get("reason"):
             parts.append(f"Reference DEM not used: {db['reason']}.")
     for g, e in sorted(outcome.errors.items()):
