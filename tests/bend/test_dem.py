@@ -211,7 +211,7 @@ def test_the_upgrade_takes_the_bend_from_a_dem_only_where_the_views_cannot_see_i
     assert c1 < c0 + 0.2, (c0, c1)
     # the viewer: its Results tab says so, and its Euclidean view applies the same warp
     out = _outcome(up)
-    assert "Vertical bend taken from the reference DEM (dem.tif)" in outcome_markdown(out)
+    assert "height distortion taken from the reference DEM (dem.tif)" in outcome_markdown(out)
     assert out.transform(0).post is up.enu_warps[0]
     # a DEM of 10 m cells with 0.5 m of noise cannot tell a bend over 0.2 km of 40 m buildings:
     # refused with the fit's own standard error, and the warning that there is a bend is kept

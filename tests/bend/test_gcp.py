@@ -127,13 +127,13 @@ def test_the_results_tab_says_what_the_gcp_bend_did():
     out = UpgradeOutcome(LocalFrame(30.0, 31.0), results={0: res}, gcp_bend={0: info}, enu_warps={0: warp},
                          bend={0: {"site_width_km": 10.0}})
     md = outcome_markdown(out)
-    assert "Bend fitted to the control GCPs" in md and "leave-one-out" in md
+    assert "distortion fitted to the control GCPs" in md and "each GCP left out is predicted" in md
     T = out.transform(0)
     assert T.post is warp
     refused = dict(info, applied=False, reason="only 5 of 12 control GCPs agree within 2 m with the warps, 8 needed")
     md = outcome_markdown(UpgradeOutcome(LocalFrame(30.0, 31.0), results={0: res}, gcp_bend={0: refused},
                                          bend={0: {"site_width_km": 10.0}}))
-    assert "Bend not fitted to the GCPs: only 5 of 12" in md
+    assert "distortion not fitted to the GCPs: only 5 of 12" in md
 
 
 def test_check_points_off_by_a_bend_are_not_only_blamed_on_the_gcps():
