@@ -57,6 +57,8 @@ CASES = [
      [], "site.json", "far from every GCP"),
     ("gcps sigma not a number", lambda s: _gcps(s, lambda d: d["features"][0]["properties"].update(sigma_m="x")),
      [], "gcps.geojson", "sigma_m"),
+    ("gcps height sigma negative", lambda s: _gcps(s, lambda d: d["features"][0]["properties"].update(sigma_h_m=-1)),
+     [], "gcps.geojson", "sigma_h_m"),
     ("gcps unknown crs_epsg", lambda s: _gcps(s, lambda d: d.update(crs_epsg=999999)), [], "gcps.geojson",
      "EPSG"),
     ("gcps properties a list", lambda s: _gcps(s, lambda d: d["features"][0].update(properties=[1, 2])),

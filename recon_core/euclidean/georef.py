@@ -128,7 +128,7 @@ def upgrade_group(model: SparseModel, gcps: list[GCP], frame: LocalFrame | None 
     enu = frame.geodetic_to_enu(np.array([g.llh for g in gcps])) if gcps else np.zeros((0, 3))
     sig_px = pixel_sigma(aff, [g.id for g in gcps if g.role == "control" and g.enabled])
     inputs = [GcpInput(g.id, g.role, aff[g.id].xyz, enu[k], g.sigma_m, aff[g.id].reproj_rms_px,
-                       enabled=g.enabled, affine_cov=_affine_cov(aff[g.id], sig_px))
+                       enabled=g.enabled, affine_cov=_affine_cov(aff[g.id], sig_px), sigma_h_m=g.sigma_h_m)
               for k, g in enumerate(gcps)]
     rays = lines_of_sight(model, images) if images and sigma_view_deg > 0 else []
     ids = model.point_ids()

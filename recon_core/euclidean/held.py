@@ -46,16 +46,21 @@ RANK_REL = 1e-10        # eigenvalues of the normal matrix below this (relative)
 @dataclass
 class ControlPoints:
     """The control GCPs a fit uses: affine points Xa (n, 3), surveyed ENU Xe (n, 3), each
-    affine point's covariance S (n, 3, 3; NaN where unknown: a point picked on the cloud) and
-    survey sigma (n,) in metres."""
+    affine point's covariance S (n, 3, 3; NaN where unknown: a point picked on the cloud), survey
+    sigma (n,) in metres, and the surveyed height's own sigma (n,; None: sigma_m's)."""
 
     Xa: np.ndarray
     Xe: np.ndarray
     S: np.ndarray
     sigma_m: np.ndarray
+    sigma_h: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.sigma_h is None:
+            self.sigma_h = np.asarray(self.sigma_m, np.float64).copy()
 
     def take(self, idx) -> "ControlPoints":
-        return ControlPoints(self.Xa[idx], self.Xe[idx], self.S[idx], self.sigma_m[idx])
+        return ControlPoints(self.Xa[idx], self.Xe[idx], self.S[idx], self.sigma_m[idx], self.sigma_h[idx])
 
     def __len__(self) -> int:
         return len(self.Xa)
@@ -70,7 +75,7 @@ class ControlPoints:
             else:
                 A = H[:3, :3]
                 out[i] = A @ self.S[i] @ A.T
-            out[i] += np.eye(3) * self.sigma_m[i] ** 2
+            out[i] += np.diag([self.sigma_m[i] ** 2, self.sigma_m[i] ** 2, self.sigma_h[i] ** 2])
         return out
 
 

@@ -78,6 +78,9 @@ class GcpInput:
             the reason "disabled").
         affine_cov: (3, 3) covariance of affine_xyz from its image observations (affine units),
             if known (None: a point picked on the cloud, held.PICK_SIGMA_M per axis).
+        sigma_h_m: the surveyed height's own accuracy (metres) when worse than sigma_m (a height
+            read off a DEM where it changes): the fit held by the images' lines of sight weighs
+            the GCP's height by it, and RANSAC forgives that much of its height residual.
     """
 
     id: str
@@ -88,6 +91,7 @@ class GcpInput:
     reproj_rms_px: float | None = None
     enabled: bool = True
     affine_cov: np.ndarray | None = None
+    sigma_h_m: float | None = None
 
 
 def singular_ratio(X: np.ndarray) -> float:
@@ -365,8 +369,10 @@ def control_points(gcps: list[GcpInput], idx: list[int]) -> ControlPoints:
                   for i in idx]).reshape(-1, 3, 3)
     sig = np.array([g.sigma_m if g.sigma_m is not None and np.isfinite(g.sigma_m) else 0.0
                     for g in (gcps[i] for i in idx)], dtype=np.float64)
+    sig_h = np.array([max(g.sigma_h_m, s) if g.sigma_h_m is not None and np.isfinite(g.sigma_h_m) else s
+                      for g, s in zip((gcps[i] for i in idx), sig)], dtype=np.float64)
     return ControlPoints(np.array([gcps[i].affine_xyz for i in idx], np.float64).reshape(-1, 3),
-                         np.array([gcps[i].enu for i in idx], np.float64).reshape(-1, 3), S, sig)
+                         np.array([gcps[i].enu for i in idx], np.float64).reshape(-1, 3), S, sig, sig_h)
 
 
 @dataclass
@@ -428,11 +434,20 @@ def _screen_views(hold: ImageHold, pts: ControlPoints) -> tuple[ImageHold, list[
 
 
 def fit_held_ransac(Xa: np.ndarray, Xe: np.ndarray, hold: ImageHold, thresh_m: float, iters: int,
-                    rng: np.random.Generator, min_ratio: float = 0.05) -> np.ndarray:
+                    rng: np.random.Generator, min_ratio: float = 0.05,
+                    slack_u: np.ndarray | None = None) -> np.ndarray:
     """RANSAC for H_A on 3-point samples, each held by the images' lines of sight: the inliers
     (n,) bool of the best consensus (inlier count, then truncated cost). A sample nearly on one
-    line (second singular value below `min_ratio` of the first, whitened) is skipped."""
+    line (second singular value below `min_ratio` of the first, whitened) is skipped. slack_u
+    (n,): metres of each point's height residual forgiven (a height known that much worse)."""
     n = len(Xa)
+    slack = np.zeros(n) if slack_u is None else np.asarray(slack_u, np.float64)
+
+    def residual(H: np.ndarray) -> np.ndarray:
+        r = apply_affine_3d(H, Xa) - Xe
+        r[:, 2] = np.sign(r[:, 2]) * np.maximum(np.abs(r[:, 2]) - slack, 0.0)
+        return r
+
     todo = (np.array(list(combinations(range(n), 3)), dtype=np.int64) if n * (n - 1) * (n - 2) // 6 <= iters
             else np.argsort(rng.random((iters, n)), axis=1)[:, :3])
     best, best_mask = None, None
@@ -443,7 +458,7 @@ def fit_held_ransac(Xa: np.ndarray, Xe: np.ndarray, hold: ImageHold, thresh_m: f
         if sv[0] <= 0 or sv[1] / sv[0] < min_ratio:
             continue
         H = hold.refit(Xa[idx], Xe[idx])
-        r2 = np.sum((apply_affine_3d(H, Xa) - Xe) ** 2, axis=1)
+        r2 = np.sum(residual(H) ** 2, axis=1)
         mask = r2 < thresh_m ** 2
         score = (int(mask.sum()), -float(np.minimum(r2, thresh_m ** 2).sum()))
         if best is None or score > best:
@@ -455,7 +470,7 @@ def fit_held_ransac(Xa: np.ndarray, Xe: np.ndarray, hold: ImageHold, thresh_m: f
             raise ReconstructionError(f"only {int(best_mask.sum())} GCPs agree within {thresh_m} m "
                                       "(need >= 3 not on one line, with the images' lines of sight)")
         H = hold.refit(Xa[best_mask], Xe[best_mask])
-        new = np.linalg.norm(apply_affine_3d(H, Xa) - Xe, axis=1) < thresh_m
+        new = np.linalg.norm(residual(H), axis=1) < thresh_m
         if np.array_equal(new, best_mask) or new.sum() < 3:
             break
         best_mask = new
@@ -520,7 +535,9 @@ def _consensus(gcps, reasons, ctrl, hold, given, dropped, min_points, thresh, it
         return hold, np.ones(len(ctrl), bool), dropped
     if not held:
         return hold, fit_upgrade_ransac(Xa, Xe, thresh, iters, rng)[1], dropped
-    inl = fit_held_ransac(Xa, Xe, hold, thresh, iters, rng)
+    pts = control_points(gcps, ctrl)
+    inl = fit_held_ransac(Xa, Xe, hold, thresh, iters, rng,
+                          slack_u=3.0 * np.maximum(pts.sigma_h - pts.sigma_m, 0.0))
     if dropped and not inl.all():
         again, still = _screen_views(given, control_points(gcps, [i for i, ok in zip(ctrl, inl) if ok]))
         if len(again.rays) >= 2:
@@ -696,6 +713,8 @@ def _point_row(g: GcpInput, status: str, reason: str | None, r: np.ndarray | Non
     """One report row; r: (3,) residual or None."""
     row: dict[str, Any] = {"id": g.id, "role": g.role, "status": status, "reason": reason,
                            "sigma_m": g.sigma_m, "reproj_rms_px": g.reproj_rms_px}
+    if g.sigma_h_m is not None:
+        row["sigma_h_m"] = g.sigma_h_m
     if r is None:
         row.update(dE=None, dN=None, dU=None, horizontal_m=None, norm3d_m=None)
     else:

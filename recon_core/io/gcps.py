@@ -41,6 +41,9 @@ class GCP:
     # False: kept in the file (and shown) but left out of the fit and of the scores, with that
     # reason in the report (optional property "enabled", written only when false)
     enabled: bool = True
+    # the height's own standard deviation (m) when it is known worse than the horizontal: a
+    # height read off a DEM at a roof's edge (optional property "sigma_h_m")
+    sigma_h_m: float | None = None
 
     @property
     def llh(self) -> np.ndarray:
@@ -120,11 +123,15 @@ def _parse_feature(path: Path, k: int, feat, epsg, images) -> GCP:
     sigma = props.get("sigma_m")
     if sigma is not None and not (finite_number(sigma) and sigma > 0):
         raise InputError(path, f"{where}: sigma_m must be a positive number of metres, not {sigma!r}")
+    sigma_h = props.get("sigma_h_m")
+    if sigma_h is not None and not (finite_number(sigma_h) and sigma_h > 0):
+        raise InputError(path, f"{where}: sigma_h_m must be a positive number of metres, not {sigma_h!r}")
     enabled = props.get("enabled", True)
     if not isinstance(enabled, bool):
         raise InputError(path, f"{where}: enabled must be true or false, not {enabled!r}")
     return GCP(id=gid, lon=lon, lat=lat, h=h, role=role,
-               sigma_m=None if sigma is None else float(sigma), observations=obs,
+               sigma_m=None if sigma is None else float(sigma),
+               sigma_h_m=None if sigma_h is None else float(sigma_h), observations=obs,
                affine_picked=_parse_picked(path, where, props.get("affine_picked")),
                enabled=enabled)
 
@@ -161,6 +168,8 @@ def gcps_to_geojson(gcps: list[GCP]) -> dict:
                  "observations": {k: [round(v[0], 4), round(v[1], 4)] for k, v in g.observations.items()}}
         if g.sigma_m is not None:
             props["sigma_m"] = g.sigma_m
+        if g.sigma_h_m is not None:
+            props["sigma_h_m"] = g.sigma_h_m
         if not g.enabled:
             props["enabled"] = False
         if g.affine_picked:

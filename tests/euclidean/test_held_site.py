@@ -86,3 +86,36 @@ def test_three_gcps_and_the_images(minifp):
     D = res.H[:3, :3] @ np.linalg.inv(A)
     assert abs(D[2, 2] - 1.0) < 0.01
     assert res.stats["check"]["rmse_U_m"] < 1.5
+
+
+def test_a_height_known_worse_is_taken_from_the_images(minifp):
+    """A control GCP whose height is 8 m off (a roof corner given the ground's height by a DEM)
+    but says so (sigma_h_m): the images' lines of sight and the other GCPs fix the height scale,
+    and its residual is the images' height for it; without sigma_h_m the error bends the fit."""
+    site, models = minifp.site, minifp.models
+    enu = frame_for(site.gcps).geodetic_to_enu(np.array([g.llh for g in site.gcps]))
+    def area(q):
+        (a, b), (c, d) = enu[q[1], :2] - enu[q[0], :2], enu[q[2], :2] - enu[q[0], :2]
+        return abs(a * d - b * c)
+    q = max(combinations(range(len(enu)), 3), key=area)
+    q4 = q + (max((k for k in range(len(enu)) if k not in q),
+                  key=lambda k: min(np.hypot(*(enu[k, :2] - enu[j, :2])) for j in q)),)
+    wrong = site.gcps[q4[3]].id
+    images = {im.name: im for im in site.images}
+
+    def fit(sigma_h, off=8.0):
+        gcps = [replace(g, role="control" if k in q4 else "check",
+                        h=g.h - off if g.id == wrong else g.h,
+                        sigma_h_m=sigma_h if g.id == wrong else None) for k, g in enumerate(site.gcps)]
+        res = upgrade_models(gcps, models, preset("tiny"), images).results
+        res = res[min(res)]
+        checks = [p for p in res.points if p["role"] == "check" and p["dU"] is not None]
+        return res, float(np.sqrt(np.mean([p["dU"] ** 2 for p in checks])))
+
+    loose, u_loose = fit(4.0)
+    tight, u_tight = fit(None)
+    _, u_right = fit(None, off=0.0)
+    print(f"check U RMSE: right {u_right:.3f} m; 8 m off with sigma_h 4 m {u_loose:.3f} m, without {u_tight:.3f} m")
+    assert u_loose < 1.5 * u_right + 0.1 and u_tight > 5 * u_loose
+    row = next(p for p in loose.points if p["id"] == wrong)
+    assert row["sigma_h_m"] == 4.0 and abs(row["dU"] - 8.0) < 0.5      # the images' height: 8 m up

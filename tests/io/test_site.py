@@ -62,11 +62,12 @@ def test_a_wrong_view_is_refused_naming_the_sidecar(small_site, view, words):
 
 def test_gcps_round_trip(tmp_path, small_site):
     site = load_site(small_site)
-    site.gcps.append(GCP("G2", 10.001, 45.002, 120.5, "check", 0.1, {"a.tif": (1.0, 2.0)}))
+    site.gcps.append(GCP("G2", 10.001, 45.002, 120.5, "check", 0.1, {"a.tif": (1.0, 2.0)}, sigma_h_m=3.5))
     write_gcps_geojson(tmp_path / "g.geojson", site.gcps)
     back = read_gcps_geojson(tmp_path / "g.geojson")
     assert [g.id for g in back] == ["G1", "G2"]
-    assert back[1].role == "check" and back[1].sigma_m == 0.1
+    assert back[1].role == "check" and back[1].sigma_m == 0.1 and back[1].sigma_h_m == 3.5
+    assert back[0].sigma_h_m is None
     assert back[1].lat == pytest.approx(45.002, abs=1e-9)
 
 
