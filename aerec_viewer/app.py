@@ -26,7 +26,6 @@ from typing import Callable
 import numpy as np
 
 from recon_core.errors import AerecError
-from recon_core.euclidean.ground_reference import EDGE_SPREAD_M
 from recon_core.io.gcps import picked_positions
 
 from .display import (
@@ -683,23 +682,21 @@ class ViewerApp:
             pick.open_loupe(pix, client, gcp=gid)
             return None
         lon, lat, h = ref.ground_at(*pix)
+        sigma_h = None
         if h is None:
             h = float(self.gcp_panel.h.value) if gid is None else self.session.get(gid).h
             where = ("no DEM given (--reference-dem): h kept at " if ref.dem is None
                      else "the DEM has no height there: h kept at ") + f"{h:.2f} m, type it"
         else:
-            where = f"h {h:.2f} m from the DEM"
-            spread = ref.height_spread(lon, lat)
-            if spread is not None and spread > EDGE_SPREAD_M:
-                where += (f" (check it: the DEM changes by {spread:.1f} m within 1 m of the spot, a wall "
-                          "or an edge; prefer flat ground or a roof's interior)")
+            where, sigma_h = height_words(h, ref.height_doubt(lon, lat), self._views_known())
         if gid is None:
             g = new_gcp(self.session, self.gcp_panel.gid.value or None, x=lon, y=lat, h=h,
-                        role=self.gcp_panel.role.value)
+                        role=self.gcp_panel.role.value, sigma_h_m=sigma_h)
             self.gcp_panel.note_choice(client, g.id)
             what = f"new {g.id}"
         else:
-            g = edit_gcp(self.session, gid, x=lon, y=lat, h=h)
+            g = edit_gcp(self.session, gid, x=lon, y=lat, h=h,
+                         sigma_h_m=sigma_h if ref.dem is not None else "typed")
             what = g.id
         if in_loupe:
             pick.close_loupe(client)
@@ -711,6 +708,11 @@ class ViewerApp:
         if back:           # "Then its next image": back to the site image shown before the reference
             self.gcp_panel.image.value = self.gcp_panel.last_site_image
         return pix
+
+    def _views_known(self) -> bool:
+        """Do two or more images state their viewing direction (the upgrade then takes a GCP's
+        doubtful height from them)?"""
+        return sum(1 for im in self.site.images if im.view is not None) >= 2
 
     def _not_your_loupe(self, gid: str | None, client) -> str:
         """Why a click in the open loupe was not recorded (it is another GCP's, or another tab's)."""
@@ -796,7 +798,10 @@ class ViewerApp:
         if self.upgrade is not None and self.upgrade.gcps_key != gcps_key(self.session):
             stale = "\n\n*The GCPs changed since the last upgrade: press Upgrade again.*"
         self._set_md(self.g_ready, f"{why}.{stale}")
-        self._set_md(self.g_ready_list, "\n".join(f"- {gid} ({self.session.get(gid).role}): {txt}"
+        def doubt(gid: str) -> str:
+            sh = self.session.get(gid).sigma_h_m
+            return "" if sh is None else f"; **height known only to +- {sh:.1f} m** (from the DEM)"
+        self._set_md(self.g_ready_list, "\n".join(f"- {gid} ({self.session.get(gid).role}): {txt}{doubt(gid)}"
                                                   for gid, (_, txt) in ready.items()))
         key = (self.session.version, len(self.models), id(next(iter(self.models.values()), None)))
         if key != self._state_table_key:          # recomputed when the GCPs or the models change
@@ -870,6 +875,20 @@ class ViewerApp:
         self.picking.reset_layout()
         self._tick()
         self.dsm_panel.frame_changed()
+
+
+def height_words(h: float, doubt, views_known: bool) -> tuple[str, float | None]:
+    """(what the operator reads about a height taken from the DEM, its sigma when doubtful)."""
+    where = f"h {h:.2f} m from the DEM"
+    if doubt is None or doubt.flat:
+        return where, None
+    what = ("the upgrade takes its height from the images' viewing angles (\"Take the images' height\" "
+            "after it), or type the surveyed height" if views_known else
+            "type its surveyed height, or pick a spot on flat ground (the images do not state their "
+            "viewing angles, so the upgrade cannot tell its height)")
+    return (where + f", **known only to +- {doubt.sigma_m:.1f} m**: the DEM changes by {doubt.spread_m:.1f} m "
+            f"within {doubt.radius_m:.0f} m of the spot (its cells are {doubt.cell_m:.0f} m: a roof or a "
+            f"wall gets a height between the top's and the ground's); {what}"), doubt.sigma_m
 
 
 def _read_report(out: Path) -> dict:

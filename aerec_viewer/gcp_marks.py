@@ -44,6 +44,7 @@ class _Marker(NamedTuple):
     colour: tuple[int, int, int]
     radius: float
     pos: np.ndarray
+    text: str = ""
 
 
 class GcpMarks:
@@ -71,6 +72,8 @@ class GcpMarks:
         snap_T = {g: T for g, T in app.transforms(app.worker.snapshot()).items() if T is not None}
         sel = app.gcp_panel.selected()
         roles = {g.id: g.role if g.enabled else "disabled" for g in app.session.gcps}
+        labels = {g.id: g.id if g.sigma_h_m is None else f"{g.id} (h +-{g.sigma_h_m:.0f} m)"
+                  for g in app.session.gcps}
 
         def colour(gid):
             return MARK_SEL if gid == sel else {"check": MARK_CHECK, "disabled": MARK_OFF}.get(roles.get(gid), MARK)
@@ -87,7 +90,8 @@ class GcpMarks:
                 pix = {g.id: g.observations[pl.window.image] for g in gs if pl.window.image in g.observations}
             for gid, (c, rr) in pix.items():
                 if pl.window.contains([(c, rr)])[0]:
-                    want[f"/gcp/plane_marks/{safe_name(gid)}"] = (pl.point_of(c, rr, lift=0.5 * r), colour(gid), gid)
+                    want[f"/gcp/plane_marks/{safe_name(gid)}"] = (pl.point_of(c, rr, lift=0.5 * r), colour(gid),
+                                                                  labels.get(gid, gid))
         shown: set[str] = set()
         for g, T in sorted(snap_T.items()):
             for gid, xyz in app.gcp_affine_positions(g).items():
@@ -95,7 +99,7 @@ class GcpMarks:
                     continue                  # groups share the ENU frame: one marker per GCP
                 shown.add(gid)
                 want[f"/gcp/cloud/g{g}/{safe_name(gid)}"] = (
-                    T.apply(np.asarray(xyz)[None])[0].astype(float), colour(gid), gid)
+                    T.apply(np.asarray(xyz)[None])[0].astype(float), colour(gid), labels.get(gid, gid))
         return want
 
     def radius(self) -> float:
@@ -129,7 +133,7 @@ class GcpMarks:
         for name, (pos, col, text) in want.items():
             have = self.items.get(name)
             on_plane = name.startswith("/gcp/plane_marks/") and app.picking.plane is not None
-            if have is not None and have.colour == col and abs(have.radius / r - 1) < 0.1:
+            if have is not None and have.colour == col and have.text == text and abs(have.radius / r - 1) < 0.1:
                 if np.linalg.norm(have.pos - pos) > 1e-6 * r:
                     have.label.position = tuple(pos + label_offset(have.radius, on_plane))
                     self.items[name] = have._replace(pos=pos)
@@ -138,7 +142,7 @@ class GcpMarks:
                 have.label.remove()
             label = sc.add_label(f"{name}_label", text, position=tuple(pos + label_offset(r, on_plane)),
                                  anchor="bottom-left", font_screen_scale=0.7)
-            self.items[name] = _Marker(label, col, r, pos)
+            self.items[name] = _Marker(label, col, r, pos, text)
         self._draw_rings()
         self._draw_residual_vectors()
         self._draw_drag_handle()
@@ -152,7 +156,7 @@ class GcpMarks:
         on_plane = flat if app.picking.plane is None else \
             quat_to_matrix(np.asarray(app.picking.plane.wxyz)).astype(np.float32)
         sets: dict[str, list] = {}
-        for name, (_, col, r, pos) in self.items.items():
+        for name, (_, col, r, pos, _) in self.items.items():
             place = name.rsplit("/", 1)[0]
             R = on_plane if place == "/gcp/plane_marks" else flat
             seg = ring_segments(r) @ R.T + np.asarray(pos, np.float32)

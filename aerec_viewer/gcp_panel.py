@@ -101,6 +101,10 @@ class GcpPanel:
         self.enable_toggle = gui.add_button("Disable it", disabled=True,
                                             hint="a disabled GCP keeps its observations but is left "
                                                  "out of the upgrade (fit and scores)")
+        self.take_height = gui.add_button(
+            "Take the images' height", disabled=True,
+            hint="for a GCP whose height is doubtful (read off the DEM at a roof or a wall): the "
+                 "height the last upgrade's images put it at")
         with gui.add_folder("Ground coordinates", expand_by_default=False):
             self.gid = gui.add_text("Id", "")
             self.role = gui.add_dropdown("Role", list(ROLES), initial_value="control")
@@ -241,6 +245,7 @@ class GcpPanel:
         self.jump.on_update(lambda ev: app.submit(lambda: self._on_jump(ev.client)))
         self.role_toggle.on_click(lambda _: app.submit(self._toggle_role))
         self.enable_toggle.on_click(lambda _: app.submit(self._toggle_enabled))
+        self.take_height.on_click(lambda _: app.submit(self.take_images_height))
         self.predict.on_click(lambda _: app.submit(self._predict))
         self.accept.on_click(lambda ev: app.submit(lambda: self._accept(ev.client)))
         self.undo.on_click(lambda _: app.submit(self._undo))
@@ -407,6 +412,24 @@ class GcpPanel:
             raise GcpError("select a GCP first")
         g = set_enabled(self.app.session, gid, not self.app.session.get(gid).enabled)
         self.app.gcps_changed(select=gid, note=f"{gid} {'enabled' if g.enabled else 'disabled: the upgrade leaves it out'}")
+
+    def take_images_height(self) -> float:
+        """Set the selected GCP's height to the one the last upgrade's images give it."""
+        from .results import images_height
+
+        gid = self.selected()
+        if gid is None:
+            raise GcpError("select a GCP first")
+        g = self.app.session.get(gid)
+        h = images_height(self.app.upgrade, g)
+        if h is None:
+            raise GcpError(f"no upgrade has placed {gid} yet: place it in two images, press Upgrade "
+                           "(Results tab), then take its height")
+        old = g.h
+        edit_gcp(self.app.session, gid, x=g.lon, y=g.lat, h=h, sigma_h_m=None)
+        self.app.gcps_changed(select=gid, note=f"{gid}: height {h:.2f} m from the images (was {old:.2f} m, "
+                                               f"{h - old:+.2f} m); press Upgrade again")
+        return h
 
     def _forget_pick(self) -> None:
         gid = self.selected()
@@ -666,6 +689,7 @@ class GcpPanel:
         s = self.app.session
         g = s.get(gid) if gid is not None and gid in s.ids else None
         self.role_toggle.disabled = self.enable_toggle.disabled = g is None
+        self.take_height.disabled = g is None or g.sigma_h_m is None
         if g is not None:
             self.role_toggle.label = "Make it a check point" if g.role == "control" else "Make it a control point"
             self.enable_toggle.label = "Disable it" if g.enabled else "Enable it"

@@ -163,8 +163,10 @@ def ground_to_llh(x: float, y: float, h: float, epsg: int | None) -> tuple[float
 
 
 def new_gcp(s: GcpSession, gcp_id: str | None = None, *, x: float, y: float, h: float,
-            epsg: int | None = None, role: str = "control", sigma_m: float | None = None) -> GCP:
-    """Add a GCP with ground coordinates (lon, lat, h, or E, N, h in `epsg`); returns it."""
+            epsg: int | None = None, role: str = "control", sigma_m: float | None = None,
+            sigma_h_m: float | None = None) -> GCP:
+    """Add a GCP with ground coordinates (lon, lat, h, or E, N, h in `epsg`; sigma_h_m: its
+    height known only to that many metres); returns it."""
     gid = (gcp_id or "").strip() or next_gcp_id(s)
     if gid in s.ids:
         raise GcpError(f"GCP {gid} already exists")
@@ -175,7 +177,7 @@ def new_gcp(s: GcpSession, gcp_id: str | None = None, *, x: float, y: float, h: 
         if abs(other.lon - lon) < 1e-9 and abs(other.lat - lat) < 1e-9 and abs(other.h - hh) < 1e-4:
             raise GcpError(f"{other.id} already has these ground coordinates: type the new GCP's "
                            f"own coordinates (or select {other.id} to add an observation to it)")
-    g = GCP(gid, lon, lat, hh, role, sigma_m, {})
+    g = GCP(gid, lon, lat, hh, role, sigma_m, {}, sigma_h_m=sigma_h_m)
     s.gcps.append(g)
     _changed(s, f"new {gid}")
     return g
@@ -199,8 +201,11 @@ def import_site_gcps(s: GcpSession, ids: list[str] | None = None, *,
 
 def edit_gcp(s: GcpSession, gcp_id: str, *, new_id: str | None = None, x: float | None = None,
              y: float | None = None, h: float | None = None, epsg: int | None = None,
-             role: str | None = None) -> GCP:
-    """Change a GCP's id, role or ground coordinates (x, y, h all given, or none)."""
+             role: str | None = None, sigma_h_m: float | None | str = "typed") -> GCP:
+    """Change a GCP's id, role or ground coordinates (x, y, h all given, or none). sigma_h_m:
+    how well the new height is known (metres; None: as the horizontal); "typed" (the default):
+    a height typed in is the operator's (as well known as the rest), an unchanged one keeps its
+    sigma."""
     g = s.get(gcp_id)
     nid = new_id.strip() if new_id is not None and new_id.strip() and new_id.strip() != gcp_id else None
     if nid is not None and nid in s.ids:
@@ -218,6 +223,10 @@ def edit_gcp(s: GcpSession, gcp_id: str, *, new_id: str | None = None, x: float 
     if role is not None:
         g.role = role
     if llh is not None:
+        if sigma_h_m != "typed":
+            g.sigma_h_m = sigma_h_m
+        elif abs(llh[2] - g.h) > 1e-4:
+            g.sigma_h_m = None
         g.lon, g.lat, g.h = llh
     _changed(s, f"edit {g.id}")
     return g
@@ -287,7 +296,13 @@ def describe(g: GCP, residuals: dict[str, float] | None = None) -> str:
     """Markdown description of one GCP; `residuals`: image -> reprojection residual (px) of
     its observations (where it is triangulated), shown and flagged above FLAG_RESIDUAL_PX."""
     lines = [f"**{g.id}** ({g.role}{'' if g.enabled else ', **disabled**: left out of the upgrade'}): "
-             f"lon {g.lon:.7f}, lat {g.lat:.7f}, h {g.h:.2f} m"]
+             f"lon {g.lon:.7f}, lat {g.lat:.7f}, h {g.h:.2f} m"
+             + (f" **+- {g.sigma_h_m:.1f} m**" if g.sigma_h_m is not None else "")]
+    if g.sigma_h_m is not None:
+        lines.append(f"- *its height is known only to +- {g.sigma_h_m:.1f} m* (read off the DEM where it "
+                     "changes around the spot: a roof or a wall?). The upgrade takes its height from the "
+                     "images where they know their viewing angles; after it, \"Take the images' height\" "
+                     "sets it. Or type the surveyed height.")
     res = residuals or {}
 
     def tail(im: str) -> str:

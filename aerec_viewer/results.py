@@ -160,6 +160,19 @@ def run_upgrade(session: GcpSession, models: dict, cfg: Config, images: dict | N
                           gcps_key=gcps_key(session))
 
 
+def images_height(outcome: "UpgradeOutcome | None", gcp) -> float | None:
+    """The ellipsoidal height the upgrade's images put a GCP at (its surveyed position moved by
+    its height residual, fitted minus surveyed, in the first group that has one), or None."""
+    if outcome is None:
+        return None
+    for g in sorted(outcome.results):
+        row = next((p for p in outcome.results[g].points if p["id"] == gcp.id and p.get("dU") is not None), None)
+        if row is not None:
+            enu = outcome.frame.geodetic_to_enu(np.array([gcp.llh]))[0] + np.array([0.0, 0.0, row["dU"]])
+            return float(outcome.frame.enu_to_geodetic(enu[None])[0][2])
+    return None
+
+
 def gcps_key(session: GcpSession) -> str:
     """A fingerprint of the GCPs' content (positions, roles, observations, picks): two sets that
     the upgrade would fit the same have the same key, whatever edits and undos lie between."""
@@ -242,6 +255,13 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
                  ", no equation to spare: only check points and the pixel residuals tell")
         parts.append(f"#### Group {g}: in metres ({r.n_control_used} control GCPs{spare})\n\n"
                      + residual_table_markdown(r.to_dict()))
+        doubtful = [p for p in r.points if p.get("sigma_h_m") is not None and p.get("dU") is not None]
+        if doubtful:
+            parts.append("Heights known only roughly (read off the DEM), as the images put them: "
+                         + "; ".join(f"{p['id']} {p['dU']:+.2f} m (given +- {p['sigma_h_m']:.1f} m)" for p in doubtful)
+                         + ". Select one and press *Take the images' height* (GCPs tab)"
+                         + ("" if r.views else ": the images here do not state their viewing angles, so "
+                            "these come from the other GCPs alone") + ".")
         mb = outcome.metric.get(g) or {}
         if mb.get("applied"):
             parts.append(f"Horizontal distortion corrected from the orbit's geometry: {mb['warp_rms_m']:.3f} m RMS "

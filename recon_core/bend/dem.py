@@ -58,6 +58,13 @@ class ReferenceDem:
     height: int
     nodata: float | None
 
+    def cell_m(self, lat: float) -> float:
+        """The raster's cell size in metres (the larger side) at latitude lat."""
+        a, e = abs(self.transform.a), abs(self.transform.e)
+        if getattr(self.crs, "is_geographic", False):
+            return float(max(a * 111_320.0 * np.cos(np.deg2rad(lat)), e * 111_320.0))
+        return float(max(a, e))
+
     def heights(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
         """Bilinear heights at (lon, lat) (degrees, WGS84); NaN outside the raster or on nodata."""
         import rasterio

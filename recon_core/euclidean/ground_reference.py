@@ -83,7 +83,40 @@ class GroundReference:
         return float(np.ptp(h)) if len(h) > 1 else None
 
 
-EDGE_SPREAD_M = 1.0   # a DEM changing more than this within 1 m of the spot: its height is uncertain
+    def height_doubt(self, lon: float, lat: float) -> "HeightDoubt | None":
+        """How far the DEM's height at a spot can be trusted: its range within 1 m and within
+        1.5 of its cells around it (a 5 m DEM smooths a roof into its surroundings: a roof
+        corner gets a height between the roof's and the ground's, and only the wider ring shows
+        the change). None without a DEM or where it has no height."""
+        if self.dem is None:
+            return None
+        cell = self.dem.cell_m(lat)
+        radius = max(1.0, 1.5 * cell)
+        spread = [x for x in (self.height_spread(lon, lat, 1.0), self.height_spread(lon, lat, radius))
+                  if x is not None]
+        return None if not spread else HeightDoubt(max(spread), radius, cell)
+
+
+@dataclass(frozen=True)
+class HeightDoubt:
+    """The DEM's change around a spot: spread_m (max - min) within radius_m (1.5 of its cells of
+    cell_m metres)."""
+
+    spread_m: float
+    radius_m: float
+    cell_m: float
+
+    @property
+    def flat(self) -> bool:
+        return self.spread_m <= EDGE_SPREAD_M
+
+    @property
+    def sigma_m(self) -> float:
+        """The height's standard deviation when taken from the DEM there: anywhere in its range."""
+        return max(self.spread_m / 2.0, EDGE_SPREAD_M / 2.0)
+
+
+EDGE_SPREAD_M = 1.0   # a DEM changing more than this around the spot: its height is uncertain
 
 
 def open_ground_reference(ortho: str | Path, dem: str | Path | None = None) -> GroundReference:

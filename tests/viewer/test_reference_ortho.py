@@ -163,3 +163,91 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
         assert gp.selected() == new and gp.image.value == first
     finally:
         app.stop()
+
+
+def _roof_reference(tmp_path, site, cell_m: float = 5.0):
+    """A 5 m DEM of flat ground at 100 m with a 9 m block (a building its cells smooth), and a
+    0.5 m orthoimage over it, in the site's CRS, around the site's first GCP."""
+    from affine import Affine
+
+    with rasterio.open(site / "gt_dsm.tif") as src:
+        crs, tf = src.crs, src.transform
+    e0, n0 = tf.c, tf.f
+    dem = np.full((40, 40), 100.0, np.float32)
+    dem[10:14, 10:14] = 109.0                              # 20 m x 20 m, its corner at cell (10, 10)
+    dem_path, ortho = tmp_path / "dem5.tif", tmp_path / "ortho05.tif"
+    with rasterio.open(dem_path, "w", driver="GTiff", width=40, height=40, count=1, dtype="float32",
+                       crs=crs, transform=Affine(cell_m, 0, e0, 0, -cell_m, n0)) as dst:
+        dst.write(dem[None])
+    with rasterio.open(ortho, "w", driver="GTiff", width=400, height=400, count=1, dtype="uint8",
+                       crs=crs, transform=Affine(cell_m / 10, 0, e0, 0, -cell_m / 10, n0)) as dst:
+        dst.write(np.random.default_rng(0).integers(0, 255, (1, 400, 400)).astype(np.uint8))
+    return open_ground_reference(ortho, dem_path)
+
+
+def test_a_dem_height_at_a_roof_corner_is_doubtful(tiny_site, tmp_path):
+    """A roof corner clicked on the orthoimage: the 5 m DEM gives it a height between the roof's
+    and the ground's; within 1.5 of the DEM's cells it changes by metres: the height is
+    doubtful, its sigma half that change. Flat ground far from the block is not."""
+    ref = _roof_reference(tmp_path, tiny_site)
+    lon, lat, h = ref.ground_at(101.5, 101.5)                # 0.75 m inside the roof's corner
+    assert 100.0 < h < 109.0
+    doubt = ref.height_doubt(lon, lat)
+    assert doubt.cell_m == pytest.approx(5.0) and not doubt.flat and doubt.spread_m > 4.0
+    assert doubt.sigma_m == pytest.approx(doubt.spread_m / 2)
+    lon, lat, _ = ref.ground_at(300.0, 300.0)                # open ground
+    assert ref.height_doubt(lon, lat).flat
+
+
+def test_a_doubtful_height_is_flagged_and_the_images_give_it(tiny_run, tmp_path):
+    """In the viewer: a GCP placed on the orthoimage at a roof corner is flagged before any
+    upgrade (its sigma, on its marker and in the upgrade's list); a control GCP 8 m low that says
+    so gets its height from the images: "Take the images' height" puts it within 0.5 m."""
+    from aerec_viewer.app import ViewerApp
+    from aerec_viewer.gcp_session import edit_gcp
+    from aerec_viewer.results import run_upgrade
+
+    state, _ = tiny_run
+    assert sum(im.view is not None for im in state.site.images) >= 2
+    out = tmp_path / "out"
+    shutil.copytree(state.out, out, ignore=shutil.ignore_patterns(".aerec.lock"))
+    ref = _roof_reference(tmp_path, state.site.root)
+    app = ViewerApp(out, state.site.root, None, mode="reopen", port=0, update_hz=20.0, reference=ref)
+    app.start()
+    try:
+        assert app.worker.done.wait(60)
+        app.wait_idle()
+        gp = app.gcp_panel
+        app.call(lambda: (setattr(gp.zoom_click, "value", False), setattr(gp.walk, "value", False),
+                          setattr(gp.image, "value", ref.ortho.name), gp.select_id(None)))
+        app.wait_idle()
+        app.call(lambda: setattr(gp.gid, "value", "ROOF-1"))
+        app.call(lambda: app.picking.show(wait=True))
+        p = app.picking.plane
+        target = p.point_of(101.5, 101.5)
+        origin = target + np.array([0.0, 0.0, 40.0]) * p.render_width / 40.0
+        app.call(lambda: app.on_plane_click(origin, target - origin))
+        g = app.session.get("ROOF-1")
+        assert g.sigma_h_m is not None and g.sigma_h_m > 2.0
+        assert "known only to" in gp.info.content and not gp.take_height.disabled
+        marks = app.call(app.marks.marker_positions)
+        assert "h +-" in marks["/gcp/plane_marks/ROOF-1"][2]
+        assert "height known only to" in app.g_ready_list.content
+        # a typed height is the operator's: no longer doubtful
+        app.call(lambda: edit_gcp(app.session, "ROOF-1", x=g.lon, y=g.lat, h=g.h + 3.0))
+        assert app.session.get("ROOF-1").sigma_h_m is None
+
+        # a control GCP of the run, 8 m low, says so; the images give its height
+        ctrl = [x for x in app.session.gcps if x.role == "control" and len(x.observations) >= 2]
+        true_h = ctrl[0].h
+        app.call(lambda: edit_gcp(app.session, ctrl[0].id, x=ctrl[0].lon, y=ctrl[0].lat,
+                                  h=true_h - 8.0, sigma_h_m=4.0))
+        app.call(lambda: setattr(app, "upgrade", run_upgrade(app.session, app.models, app.cfg,
+                                                             {im.name: im for im in app.site.images})))
+        app.call(lambda: gp.select_id(ctrl[0].id))
+        app.wait_idle()
+        h = app.call(gp.take_images_height)
+        assert abs(h - true_h) < 0.5, (h, true_h)
+        assert app.session.get(ctrl[0].id).sigma_h_m is None
+    finally:
+        app.stop()
