@@ -819,6 +819,7 @@ class ViewerApp:
             self._set_md(self.g_upgrade_md, f"**Upgrade failed:** {exc}")
             raise
         self.upgrade = outcome
+        self.gcp_panel.listing.content = self.gcp_panel.working_set_table()   # each GCP's error now
         self._euclid = {g: outcome.transform(g) for g in outcome.results}
         self._set_md(self.g_upgrade_md, outcome_markdown(outcome))
         self.g_frame_sel.disabled = False

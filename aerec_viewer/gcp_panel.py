@@ -4,6 +4,7 @@ picking plane and its loupe, where a click becomes a pixel, are the picking view
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Callable, Protocol
 
 import numpy as np
@@ -22,7 +23,9 @@ from .gcp_session import (
     describe,
     edit_gcp,
     ground_to_llh,
+    nudge_observation,
     import_site_gcps,
+    merge_gcps,
     merge_last,
     new_gcp,
     redo,
@@ -33,6 +36,22 @@ from .gcp_session import (
     undo,
 )
 from .picking import PickingView
+
+
+def upgrade_errors(outcome) -> dict[str, str]:
+    """GCP id -> "dE / dN / dU" (m) from an upgrade's rows (the first group that scores it): a
+    control point's leave-one-out error (marked *) where there is one, else its residual."""
+    out: dict[str, str] = {}
+    if outcome is None:
+        return out
+    for g in sorted(outcome.results):
+        for p in outcome.results[g].points:
+            if p["id"] in out or p.get("dU") is None:
+                continue
+            loo = p.get("loo_dU") is not None and p["role"] == "control"
+            e, n, u = (p[f"loo_d{a}"] if loo else p[f"d{a}"] for a in "ENU")
+            out[p["id"]] = f"{e:+.2f} / {n:+.2f} / {u:+.2f}" + ("*" if loo else "")
+    return out
 
 
 class GcpPanelHost(Protocol):
@@ -101,6 +120,11 @@ class GcpPanel:
         self.enable_toggle = gui.add_button("Disable it", disabled=True,
                                             hint="a disabled GCP keeps its observations but is left "
                                                  "out of the upgrade (fit and scores)")
+        self.nudge_step = gui.add_dropdown("Nudge step", self.NUDGE_STEPS, initial_value=self.NUDGE_STEPS[0],
+                                           hint="how far a nudge moves the selected GCP's observation")
+        self.nudges = gui.add_button_group("Nudge it", list(self.NUDGE_DIRS),
+                                           hint="moves the selected GCP's observation in the image shown "
+                                                "(image pixels; up: towards row 0)")
         self.take_height = gui.add_button(
             "Take the images' height", disabled=True,
             hint="for a GCP whose height is doubtful (read off the DEM at a roof or a wall): the "
@@ -119,6 +143,13 @@ class GcpPanel:
             self.create = gui.add_button("New GCP")
         with gui.add_folder("Working set", expand_by_default=True):
             self.listing = gui.add_markdown("")
+        with gui.add_folder("Markers as CSV", expand_by_default=False):
+            gui.add_markdown("One row per observation: `id, role, x, y, h, epsg, sigma_m, image, col, row` "
+                             "(x, y: lon, lat for epsg 4979, else E, N), as `aerec gcps convert` reads.")
+            self.export_csv = gui.add_button("Export the working set (CSV)")
+            self.import_csv = gui.add_upload_button("Import markers (CSV)", mime_type=".csv,text/csv,text/plain",
+                                                    hint="adds new GCPs; a known id takes the file's ground "
+                                                         "position, role and observations (one Undo)")
         with gui.add_folder("Site GCP list", expand_by_default=False):
             cat = [g.id for g in s.catalogue] or ["(the site has no gcps.geojson)"]
             self.catalogue = gui.add_dropdown("Site GCP", cat, initial_value=cat[0])
@@ -163,6 +194,10 @@ class GcpPanel:
         ("ctrl+Z", "undo", lambda self, ev: self._undo()),
         ("ctrl+shift+Z", "redo", lambda self, ev: self._redo()),
     )
+    # the nudge buttons: the selected GCP's observation in the image shown moves by the step
+    # chosen (viser's arrow keys turn the camera, so the nudges are buttons)
+    NUDGE_STEPS = ("0.1 px", "0.5 px", "1 px")
+    NUDGE_DIRS = {"left": (-1, 0), "right": (1, 0), "up": (0, -1), "down": (0, 1)}
     # with a reference orthoimage (aerec view --reference-ortho)
     REFERENCE_SHORTCUTS = (
         ("G", "a new GCP on the reference orthoimage", lambda self, ev: self.new_on_reference()),
@@ -171,6 +206,20 @@ class GcpPanel:
     def shortcut_rows(self) -> tuple:
         """SHORTCUTS, and REFERENCE_SHORTCUTS when the viewer has a reference orthoimage."""
         return self.SHORTCUTS + (self.REFERENCE_SHORTCUTS if getattr(self.app, "reference", None) else ())
+
+    def nudge(self, dcol: float, drow: float) -> tuple[float, float]:
+        """Move the selected GCP's observation in the image shown by (dcol, drow) pixels."""
+        gid = self.selected()
+        if gid is None:
+            raise GcpError("select a GCP first")
+        plane = self.app.picking.plane
+        image = plane.window.image if plane is not None else self.image.value
+        if image not in self.app.session.images:
+            raise GcpError("nudges move an observation in a site image; on the reference orthoimage, "
+                           "click the spot again")
+        c, r = nudge_observation(self.app.session, gid, image, dcol, drow)
+        self.app.gcps_changed(select=gid, note=f"{gid} in {image}: col {c:.2f}, row {r:.2f}")
+        return c, r
 
     def new_on_reference(self) -> None:
         """Select "(new GCP ...)" and show the reference orthoimage: the next click there (through
@@ -192,8 +241,8 @@ class GcpPanel:
         out = {}
         for key, what, action in self.shortcut_rows():
             mods, _, hot = key.rpartition("+")
-            modifier = {"": None, "ctrl": "cmd/ctrl", "shift": "shift",
-                        "ctrl+shift": "cmd/ctrl+shift"}[mods]
+            modifier = {"": None, "ctrl": "cmd/ctrl", "shift": "shift", "alt": "alt",
+                        "alt+shift": "alt+shift", "ctrl+shift": "cmd/ctrl+shift"}[mods]
             h = gui.add_command(what.capitalize(), hotkey=hot if len(hot) > 1 else hot.upper(),
                                 modifier=modifier)
             h.on_trigger(lambda ev, action=action: self.app.submit(lambda: action(self, ev)))
@@ -246,6 +295,13 @@ class GcpPanel:
         self.role_toggle.on_click(lambda _: app.submit(self._toggle_role))
         self.enable_toggle.on_click(lambda _: app.submit(self._toggle_enabled))
         self.take_height.on_click(lambda _: app.submit(self.take_images_height))
+        self.export_csv.on_click(lambda ev: app.submit(lambda: self.export_markers(ev.client)))
+        self.import_csv.on_upload(lambda ev: app.submit(
+            lambda f=ev.target.value: self.import_markers(f.name, f.content)))
+        def nudged(ev) -> None:
+            (dc, dr), step = self.NUDGE_DIRS[ev.target.value], float(self.nudge_step.value.split()[0])
+            app.submit(lambda: self.nudge(dc * step, dr * step))
+        self.nudges.on_click(nudged)
         self.predict.on_click(lambda _: app.submit(self._predict))
         self.accept.on_click(lambda ev: app.submit(lambda: self._accept(ev.client)))
         self.undo.on_click(lambda _: app.submit(self._undo))
@@ -412,6 +468,36 @@ class GcpPanel:
             raise GcpError("select a GCP first")
         g = set_enabled(self.app.session, gid, not self.app.session.get(gid).enabled)
         self.app.gcps_changed(select=gid, note=f"{gid} {'enabled' if g.enabled else 'disabled: the upgrade leaves it out'}")
+
+    def export_markers(self, client=None) -> str:
+        """The working set as CSV, sent to the tab that asked (and returned)."""
+        from recon_core.io.gcps_csv import gcps_csv_text
+
+        text = gcps_csv_text(self.app.session.gcps)
+        if client is not None:
+            client.send_file_download(f"{self.app.site.name}_gcps.csv", text.encode())
+        self.app.note(f"{len(self.app.session.gcps)} GCP(s) exported as CSV")
+        return text
+
+    def import_markers(self, name: str, content: bytes) -> tuple[list[str], list[str]]:
+        """Read a marker CSV (as `aerec gcps convert` does) into the working set."""
+        import tempfile
+
+        from recon_core.errors import InputError
+        from recon_core.io.gcps_csv import read_gcps_csv
+
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / (Path(name).name or "markers.csv")
+            path.write_bytes(content)
+            try:
+                gcps = read_gcps_csv(path)
+            except InputError as exc:
+                raise GcpError(f"{name}: {exc.problem}") from None
+        added, updated = merge_gcps(self.app.session, gcps, source=name)
+        self.app.gcps_changed(note=f"{name}: {len(added)} GCP(s) added"
+                                   + (f" ({', '.join(added)})" if added else "")
+                                   + f", {len(updated)} updated" + (f" ({', '.join(updated)})" if updated else ""))
+        return added, updated
 
     def take_images_height(self) -> float:
         """Set the selected GCP's height to the one the last upgrade's images give it."""
@@ -716,22 +802,27 @@ class GcpPanel:
 
     def working_set_table(self) -> str:
         """The working set at a glance (a marker list): each GCP's role, the registered images it
-        is placed in, and its worst reprojection residual (px; where >= 2 observations give one),
-        the selected one in bold."""
+        is placed in, its error in metres from the last upgrade (E / N / U: a check point's
+        residual; a control point's as predicted by the others when the fit has some to spare,
+        marked *, else its residual in the fit) and its worst reprojection residual (px; where
+        >= 2 observations give one), the selected one in bold."""
         s = self.app.session
         if not s.gcps:
             return "No GCP yet."
         images = self._registered_images()
         sel = self.selected()
-        rows = ["| GCP | role | images | worst residual |", "|---|---|---|---|"]
+        errors = upgrade_errors(getattr(self.app, "upgrade", None))
+        rows = ["| GCP | role | images | error E / N / U (m) | worst residual |", "|---|---|---|---|---|"]
         for g in s.gcps:
             res = self.residuals(g.id) if len(g.observations) >= 2 else {}
             worst = max(res.items(), key=lambda kv: kv[1], default=None)
             name = f"**{g.id}**" if g.id == sel else g.id
             role = g.role if g.enabled else f"{g.role}, off"
             placed = f"{len(set(g.observations) & images)} / {len(images)}"
-            rows.append(f"| {name} | {role} | {placed} | "
+            rows.append(f"| {name} | {role} | {placed} | {errors.get(g.id, '-')} | "
                         + ("-" if worst is None else f"{worst[1]:.2f} px ({worst[0]})") + " |")
+        if any(v.endswith("*") for v in errors.values()):
+            rows.append("\n\\* predicted by the other control GCPs (left out of the fit)")
         return "\n".join(rows)
 
     def set_regions(self, names: list[str]) -> None:

@@ -199,6 +199,36 @@ def import_site_gcps(s: GcpSession, ids: list[str] | None = None, *,
     return added
 
 
+def merge_gcps(s: GcpSession, gcps: list[GCP], source: str = "CSV") -> tuple[list[str], list[str]]:
+    """Bring GCPs (a marker file) into the working set, as one step of the history: a new id is
+    added; a known one takes the file's ground position, role and sigmas, and its observations
+    (the others it had are kept). Every observation is checked first (image of the site, pixel
+    inside it): nothing changes unless all are. Returns (ids added, ids updated)."""
+    bad = []
+    for g in gcps:
+        for im, (c, r) in g.observations.items():
+            if im not in s.images:
+                bad.append(f"{g.id}: no image {im!r} in the site")
+            elif not (-0.5 <= c <= s.images[im][0] - 0.5 and -0.5 <= r <= s.images[im][1] - 0.5):
+                bad.append(f"{g.id}: pixel ({c:.1f}, {r:.1f}) outside {im}")
+    if bad:
+        raise GcpError(f"{source}: nothing imported: " + "; ".join(bad[:5]) + (f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""))
+    added, updated = [], []
+    for g in gcps:
+        if g.id in s.ids:
+            have = s.get(g.id)
+            have.lon, have.lat, have.h, have.role = g.lon, g.lat, g.h, g.role
+            have.sigma_m, have.sigma_h_m = g.sigma_m, g.sigma_h_m
+            have.observations.update(g.observations)
+            updated.append(g.id)
+        else:
+            s.gcps.append(copy.deepcopy(g))
+            added.append(g.id)
+    if added or updated:
+        _changed(s, f"import {len(added) + len(updated)} GCP(s) from {source}")
+    return added, updated
+
+
 def edit_gcp(s: GcpSession, gcp_id: str, *, new_id: str | None = None, x: float | None = None,
              y: float | None = None, h: float | None = None, epsg: int | None = None,
              role: str | None = None, sigma_h_m: float | None | str = "typed") -> GCP:
@@ -267,6 +297,22 @@ def add_observation(s: GcpSession, gcp_id: str, image: str, col: float, row: flo
     g.observations[image] = (float(col), float(row))
     _changed(s, f"{'move' if had else 'add'} {gcp_id}'s observation in {image}")
     return g
+
+
+def nudge_observation(s: GcpSession, gcp_id: str, image: str, dcol: float, drow: float) -> tuple[float, float]:
+    """Move a GCP's observation in an image by (dcol, drow) pixels; successive nudges of the same
+    observation are one step of the history. Returns the new (col, row)."""
+    g = s.get(gcp_id)
+    if image not in g.observations:
+        raise GcpError(f"{gcp_id} has no observation in {image} to nudge: click its pixel first")
+    c, r = g.observations[image]
+    what = f"nudge {gcp_id}'s observation in {image}"
+    again = bool(s._undo) and s._undo[-1][1] == what and not s._redo
+    add_observation(s, gcp_id, image, c + dcol, r + drow)
+    s._undo[-1] = (s._undo[-1][0], what)
+    if again:
+        merge_last(s, 2, what)
+    return g.observations[image]
 
 
 def remove_observation(s: GcpSession, gcp_id: str, image: str) -> None:

@@ -17,6 +17,7 @@ the screen becomes a pixel, and how often the predictions bring the spot into th
     python bench/bench_operator.py                   # generates a 3-image site (2000 px) once
     python bench/bench_operator.py --shots /tmp/op   # also saves a screenshot after each step
     python bench/bench_operator.py --no-survey       # ground positions from an orthoimage + DEM
+    python bench/bench_operator.py --no-survey --roof-dem 5   # roof corners, a 5 m DEM
 
 --no-survey: the operator has no survey. The working set starts empty; the viewer is given a
 reference orthoimage of the site (the generator's true orthoimage, render_ortho, 0.5 m) and a
@@ -26,6 +27,16 @@ orthoimage around the GCP's true ground position), clicks it and then clicks it 
 the GCP gets its ground position from there, and the viewer goes back to the image shown
 before, where the person places it as above. Scored: the ground positions against the truth
 (horizontal, m; the height is the DEM's at the clicked spot), and the observations as above.
+
+--roof-dem CELL (with --no-survey): the DEM is the truth DSM averaged to CELL metres (a national
+DEM, a free global one), and the spots are roof corners (textured, on a roof, within 2 m of its
+edge), as a user picks them when the ground is bare: the DEM's height there is between the
+roof's and the ground's. The bench prints, for each GCP, the DEM's height against the truth and
+whether the viewer flagged it (sigma_h_m in OUT/gcps.geojson) before any upgrade; then the
+height the upgrade's images give each flagged GCP (the function behind "Take the images'
+height", called on the working set the person saved, with the site's viewing angles). Target
+(the operator issue): every roof-corner GCP within 0.5 m in height, or flagged before the
+upgrade.
 
 Site: a synthetic scene (seed 0, one date group of 3 images of 2000 x 2000 px, d = 1000); its
 working GCP set holds 4 control GCPs with ground coordinates only (no observation: the operator
@@ -138,6 +149,99 @@ def flat_spots(site: Path, ortho: Path, names: list[str], n: int) -> list[dict]:
     return out[:n]
 
 
+def roof_spots(site: Path, ortho: Path, dem: Path, names: list[str], n: int) -> list[dict]:
+    """n roof corners a user would click on the orthoimage: on a roof (the truth DSM 2 m or more
+    above the DEM there: the DEM smooths the building into the ground around it), within 2 m of
+    its edge, textured, seen in every image, one near the centre of each quarter of the site;
+    their true pixels by the images' RPCs, their height the truth DSM's."""
+    import cv2
+    import rasterio
+    from pyproj import Transformer
+
+    from recon_core.bend.dem import open_reference_dem
+    from recon_core.geometry.rpc import RPCModel
+
+    with rasterio.open(site / "gt_dsm.tif") as ds:
+        dsm, tf, crs, nd = ds.read(1).astype(np.float64), ds.transform, ds.crs, ds.nodata
+    with rasterio.open(ortho) as ds:
+        img = ds.read(1).astype(np.float32)
+    ok = dsm != nd
+    rows, cols = np.nonzero(ok)
+    e, nn = tf.c + (cols + 0.5) * tf.a, tf.f + (rows + 0.5) * tf.e
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(e, nn)
+    above = np.full(dsm.shape, -1e9)
+    above[rows, cols] = dsm[rows, cols] - open_reference_dem(dem).heights(np.asarray(lon), np.asarray(lat))
+    k = int(max(1, round(2.0 / abs(tf.a))))                      # 2 m in cells
+    lo = cv2.erode(np.where(ok, dsm, 1e9).astype(np.float32), np.ones((2 * k + 1, 2 * k + 1), np.uint8))
+    corner = cv2.cornerMinEigenVal(img / max(img.max(), 1.0), 5)
+    good = ok & (above > 2.0) & (dsm - lo > 2.0) & (corner > np.percentile(corner[ok], 80))
+    rpcs = {}
+    for name in names:
+        with rasterio.open(site / "images" / name) as ds:
+            rpcs[name] = (RPCModel.from_rasterio(ds.rpcs), ds.width, ds.height)
+    rows, cols = np.nonzero(good)
+    e, nn = tf.c + (cols + 0.5) * tf.a, tf.f + (rows + 0.5) * tf.e
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(e, nn)
+    llh = np.column_stack([lon, lat, dsm[rows, cols]])
+    inside = np.ones(len(llh), bool)
+    pix = {}
+    for name, (rpc, w, h) in rpcs.items():
+        p = rpc.project(llh)
+        pix[name] = p
+        inside &= (p[:, 0] > 100) & (p[:, 0] < w - 100) & (p[:, 1] > 100) & (p[:, 1] < h - 100)
+    H, W = dsm.shape
+    out = []
+    for qr, qc in ((0.25, 0.25), (0.25, 0.75), (0.75, 0.75), (0.75, 0.25)):
+        d = np.hypot(rows - qr * H, cols - qc * W) + np.where(inside, 0, 1e9)
+        i = int(np.argmin(d))
+        out.append({"id": f"ROOF-{len(out) + 1}", "role": "control", "llh": [float(v) for v in llh[i]],
+                    "true_observations": {nm: [float(v) for v in pix[nm][i]] for nm in names}})
+    return out[:n]
+
+
+def coarse_dem(site: Path, dst: Path, cell_m: float) -> Path:
+    """The truth DSM averaged to cell_m metres (a coarse DEM: buildings smoothed into the ground)."""
+    import rasterio
+    from affine import Affine
+    from rasterio.enums import Resampling
+
+    with rasterio.open(site / "gt_dsm.tif") as ds:
+        f = max(1, int(round(cell_m / abs(ds.transform.a))))
+        h, w = ds.height // f, ds.width // f
+        a = ds.read(1, out_shape=(h, w), resampling=Resampling.average, masked=True).astype(np.float32)
+        prof = ds.profile | {"width": w, "height": h, "dtype": "float32", "nodata": -9999.0,
+                             "transform": ds.transform * Affine.scale(ds.width / w, ds.height / h)}
+    with rasterio.open(dst, "w", **prof) as out:
+        out.write(np.ma.filled(a, -9999.0)[None])
+    return dst
+
+
+def images_heights(site: Path, out: Path) -> dict[str, tuple[float, float | None]]:
+    """GCP id -> (its height in the working set, the height the upgrade's images give it), for
+    the GCPs flagged as doubtful: the Upgrade button's fit and "Take the images' height"'s
+    reading of it, on the working set as saved."""
+    from dataclasses import fields
+
+    from aerec_viewer.results import UpgradeOutcome, images_height
+    from recon_core.config import Config
+    from recon_core.euclidean.upgrade_stage import upgrade_models
+    from recon_core.io.gcps import read_gcps_geojson
+    from recon_core.io.models import load_model
+    from recon_core.io.site import load_site
+
+    st = load_site(site)
+    gcps = read_gcps_geojson(out / "gcps.geojson")
+    models = {}
+    for g in range(8):
+        try:
+            models[g] = load_model(out, g)
+        except (OSError, ValueError, KeyError):
+            break
+    up = upgrade_models(gcps, models, Config(), {im.name: im for im in st.images})
+    outcome = UpgradeOutcome(**{f.name: getattr(up, f.name) for f in fields(up)}, gcps_version=0, gcps_key="")
+    return {g.id: (g.h, images_height(outcome, g)) for g in gcps if g.sigma_h_m is not None}
+
+
 def prepare_out(site: Path, out: Path, gcps: list[dict]) -> None:
     """Sparse reconstruction, then the working set = the chosen GCPs, ground coordinates only
     (none at all without a survey: `gcps` empty)."""
@@ -153,8 +257,9 @@ def prepare_out(site: Path, out: Path, gcps: list[dict]) -> None:
                        written_by="bench_operator (ground coordinates only)")
 
 
-def prepare_reference(site: Path, root: Path, seed: int) -> tuple[Path, Path]:
-    """The reference orthoimage (the generator's true one) and DEM (the truth DSM) of the site."""
+def prepare_reference(site: Path, root: Path, seed: int, roof_dem_m: float | None = None) -> tuple[Path, Path]:
+    """The reference orthoimage (the generator's true one) and DEM (the truth DSM, or it averaged
+    to roof_dem_m metres) of the site."""
     from recon_core.synthetic.generator import render_ortho
 
     ref = root / f"operator3_s{seed}_reference"
@@ -163,6 +268,11 @@ def prepare_reference(site: Path, root: Path, seed: int) -> tuple[Path, Path]:
         ref.mkdir(parents=True, exist_ok=True)
         render_ortho(site, ortho, operator_preset(), seed)
         shutil.copy(site / "gt_dsm.tif", dem)
+    if roof_dem_m:
+        coarse = ref / f"dem_{roof_dem_m:g}m.tif"
+        if not coarse.exists():
+            coarse_dem(site, coarse, roof_dem_m)
+        return ortho, coarse
     return ortho, dem
 
 
@@ -358,14 +468,21 @@ def main() -> None:
     ap.add_argument("--shots", type=Path, default=None, help="save a screenshot after each step")
     ap.add_argument("--no-survey", action="store_true",
                     help="no ground coordinates: take them from a reference orthoimage + DEM")
+    ap.add_argument("--roof-dem", type=float, default=None, metavar="CELL",
+                    help="with --no-survey: a DEM of CELL metres and GCPs on roof corners")
     args = ap.parse_args()
+    if args.roof_dem and not args.no_survey:
+        ap.error("--roof-dem goes with --no-survey")
 
     import rasterio
     from playwright.sync_api import sync_playwright
 
     site = ensure_site(args.root, args.seed)
-    reference = prepare_reference(site, args.root, args.seed) if args.no_survey else None
-    gcps = choose_gcps(site, flat=None if reference is None else reference[0])
+    reference = prepare_reference(site, args.root, args.seed, args.roof_dem) if args.no_survey else None
+    if args.roof_dem:
+        gcps = roof_spots(site, reference[0], reference[1], sorted(p.name for p in (site / "images").glob("*.tif")), 4)
+    else:
+        gcps = choose_gcps(site, flat=None if reference is None else reference[0])
     out = args.root / f"operator3_s{args.seed}_out"
     prepare_out(site, out, gcps)
     extra: list[str] = []
@@ -374,7 +491,7 @@ def main() -> None:
 
         ortho_path, dem_path = reference
         survey = out
-        out = args.root / f"operator3_s{args.seed}_nosurvey_out"
+        out = args.root / f"operator3_s{args.seed}_nosurvey{'_roof' if args.roof_dem else ''}_out"
         if out.exists():
             shutil.rmtree(out)
         shutil.copytree(survey, out, ignore=shutil.ignore_patterns(".aerec.lock"))
@@ -474,6 +591,19 @@ def main() -> None:
             enu = LocalFrame(*g["llh"]).geodetic_to_enu(np.array([got]))[0]
             print(f"  {g['id']} (as {g['viewer_id']}): horizontal {np.hypot(enu[0], enu[1]):.3f} m, "
                   f"height {enu[2]:+.3f} m")
+        if args.roof_dem:
+            flagged = images_heights(site, out)
+            print("heights: the DEM's, flagged before the upgrade, and the images' after it (m, against the truth):")
+            for g in gcps:
+                vid = g.get("viewer_id")
+                if vid is None or vid not in ground:
+                    continue
+                dem_err = ground[vid][2] - g["llh"][2]
+                h_img = flagged.get(vid, (None, None))[1]
+                verdict = ("flagged" if vid in flagged else "NOT flagged") + (
+                    "" if h_img is None else f"; the images' height {h_img - g['llh'][2]:+.3f} m")
+                ok = vid in flagged or abs(dem_err) <= 0.5
+                print(f"  {g['id']}: the DEM's {dem_err:+.3f} m, {verdict}  [{'ok' if ok else 'FAIL'}]")
     for g in gcps:
         for n in names:
             t = g["true_observations"][n]

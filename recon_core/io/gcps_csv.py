@@ -9,7 +9,8 @@ One row per observation (a GCP without observation: one row with empty image, co
 x, y: longitude and latitude in degrees when epsg is 4326 or 4979 (or empty), else easting and
 northing in that projected EPSG; h: ellipsoidal height in metres (docs: site-format.md); col, row:
 full-image pixel, centre of the top-left pixel = (0, 0). Columns may come in any order; id, x, y,
-h are required, role defaults to control. Every row of one id must give the same ground
+h are required, role defaults to control; an optional sigma_h_m column gives a height known worse
+than the horizontal (written when a GCP has one). Every row of one id must give the same ground
 coordinates, role and sigma. gcps.geojson stays the site's format: `aerec gcps convert` turns one
 into the other.
 """
@@ -35,9 +36,18 @@ GEOGRAPHIC = (0, 4326, 4979)
 def write_gcps_csv(path: str | Path, gcps: list[GCP], epsg: int | None = None) -> Path:
     """Write GCPs as CSV atomically; ground coordinates in lon/lat (epsg None) or E/N (a
     projected EPSG)."""
+    text = gcps_csv_text(gcps, epsg)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text)
+    return Path(path)
+
+
+def gcps_csv_text(gcps: list[GCP], epsg: int | None = None) -> str:
+    """The CSV text of GCPs (write_gcps_csv)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(COLUMNS)
+    with_h = any(g.sigma_h_m is not None for g in gcps)
+    w.writerow(COLUMNS + (("sigma_h_m",) if with_h else ()))
     for g in gcps:
         if epsg is None or int(epsg) in GEOGRAPHIC:
             x, y, code = f"{g.lon:.9f}", f"{g.lat:.9f}", 4979
@@ -50,12 +60,11 @@ def write_gcps_csv(path: str | Path, gcps: list[GCP], epsg: int | None = None) -
                 raise InputError(None, f"--epsg {epsg}: {g.id} has no E, N in it")
             x, y, code = f"{float(e):.4f}", f"{float(n):.4f}", int(epsg)
         base = [g.id, g.role, x, y, f"{g.h:.4f}", code, "" if g.sigma_m is None else f"{g.sigma_m:g}"]
+        tail = (["" if g.sigma_h_m is None else f"{g.sigma_h_m:g}"] if with_h else [])
         obs = sorted(g.observations.items()) or [(None, None)]
         for im, cr in obs:
-            w.writerow(base + ([im, f"{cr[0]:.3f}", f"{cr[1]:.3f}"] if im else ["", "", ""]))
-    with atomic_path(path) as tmp:
-        Path(tmp).write_text(buf.getvalue())
-    return Path(path)
+            w.writerow(base + ([im, f"{cr[0]:.3f}", f"{cr[1]:.3f}"] if im else ["", "", ""]) + tail)
+    return buf.getvalue()
 
 
 def _number(path: Path, line: int, name: str, text: str, required: bool = True) -> float | None:
@@ -129,11 +138,14 @@ def read_gcps_csv(path: str | Path, default_epsg: int | None = None) -> list[GCP
         sigma = _number(path, k, "sigma_m", get(row, "sigma_m"), required=False)
         if sigma is not None and sigma <= 0:
             raise InputError(path, f"line {k}: sigma_m must be positive")
+        sigma_h = _number(path, k, "sigma_h_m", get(row, "sigma_h_m"), required=False)
+        if sigma_h is not None and sigma_h <= 0:
+            raise InputError(path, f"line {k}: sigma_h_m must be positive")
         g = gcps.get(gid)
         if g is None:
-            g = gcps[gid] = GCP(gid, float(lon), float(lat), float(h), role, sigma, {})
+            g = gcps[gid] = GCP(gid, float(lon), float(lat), float(h), role, sigma, {}, sigma_h_m=sigma_h)
         elif (abs(g.lon - lon) > 1e-9 or abs(g.lat - lat) > 1e-9 or abs(g.h - h) > 1e-4
-              or g.role != role or g.sigma_m != sigma):
+              or g.role != role or g.sigma_m != sigma or g.sigma_h_m != sigma_h):
             raise InputError(path, f"line {k}: {gid} has other ground coordinates, role or sigma "
                                    "than on its first line")
         im = get(row, "image")

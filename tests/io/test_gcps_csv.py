@@ -49,6 +49,17 @@ def test_projected_coordinates_in_and_out(tmp_path):
     assert abs(s.lon - 10.5) < 1e-7 and s.observations == {"a.tif": (5.0, 6.0)} and s.role == "control"
 
 
+def test_a_height_known_worse_round_trips(tmp_path):
+    """sigma_h_m: an optional column, written only when a GCP has one."""
+    from recon_core.io.gcps import GCP
+
+    plain = GCP("A", 10.5, 45.25, 300.0, "control", None, {"a.tif": (1.0, 2.0)})
+    assert "sigma_h_m" not in write_gcps_csv(tmp_path / "a.csv", [plain]).read_text()
+    roof = GCP("B", 10.6, 45.25, 310.0, "control", None, {"a.tif": (3.0, 4.0), "b.tif": (5.0, 6.0)}, sigma_h_m=4.5)
+    back = read_gcps_csv(write_gcps_csv(tmp_path / "b.csv", [plain, roof]))
+    assert [g.sigma_h_m for g in back] == [None, 4.5] and back[1].observations == roof.observations
+
+
 @pytest.mark.parametrize("text, words", [
     ("id,x,y\nA,1,2\n", "missing column(s) h"),
     ("id,x,y,h\nA,1,north,3\n", "line 2: y 'north' is not a number"),
@@ -57,6 +68,7 @@ def test_projected_coordinates_in_and_out(tmp_path):
     ("id,x,y,h,image,col,row\nA,1,2,3,a.tif,1,2\nA,1,2,4,b.tif,1,2\n", "line 3: A has other ground"),
     ("id,x,y,h,image,col,row\nA,1,2,3,a.tif,1,2\nA,1,2,3,a.tif,5,5\n", "line 3: A observed twice"),
     ("id,x,y,h,epsg\nA,1,2,3,999999\n", "line 2: cannot use EPSG:999999"),
+    ("id,x,y,h,sigma_h_m\nA,1,2,3,-1\n", "line 2: sigma_h_m must be positive"),
     ("id,x,y,h,epsg\nA,1e9,1e9,3,32632\n", "line 2: E, N"),
     ("id,x,y,h\n\nA,1,2,3\n\nB,1,north,3\n", "line 5: y 'north'"),
 ])

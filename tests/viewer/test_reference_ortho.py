@@ -137,7 +137,7 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
         assert gp.selected() == "ORTHO-1"
         # the working set's table: its role, no image placed yet, no residual; in bold, selected
         n_img = len(app.call(gp._registered_images))
-        assert f"| **ORTHO-1** | control | 0 / {n_img} | - |" in gp.listing.content
+        assert f"| **ORTHO-1** | control | 0 / {n_img} | - | - |" in gp.listing.content
         # selected: a second click moves it
         click(45.0, 61.0)
         g = app.session.get("ORTHO-1")

@@ -5,6 +5,7 @@ GCP session have their own files."""
 
 from __future__ import annotations
 
+import copy
 import json
 import time
 from pathlib import Path
@@ -17,6 +18,7 @@ from aerec_viewer.gcp_marks import MARK_RING_PX
 from aerec_viewer.gcp_session import (
     GcpError,
     add_observation,
+    can_undo,
     delete_gcp,
     open_session,
     redo,
@@ -181,7 +183,7 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     assert pix is not None and abs(pix[0] - 123.25) < 1e-3 and abs(pix[1] - 200.75) < 1e-3
     assert app.last_click[:2] == ("NEW-1", img)
     n_img = len(app.call(gp._registered_images))
-    assert f"| **NEW-1** | control | 1 / {n_img} | - |" in gp.listing.content      # the working set's table
+    assert f"| **NEW-1** | control | 1 / {n_img} | - | - |" in gp.listing.content      # the working set's table
     saved = json.loads((out / "gcps.geojson").read_text())
     feat = {f["properties"]["id"]: f for f in saved["features"]}["NEW-1"]
     assert np.allclose(feat["properties"]["observations"][img], [123.25, 200.75], atol=1e-3)
@@ -233,6 +235,10 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     md = app.g_upgrade_md.content
     assert "| GCP | role | status | dE m | dN m | dU m | reproj px |" in md and "check" in md
     assert "N = 4" in md or "LOO" in md.upper() or "loo" in md
+    # the working set's table gives each scored GCP its error in metres, a check point's its residual
+    chk = checks[0]
+    assert (f"| {chk['id']} | check |" in gp.listing.content
+            and f"{chk['dE']:+.2f} / {chk['dN']:+.2f} / {chk['dU']:+.2f} |" in gp.listing.content)
     # the metric bend step: said when applied (the 3D view places the clouds by H_A alone)
     applied = outcome.metric[0].get("applied")
     assert ("Metric bend step: a horizontal warp of" in md) == bool(applied)
@@ -246,6 +252,66 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     assert 20.0 < np.ptp(P[:, 0]) < 20_000.0 and np.ptp(P[:, 2]) < np.ptp(P[:, 0])
     app.call(lambda: app.set_frame("affine"))
     assert app.scene._clouds[(0, "sparse")].transform.kind == "affine"
+
+
+def test_nudges_move_the_selected_observation_in_the_image_shown(live):
+    """The nudge buttons: the selected GCP's observation in the plane's image moves by the step
+    (0.1 px by default); successive nudges are one Undo; a GCP not observed there is refused."""
+    app, *_ = live
+    gp = app.gcp_panel
+    img = app.picking.plane.window.image
+    gid = next(g.id for g in app.session.gcps if img in g.observations)
+    c0, r0 = app.session.get(gid).observations[img]
+    app.call(lambda: gp.select_id(gid))
+    app.wait_idle()
+    for _ in range(3):
+        app.call(lambda: gp.nudge(0.1, 0.0))
+    app.call(lambda: gp.nudge(0.0, -0.1))
+    c, r = app.session.get(gid).observations[img]
+    assert (c - c0, r - r0) == pytest.approx((0.3, -0.1), abs=1e-9)
+    assert can_undo(app.session).startswith("nudge")
+    app.call(gp._undo)                       # one step back to where the nudges started
+    assert app.session.get(gid).observations[img] == pytest.approx((c0, r0), abs=1e-9)
+    other = next((g.id for g in app.session.gcps if img not in g.observations), None)
+    if other is not None:
+        app.call(lambda: gp.select_id(other))
+        app.wait_idle()
+        with pytest.raises(GcpError, match="no observation"):
+            app.call(lambda: gp.nudge(0.1, 0.0))
+
+
+def test_markers_go_out_and_come_back_as_csv(live):
+    """Export: the working set as CSV (what `aerec gcps convert` reads), sent to the tab.
+    Import: a known id takes the file's position and observations, a new one is added, all as
+    one Undo; a file naming an image the site lacks changes nothing."""
+    from types import SimpleNamespace
+
+    app, *_ = live
+    gp = app.gcp_panel
+    sent = []
+    client = SimpleNamespace(send_file_download=lambda name, data: sent.append((name, data)))
+    text = app.call(lambda: gp.export_markers(client))
+    assert sent and sent[0][0].endswith(".csv") and sent[0][1].decode() == text
+    n = len(app.session.gcps)
+    g0 = copy.deepcopy(app.session.gcps[0])
+    img = sorted(app.session.images)[0]
+    lines = text.splitlines()
+    moved = [ln.replace(f"{g0.h:.4f}", f"{g0.h + 1.0:.4f}") for ln in lines if ln.startswith(g0.id + ",")]
+    new = f"CSV-1,check,{g0.lon:.9f},{g0.lat + 1e-4:.9f},{g0.h:.4f},4979,,{img},10.000,20.000"
+    csv_in = "\n".join([lines[0], *moved, new]) + "\n"
+    added, updated = app.call(lambda: gp.import_markers("mine.csv", csv_in.encode()))
+    assert added == ["CSV-1"] and updated == [g0.id] and len(app.session.gcps) == n + 1
+    assert app.session.get(g0.id).h == pytest.approx(g0.h + 1.0, abs=1e-3)
+    assert app.session.get("CSV-1").observations == {img: (10.0, 20.0)}
+    assert can_undo(app.session).startswith("import")
+    app.call(gp._undo)
+    assert "CSV-1" not in app.session.ids and app.session.get(g0.id).h == pytest.approx(g0.h, abs=1e-4)
+    v = app.session.version
+    with pytest.raises(GcpError, match="nothing imported.*no image"):
+        app.call(lambda: gp.import_markers("bad.csv", (lines[0] + "\nX,control,1,2,3,4979,,nope.tif,1,2\n").encode()))
+    with pytest.raises(GcpError, match="bad.csv: missing column"):
+        app.call(lambda: gp.import_markers("bad.csv", b"id,x\nA,1\n"))
+    assert app.session.version == v
 
 
 def test_loupe_first_click_zooms_second_click_places(live):
