@@ -26,6 +26,7 @@ from typing import Callable
 import numpy as np
 
 from recon_core.errors import AerecError
+from recon_core.euclidean.control import count_words
 from recon_core.io.gcps import picked_positions
 
 from .display import (
@@ -791,9 +792,7 @@ class ViewerApp:
                                          self.cfg)
         can = bool(self.models) and can
         self.g_upgrade.disabled = not can
-        why = ("waiting for the sparse model" if not self.models else
-               f"{n} control GCP(s) seen in 2 images or more, {need} needed" if n < need else
-               f"{n} control GCPs seen in 2 images or more")
+        why = "waiting for the sparse model" if not self.models else count_words(n, need)
         stale = ""
         if self.upgrade is not None and self.upgrade.gcps_key != gcps_key(self.session):
             stale = "\n\n*The GCPs changed since the last upgrade: press Upgrade again.*"

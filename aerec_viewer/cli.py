@@ -371,9 +371,9 @@ class ConsoleProgress:
             self.status_told = snap.status
             if snap.status == "done" and snap.awaiting_gcps:
                 self._say(f"affine reconstruction finished in {t:.0f} s; outputs in {self.out}")
-                self._say("next: place 4 control GCPs (3 when the images state their viewing directions) "
-                          "in the GCP tab of the page (each in 2 images), "
-                          "then press Upgrade")
+                from recon_core.euclidean.control import need_words
+
+                self._say(f"next: place {need_words()} in the GCP tab of the page, then press Upgrade")
             elif snap.status == "done":
                 self._say(f"finished in {t:.0f} s; outputs in {self.out}")
                 self._say("next: the DSM and its height-error map are in the page's Results tab; "

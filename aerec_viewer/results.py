@@ -119,17 +119,18 @@ def gcp_state_table(session: GcpSession, models: dict, images: list[str]) -> str
 
 
 def upgrade_readiness(session: GcpSession, models: dict, images: dict, cfg) -> tuple[bool, int, int]:
-    """(can the upgrade run, control GCPs placeable in the best date group, how many that group
-    needs): per group as the pipeline decides (recon_core.euclidean.upgrade_stage.
-    control_needed: 3 when two or more of the group's images state their viewing direction)."""
-    from recon_core.euclidean.upgrade_stage import control_needed
+    """(can the upgrade run, control GCPs usable in the best date group, how many that group
+    needs), by the pipeline's own rule (recon_core.euclidean.control): the same triangulation
+    and the same count; before the models, from the observations alone, as its pre-flight."""
+    from recon_core.euclidean.control import control_needed, usable_before_models, usable_control
 
     if not models:
-        return False, n_ready(session, models), control_needed(list(images.values()), cfg)
+        names = set(images)
+        return False, sum(usable_before_models(g, names, 0) for g in session.gcps), \
+            control_needed(list(images.values()), cfg)
     best = None
     for m in models.values():
-        n = sum(1 for g in session.gcps if g.enabled and g.role == "control"
-                and (m.group in g.affine_picked or len(usable_observations(m, g.observations)[0]) >= 2))
+        n = sum(why is None for why in usable_control(m, session.gcps).values())
         need = control_needed([images[k] for k in m.images if k in images], cfg)
         key = (n >= need, n - need)
         if best is None or key > best[0]:

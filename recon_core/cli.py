@@ -379,8 +379,9 @@ def next_step(report: dict, site, out) -> str | None:
     viewer after a whole one."""
     st = report.get("stages", {})
     if "dense" in st and "upgrade" not in st:
-        return (f"next: `aerec run {site} --out {out}` continues from the upgrade, which needs 4 control GCPs "
-                f"(3 when the images state their viewing directions) observed in 2 images each: in "
+        from recon_core.euclidean.control import need_words
+
+        return (f"next: `aerec run {site} --out {out}` continues from the upgrade, which needs {need_words()}: in "
                 f"{report.get('gcp_file') or Path(site) / 'gcps.geojson'}, or placed in the viewer "
                 f"(`aerec view {out}`, GCP tab)")
     if "sparse" in st and "dense" not in st:

@@ -363,24 +363,23 @@ def gcp_findings(groups, gcps, cfg: Config) -> list[tuple[str, int, str]]:
     upgraded); "joint": fewer of its own but enough over all the groups' images (upgraded only if
     the groups are reconstructed jointly); an error: a control set that nothing can make fix the
     height scale (the upgrade would refuse that group; the run refuses when no group is left)."""
-    from recon_core.euclidean.upgrade_stage import control_needed
+    from recon_core.euclidean.control import MIN_CONTROL_HELD, control_needed, usable_before_models
+    from recon_core.model.grouping import tries_joint
 
     out = []
     joint = None
     every = [im for g in groups for im in g.images]
-    if cfg.sfm.joint_groups and len(groups) > 1 and all(len(g.images) >= 2 for g in groups):
+    if tries_joint(groups, cfg):
         # the groups will share one frame and one upgrade when they match across dates: a GCP
         # then counts when it is seen in >= 2 images of any groups
         names = {im.name for im in every}
-        joint = [p for p in gcps if p.role == "control" and p.enabled
-                 and (sum(1 for im in p.observations if im in names) >= 2 or p.affine_picked)]
+        joint = [p for p in gcps if any(usable_before_models(p, names, g.index) for g in groups)]
     for g in groups:
         names = {im.name for im in g.images}
-        usable = [p for p in gcps if p.role == "control" and p.enabled
-                  and (sum(1 for im in p.observations if im in names) >= 2 or g.index in p.affine_picked)]
+        usable = [p for p in gcps if usable_before_models(p, names, g.index)]
         n, need = len(usable), control_needed(g.images, cfg)
         if n < need and joint is not None and len(joint) >= control_needed(every, cfg):
-            held = control_needed(every, cfg) == 3
+            held = control_needed(every, cfg) == MIN_CONTROL_HELD
             refusal = None if cfg.upgrade.allow_flat_gcps else _flat_control_refusal(joint, held)
             if refusal:
                 out.append(("error", g.index, refusal))
@@ -394,10 +393,11 @@ def gcp_findings(groups, gcps, cfg: Config) -> list[tuple[str, int, str]]:
         if n < need:
             out.append(("warning", g.index, f"group {g.index} ({', '.join(sorted(names))}): {n} control "
                         f"GCP(s) observed in >= 2 of its images, {need} needed"
-                        + ("" if need == 3 else " (3 when its images state their viewing directions)")
+                        + ("" if need == MIN_CONTROL_HELD else
+                           f" ({MIN_CONTROL_HELD} when its images state their viewing directions)")
                         + ": it will not be upgraded"))
             continue
-        refusal = None if cfg.upgrade.allow_flat_gcps else _flat_control_refusal(usable, need == 3)
+        refusal = None if cfg.upgrade.allow_flat_gcps else _flat_control_refusal(usable, need == MIN_CONTROL_HELD)
         if refusal:
             out.append(("error", g.index, refusal))
         else:

@@ -46,6 +46,7 @@ import numpy as np
 from recon_core.errors import ReconstructionError
 from recon_core.euclidean.conditioning import REFUSE_HEIGHT_ERROR_M, conditioning, flat_gcp_refusal  # noqa: F401
 from recon_core.euclidean.conditioning import plane as _plane
+from recon_core.euclidean.control import MIN_CONTROL_HELD, min_control, unusable_reason
 from recon_core.euclidean.held import SIGMA_VIEW_DEG, ControlPoints, Covariance, fit_held, gcp_normal, looseness
 from recon_core.euclidean.metric_prior import ImageRows, fit_with_metric_prior, gcp_only_cov, height_sigma, row_cosines
 from recon_core.geometry.affine import apply_affine_3d, as_4x4, fit_affine_3d
@@ -291,18 +292,8 @@ def accuracy_stats(res: np.ndarray) -> dict[str, Any]:
 
 
 def _usable(g: GcpInput) -> str | None:
-    """Reason a GCP cannot be used, or None."""
-    if g.role not in ("control", "check"):
-        return f"unknown role {g.role!r} (expected 'control' or 'check')"
-    if not g.enabled:
-        return "disabled (\"enabled\": false in the GCP file)"
-    if g.affine_xyz is None:
-        return "no affine position (observed in fewer than two images of this group)"
-    if not np.all(np.isfinite(np.asarray(g.affine_xyz, dtype=float))):
-        return "affine position is not finite"
-    if not np.all(np.isfinite(np.asarray(g.enu, dtype=float))):
-        return "surveyed position is not finite"
-    return None
+    """Reason a GCP cannot be used, or None (recon_core.euclidean.control: the one rule)."""
+    return unusable_reason(g.role, g.enabled, g.affine_xyz, g.enu)
 
 
 def _check_rank(ids: list[str], X_enu: np.ndarray, X_aff: np.ndarray) -> None:
@@ -516,12 +507,12 @@ def _consensus(gcps, reasons, ctrl, hold, given, dropped, min_points, thresh, it
     are screened again against the consensus alone (a wrong GCP can make a good view look wrong).
     Raises ReconstructionError for a set nothing can fix."""
     held = hold is not None and len(hold.rays) >= 2 and hold.sigma_view_deg > 0
-    need = max(3 if held else 4, int(min_points) if not held else min(int(min_points), 3))
+    need = min_control(True) if held else max(min_control(False), int(min_points))
     if len(ctrl) < need:
         lacking = [g.id for i, g in enumerate(gcps) if g.role == "control" and reasons[i]]
         raise ReconstructionError(
             f"only {len(ctrl)} usable control GCPs, need >= {need}"
-            + ("" if held else " (3 when the images' viewing angles are known)")
+            + ("" if held else f" ({MIN_CONTROL_HELD} when the images' viewing angles are known)")
             + (f"; without an affine position: {', '.join(lacking)}" if lacking else "")
             + "; observe more control GCPs in at least two images of this group")
     Xa = np.array([gcps[i].affine_xyz for i in ctrl], dtype=np.float64)

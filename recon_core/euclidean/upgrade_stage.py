@@ -46,14 +46,6 @@ def estimate_gsd(model, H: np.ndarray) -> float:
     return float(np.median(gsd))
 
 
-def control_needed(images, cfg: Config) -> int:
-    """The control GCPs the upgrade of these images (ImageInfo) needs: 3 when two or more of
-    them state their viewing direction (their lines of sight hold the height scale:
-    recon_core.euclidean.held), else 4. The pipeline's pre-flight and the viewer ask here."""
-    seen = sum(1 for im in images if getattr(im, "view", None) is not None)
-    return 3 if seen >= 2 and cfg.upgrade.view_sigma_deg > 0 else 4
-
-
 # a reference DEM tilted against the control GCPs by more than this at the site's edge is said
 DEM_TILT_WARN_M = 5.0
 

@@ -48,3 +48,10 @@ def group_by_date(images: list[ImageInfo], max_gap_days: float = 15.0,
                 continue
         groups.append([im])
     return [Group(index=k, images=g) for k, g in enumerate(groups)]
+
+
+def tries_joint(groups: list[Group], cfg) -> bool:
+    """Will the run reconstruct its date groups jointly (sfm.joint_groups: two or more groups of
+    two or more images each, matched across dates into one frame and one upgrade)? The sparse
+    stage does so, and the pre-flight counts the GCPs over all the groups' images then."""
+    return bool(cfg.sfm.joint_groups) and len(groups) > 1 and all(len(g.images) >= 2 for g in groups)

@@ -27,7 +27,7 @@ from recon_core.events import (
     TileRegistered,
 )
 from recon_core.io.models import load_model, save_model
-from recon_core.model.grouping import Group
+from recon_core.model.grouping import Group, tries_joint
 from recon_core.model.sparse_model import Observations, SparseModel, images_per_track
 from recon_core.model.tiling import Tile, tile_image
 from recon_core.sparse.features import (
@@ -341,7 +341,7 @@ def run(state: RunState, bus: EventBus) -> dict:
     reported; the stage fails only when no group could be reconstructed)."""
     out = {"groups": {}}
     joint = None
-    if state.cfg.sfm.joint_groups and len(state.groups) > 1 and all(len(g.images) >= 2 for g in state.groups):
+    if tries_joint(state.groups, state.cfg):
         joint = reconstruct_joint(state.groups, state.cfg, bus, state.layout.root)
     for g in state.groups:
         if joint is not None:
