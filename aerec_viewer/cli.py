@@ -297,7 +297,7 @@ def cmd_view(args) -> int:
     from recon_core.io.lock import out_lock
 
     if site is not None:
-        from recon_core.pipeline import refuse_nested
+        from recon_core.preflight import refuse_nested
 
         refuse_nested(site, out)
     try:
@@ -396,7 +396,7 @@ def check_view_options(args) -> None:
     range, a tile size or preset the pipeline refuses, an output folder that is a file)."""
     from recon_core.config import PRESETS, preset
     from recon_core.errors import InputError
-    from recon_core.pipeline import check_config
+    from recon_core.preflight import check_config
 
     if not 0 <= args.port <= 65535:
         raise InputError(None, f"--port {args.port}: a port is 0-65535 (0: any free one)")

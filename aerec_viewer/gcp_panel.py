@@ -499,22 +499,36 @@ class GcpPanel:
                                    + f", {len(updated)} updated" + (f" ({', '.join(updated)})" if updated else ""))
         return added, updated
 
+    # a height the images give better than this is taken as known (the flag cleared)
+    HEIGHT_KNOWN_M = 0.3
+
     def take_images_height(self) -> float:
-        """Set the selected GCP's height to the one the last upgrade's images give it."""
+        """Set the selected GCP's height to the one the last upgrade's images give it; it stays
+        flagged, with the images' sigma, when they give it no better than HEIGHT_KNOWN_M."""
         from .results import images_height
 
         gid = self.selected()
         if gid is None:
             raise GcpError("select a GCP first")
         g = self.app.session.get(gid)
-        h = images_height(self.app.upgrade, g)
-        if h is None:
+        got = images_height(self.app.upgrade, g)
+        if got is None:
             raise GcpError(f"no upgrade has placed {gid} yet: place it in two images, press Upgrade "
                            "(Results tab), then take its height")
+        h, sig = got
         old = g.h
-        edit_gcp(self.app.session, gid, x=g.lon, y=g.lat, h=h, sigma_h_m=None)
-        self.app.gcps_changed(select=gid, note=f"{gid}: height {h:.2f} m from the images (was {old:.2f} m, "
-                                               f"{h - old:+.2f} m); press Upgrade again")
+        known = sig is not None and sig <= self.HEIGHT_KNOWN_M
+        edit_gcp(self.app.session, gid, x=g.lon, y=g.lat, h=h, sigma_h_m=None if known else
+                 (sig if sig is not None else g.sigma_h_m))
+        text = f"{gid}: height {h:.2f} m from the images (was {old:.2f} m, {h - old:+.2f} m)"
+        if known:
+            text += f", known to +- {sig:.2f} m; press Upgrade again"
+        else:
+            text += (f", known only to +- {sig:.1f} m" if sig is not None else ", how well is not known") + (
+                ": still doubtful. The other control GCPs' heights are doubtful too, or the images "
+                "hold the heights weakly here: add a control GCP on flat ground (its DEM height is "
+                "then trusted) or type the surveyed height, and press Upgrade again")
+        self.app.gcps_changed(select=gid, note=text)
         return h
 
     def _forget_pick(self) -> None:

@@ -122,7 +122,8 @@ def upgrade_readiness(session: GcpSession, models: dict, images: dict, cfg) -> t
     """(can the upgrade run, control GCPs usable in the best date group, how many that group
     needs), by the pipeline's own rule (recon_core.euclidean.control): the same triangulation
     and the same count; before the models, from the observations alone, as its pre-flight."""
-    from recon_core.euclidean.control import control_needed, usable_before_models, usable_control
+    from recon_core.euclidean.control import control_needed, usable_before_models
+    from recon_core.euclidean.georef import usable_control
 
     if not models:
         names = set(images)
@@ -161,16 +162,17 @@ def run_upgrade(session: GcpSession, models: dict, cfg: Config, images: dict | N
                           gcps_key=gcps_key(session))
 
 
-def images_height(outcome: "UpgradeOutcome | None", gcp) -> float | None:
-    """The ellipsoidal height the upgrade's images put a GCP at (its surveyed position moved by
-    its height residual, fitted minus surveyed, in the first group that has one), or None."""
+def images_height(outcome: "UpgradeOutcome | None", gcp) -> tuple[float, float | None] | None:
+    """(the ellipsoidal height the upgrade's images put a GCP at, its sigma in metres where the
+    fit knows it), from its surveyed position moved by its height residual (fitted minus
+    surveyed) in the first group that has one; None when no upgrade scored it."""
     if outcome is None:
         return None
     for g in sorted(outcome.results):
         row = next((p for p in outcome.results[g].points if p["id"] == gcp.id and p.get("dU") is not None), None)
         if row is not None:
             enu = outcome.frame.geodetic_to_enu(np.array([gcp.llh]))[0] + np.array([0.0, 0.0, row["dU"]])
-            return float(outcome.frame.enu_to_geodetic(enu[None])[0][2])
+            return float(outcome.frame.enu_to_geodetic(enu[None])[0][2]), row.get("images_height_sigma_m")
     return None
 
 
@@ -259,7 +261,10 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
         doubtful = [p for p in r.points if p.get("sigma_h_m") is not None and p.get("dU") is not None]
         if doubtful:
             parts.append("Heights known only roughly (read off the DEM), as the images put them: "
-                         + "; ".join(f"{p['id']} {p['dU']:+.2f} m (given +- {p['sigma_h_m']:.1f} m)" for p in doubtful)
+                         + "; ".join(f"{p['id']} {p['dU']:+.2f} m"
+                                     + ("" if p.get("images_height_sigma_m") is None else
+                                        f" +- {p['images_height_sigma_m']:.2f} m")
+                                     + f" (given +- {p['sigma_h_m']:.1f} m)" for p in doubtful)
                          + ". Select one and press *Take the images' height* (GCPs tab)"
                          + ("" if r.views else ": the images here do not state their viewing angles, so "
                             "these come from the other GCPs alone") + ".")

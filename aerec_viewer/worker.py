@@ -285,7 +285,7 @@ class ReconWorker:
         else why not: "busy" while a run is still going (try again when it is done), or a
         sentence (no site, told to stop before that stage, the saved sparse model does not
         match this configuration and would be recomputed, the viewer is stopping)."""
-        from recon_core import pipeline
+        from recon_core import pipeline, resume
         from recon_core.config import Config
         from recon_core.io.site import load_site
 
@@ -298,7 +298,7 @@ class ReconWorker:
         if self.until is not None and pipeline.STAGES.index(self.until) < pipeline.STAGES.index(stage):
             return f"this session stops after the {self.until} stage"
         before = pipeline.STAGES[: pipeline.STAGES.index(stage)]
-        done = pipeline.finished_stages(self.out, self.cfg or Config(), load_site(self.site))
+        done = resume.finished_stages(self.out, self.cfg or Config(), load_site(self.site))
         if "sparse" in before and "sparse" not in done:
             return ("the saved sparse model does not match this configuration: re-running would "
                     "recompute it (and move the affine frame); run `aerec run` on this folder first")
@@ -485,16 +485,16 @@ class ReconWorker:
             self.done.set()
 
     def _run_pipeline(self) -> None:
-        from recon_core import pipeline
+        from recon_core import pipeline, preflight, resume
         from recon_core.config import Config
         from recon_core.io.site import load_site
 
         cfg = self.cfg or Config()
         site = load_site(self.site)
-        done = pipeline.finished_stages(self.out, cfg, site) if self.redo_from is None else set()
+        done = resume.finished_stages(self.out, cfg, site) if self.redo_from is None else set()
         if "sparse" not in done:              # what `aerec run` refuses before any compute
-            pipeline.check_config(cfg)
-            pipeline.check_images(site)
+            preflight.check_config(cfg)
+            preflight.check_images(site)
         if "sparse" in done:
             self._replay_saved(dense="dense" in done)
         until = self.until
@@ -536,7 +536,7 @@ class ReconWorker:
 
 def upgradable(site, out: Path, cfg) -> bool:
     """Does the working GCP set give some date group the control GCPs the upgrade needs?"""
-    from recon_core import pipeline
+    from recon_core import preflight
     from recon_core.io.gcps import read_gcps_geojson, working_gcp_file
     from recon_core.model.grouping import group_by_date
 
@@ -546,7 +546,7 @@ def upgradable(site, out: Path, cfg) -> bool:
     except InputError:
         return True                           # let the run say what is wrong with the file
     groups = group_by_date(site.images, cfg.grouping.max_gap_days, cfg.grouping.max_span_days)
-    return any(level in ("ok", "joint", "error") for level, _, _ in pipeline.gcp_findings(groups, gcps, cfg))
+    return any(level in ("ok", "joint", "error") for level, _, _ in preflight.gcp_findings(groups, gcps, cfg))
 
 
 def raise_missing(out: Path) -> None:

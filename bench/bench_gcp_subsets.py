@@ -143,7 +143,8 @@ def run_subset(site: Path, out: Path, cfg, reference: Path, control: set[str]) -
     from recon_core.errors import InputError, ReconstructionError
     from recon_core.evaluation.evaluate import evaluate_dsm
     from recon_core.events import EventBus
-    from recon_core.pipeline import preflight, run
+    from recon_core.pipeline import run
+    from recon_core.preflight import preflight
 
     write_roles(site, out, control)
     t0 = time.time()

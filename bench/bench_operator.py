@@ -29,9 +29,9 @@ before, where the person places it as above. Scored: the ground positions agains
 (horizontal, m; the height is the DEM's at the clicked spot), and the observations as above.
 
 --roof-dem CELL (with --no-survey): the DEM is the truth DSM averaged to CELL metres (a national
-DEM, a free global one), and the spots are roof corners (textured, on a roof, within 2 m of its
-edge), as a user picks them when the ground is bare: the DEM's height there is between the
-roof's and the ground's. The bench prints, for each GCP, the DEM's height against the truth and
+DEM, a free global one), and --roofs of the 4 spots (2 by default) are roof corners (textured,
+on a roof, within 2 m of its edge), the others flat open ground, as a user picks them: on a
+roof, the DEM's height is between the roof's and the ground's. The bench prints, for each GCP, the DEM's height against the truth and
 whether the viewer flagged it (sigma_h_m in OUT/gcps.geojson) before any upgrade; then the
 height the upgrade's images give each flagged GCP (the function behind "Take the images'
 height", called on the working set the person saved, with the site's viewing angles). Target
@@ -149,10 +149,11 @@ def flat_spots(site: Path, ortho: Path, names: list[str], n: int) -> list[dict]:
     return out[:n]
 
 
-def roof_spots(site: Path, ortho: Path, dem: Path, names: list[str], n: int) -> list[dict]:
-    """n roof corners a user would click on the orthoimage: on a roof (the truth DSM 2 m or more
-    above the DEM there: the DEM smooths the building into the ground around it), within 2 m of
-    its edge, textured, seen in every image, one near the centre of each quarter of the site;
+def roof_spots(site: Path, ortho: Path, dem: Path, names: list[str], n: int, roofs: int = 2) -> list[dict]:
+    """n spots a user would click on the orthoimage, `roofs` of them roof corners (the truth DSM 2 m
+    or more above the DEM there: the DEM smooths the building into the ground around it, within
+    2 m of its edge) and flat open ground (the truth within 0.3 m over 2 m, the DEM within 0.3 m
+    of it), textured, seen in every image, one near the centre of each quarter of the site;
     their true pixels by the images' RPCs, their height the truth DSM's."""
     import cv2
     import rasterio
@@ -173,8 +174,13 @@ def roof_spots(site: Path, ortho: Path, dem: Path, names: list[str], n: int) -> 
     above[rows, cols] = dsm[rows, cols] - open_reference_dem(dem).heights(np.asarray(lon), np.asarray(lat))
     k = int(max(1, round(2.0 / abs(tf.a))))                      # 2 m in cells
     lo = cv2.erode(np.where(ok, dsm, 1e9).astype(np.float32), np.ones((2 * k + 1, 2 * k + 1), np.uint8))
+    hi = cv2.dilate(np.where(ok, dsm, -1e9).astype(np.float32), np.ones((2 * k + 1, 2 * k + 1), np.uint8))
     corner = cv2.cornerMinEigenVal(img / max(img.max(), 1.0), 5)
-    good = ok & (above > 2.0) & (dsm - lo > 2.0) & (corner > np.percentile(corner[ok], 80))
+    textured = corner > np.percentile(corner[ok], 80)
+    roof = ok & (above > 2.0) & (dsm - lo > 2.0) & textured
+    flat = ok & (np.abs(above) < 0.3) & (hi - lo < 0.3) & textured
+    kind = np.where(roof, 1, np.where(flat, 2, 0))
+    good = kind > 0
     rpcs = {}
     for name in names:
         with rasterio.open(site / "images" / name) as ds:
@@ -191,10 +197,13 @@ def roof_spots(site: Path, ortho: Path, dem: Path, names: list[str], n: int) -> 
         inside &= (p[:, 0] > 100) & (p[:, 0] < w - 100) & (p[:, 1] > 100) & (p[:, 1] < h - 100)
     H, W = dsm.shape
     out = []
-    for qr, qc in ((0.25, 0.25), (0.25, 0.75), (0.75, 0.75), (0.75, 0.25)):
-        d = np.hypot(rows - qr * H, cols - qc * W) + np.where(inside, 0, 1e9)
+    kinds = kind[rows, cols]
+    for q, (qr, qc) in enumerate(((0.25, 0.25), (0.25, 0.75), (0.75, 0.75), (0.75, 0.25))):
+        want = 1 if q in (0, 2, 1, 3)[:roofs] else 2
+        d = np.hypot(rows - qr * H, cols - qc * W) + np.where(inside & (kinds == want), 0, 1e9)
         i = int(np.argmin(d))
-        out.append({"id": f"ROOF-{len(out) + 1}", "role": "control", "llh": [float(v) for v in llh[i]],
+        out.append({"id": f"{'ROOF' if want == 1 else 'FLAT'}-{len(out) + 1}", "role": "control",
+                    "llh": [float(v) for v in llh[i]],
                     "true_observations": {nm: [float(v) for v in pix[nm][i]] for nm in names}})
     return out[:n]
 
@@ -470,6 +479,8 @@ def main() -> None:
                     help="no ground coordinates: take them from a reference orthoimage + DEM")
     ap.add_argument("--roof-dem", type=float, default=None, metavar="CELL",
                     help="with --no-survey: a DEM of CELL metres and GCPs on roof corners")
+    ap.add_argument("--roofs", type=int, default=2, choices=range(5),
+                    help="with --roof-dem: how many of the 4 GCPs are roof corners")
     args = ap.parse_args()
     if args.roof_dem and not args.no_survey:
         ap.error("--roof-dem goes with --no-survey")
@@ -480,7 +491,8 @@ def main() -> None:
     site = ensure_site(args.root, args.seed)
     reference = prepare_reference(site, args.root, args.seed, args.roof_dem) if args.no_survey else None
     if args.roof_dem:
-        gcps = roof_spots(site, reference[0], reference[1], sorted(p.name for p in (site / "images").glob("*.tif")), 4)
+        gcps = roof_spots(site, reference[0], reference[1], sorted(p.name for p in (site / "images").glob("*.tif")), 4,
+                          args.roofs)
     else:
         gcps = choose_gcps(site, flat=None if reference is None else reference[0])
     out = args.root / f"operator3_s{args.seed}_out"
@@ -491,7 +503,7 @@ def main() -> None:
 
         ortho_path, dem_path = reference
         survey = out
-        out = args.root / f"operator3_s{args.seed}_nosurvey{'_roof' if args.roof_dem else ''}_out"
+        out = args.root / f"operator3_s{args.seed}_nosurvey{f'_roof{args.roofs}' if args.roof_dem else ''}_out"
         if out.exists():
             shutil.rmtree(out)
         shutil.copytree(survey, out, ignore=shutil.ignore_patterns(".aerec.lock"))
@@ -599,9 +611,10 @@ def main() -> None:
                 if vid is None or vid not in ground:
                     continue
                 dem_err = ground[vid][2] - g["llh"][2]
-                h_img = flagged.get(vid, (None, None))[1]
+                got = flagged.get(vid, (None, None))[1]
                 verdict = ("flagged" if vid in flagged else "NOT flagged") + (
-                    "" if h_img is None else f"; the images' height {h_img - g['llh'][2]:+.3f} m")
+                    "" if got is None else f"; the images' height {got[0] - g['llh'][2]:+.3f} m"
+                    + ("" if got[1] is None else f" (their sigma {got[1]:.2f} m)"))
                 ok = vid in flagged or abs(dem_err) <= 0.5
                 print(f"  {g['id']}: the DEM's {dem_err:+.3f} m, {verdict}  [{'ok' if ok else 'FAIL'}]")
     for g in gcps:

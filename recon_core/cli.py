@@ -73,9 +73,17 @@ class ProgressPrinter:
 
 
 def cmd_info(args) -> int:
+    from recon_core.config import Config
+    from recon_core.errors import InputError
     from recon_core.io.site import load_site
     from recon_core.model.grouping import group_by_date
+    from recon_core.preflight import check_config
 
+    try:                      # the grouping options under the rules `aerec run` holds them to
+        check_config(Config().with_overrides({"grouping.max_gap_days": args.max_gap_days,
+                                              "grouping.max_span_days": args.max_span_days}), until="sparse")
+    except InputError as exc:
+        raise InputError(None, f"--max-gap-days / --max-span-days: {exc.problem}") from None
     site = load_site(args.site, require_times=False)
     print(f"site {site.name} at {site.root}")
     print(f"{len(site.images)} image(s):")
@@ -111,7 +119,7 @@ def cmd_info(args) -> int:
         # what `aerec run` would refuse or warn about, as warnings here
         from recon_core.config import Config
         from recon_core.errors import InputError
-        from recon_core.pipeline import gcp_findings, refuse_gcps_off_the_images
+        from recon_core.preflight import gcp_findings, refuse_gcps_off_the_images
         from recon_core.sparse.features import group_tone_curves
 
         try:
@@ -155,7 +163,8 @@ def cmd_run(args) -> int:
     from recon_core.errors import InputError
     from recon_core.events import EventBus, Message
     from recon_core.io.lock import out_lock
-    from recon_core.pipeline import check_config, preflight, run
+    from recon_core.pipeline import run
+    from recon_core.preflight import check_config, preflight
 
     if args.preset not in PRESETS:
         raise InputError(None, f"unknown --preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}")

@@ -151,7 +151,7 @@ def test_config_dump_round_trips_and_a_config_file_is_checked(tmp_path, capsys, 
 
 def test_coplanar_control_gcps_pass_with_the_explicit_override(small_site, tmp_path):
     from recon_core.config import Config
-    from recon_core.pipeline import preflight
+    from recon_core.preflight import preflight
 
     _coplanar_control_gcps(small_site)
     cfg = Config()
@@ -171,7 +171,7 @@ def test_the_images_viewing_directions_hold_what_flat_or_three_gcps_cannot(small
     """With the images' viewing directions, GCPs on one plane and 3 control GCPs pass the
     pre-flight (the images hold the height scale); collinear GCPs are refused all the same."""
     from recon_core.config import Config
-    from recon_core.pipeline import preflight
+    from recon_core.preflight import preflight
 
     _coplanar_control_gcps(small_site)
     _views(small_site)
@@ -196,7 +196,7 @@ def test_run_says_which_gcp_file_it_uses_when_the_sites_was_edited_later(small_s
     import shutil
 
     from recon_core.config import Config
-    from recon_core.pipeline import preflight
+    from recon_core.preflight import preflight
 
     _four_control_gcps(small_site)
     out = tmp_path / "out"
@@ -227,7 +227,7 @@ def test_a_flat_group_is_a_warning_when_another_group_can_be_upgraded(tmp_path):
     import numpy as np
 
     from recon_core.config import Config
-    from recon_core.pipeline import preflight
+    from recon_core.preflight import preflight
     from tests.conftest import write_tiff
 
     site = tmp_path / "site"
@@ -280,7 +280,7 @@ def test_gcps_seen_across_date_groups_count_when_the_groups_are_reconstructed_jo
 
     from recon_core.config import Config
     from recon_core.errors import InputError
-    from recon_core.pipeline import preflight
+    from recon_core.preflight import preflight
     from tests.conftest import write_tiff
 
     site = tmp_path / "site"
@@ -327,7 +327,7 @@ def test_config_values_are_checked_before_any_compute(body, words, small_site, t
 
 def test_every_preset_passes_the_value_checks():
     from recon_core.config import PRESETS, preset
-    from recon_core.pipeline import check_config
+    from recon_core.preflight import check_config
 
     for name in PRESETS:
         check_config(preset(name))
@@ -444,7 +444,7 @@ def test_a_bad_reference_dem_is_refused_in_one_line_before_any_compute(case, sma
     # the DEM that covers the GCPs passes the check (the run itself is not started here)
     _dem(dem, 9.99, 45.01)
     from recon_core.config import preset
-    from recon_core.pipeline import preflight
+    from recon_core.preflight import preflight
 
     preflight(small_site, out, preset("default").with_overrides({"upgrade.reference_dem": str(dem)}))
 

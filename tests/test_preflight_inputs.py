@@ -62,7 +62,7 @@ def _float_image(path, pattern: str, seed: int = 1):
 @pytest.mark.parametrize("pattern", ["rows", "inf"])
 def test_float_images_with_nan_or_inf_are_masked(pattern, tmp_path):
     from recon_core.io.site import load_site
-    from recon_core.pipeline import check_images
+    from recon_core.preflight import check_images
     from recon_core.sparse.features import group_tone_curves
 
     site = tmp_path / "s"
@@ -148,7 +148,7 @@ def test_duplicate_gcp_ids_among_many(tmp_path):
 def test_a_sidecar_added_after_sparse_makes_it_stale(tiny_site, tmp_path):
     from recon_core.config import preset
     from recon_core.io.site import load_site
-    from recon_core.pipeline import stage_done
+    from recon_core.resume import stage_done
 
     site = tmp_path / "site"
     shutil.copytree(tiny_site, site)
@@ -212,7 +212,8 @@ def test_a_site_of_one_image_per_date(small_site, tmp_path, capsys):
 def test_pixels_rewritten_with_the_time_put_back_are_other_inputs(tiny_site, tmp_path):
     from recon_core.config import preset
     from recon_core.io.site import load_site
-    from recon_core.pipeline import run, stage_done
+    from recon_core.pipeline import run
+    from recon_core.resume import stage_done
 
     site = tmp_path / "site"
     shutil.copytree(tiny_site, site)

@@ -16,7 +16,8 @@ import pytest
 from recon_core.config import preset
 from recon_core.io.layout import OutLayout
 from recon_core.io.site import load_site
-from recon_core.pipeline import finished_stages, run
+from recon_core.pipeline import run
+from recon_core.resume import finished_stages
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -2,7 +2,8 @@
 
 The pipeline's pre-flight (from the GCP file, before any model), the upgrade itself (on a date
 group's model), the viewer's Upgrade button and every message that counts control GCPs ask
-here, so that the viewer's "ready" and the pipeline's refusal cannot disagree.
+here (on a model, through recon_core.euclidean.georef.usable_control, which triangulates as the
+upgrade does), so that the viewer's "ready" and the pipeline's refusal cannot disagree.
 
 - A control GCP is usable in a group when it is enabled, has a finite surveyed position and an
   affine position in that group: picked on the group's cloud, or triangulated from its
@@ -22,7 +23,6 @@ import numpy as np
 if TYPE_CHECKING:
     from recon_core.config import Config
     from recon_core.io.gcps import GCP
-    from recon_core.model.sparse_model import SparseModel
 
 MIN_CONTROL = 4          # control GCPs H_A needs from the GCPs alone (12 unknowns, 3 equations each)
 MIN_CONTROL_HELD = 3     # ... when the images' lines of sight hold it (not on one line)
@@ -53,23 +53,6 @@ def unusable_reason(role: str, enabled: bool, affine_xyz, enu) -> str | None:
     if not np.all(np.isfinite(np.asarray(enu, dtype=float))):
         return "surveyed position is not finite"
     return None
-
-
-def usable_control(model: SparseModel, gcps: list[GCP]) -> dict[str, str | None]:
-    """Control GCP id -> None when the upgrade of the model's group can use it, else why not
-    (the triangulation the upgrade does: recon_core.euclidean.georef.gcp_affine_points)."""
-    from recon_core.euclidean.georef import gcp_affine_points
-
-    ctrl = [g for g in gcps if g.role == "control"]
-    aff = gcp_affine_points(model, ctrl)
-    out = {}
-    for g in ctrl:
-        a = aff[g.id]
-        why = unusable_reason(g.role, g.enabled, a.xyz, g.llh)
-        if why is not None and a.xyz is None and a.source:
-            why = a.source                           # the triangulation's own words
-        out[g.id] = why
-    return out
 
 
 def usable_before_models(gcp: GCP, image_names: set[str], group: int) -> bool:

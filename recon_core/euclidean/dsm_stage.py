@@ -99,6 +99,10 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
     weak: dict[int, np.ndarray] = {}
     H = source = filled_buf = None
     strip = max(64, min(1024, STRIP_CELLS // grid.width))      # rows per strip
+
+    def step(what: str) -> None:      # the grid's later steps take minutes on a large grid: said
+        if bus is not None:
+            bus.progress("dsm", total, total, f"{what} ({grid.width} x {grid.height} cells)")
     try:
         def grid_file(name: str, dtype) -> np.ndarray:
             path = Path(work.name) / f"{name}.npy"
@@ -121,6 +125,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
                         if bus is not None:
                             bus.progress("dsm", done, total, f"group {g}")
             in_grid = sum(a.n_points for a in accs.values())
+            step("gridding the points")
             for g in groups:
                 raw[g], weak[g] = grid_file(f"raw_{g}", np.float32), grid_file(f"weak_{g}", bool)
                 for r0, r1, Hb, _, fb in accs[g].blocks():
@@ -137,6 +142,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
 
         precise = {g: RowView(grid.shape, precise_rows(g), strip) for g in groups}
         block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
+        step("comparing and fusing the date groups" if len(groups) > 1 else "counting the cells")
         pairs = pair_disagreement(precise, block)         # [] for one group
         noise, match_px = noise_from_pairs(groups, pairs, geometry)
         coverage = {g: count_rows(precise[g], np.isfinite, strip) for g in groups}
@@ -161,8 +167,10 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
             return fill_small_holes(D, max_hole_px=c.fill_holes_px, out=filled_buf, block_rows=strip) \
                 if c.fill_holes_px > 0 else D
 
+        step("filling small holes")
         H = filled(H)
         valid = count_rows(H, np.isfinite, strip) / H.size
+        step("writing dsm.tif")
         write_dsm(out.dsm, H, grid)
         agreement = agreement_layer(agree, H, strip) if agree is not None else None
         if agreement is not None:
@@ -172,6 +180,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
         elif out.dsm_agreement.exists():              # a previous run's: it would not match
             out.dsm_agreement.unlink()
         if c.laz:
+            step("writing cloud.laz")
             write_las(out.cloud, out.cloud_laz, epsg)
         elif out.cloud_laz.exists():                 # a previous run's: it would not match
             out.cloud_laz.unlink()
@@ -181,6 +190,7 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
                 out.group_dsm(g).unlink()
         if len(groups) > 1:
             for k, g in enumerate(order):
+                step(f"writing group {g}'s own DSM")
                 write_dsm(out.group_dsm(g), filled(raw[g]), grid)
                 n_cells = grid.width * grid.height
                 groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon_core.errors import ReconstructionError
+from recon_core.euclidean.control import unusable_reason
 from recon_core.euclidean.metric_prior import camera_rows
 from recon_core.euclidean.held import SIGMA_VIEW_DEG
 from recon_core.euclidean.sight import lines_of_sight
@@ -87,6 +88,21 @@ def gcp_affine_points(model: SparseModel, gcps: list[GCP]) -> dict[str, GcpAffin
         a = triangulate_gcp(model, g.observations)
         a.id = g.id
         out[g.id] = a
+    return out
+
+
+def usable_control(model: SparseModel, gcps: list[GCP]) -> dict[str, str | None]:
+    """Control GCP id -> None when the upgrade of the model's group can use it, else why not
+    (the triangulation the upgrade does: gcp_affine_points; the rule: recon_core.euclidean.control)."""
+    ctrl = [g for g in gcps if g.role == "control"]
+    aff = gcp_affine_points(model, ctrl)
+    out = {}
+    for g in ctrl:
+        a = aff[g.id]
+        why = unusable_reason(g.role, g.enabled, a.xyz, g.llh)
+        if why is not None and a.xyz is None and a.source:
+            why = a.source                           # the triangulation's own words
+        out[g.id] = why
     return out
 
 

@@ -751,6 +751,7 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, cond, 
                          "sidecar), two equations per image, with the GCPs weighted by their "
                          "triangulation covariances; residual_deg: the angle left per image; "
                          "sigma_view_deg: the images' sigma estimated from those residuals"}
+        _images_height_sigma(rows, gcps, fit)
         if n >= 4:
             loo = _loo_held(control_points(gcps, used), hold)
             _attach_loo(rows, [gcps[i].id for i in used], loo)
@@ -801,6 +802,24 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, cond, 
                          rejections=rejections, conditioning=cond, notes=notes,
                          warnings=warnings, metric_prior=prior.report if prior is not None else None,
                          views=views)
+
+
+def _images_height_sigma(rows: list[dict], gcps: list[GcpInput], fit) -> None:
+    """For each GCP whose height is known worse than the horizontal (sigma_h_m): how well the
+    held fit gives its height (images_height_sigma_m: the fit's covariance at its affine point
+    and the point's own), so that a height taken from the images says what it is worth."""
+    by_id = {g.id: g for g in gcps}
+    for row in rows:
+        g = by_id.get(row["id"])
+        if g is None or g.sigma_h_m is None or g.affine_xyz is None or row.get("dU") is None:
+            continue
+        grad = np.zeros(12)
+        grad[8:12] = np.r_[np.asarray(g.affine_xyz, float), 1.0]
+        var = fit.cov.variance(grad)
+        if g.affine_cov is not None and np.all(np.isfinite(g.affine_cov)):
+            a = fit.H[2, :3]
+            var += float(a @ np.asarray(g.affine_cov, float) @ a)
+        row["images_height_sigma_m"] = float(np.sqrt(var)) if np.isfinite(var) else None
 
 
 def _loo_held(pts: ControlPoints, hold: ImageHold) -> np.ndarray:

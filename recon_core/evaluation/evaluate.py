@@ -98,13 +98,17 @@ def read_raster(path: str | Path, what: str, finer_than: float | None = None,
         if t.b != 0 or t.d != 0 or t.a <= 0 or t.e >= 0:
             raise InputError(path, f"the {what} must be a north-up grid, transform {tuple(t)[:6]}")
         f = read_factor(src.width, src.height, float(t.a), finer_than, max_cells)
-        if f == 1:
-            vals = src.read(1, masked=True).astype(np.float32).filled(np.nan)
-        else:
-            shape = (max(1, src.height // f), max(1, src.width // f))
-            vals = src.read(1, masked=True, out_shape=shape,
-                            resampling=resampling).astype(np.float32).filled(np.nan)
-            t = t * Affine.scale(src.width / shape[1], src.height / shape[0])
+        try:
+            if f == 1:
+                vals = src.read(1, masked=True).astype(np.float32).filled(np.nan)
+            else:
+                shape = (max(1, src.height // f), max(1, src.width // f))
+                vals = src.read(1, masked=True, out_shape=shape,
+                                resampling=resampling).astype(np.float32).filled(np.nan)
+                t = t * Affine.scale(src.width / shape[1], src.height / shape[0])
+        except rasterio.errors.RasterioIOError as e:
+            raise InputError(path, f"cannot read the {what}'s pixels (a truncated or damaged file?): "
+                                   f"{e.__cause__ or e}") from None
         vals[~np.isfinite(vals)] = np.nan
         return Raster(path, vals, t, src.crs, f)
 
@@ -280,6 +284,7 @@ def _grid_candidates(cx: float, cy: float, half_x: float, half_y: float, sx: flo
     return X[order], Y[order]
 
 
+MAX_SHIFT_M = 2000.0   # the largest misregistration `aerec eval --max-shift` searches (the padded grid grows with it)
 COARSE_SHIFTS = 80     # the alignment's first search: at most this many steps across +-max_shift
 
 
@@ -566,9 +571,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_cli(a) -> int:
-    """Evaluate and print the table; bad input raises InputError (one line, exit 2 upstream)."""
+    """Evaluate and print the table; bad input raises InputError (one line, exit 2 upstream),
+    and a --out folder this call made is removed again when nothing could be written into it."""
+    if not (math.isfinite(a.max_shift) and 0 <= a.max_shift <= MAX_SHIFT_M):
+        raise InputError(None, f"--max-shift {a.max_shift:g}: a number of metres from 0 to {MAX_SHIFT_M:g} "
+                               "(a DSM off by more is of another place)")
+    if a.step is not None and not (math.isfinite(a.step) and 0 < a.step <= MAX_SHIFT_M):
+        raise InputError(None, f"--step {a.step:g}: a number of metres above 0 (and at most {MAX_SHIFT_M:g})")
     if a.out is not None and Path(a.out).exists() and not Path(a.out).is_dir():
         raise InputError(a.out, "--out must be a folder (it exists and is a file)")
+    made = False
     if a.out is not None:
         from recon_core.io.files import writable_folder
         from recon_core.io.layout import OutLayout
@@ -577,10 +589,14 @@ def run_cli(a) -> int:
             if OutLayout(parent).is_output():
                 raise InputError(a.out, f"is inside the output folder {parent} of a run (whose eval/ "
                                         "it would overwrite): choose a folder outside it")
+        made = not Path(a.out).exists()
         writable_folder(a.out)
-    if a.max_shift < 0 or (a.step is not None and a.step <= 0):
-        raise InputError(None, "--max-shift must be >= 0 and --step > 0")
-    r = evaluate_dsm(a.dsm, a.gt, a.out, max_shift_m=a.max_shift, step_m=a.step)
+    try:
+        r = evaluate_dsm(a.dsm, a.gt, a.out, max_shift_m=a.max_shift, step_m=a.step)
+    except BaseException:
+        if made and not any(Path(a.out).iterdir()):
+            Path(a.out).rmdir()
+        raise
     print(format_table(r))
     if a.out:
         print(f"wrote {a.out}/eval.json, height_error.tif, height_error.png, dsm_vs_gt.png")

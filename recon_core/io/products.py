@@ -175,11 +175,21 @@ def find_product_images(paths: list[Path]) -> list[list[tuple[Path, int, int]]]:
             files.append(p)
         else:
             raise InputError(p, "not an image (.tif, .tiff, .jp2, .ntf, .vrt) nor a product folder")
+    unique: dict[Path, Path] = {}
+    for f in files:                        # a product given twice (or a folder and a file of it)
+        unique.setdefault(f.resolve(), f)
     groups: dict[tuple[Path, str], list[tuple[Path, int, int]]] = {}
-    for f in files:
+    for f in unique.values():
         m = TILE_NAME.match(f.stem)
         key = (f.parent, m.group("base") if m else f.stem)
         groups.setdefault(key, []).append((f, int(m.group("r")) if m else 1, int(m.group("c")) if m else 1))
+    for tiles in groups.values():
+        seen: dict[tuple[int, int], Path] = {}
+        for f, r, c in tiles:
+            if (r, c) in seen:
+                raise InputError(f, f"is tile R{r}C{c} of its image, as {seen[(r, c)].name} is: two files "
+                                    "for one tile (keep one)")
+            seen[(r, c)] = f
     return [sorted(v, key=lambda t: (t[1], t[2])) for _, v in sorted(groups.items(), key=lambda kv: str(kv[0]))]
 
 
@@ -500,7 +510,7 @@ def _check_written(root: Path, final: Path, images: list[ProductImage], gcps: Pa
     from recon_core.io.site import load_site
 
     try:
-        load_site(root)
+        site = load_site(root)
     except InputError as exc:
         path = Path(exc.path) if exc.path else None
         where = None
@@ -512,5 +522,14 @@ def _check_written(root: Path, final: Path, images: list[ProductImage], gcps: Pa
         elif path is not None:
             where = final / path.relative_to(root) if root in path.parents else path
         raise InputError(where, exc.problem) from None
+    from recon_core.config import Config
+    from recon_core.model.grouping import group_by_date
+
+    g = Config().grouping
+    if all(len(grp.images) < 2 for grp in group_by_date(site.images, g.max_gap_days, g.max_span_days)):
+        raise InputError(None, ("the products give one image" if len(site.images) < 2 else
+                                "every date group of the products has one image")
+                         + f" ({', '.join(im.name for im in images[:6])}): the method needs 2 or more views "
+                           "of one date; add the other images of the acquisition")
 
 

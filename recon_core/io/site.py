@@ -215,7 +215,8 @@ def open_image(path: Path) -> ImageInfo:
     except InputError:
         raise
     except (RasterioIOError, rasterio.errors.RasterioError) as exc:
-        msg = str(exc).split("\n")[0]
+        # rasterio's "Read failed. See previous exception" hides GDAL's words (the file, the block)
+        msg = str(exc.__cause__ if "previous exception" in str(exc) and exc.__cause__ else exc).split("\n")[0]
         if "not recognized as" in msg or "not a supported file format" in msg:
             raise InputError(path, "not a GeoTIFF, VRT or JPEG 2000 (GDAL cannot read it)") from None
         if path.suffix.lower() == ".vrt":

@@ -182,15 +182,22 @@ def _blocks(length: int, block: int, margin: int):
         yield max(0, c0 - margin), min(length, c1 + margin), c0, c1
 
 
+def detect_blocks(image: ImageInfo, cfg: FeatureConfig) -> int:
+    """How many blocks detect_image reads the image in (its progress steps)."""
+    return (sum(1 for _ in _blocks(image.height, cfg.detect_block, 48))
+            * sum(1 for _ in _blocks(image.width, cfg.detect_block, 48)))
+
+
 def detect_image(image: ImageInfo, cfg: FeatureConfig, tone: ToneCurve | None = None,
-                 spill: Path | None = None) -> ImageFeatures:
+                 spill: Path | None = None, on_block=None) -> ImageFeatures:
     """Detect SIFT on the whole image, read by blocks with a margin, deduplicated by block cores.
 
     With `spill`, each block's descriptors are appended to that file as it is detected (raw
     uint8 rows of 128) and come back as a read-only memory map of it: the process holds the
     keypoints' 25 bytes (position, size, response, intensity) but not their 128 bytes of
     descriptor (a 40,000 px scene: ~30 M keypoints, 4 GB of descriptors). Without it they are
-    held in memory. The same keypoints either way."""
+    held in memory. The same keypoints either way. `on_block()` is called after each block (a
+    progress step; it may raise to stop the detection, e.g. on Ctrl-C)."""
     tone = tone or tone_curve_for([image], cfg.stretch_percentiles)
     budget = max(500, int(cfg.max_features_per_mpx * image.width * image.height / 1e6))
     sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=cfg.contrast_threshold)
@@ -200,6 +207,8 @@ def detect_image(image: ImageInfo, cfg: FeatureConfig, tone: ToneCurve | None = 
     try:
         for r0, r1, rc0, rc1 in _blocks(image.height, cfg.detect_block, margin):
             for c0, c1, cc0, cc1 in _blocks(image.width, cfg.detect_block, margin):
+                if on_block is not None:
+                    on_block()
                 raw = fill_thin_gaps(read_window(image, c0, r0, c1 - c0, r1 - r0))
                 img8 = tone.apply(raw)
                 mask = np.isfinite(raw).astype(np.uint8) * 255

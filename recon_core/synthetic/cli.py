@@ -19,10 +19,16 @@ def cmd_synth(args) -> int:
     from recon_core.io.files import atomic_folder
     from recon_core.synthetic.generator import generate_site
 
+    from recon_core.io.files import writable_folder
+
     out = Path(args.out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(out, "exists and is not empty: a synthetic site is written into a new or "
                               "empty folder (remove it, or choose another)")
+    parent = next((p for p in out.absolute().parents if p.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise InputError(parent, f"is a file, not a folder: {out} cannot be made under it")
+    writable_folder(out.absolute().parent, create=True)
     t0 = time.time()
     prog = ProgressPrinter(not args.quiet)
     with atomic_folder(out) as tmp:

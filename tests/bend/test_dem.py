@@ -260,7 +260,7 @@ def test_a_dem_replaced_in_place_makes_the_upgrade_stale(tiny_site, tmp_path):
 
     from recon_core.config import preset
     from recon_core.io.site import load_site
-    from recon_core.pipeline import stage_hash
+    from recon_core.resume import stage_hash
     from recon_core.synthetic.ref_dem import simulate_reference_dem
 
     dem = simulate_reference_dem(tiny_site / "gt_dsm.tif", tmp_path / "dem.tif", cell_m=10.0, arcsec=0.3)
@@ -341,7 +341,7 @@ def test_a_dem_degree_without_a_dem_is_said_to_do_nothing(tiny_site, tmp_path, c
 def test_the_dem_degree_is_checked_before_any_compute():
     from recon_core.config import Config
     from recon_core.errors import InputError
-    from recon_core.pipeline import check_config
+    from recon_core.preflight import check_config
 
     check_config(Config().with_overrides({"upgrade.reference_dem_degree": 3}))
     with pytest.raises(InputError, match="reference_dem_degree"):

@@ -115,7 +115,7 @@ def test_the_dense_stage_depends_on_its_own_matcher_s_section(small_site):
     """A run resumed with other pandora parameters redoes its dense stage; an SGBM run's hashes
     do not move with the pandora section (runs made before it existed keep theirs)."""
     from recon_core.io.site import load_site
-    from recon_core.pipeline import stage_hash
+    from recon_core.resume import stage_hash
 
     site = load_site(small_site)
     sg = Config()

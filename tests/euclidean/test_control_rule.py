@@ -11,7 +11,8 @@ import pytest
 from aerec_viewer.results import upgrade_readiness
 from recon_core.config import preset
 from recon_core.errors import ReconstructionError
-from recon_core.euclidean.control import MIN_CONTROL, MIN_CONTROL_HELD, control_needed, usable_control
+from recon_core.euclidean.control import MIN_CONTROL, MIN_CONTROL_HELD, control_needed
+from recon_core.euclidean.georef import usable_control
 from recon_core.euclidean.upgrade_stage import upgrade_models
 
 

@@ -544,7 +544,7 @@ def test_fill_agreeing_without_an_agreement_test_is_refused():
     agreement to count, and the configuration is refused before any compute."""
     from recon_core.config import Config
     from recon_core.errors import InputError
-    from recon_core.pipeline import check_config
+    from recon_core.preflight import check_config
 
     check_config(Config().with_overrides({"dsm.fusion_fill_agreeing": 2}))
     with pytest.raises(InputError, match="fusion_agree_sigmas"):

@@ -141,8 +141,12 @@ def test_a_full_scene_footprint_gets_a_dsm_resolution_that_fits(tmp_path, capsys
                  window=rasterio.windows.Window(0, 0, 64, 64))
     with rasterio.open(g, "r+") as ds:
         ds.update_tags(TIFFTAG_DATETIME="2024:03:02 10:41:31")
+    g2 = g.with_name("scene2.tif")                 # the pair's other view, a minute later
+    shutil.copy(g, g2)
+    with rasterio.open(g2, "r+") as ds:
+        ds.update_tags(TIFFTAG_DATETIME="2024:03:02 10:42:31")
     site = tmp_path / "site"
-    assert main(["site", "init", str(site), str(g)]) == 0
+    assert main(["site", "init", str(site), str(g), str(g2)]) == 0
     assert "resolution_m is 1 m" in capsys.readouterr().out
     hints = json.loads((site / "site.json").read_text())
     assert hints["resolution_m"] == 1.0 and hints["bounds"] == [330000.0, 7640000.0, 350000.0, 7660000.0]
@@ -290,4 +294,22 @@ def test_a_vrt_product_with_a_missing_source_is_refused_naming_it(tmp_path, caps
     assert main(["site", "init", str(tmp_path / "site"), str(vrt), "--time", "v=2015-02-03T10:00:00Z"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "v.vrt" in err[0], err
+    assert not (tmp_path / "site").exists()
+
+
+def test_two_files_for_one_tile_or_one_product_twice_are_refused(tmp_path, capsys):
+    """R1C1 and R01C01 are one tile: refused naming both (the mosaic would take one of them
+    silently); a product given twice is one image, and a site of one image is refused as `aerec
+    run` would refuse it."""
+    rng = np.random.default_rng(6)
+    _tiles(tmp_path / "p", "PHR1A_P_7", {(1, 1): rng.integers(0, 2047, (32, 40)).astype(np.uint16),
+                                         (1, 2): rng.integers(0, 2047, (32, 40)).astype(np.uint16)})
+    _write(tmp_path / "p" / "IMG_PHR1A_P_7_R01C01.TIF", rng.integers(0, 2047, (32, 40)).astype(np.uint16))
+    assert main(["site", "init", str(tmp_path / "site"), str(tmp_path / "p")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "R1C1" in err[0] and "two files for one tile" in err[0], err
+    a = _product(tmp_path / "q" / "a.tif", rng.integers(0, 2047, (40, 48)).astype(np.uint16), origin=(500000, 4500000))
+    assert main(["site", "init", str(tmp_path / "site"), str(a), str(a)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "one image" in err[0], err
     assert not (tmp_path / "site").exists()
