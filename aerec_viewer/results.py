@@ -39,9 +39,9 @@ class UpgradeOutcome(Upgrade):
         return bool(self.results)
 
     def transform(self, g: int) -> DisplayTransform | None:
-        r = self.results.get(g)
-        return None if r is None else euclidean_display_transform(r.H, self.frame.origin_llh, self.warps.get(g),
-                                                                  self.enu_warps.get(g))
+        u = self.groups.get(g)
+        return None if u is None else euclidean_display_transform(u.result.H, self.frame.origin_llh, u.warp,
+                                                                  u.enu_warp)
 
 
 def usable_observations(model, observations: dict) -> tuple[list[str], list[str]]:
@@ -268,12 +268,13 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
                          + ". Select one and press *Take the images' height* (GCPs tab)"
                          + ("" if r.views else ": the images here do not state their viewing angles, so "
                             "these come from the other GCPs alone") + ".")
-        mb = outcome.metric.get(g) or {}
+        u = outcome.groups[g]
+        mb = u.metric or {}
         if mb.get("applied"):
             parts.append(f"Horizontal distortion corrected from the orbit's geometry: {mb['warp_rms_m']:.3f} m RMS "
                          f"({mb['warp_max_m']:.3f} m at most), before the GCPs' map (in the 3D view, "
                          "the DSM and cloud.ply alike).")
-        gb = outcome.gcp_bend.get(g) or {}
+        gb = u.gcp_bend or {}
         if gb.get("applied"):
             mx = gb["warp_max_m"]
             what = "the views cannot see" if gb["family"] == "invisible" else "(all nine quadratic ones)"
@@ -281,9 +282,9 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
                          f"{mx[0]:.2f} / {mx[1]:.2f} / {mx[2]:.2f} m (E / N / U) over the site; each GCP left out is "
                          f"predicted to {gb['loo_rms_bend_m']:.2f} m RMS, against {gb['loo_rms_affine_m']:.2f} m "
                          "without it (in the 3D view, the DSM and cloud.ply alike).")
-        elif gb.get("control_gcps_needed") and outcome.bend.get(g, {}).get("site_width_km", 0) >= 1.0:
+        elif gb.get("control_gcps_needed") and (u.bend or {}).get("site_width_km", 0) >= 1.0:
             parts.append(f"Large-scale distortion not fitted to the GCPs: {gb['reason']}.")
-        db = outcome.dem_bend.get(g) or {}
+        db = u.dem_bend or {}
         if db.get("applied"):
             kind = bend_kind(db.get("degree", 2))
             fell = "; the cubic asked for fell back to a quadratic: the DEM does not tell it" \

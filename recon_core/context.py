@@ -4,14 +4,26 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 from recon_core.config import Config
+from recon_core.geometry.enu_map import EnuMap
 from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.gcps import GCP
 from recon_core.io.layout import OutLayout
 from recon_core.io.site import Site
 from recon_core.model.grouping import Group
 from recon_core.model.sparse_model import SparseModel
+
+if TYPE_CHECKING:
+    from recon_core.events import EventBus
+
+
+class UpgradeMaps(NamedTuple):
+    """What the upgrade hands on: each group's whole map to the shared ENU frame, and that frame."""
+
+    maps: dict[int, EnuMap]
+    frame: LocalFrame
 
 
 @dataclass
@@ -22,7 +34,7 @@ class RunState:
         site: the input site; gcps: the GCP set the run uses (the working set OUT/gcps.geojson
         when it exists, else the site's); out: the output folder (layout: its files).
         models: group -> SparseModel; dense: group -> dense.ply path;
-        upgrade: ({group: H_A}, LocalFrame) once upgraded; report: report.json's content.
+        upgrade: UpgradeMaps once upgraded; report: report.json's content.
     """
 
     site: Site
@@ -34,9 +46,18 @@ class RunState:
     gcp_text: str = ""                # its content at the start of the run (the stages' hashes)
     models: dict[int, SparseModel] = field(default_factory=dict)
     dense: dict[int, Path] = field(default_factory=dict)
-    upgrade: tuple[dict[int, object], LocalFrame] | None = None
+    upgrade: UpgradeMaps | None = None
     report: dict = field(default_factory=dict)
 
     @property
     def layout(self) -> OutLayout:
         return OutLayout(self.out)
+
+
+class Stage(Protocol):
+    """A stage of the pipeline (recon_core.pipeline.STAGE_MODULES): computes its products from
+    the state and returns its summary, or reloads them from OUT into the state."""
+
+    def run(self, state: RunState, bus: EventBus) -> dict: ...
+
+    def load(self, state: RunState) -> None: ...

@@ -15,7 +15,7 @@ import zipfile
 from pathlib import Path
 
 from recon_core.config import Config
-from recon_core.context import RunState
+from recon_core.context import RunState, Stage
 from recon_core.dense import stage as dense_stage
 from recon_core.euclidean import dsm_stage, upgrade_stage
 from recon_core.evaluation import stage as eval_stage
@@ -31,8 +31,8 @@ from recon_core.resume import STAGES, config_hash, mark_done, stage_done
 from recon_core.sparse import stage as sparse_stage
 
 
-# stage name -> module with run(state, bus) -> summary and load(state)
-STAGE_MODULES = {"sparse": sparse_stage, "dense": dense_stage, "upgrade": upgrade_stage,
+# stage name -> its module (a Stage: run(state, bus) -> summary, load(state))
+STAGE_MODULES: dict[str, Stage] = {"sparse": sparse_stage, "dense": dense_stage, "upgrade": upgrade_stage,
                  "dsm": dsm_stage, "eval": eval_stage}
 assert tuple(STAGE_MODULES) == STAGES      # resume's order is the one the stages run in
 

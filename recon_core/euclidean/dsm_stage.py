@@ -606,7 +606,7 @@ class RowView:
 def point_sources(state, bus: EventBus) -> dict[int, PointSource]:
     """Each upgraded group's dense cloud (on disk), or its sparse points when it has none."""
     sources = {}
-    for g in state.upgrade[0]:
+    for g in state.upgrade.maps:
         path: Path | None = state.dense.get(g)
         src = PointSource(ply=path) if path is not None else None
         if src is not None and len(src):

@@ -18,6 +18,7 @@ from recon_core.bend.gcp import fit_gcp_bend
 from recon_core.bend.metric import metric_bend, warped_model
 from recon_core.bend.observability import BEND_INVISIBLE_PX_PER_M, bend_observability, bend_seen, bend_warning
 from recon_core.config import Config
+from recon_core.context import UpgradeMaps
 from recon_core.errors import ReconstructionError
 from recon_core.euclidean.georef import GcpAffine, frame_for, upgrade_group
 from recon_core.euclidean.upgrade import UpgradeResult, flat_gcp_refusal, rescore_with_bend
@@ -51,72 +52,94 @@ DEM_TILT_WARN_M = 5.0
 
 
 @dataclass
+class GroupUpgrade:
+    """One date group's upgrade, as the stages after it and the viewer read it.
+
+    Attributes:
+        result: H_A with its report (residuals, statistics, conditioning, views).
+        affine: GCP id -> GcpAffine: how each GCP was placed in the group's affine frame.
+        gsd_m: ground sample distance of the group's tile cameras (m/px).
+        bend: what the group's views can see of a bend (recon_core.bend.observability).
+        warp: the metric bend step's warp (None: it stood aside or is off), and `metric` its
+            summary.
+        enu_warp: the bend fitted to the control GCPs or taken from the reference DEM (None:
+            neither), with the summaries `gcp_bend` and `dem_bend` of those fits.
+    """
+
+    result: UpgradeResult
+    affine: dict[str, GcpAffine]
+    gsd_m: float
+    bend: dict = field(default_factory=dict)
+    warp: BendWarp | None = None
+    metric: dict = field(default_factory=dict)
+    enu_warp: EnuWarp | None = None
+    gcp_bend: dict = field(default_factory=dict)
+    dem_bend: dict = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, st: ModelUpgrade, gsd_m: float) -> "GroupUpgrade":
+        return cls(st.result, st.affine, gsd_m, st.bend, st.warp, st.metric, st.enu_warp, st.gcp_bend,
+                   st.dem_bend)
+
+    @property
+    def map(self) -> EnuMap:
+        """The group's whole upgrade: the metric bend step's warp, H_A, the bend fitted to GCPs."""
+        return EnuMap(self.result.H, self.warp, self.enu_warp)
+
+    def record(self) -> dict:
+        """What upgrade/group_<g>.json holds: the UpgradeResult, how each GCP was placed, GSD."""
+        d = self.result.to_dict()
+        d["gcp_affine"] = {k: {"xyz": None if a.xyz is None else a.xyz.tolist(), "n_images": a.n_images,
+                               "reproj_rms_px": a.reproj_rms_px, "source": a.source}
+                           for k, a in self.affine.items()}
+        d["gsd_m"] = self.gsd_m
+        if self.bend:
+            d["bend_observability"] = self.bend
+        if self.metric:
+            d["metric_bend"] = self.metric
+        if self.warp is not None:
+            d["metric_warp"] = warp_record(self.warp)
+        if self.gcp_bend:
+            d["gcp_bend"] = self.gcp_bend
+        if self.dem_bend:
+            d["dem_bend"] = self.dem_bend
+        if self.enu_warp is not None:
+            d["dem_warp" if self.dem_bend.get("applied") else "gcp_warp"] = self.enu_warp.record()
+        return d
+
+
+@dataclass
 class Upgrade:
     """The Euclidean upgrade of every group.
 
     Attributes:
         frame: the local ENU frame shared by all groups (at the control GCPs' centroid).
-        results: group -> UpgradeResult of the groups that could be upgraded.
-        affine: group -> {GCP id: GcpAffine}: how each GCP was placed in that group's frame.
-        gsd_m: group -> ground sample distance of its tile cameras (m/px).
+        groups: group -> GroupUpgrade of the groups that could be upgraded.
         errors: group -> why it could not be upgraded.
+        joint: one H_A for all groups of one joint reconstruction.
     """
 
     frame: LocalFrame
-    results: dict[int, UpgradeResult] = field(default_factory=dict)
-    affine: dict[int, dict[str, GcpAffine]] = field(default_factory=dict)
-    gsd_m: dict[int, float] = field(default_factory=dict)
+    groups: dict[int, GroupUpgrade] = field(default_factory=dict)
     errors: dict[int, str] = field(default_factory=dict)
-    joint: bool = False           # one H_A for all groups of one joint reconstruction
-    bend: dict[int, dict] = field(default_factory=dict)   # group -> bend_observability
-    warps: dict[int, object] = field(default_factory=dict)  # group -> the metric bend step's BendWarp
-    metric: dict[int, dict] = field(default_factory=dict)   # group -> the metric bend step's summary
-    enu_warps: dict[int, EnuWarp] = field(default_factory=dict)  # group -> the bend fitted to GCPs
-    gcp_bend: dict[int, dict] = field(default_factory=dict)  # group -> that fit's summary
-    dem_bend: dict[int, dict] = field(default_factory=dict)  # group -> the reference DEM's fit's summary
+    joint: bool = False
 
-    def add(self, g: int, st: ModelUpgrade, gsd_m: float) -> None:
-        """File group g's upgrade (a joint one is filed once per group)."""
-        self.results[g], self.affine[g], self.gsd_m[g] = st.result, st.affine, gsd_m
-        self.bend[g], self.warps[g], self.metric[g], self.gcp_bend[g] = st.bend, st.warp, st.metric, st.gcp_bend
-        if st.dem_bend:
-            self.dem_bend[g] = st.dem_bend
-        if st.enu_warp is not None:
-            self.enu_warps[g] = st.enu_warp
+    @property
+    def results(self) -> dict[int, UpgradeResult]:
+        """group -> UpgradeResult (H_A and its report) of the upgraded groups."""
+        return {g: u.result for g, u in self.groups.items()}
 
     @property
     def Hs(self) -> dict[int, np.ndarray]:
-        return {g: r.H for g, r in self.results.items()}
+        return {g: u.result.H for g, u in self.groups.items()}
 
     @property
     def maps(self) -> dict[int, EnuMap]:
-        """Each group's whole upgrade: the metric bend step's warp, H_A, the bend fitted to GCPs."""
-        return {g: EnuMap(r.H, self.warps.get(g), self.enu_warps.get(g)) for g, r in self.results.items()}
-
-    def record(self, g: int) -> dict:
-        """What upgrade/group_<g>.json holds: the UpgradeResult, how each GCP was placed, GSD."""
-        d = self.results[g].to_dict()
-        d["gcp_affine"] = {k: {"xyz": None if a.xyz is None else a.xyz.tolist(), "n_images": a.n_images,
-                               "reproj_rms_px": a.reproj_rms_px, "source": a.source}
-                           for k, a in self.affine[g].items()}
-        d["gsd_m"] = self.gsd_m[g]
-        if self.bend.get(g):
-            d["bend_observability"] = self.bend[g]
-        if self.metric.get(g):
-            d["metric_bend"] = self.metric[g]
-        if self.warps.get(g) is not None:
-            d["metric_warp"] = warp_record(self.warps[g])
-        if self.gcp_bend.get(g):
-            d["gcp_bend"] = self.gcp_bend[g]
-        if self.dem_bend.get(g):
-            d["dem_bend"] = self.dem_bend[g]
-        if self.enu_warps.get(g) is not None:
-            key = "dem_warp" if self.dem_bend.get(g, {}).get("applied") else "gcp_warp"
-            d[key] = self.enu_warps[g].record()
-        return d
+        """Each group's whole upgrade (GroupUpgrade.map)."""
+        return {g: u.map for g, u in self.groups.items()}
 
     def report(self) -> dict:
-        groups = {str(g): self.record(g) for g in self.results}
+        groups = {str(g): u.record() for g, u in self.groups.items()}
         groups.update({str(g): {"error": e} for g, e in self.errors.items()})
         out = {"frame": self.frame.to_dict(), "groups": dict(sorted(groups.items()))}
         if self.joint:
@@ -342,7 +365,7 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config, images: dict | No
                                         cfg, images=images), UPGRADE_CHAIN)
             for g, model in sorted(models.items()):
                 gsd = estimate_gsd(model if st.warp is None else warped_model(model, st.warp), st.result.H)
-                up.add(g, st, gsd)
+                up.groups[g] = GroupUpgrade.of(st, gsd)
             up.joint = True
             return up
         except ReconstructionError:           # each group on its own, below
@@ -354,8 +377,8 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config, images: dict | No
         except ReconstructionError as exc:
             up.errors[g] = f"group {g}: {exc}"
             continue
-        up.add(g, run_steps(st, UPGRADE_HOLD), gsd)
-    if not up.results:
+        up.groups[g] = GroupUpgrade.of(run_steps(st, UPGRADE_HOLD), gsd)
+    if not up.groups:
         raise ReconstructionError("; ".join(up.errors.values()))
     return up
 
@@ -379,7 +402,7 @@ def _warn_bend(res: UpgradeResult, bend: dict, gcp_fit: dict | None = None, dem_
 
 def write(up: Upgrade, out) -> None:
     """upgrade/group_<k>.json and upgrade/frame.json (what the DSM stage reads)."""
-    save_upgrade(out, {g: up.record(g) for g in up.results}, up.frame)
+    save_upgrade(out, {g: u.record() for g, u in up.groups.items()}, up.frame)
 
 
 def run(state: RunState, bus: EventBus) -> dict:
@@ -389,7 +412,7 @@ def run(state: RunState, bus: EventBus) -> dict:
                                   "observed in >= 2 images of each group")
     up = upgrade_models(state.gcps, state.models, state.cfg, {im.name: im for im in state.site.images})
     write(up, state.layout)
-    state.upgrade = (up.maps, up.frame)
+    state.upgrade = UpgradeMaps(up.maps, up.frame)
     report = up.report()
     for g, r in report["groups"].items():
         if "error" in r:
@@ -413,4 +436,5 @@ def run(state: RunState, bus: EventBus) -> dict:
 
 
 def load(state) -> None:
-    state.upgrade = load_upgrade(state.layout)
+    saved = load_upgrade(state.layout)
+    state.upgrade = None if saved is None else UpgradeMaps(*saved)

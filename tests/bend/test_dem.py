@@ -190,7 +190,7 @@ def test_the_upgrade_takes_the_bend_from_a_dem_only_where_the_views_cannot_see_i
     base = upgrade_models(state.gcps, state.models, preset("tiny"))
     cfg = preset("tiny").with_overrides({"upgrade.reference_dem": str(dem)})
     up = upgrade_models(state.gcps, state.models, cfg)
-    assert not up.dem_bend[0]["applied"] and "too small to bend" in up.dem_bend[0]["reason"]
+    assert not up.groups[0].dem_bend["applied"] and "too small to bend" in up.groups[0].dem_bend["reason"]
     np.testing.assert_array_equal(up.results[0].H, base.results[0].H)
     assert up.maps[0].enu_warp is None
     # as if it were wide (its views cannot see a vertical bend: test_georef_upgrade_stage)
@@ -198,9 +198,9 @@ def test_the_upgrade_takes_the_bend_from_a_dem_only_where_the_views_cannot_see_i
     monkeypatch.setattr(dem_bend, "CELL_M", 40.0)
     monkeypatch.setattr(dem_bend, "MIN_CELLS", 10)
     up = upgrade_models(state.gcps, state.models, cfg)
-    info = up.dem_bend[0]
+    info = up.groups[0].dem_bend
     assert info["applied"] and info["cells"] >= 10, info
-    rec = up.record(0)
+    rec = up.groups[0].record()
     assert "dem_warp" in rec and "gcp_warp" not in rec and rec["dem_bend"]["applied"]
     back = EnuMap.from_record(rec)
     np.testing.assert_allclose(back.enu_warp.coef, up.maps[0].enu_warp.coef)
@@ -212,14 +212,14 @@ def test_the_upgrade_takes_the_bend_from_a_dem_only_where_the_views_cannot_see_i
     # the viewer: its Results tab says so, and its Euclidean view applies the same warp
     out = _outcome(up)
     assert "height distortion taken from the reference DEM (dem.tif)" in outcome_markdown(out)
-    assert out.transform(0).post is up.enu_warps[0]
+    assert out.transform(0).post is up.groups[0].enu_warp
     # a DEM of 10 m cells with 0.5 m of noise cannot tell a bend over 0.2 km of 40 m buildings:
     # refused with the fit's own standard error, and the warning that there is a bend is kept
     simulate_reference_dem(tiny_site / "gt_dsm.tif", tmp_path / "dem.tif", cell_m=10.0, noise_m=0.5,
                            corr_m=30.0, arcsec=0.3)
     monkeypatch.setattr(dem_bend, "CELL_M", 20.0)
     up = upgrade_models(state.gcps, state.models, cfg)
-    assert not up.dem_bend[0]["applied"] and "the DEM tells its bend of" in up.dem_bend[0]["reason"]
+    assert not up.groups[0].dem_bend["applied"] and "the DEM tells its bend of" in up.groups[0].dem_bend["reason"]
     np.testing.assert_array_equal(up.results[0].H, base.results[0].H)
     assert any("the reference DEM could not" in w for w in up.results[0].warnings)
     assert "Reference DEM not used: the DEM tells its bend of" in outcome_markdown(_outcome(up))

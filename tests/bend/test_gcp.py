@@ -117,6 +117,7 @@ def test_the_results_tab_says_what_the_gcp_bend_did():
     """The viewer's Results tab: the warps fitted and how far they move the site, or why not."""
     from aerec_viewer.results import UpgradeOutcome, outcome_markdown
     from recon_core.euclidean.upgrade import GcpInput, upgrade
+    from recon_core.euclidean.upgrade_stage import GroupUpgrade
     from recon_core.geometry.geodesy import LocalFrame
 
     H, Xa, Xe, obs, n, rng = _site(4, 12, dome_m=30.0)
@@ -124,15 +125,15 @@ def test_the_results_tab_says_what_the_gcp_bend_did():
     res = upgrade(gcps, rng=np.random.default_rng(0))
     fit = fit_gcp_bend(res.H, Xa[:n], Xe[:n], obs, 1e-3)
     warp, info = fit.warp, fit.summary
-    out = UpgradeOutcome(LocalFrame(30.0, 31.0), results={0: res}, gcp_bend={0: info}, enu_warps={0: warp},
-                         bend={0: {"site_width_km": 10.0}})
+    out = UpgradeOutcome(LocalFrame(30.0, 31.0), groups={0: GroupUpgrade(res, {}, 0.5, bend={"site_width_km": 10.0},
+                                                                         enu_warp=warp, gcp_bend=info)})
     md = outcome_markdown(out)
     assert "distortion fitted to the control GCPs" in md and "each GCP left out is predicted" in md
     T = out.transform(0)
     assert T.post is warp
     refused = dict(info, applied=False, reason="only 5 of 12 control GCPs agree within 2 m with the warps, 8 needed")
-    md = outcome_markdown(UpgradeOutcome(LocalFrame(30.0, 31.0), results={0: res}, gcp_bend={0: refused},
-                                         bend={0: {"site_width_km": 10.0}}))
+    md = outcome_markdown(UpgradeOutcome(LocalFrame(30.0, 31.0), groups={0: GroupUpgrade(
+        res, {}, 0.5, bend={"site_width_km": 10.0}, gcp_bend=refused)}))
     assert "distortion not fitted to the GCPs: only 5 of 12" in md
 
 

@@ -64,7 +64,7 @@ def test_upgrade_models_recovers_a_known_map_from_picked_positions(tiny_run):
     up = upgrade_models(gcps, {0: m}, cfg)
     Xe = up.frame.geodetic_to_enu(llh)
     np.testing.assert_allclose(up.results[0].apply(Xa), Xe, atol=1e-5)
-    rec = up.record(0)
+    rec = up.groups[0].record()
     assert all(v["source"] == "picked" for v in rec["gcp_affine"].values()) and rec["gsd_m"] > 0
     # without positions for this group (picked on another group's cloud), nothing is placeable
     for g in gcps:
@@ -154,7 +154,7 @@ def test_a_metric_warp_goes_through_the_upgrade_its_record_and_the_dsm(tiny_run,
     plain = upgrade_models(state.gcps, state.models, state.cfg)
     assert up.maps[0].warp is warp and plain.maps[0].warp is None
     assert not np.allclose(up.results[0].H, plain.results[0].H)        # refitted on the warped model
-    rec = up.record(0)
+    rec = up.groups[0].record()
     back = EnuMap.from_record(rec)
     np.testing.assert_allclose(back(X), up.maps[0](X), atol=1e-9)
     H = np.array(rec["H"], dtype=np.float64)

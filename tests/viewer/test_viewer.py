@@ -240,7 +240,7 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     assert (f"| {chk['id']} | check |" in gp.listing.content
             and f"{chk['dE']:+.2f} / {chk['dN']:+.2f} / {chk['dU']:+.2f} |" in gp.listing.content)
     # the metric bend step: said when applied (the 3D view places the clouds by H_A alone)
-    applied = outcome.metric[0].get("applied")
+    applied = outcome.groups[0].metric.get("applied")
     assert ("Metric bend step: a horizontal warp of" in md) == bool(applied)
     assert not (out / "viewer_upgrade.json").exists()      # one upgrade record: the pipeline's
     assert "stops after the sparse stage" in app.worker.rerun_from("upgrade")   # --until sparse
