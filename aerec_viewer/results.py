@@ -282,7 +282,7 @@ def outcome_markdown(outcome: UpgradeOutcome) -> str:
                          f"{mx[0]:.2f} / {mx[1]:.2f} / {mx[2]:.2f} m (E / N / U) over the site; each GCP left out is "
                          f"predicted to {gb['loo_rms_bend_m']:.2f} m RMS, against {gb['loo_rms_affine_m']:.2f} m "
                          "without it (in the 3D view, the DSM and cloud.ply alike).")
-        elif gb.get("control_gcps_needed") and (u.bend or {}).get("site_width_km", 0) >= 1.0:
+        elif gb.get("control_gcps_needed") and u.bend is not None and u.bend.site_width_km >= 1.0:
             parts.append(f"Large-scale distortion not fitted to the GCPs: {gb['reason']}.")
         db = u.dem_bend or {}
         if db.get("applied"):

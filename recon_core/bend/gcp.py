@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from recon_core.bend.observability import BendView
 from recon_core.bend.result import BendFit
 from recon_core.geometry.affine import apply_affine_3d
 from recon_core.geometry.enu_map import EnuWarp
@@ -133,21 +134,19 @@ class GcpBendFit(BendFit):
     loo: np.ndarray | None = None
 
 
-def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
+def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: BendView | None,
                  invisible_px_per_m: float, thresh_m: float = 2.0, seed: int = 0):
     """Fit the warps the views cannot see to control GCPs (affine positions X_aff (n, 3) in the
     frame H maps, surveyed ENU X_enu (n, 3): every usable control GCP, whether or not the
     affine fit of H kept it: a bend makes good GCPs disagree with any affine map), with an
     affine correction of H, robustly (GCPs off by more than thresh_m from the consensus left out).
 
-    obs: recon_core.bend.observability of the model in the metric frame H gives, with its
-    "basis" (the 9 warps, centre and scale). Returns a GcpBendFit (its summary says why not, when
-    it does not apply)."""
-    basis_rec = obs.get("basis") if obs else None
-    if not basis_rec:
+    obs: what the model's views see of a bend, in the metric frame H gives (its 9 warps, centre
+    and scale). Returns a GcpBendFit (its summary says why not, when it does not apply)."""
+    if obs is None:
         return GcpBendFit(None, {"applied": False, "reason": "no view of the structure to tell the invisible warps"})
-    s = np.asarray(obs["singular_px_per_m"])
-    W = np.asarray(basis_rec["warps"], np.float64)
+    s = np.asarray(obs.singular_px_per_m)
+    W = np.asarray(obs.warps, np.float64)
     Vi = W[s < invisible_px_per_m]                  # the warps the views cannot see
     k, n = len(Vi), len(X_aff)
     info: dict = {"invisible_warps": k, "control_gcps": int(n),
@@ -163,7 +162,7 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: dict,
         return GcpBendFit(None, {**info, "applied": False,
                             "reason": f"{n} usable control GCPs, {need} needed to fit {k} invisible warps "
                                       f"with {MIN_REDUNDANCY} equations to spare"})
-    warp = EnuWarp(np.asarray(basis_rec["centre_m"], np.float64), float(basis_rec["half_width_m"]),
+    warp = EnuWarp(np.asarray(obs.centre_m, np.float64), float(obs.half_width_m),
                    np.zeros(9))
     Y = apply_affine_3d(H, X_aff)
     z0 = float(Y[:, 2].mean())       # one centre of the heights for every fit below

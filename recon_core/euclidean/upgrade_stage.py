@@ -16,7 +16,13 @@ import numpy as np
 from recon_core.bend.dem import bend_kind, fit_dem_bend, open_reference_dem
 from recon_core.bend.gcp import fit_gcp_bend
 from recon_core.bend.metric import metric_bend, warped_model
-from recon_core.bend.observability import BEND_INVISIBLE_PX_PER_M, bend_observability, bend_seen, bend_warning
+from recon_core.bend.observability import (
+    BEND_INVISIBLE_PX_PER_M,
+    BendView,
+    bend_observability,
+    bend_seen,
+    bend_warning,
+)
 from recon_core.config import Config
 from recon_core.context import UpgradeMaps
 from recon_core.errors import ReconstructionError
@@ -69,7 +75,7 @@ class GroupUpgrade:
     result: UpgradeResult
     affine: dict[str, GcpAffine]
     gsd_m: float
-    bend: dict = field(default_factory=dict)
+    bend: BendView | None = None
     warp: BendWarp | None = None
     metric: dict = field(default_factory=dict)
     enu_warp: EnuWarp | None = None
@@ -93,8 +99,8 @@ class GroupUpgrade:
                                "reproj_rms_px": a.reproj_rms_px, "source": a.source}
                            for k, a in self.affine.items()}
         d["gsd_m"] = self.gsd_m
-        if self.bend:
-            d["bend_observability"] = self.bend
+        if self.bend is not None:
+            d["bend_observability"] = self.bend.to_dict()
         if self.metric:
             d["metric_bend"] = self.metric
         if self.warp is not None:
@@ -175,7 +181,7 @@ class ModelUpgrade:
     affine: dict[str, GcpAffine] = field(default_factory=dict)
     warp: BendWarp | None = None    # the metric bend step's warp (None: it stood aside or is off)
     metric: dict = field(default_factory=dict)     # ... and its summary
-    bend: dict = field(default_factory=dict)       # bend_observability in the frame H_A gives
+    bend: BendView | None = None                   # what the views see of a bend, in the frame H_A gives
     enu_warp: EnuWarp | None = None  # the bend fitted to GCPs or taken from the reference DEM
     gcp_bend: dict = field(default_factory=dict)   # the GCP fit's summary
     dem_bend: dict = field(default_factory=dict)   # the reference DEM's fit's summary
@@ -251,7 +257,7 @@ def _surveyed_enu(gcps: list[GCP], frame: LocalFrame) -> np.ndarray:
 
 
 def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP], frame: LocalFrame,
-                  bend: dict, cfg: Config) -> tuple[UpgradeResult, EnuWarp | None, dict]:
+                  bend: BendView | None, cfg: Config) -> tuple[UpgradeResult, EnuWarp | None, dict]:
     """The bend the views cannot see, fitted to the control GCPs H_A used
     (recon_core.bend.gcp), and the result re-scored with it when it applies."""
     if not cfg.upgrade.gcp_bend:
@@ -275,7 +281,7 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
     return out, fit.warp, fit.summary
 
 
-def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model, bend: dict, gcp_fit: dict,
+def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model, bend: BendView | None, gcp_fit: dict,
                   cfg: Config, images: dict | None = None,
                   max_points: int = 300_000) -> tuple[UpgradeResult, EnuWarp | None, dict]:
     """The vertical bend the views cannot see, taken from the reference DEM
@@ -305,9 +311,8 @@ def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model,
         fits["res"], _ = _fit(model, moved, frame, cfg, images)
         return fits["res"].H
 
-    basis = bend["basis"]
     try:
-        fit = fit_dem_bend(res.H, model.X[ids], frame, dem, basis["centre_m"], basis["half_width_m"],
+        fit = fit_dem_bend(res.H, model.X[ids], frame, dem, bend.centre_m, bend.half_width_m,
                            refit, seed=cfg.seed, degree=cfg.upgrade.reference_dem_degree)
     except ReconstructionError as exc:        # e.g. the control GCPs too flat once moved
         return res, None, {"applied": False, "reason": f"H_A refit with the DEM's bend: {exc}"}
@@ -329,8 +334,8 @@ def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model,
         out.warnings.append(f"the reference DEM {dem.path.name} is tilted against the control GCPs by "
                             f"{info['tilt_m'][0]:.1f} / {info['tilt_m'][1]:.1f} m at the site's east / north edge: "
                             "a GCP or the DEM is probably wrong (its datum is not: an offset is expected)")
-    out.warnings.append(f"the reference DEM holds the vertical bend its {bend['views']} views cannot see over "
-                        f"{bend['site_width_km']:.1f} km, not the horizontal one: positions away from the GCPs may "
+    out.warnings.append(f"the reference DEM holds the vertical bend its {bend.views} views cannot see over "
+                        f"{bend.site_width_km:.1f} km, not the horizontal one: positions away from the GCPs may "
                         "be off by metres (9 or more control GCPs spread over the site, or views of another "
                         "date, hold it)")
     return out, warp, info
@@ -383,7 +388,7 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config, images: dict | No
     return up
 
 
-def _warn_bend(res: UpgradeResult, bend: dict, gcp_fit: dict | None = None, dem_fit: dict | None = None) -> None:
+def _warn_bend(res: UpgradeResult, bend: BendView | None, gcp_fit: dict | None = None, dem_fit: dict | None = None) -> None:
     if (gcp_fit or {}).get("applied") or (dem_fit or {}).get("applied"):
         return                 # the GCPs or the reference DEM hold what the views cannot see
     text = bend_warning(bend, gcp_fit)

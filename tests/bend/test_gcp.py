@@ -2,9 +2,12 @@
 true bend of a synthetic site is recovered from spread GCPs (checked on held-out points), and
 nothing is applied from too few GCPs or where there is no bend to find."""
 
+from dataclasses import replace
+
 import numpy as np
 
 from recon_core.bend.gcp import fit_gcp_bend
+from recon_core.bend.observability import BendView
 from recon_core.geometry.enu_map import EnuMap, EnuWarp
 
 
@@ -21,8 +24,9 @@ def _site(seed: int, n_ctrl: int, dome_m: float, noise_m: float = 0.05):
     V[1, 7] = 1.0                      # U e n
     s = np.array([0.2, 0.1, 0.05, 5e-4, 1e-5])          # three seen, two not
     basis = np.vstack([np.eye(9)[[0, 4, 5]], V])
-    obs = {"singular_px_per_m": s.tolist(),
-           "basis": {"warps": basis.tolist(), "centre_m": centre.tolist(), "half_width_m": half}}
+    obs = BendView(views=3, site_width_km=2 * half / 1000, singular_px_per_m=s.tolist(),
+                   vertical_share=np.linalg.norm(basis[:, 6:], axis=1).tolist(), weakest_vertical_px_per_m=float(s[-1]),
+                   invisible_warps=2, warps=basis.tolist(), centre_m=centre.tolist(), half_width_m=half)
     true = EnuWarp(centre, half, dome_m * np.linalg.norm(np.r_[1.0, 0.3, 1.0, 0.3]) * V[0] / 2.0)
     n = n_ctrl + 30
     Y = np.c_[rng.uniform(-half, half, (n, 2)) + centre, rng.uniform(20, 60, n)]
@@ -68,7 +72,7 @@ def test_too_few_gcps_or_no_bend_apply_nothing():
     warp, info = fit.warp, fit.summary
     assert not fit.applied and warp is None and not info["applied"] and "leave-one-out" in info["reason"]
     # every warp seen: nothing to fit
-    obs2 = dict(obs, singular_px_per_m=[0.2, 0.1, 0.05, 0.02, 0.01])
+    obs2 = replace(obs, singular_px_per_m=[0.2, 0.1, 0.05, 0.02, 0.01])
     assert fit_gcp_bend(H, Xa[:n], noisy, obs2, 1e-3).summary["reason"] == "the views see every quadratic warp"
 
 
@@ -125,7 +129,7 @@ def test_the_results_tab_says_what_the_gcp_bend_did():
     res = upgrade(gcps, rng=np.random.default_rng(0))
     fit = fit_gcp_bend(res.H, Xa[:n], Xe[:n], obs, 1e-3)
     warp, info = fit.warp, fit.summary
-    out = UpgradeOutcome(LocalFrame(30.0, 31.0), groups={0: GroupUpgrade(res, {}, 0.5, bend={"site_width_km": 10.0},
+    out = UpgradeOutcome(LocalFrame(30.0, 31.0), groups={0: GroupUpgrade(res, {}, 0.5, bend=obs.with_width(10.0),
                                                                          enu_warp=warp, gcp_bend=info)})
     md = outcome_markdown(out)
     assert "distortion fitted to the control GCPs" in md and "each GCP left out is predicted" in md
@@ -133,7 +137,7 @@ def test_the_results_tab_says_what_the_gcp_bend_did():
     assert T.post is warp
     refused = dict(info, applied=False, reason="only 5 of 12 control GCPs agree within 2 m with the warps, 8 needed")
     md = outcome_markdown(UpgradeOutcome(LocalFrame(30.0, 31.0), groups={0: GroupUpgrade(
-        res, {}, 0.5, bend={"site_width_km": 10.0}, gcp_bend=refused)}))
+        res, {}, 0.5, bend=obs.with_width(10.0), gcp_bend=refused)}))
     assert "distortion not fitted to the GCPs: only 5 of 12" in md
 
 
@@ -147,7 +151,7 @@ def test_check_points_off_by_a_bend_are_not_only_blamed_on_the_gcps():
     gcps = [GcpInput(f"G{i:02d}", "control" if i < n else "check", Xa[i], Xe[i], None, 0.2) for i in range(n + 10)]
     res = upgrade(gcps, rng=np.random.default_rng(0))
     assert any(w.startswith("the check points are off by") for w in res.warnings)
-    _warn_bend(res, {"weakest_vertical_px_per_m": 1e-5, "site_width_km": 10.0, "views": 3},
+    _warn_bend(res, replace(obs.with_width(10.0), weakest_vertical_px_per_m=1e-5, views=3),
                {"applied": False, "control_gcps_needed": 8, "invisible_warps": 6})
     off = [w for w in res.warnings if w.startswith("the check points are off by")]
     assert off and off[0].endswith("or the structure is bent (next warning)")

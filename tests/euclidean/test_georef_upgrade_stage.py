@@ -3,6 +3,8 @@ GCPs built from the tiny model's own points through a chosen H_A must give that 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import json
 
 import numpy as np
@@ -86,15 +88,16 @@ def test_the_upgrade_says_what_the_views_can_see_of_a_bend(tiny_run):
     # of the structure the upgrade maps: after the metric bend step, when it applied one
     maps, _ = state.upgrade
     m = state.models[0] if maps[0].warp is None else warped_model(state.models[0], maps[0].warp)
-    assert b == bend_observability(m, np.array(rec["H"]))
+    bv = bend_observability(m, np.array(rec["H"]))
+    assert b == bv.to_dict()
     assert b["views"] == 3 and b["site_width_km"] < 1.0
     # its weakest warp is vertical and invisible (its relief, 40 m over 200 m, shows others)
     assert b["invisible_warps"] >= 1 and b["weakest_vertical_px_per_m"] < BEND_INVISIBLE_PX_PER_M
     assert b["vertical_share"][-1] > 0.8
-    assert bend_warning(b) is None and not any("cannot see a bend" in w for w in rec["warnings"])
-    wide = dict(b, site_width_km=2.5)
+    assert bend_warning(bv) is None and not any("cannot see a bend" in w for w in rec["warnings"])
+    wide = bv.with_width(2.5)
     assert "cannot see a bend" in bend_warning(wide) and "2.5 km" in bend_warning(wide)
-    assert bend_warning(dict(wide, weakest_vertical_px_per_m=0.006)) is None   # `large`'s 9 views
+    assert bend_warning(replace(wide, weakest_vertical_px_per_m=0.006)) is None   # `large`'s 9 views
     # 4 control GCPs cannot fit the invisible warps (recon_core.bend.gcp): said, none applied
     gb = rec["gcp_bend"]
     assert not gb["applied"] and gb["control_gcps"] == 4 and "needed" in gb["reason"]
