@@ -152,8 +152,9 @@ def flat_spots(site: Path, ortho: Path, names: list[str], n: int) -> list[dict]:
 def roof_spots(site: Path, ortho: Path, dem: Path, names: list[str], n: int, roofs: int = 2) -> list[dict]:
     """n spots a user would click on the orthoimage, `roofs` of them roof corners (the truth DSM 2 m
     or more above the DEM there: the DEM smooths the building into the ground around it, within
-    2 m of its edge) and flat open ground (the truth within 0.3 m over 2 m, the DEM within 0.3 m
-    of it), textured, seen in every image, one near the centre of each quarter of the site;
+    2 m of its edge) and flat open ground (the truth within 0.3 m over 5 m around, as a user
+    told to prefer open ground picks it; the DEM within 0.3 m of it), textured, seen in every
+    image, one near the centre of each quarter of the site;
     their true pixels by the images' RPCs, their height the truth DSM's."""
     import cv2
     import rasterio
@@ -173,12 +174,16 @@ def roof_spots(site: Path, ortho: Path, dem: Path, names: list[str], n: int, roo
     above = np.full(dsm.shape, -1e9)
     above[rows, cols] = dsm[rows, cols] - open_reference_dem(dem).heights(np.asarray(lon), np.asarray(lat))
     k = int(max(1, round(2.0 / abs(tf.a))))                      # 2 m in cells
+    k_open = int(max(1, round(5.0 / abs(tf.a))))                 # 5 m: open ground
     lo = cv2.erode(np.where(ok, dsm, 1e9).astype(np.float32), np.ones((2 * k + 1, 2 * k + 1), np.uint8))
     hi = cv2.dilate(np.where(ok, dsm, -1e9).astype(np.float32), np.ones((2 * k + 1, 2 * k + 1), np.uint8))
     corner = cv2.cornerMinEigenVal(img / max(img.max(), 1.0), 5)
     textured = corner > np.percentile(corner[ok], 80)
     roof = ok & (above > 2.0) & (dsm - lo > 2.0) & textured
-    flat = ok & (np.abs(above) < 0.3) & (hi - lo < 0.3) & textured
+    box = np.ones((2 * k_open + 1, 2 * k_open + 1), np.uint8)
+    open_range = (cv2.dilate(np.where(ok, dsm, -1e9).astype(np.float32), box)
+                  - cv2.erode(np.where(ok, dsm, 1e9).astype(np.float32), box))
+    flat = ok & (np.abs(above) < 0.3) & (open_range < 0.3) & textured
     kind = np.where(roof, 1, np.where(flat, 2, 0))
     good = kind > 0
     rpcs = {}

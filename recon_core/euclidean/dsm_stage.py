@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -74,6 +75,43 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
     groups = [g for g in sorted(maps) if g in sources and len(sources[g])]
     if not groups:
         raise ReconstructionError("no upgraded group has a cloud")
+    Ts, fusion, epsg, res, grid = _align_and_lay_out(site, sources, maps, frame, gsd, groups, c)
+    total = sum(len(sources[g]) for g in groups)
+    work = _GridWork(grid, out.root)
+
+    def step(what: str) -> None:      # the grid's later steps take minutes on a large grid: said
+        if bus is not None:
+            bus.progress("dsm", total, total, f"{what} ({grid.width} x {grid.height} cells)")
+    try:
+        in_grid = _grid_points(sources, groups, Ts, maps, frame, epsg, grid, c, out, work, total, bus, step)
+        step("comparing and fusing the date groups" if len(groups) > 1 else "counting the cells")
+        fused = _fuse(work, groups, c, res, quality, geometry)
+        raw_valid = count_rows(fused.H, np.isfinite, work.strip) / fused.H.size
+        filled_buf = work.file("filled", np.float32)
+
+        def filled(D: np.ndarray) -> np.ndarray:
+            return fill_small_holes(D, max_hole_px=c.fill_holes_px, out=filled_buf, block_rows=work.strip) \
+                if c.fill_holes_px > 0 else D
+
+        step("filling small holes")
+        H = filled(fused.H)
+        valid = count_rows(H, np.isfinite, work.strip) / H.size
+        agreement, groups_report = _write_products(H, filled, fused, work, grid, groups, sources, epsg, c, out,
+                                                   quality, geometry, step)
+    finally:
+        work.close()
+    return {"crs_epsg": epsg, "resolution_m": res, "width": grid.width, "height": grid.height,
+            "points": int(total), "points_in_grid": int(in_grid), "valid_fraction_raw": raw_valid,
+            "valid_fraction": valid, "stat": c.stat, "fusion": fusion,
+            "fusion_rule": _fusion_rule(c, fused, groups), "group_order": fused.order, "groups": groups_report,
+            "gsd_m": gsd, "agreement": agreement, "noise_model": _noise_model(fused, groups)}
+
+
+def _align_and_lay_out(site: Site, sources: dict[int, PointSource], maps: dict[int, EnuMap], frame: LocalFrame,
+                       gsd: float, groups: list[int], c) -> tuple[dict, dict, int, float, Grid]:
+    """The groups' ICP refinements onto one another (none for one joint upgrade), the output
+    CRS and resolution, and the grid over their evenly spread samples: (Ts, fusion report,
+    epsg, res, grid)."""
     samples = {g: maps[g](sources[g].sample(c.icp_sample_points)) for g in groups}
     if len(groups) > 1 and all(maps[g].same(maps[groups[0]]) for g in groups):
         # one joint reconstruction upgraded by one H_A: the groups already share a frame, and
@@ -87,153 +125,188 @@ def make_dsm(site: Site, sources: dict[int, PointSource], maps: dict, frame: Loc
     epsg = output_epsg(site.hints, frame)
     res = float(c.resolution_m or site.hints.get("resolution_m") or default_resolution(gsd))
     extent = np.concatenate([apply_affine_3d(Ts[g], samples[g]) for g in groups])
-    grid = output_grid(site, enu_to_output(extent, frame, epsg), epsg, res)
-    total = sum(len(sources[g]) for g in groups)
+    return Ts, fusion, epsg, res, output_grid(site, enu_to_output(extent, frame, epsg), epsg, res)
+
+
+class _GridWork:
+    """Every full-grid array of the DSM stage lives on disk (np.memmap in a work folder of OUT,
+    removed at the end) and is read by strips of `strip` rows: memory holds strips, whatever the
+    site's size."""
+
+    def __init__(self, grid: Grid, root: Path):
+        self.grid = grid
+        self.dir = tempfile.TemporaryDirectory(prefix=".dsm_work_", dir=root)
+        self.strip = max(64, min(1024, STRIP_CELLS // grid.width))      # rows per strip
+        self.raw: dict[int, np.ndarray] = {}
+        self.weak: dict[int, np.ndarray] = {}
+        self.arrays: list[np.ndarray] = []
+
+    def file(self, name: str, dtype) -> np.ndarray:
+        path = Path(self.dir.name) / f"{name}.npy"
+        arr = np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=self.grid.shape)
+        reserve_disk(path)
+        self.arrays.append(arr)
+        return arr
+
+    def close(self) -> None:
+        # let go of the memmaps (also those a traceback would keep) before removing their files
+        self.raw.clear(), self.weak.clear(), self.arrays.clear()
+        self.dir.cleanup()
+
+
+def _grid_points(sources: dict[int, PointSource], groups: list[int], Ts: dict, maps: dict[int, EnuMap],
+                 frame: LocalFrame, epsg: int, grid: Grid, c, out: OutLayout, work: _GridWork, total: int,
+                 bus: EventBus | None, step) -> int:
+    """Stream each group's cloud by chunks (upgrade, ICP refinement, output CRS) into cloud.ply and
+    its DSM accumulator, then each group's reduced grid and weak-pair marks onto disk (work.raw,
+    work.weak); returns the points that fell in the grid."""
     spill = out.root if total > c.spill_above_points else None
     accs = {g: DsmAccumulator(grid, stat=c.stat, spill_dir=spill) for g in groups}
     done = 0
-    # every full-grid array lives on disk (np.memmap in a work folder of OUT, removed at the
-    # end) and is read by strips: memory holds strips, whatever the site's size
-    work = tempfile.TemporaryDirectory(prefix=".dsm_work_", dir=out.root)
-    raw: dict[int, np.ndarray] = {}
-    weak: dict[int, np.ndarray] = {}
-    H = source = filled_buf = None
-    strip = max(64, min(1024, STRIP_CELLS // grid.width))      # rows per strip
-
-    def step(what: str) -> None:      # the grid's later steps take minutes on a large grid: said
-        if bus is not None:
-            bus.progress("dsm", total, total, f"{what} ({grid.width} x {grid.height} cells)")
     try:
-        def grid_file(name: str, dtype) -> np.ndarray:
-            path = Path(work.name) / f"{name}.npy"
-            arr = np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=grid.shape)
-            reserve_disk(path)
-            return arr
-
-        try:
-            with PlyWriter(out.cloud, comments=(f"frame EPSG:{epsg} x y in metres, z height above "
-                                                "the WGS84 ellipsoid in metres; date groups fused",)) as w:
-                for g in groups:
-                    src = sources[g]
-                    for a in range(0, len(src), c.chunk_points):
-                        b = min(a + c.chunk_points, len(src))
-                        xyz, gray = src.read(a, b)
-                        xyh = enu_to_output(apply_affine_3d(Ts[g], maps[g](xyz)), frame, epsg)
-                        accs[g].add(xyh, src.tier(a, b))
-                        w.append(xyh, gray[:, None])
-                        done += len(xyz)
-                        if bus is not None:
-                            bus.progress("dsm", done, total, f"group {g}")
-            in_grid = sum(a.n_points for a in accs.values())
-            step("gridding the points")
+        with PlyWriter(out.cloud, comments=(f"frame EPSG:{epsg} x y in metres, z height above "
+                                            "the WGS84 ellipsoid in metres; date groups fused",)) as w:
             for g in groups:
-                raw[g], weak[g] = grid_file(f"raw_{g}", np.float32), grid_file(f"weak_{g}", bool)
-                for r0, r1, Hb, _, fb in accs[g].blocks():
-                    raw[g][r0:r1], weak[g][r0:r1] = Hb, fb
-        finally:
-            for acc in accs.values():
-                acc.close()
-
-        def precise_rows(g):     # without the cells only a weak pair's two-view points reach
-            return lambda r0, r1: np.where(weak[g][r0:r1], np.float32(np.nan), raw[g][r0:r1])
-
-        def weak_rows(g):
-            return lambda r0, r1: np.where(weak[g][r0:r1], raw[g][r0:r1], np.float32(np.nan))
-
-        precise = {g: RowView(grid.shape, precise_rows(g), strip) for g in groups}
-        block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
-        step("comparing and fusing the date groups" if len(groups) > 1 else "counting the cells")
-        pairs = pair_disagreement(precise, block)         # [] for one group
-        noise, match_px = noise_from_pairs(groups, pairs, geometry)
-        coverage = {g: count_rows(precise[g], np.isfinite, strip) for g in groups}
-        order = rank_groups(groups, quality or {}, coverage, noise)
-        agree = None
-        if len(groups) == 1:
-            H, source = raw[groups[0]], None              # source: only reported for several
-        else:
-            agree = grid_file("agree", np.float32)
-            # every group's precise cells first; a weak pair's cells only where none has any
-            fill = [RowView(grid.shape, weak_rows(g), strip) for g in order] if c.fuse_weak_pair_cells else []
-            H, source = fuse_groups([precise[g] for g in order] + fill, correct_block=block,
-                                    sigmas=[noise[g] for g in order] + [None] * len(fill),
-                                    agree_sigmas=c.fusion_agree_sigmas, fill_agreeing=c.fusion_fill_agreeing,
-                                    out=grid_file("fused", np.float32),
-                                    source_out=grid_file("source", np.int16), block_rows=strip,
-                                    agree_out=agree)
-        raw_valid = count_rows(H, np.isfinite, strip) / H.size
-        filled_buf = grid_file("filled", np.float32)
-
-        def filled(D: np.ndarray) -> np.ndarray:
-            return fill_small_holes(D, max_hole_px=c.fill_holes_px, out=filled_buf, block_rows=strip) \
-                if c.fill_holes_px > 0 else D
-
-        step("filling small holes")
-        H = filled(H)
-        valid = count_rows(H, np.isfinite, strip) / H.size
-        step("writing dsm.tif")
-        write_dsm(out.dsm, H, grid)
-        agreement = agreement_layer(agree, H, strip) if agree is not None else None
-        if agreement is not None:
-            write_geotiff(out.dsm_agreement, agree, grid.transform, grid.crs, resampling="nearest",
-                          description="date groups agreeing on the height of dsm.tif (0: a weak pair's "
-                                      "two-view points or a filled small hole)")
-        elif out.dsm_agreement.exists():              # a previous run's: it would not match
-            out.dsm_agreement.unlink()
-        if c.laz:
-            step("writing cloud.laz")
-            write_las(out.cloud, out.cloud_laz, epsg)
-        elif out.cloud_laz.exists():                 # a previous run's: it would not match
-            out.cloud_laz.unlink()
-        groups_report = {}
-        for g in out.group_dsms():                   # a previous run's, of groups not fused now
-            if len(groups) == 1 or g not in groups:
-                out.group_dsm(g).unlink()
-        if len(groups) > 1:
-            for k, g in enumerate(order):
-                step(f"writing group {g}'s own DSM")
-                write_dsm(out.group_dsm(g), filled(raw[g]), grid)
-                n_cells = grid.width * grid.height
-                groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),
-                                         "noise_m": noise[g],
-                                         "geometry_m_per_px": (geometry or {}).get(g),
-                                         "points": int(len(sources[g])),
-                                         "valid_fraction_raw": count_rows(raw[g], np.isfinite, strip) / n_cells,
-                                         "precise_fraction": coverage[g] / n_cells,
-                                         "fused_cells_from_it": count_rows(source, lambda v: v == k, strip) / n_cells,
-                                         "fused_cells_from_its_weak_pair":
-                                             count_rows(source, lambda v: v == k + len(order), strip) / n_cells}
+                src = sources[g]
+                for a in range(0, len(src), c.chunk_points):
+                    b = min(a + c.chunk_points, len(src))
+                    xyz, gray = src.read(a, b)
+                    xyh = enu_to_output(apply_affine_3d(Ts[g], maps[g](xyz)), frame, epsg)
+                    accs[g].add(xyh, src.tier(a, b))
+                    w.append(xyh, gray[:, None])
+                    done += len(xyz)
+                    if bus is not None:
+                        bus.progress("dsm", done, total, f"group {g}")
+        in_grid = sum(a.n_points for a in accs.values())
+        step("gridding the points")
+        for g in groups:
+            work.raw[g], work.weak[g] = work.file(f"raw_{g}", np.float32), work.file(f"weak_{g}", bool)
+            for r0, r1, Hb, _, fb in accs[g].blocks():
+                work.raw[g][r0:r1], work.weak[g][r0:r1] = Hb, fb
     finally:
-        # let go of the memmaps (also those a traceback would keep) before removing their files
-        raw.clear(), weak.clear()
-        H = source = filled_buf = agree = None
-        work.cleanup()
-    return {"crs_epsg": epsg, "resolution_m": res, "width": grid.width, "height": grid.height,
-            "points": int(total), "points_in_grid": int(in_grid), "valid_fraction_raw": raw_valid,
-            "valid_fraction": valid, "stat": c.stat, "fusion": fusion,
-            "fusion_rule": ("per cell, the best-ranked group with a precise value (ranked by the "
-                            "expected height error: check-point vertical RMSE and the DSM's noise, "
-                            + ("its geometry times one matching precision fitted to the groups' "
-                               "disagreement" if match_px is not None else
-                               "the groups' disagreement split between them") +
-                            "; ties: the group with the most precise cells first)" +
-                            (f"; lower-ranked groups brought onto the fused surface by a smooth "
-                             f"correction ({c.fusion_correction_m:g} m blocks)" if block else "") +
-                            (f"; where groups agree within {c.fusion_agree_sigmas:g} sigma, their "
-                             "inverse-variance weighted mean" if c.fusion_agree_sigmas > 0 else "") +
-                            (f"; a hole of the better groups filled only where {c.fusion_fill_agreeing} "
-                             "groups agree" if c.fusion_fill_agreeing > 1 and
-                             sum(noise[g] is not None for g in groups) >= 2 else "") +
-                            ("; cells only a weak pair's two-view points reach, last"
-                             if c.fuse_weak_pair_cells else "; cells only a weak pair's two-view "
-                             "points reach are left out (they stay in each group's own DSM)"))
-                           if len(groups) > 1 else "one group",
-            "group_order": order, "groups": groups_report, "gsd_m": gsd, "agreement": agreement,
-            "noise_model": None if len(groups) == 1 else {
-                "matching_precision_px": match_px,
-                "rule": ("each group's geometry (metres per pixel of all its views) times one "
-                         "matching precision fitted to the groups' disagreement") if match_px is not None
-                        else "the groups' disagreement split between them (three-cornered hat)",
-                "pairs": [{"groups": [a, b], "disagreement_nmad_m": float(np.sqrt(v))} for a, b, v in pairs]}}
+        for acc in accs.values():
+            acc.close()
+    return in_grid
+
+
+@dataclass
+class _Fused:
+    """The fused grid H (one group: its own), which group each cell came from (several groups),
+    the groups' agreement, their order, noise, coverage and pairwise disagreement."""
+
+    H: np.ndarray
+    source: np.ndarray | None
+    agree: np.ndarray | None
+    order: list[int]
+    noise: dict
+    match_px: float | None
+    coverage: dict[int, int]
+    pairs: list
+    block: int
+
+
+def _fuse(work: _GridWork, groups: list[int], c, res: float, quality: dict[int, float] | None,
+          geometry: dict[int, float] | None) -> _Fused:
+    """Rank the groups and fuse their grids (fuse_groups); one group is its own DSM."""
+    raw, weak, strip, shape = work.raw, work.weak, work.strip, work.grid.shape
+
+    def precise_rows(g):     # without the cells only a weak pair's two-view points reach
+        return lambda r0, r1: np.where(weak[g][r0:r1], np.float32(np.nan), raw[g][r0:r1])
+
+    def weak_rows(g):
+        return lambda r0, r1: np.where(weak[g][r0:r1], raw[g][r0:r1], np.float32(np.nan))
+
+    precise = {g: RowView(shape, precise_rows(g), strip) for g in groups}
+    block = int(round(c.fusion_correction_m / res)) if c.fusion_correction_m > 0 else 0
+    pairs = pair_disagreement(precise, block)         # [] for one group
+    noise, match_px = noise_from_pairs(groups, pairs, geometry)
+    coverage = {g: count_rows(precise[g], np.isfinite, strip) for g in groups}
+    order = rank_groups(groups, quality or {}, coverage, noise)
+    if len(groups) == 1:
+        return _Fused(raw[groups[0]], None, None, order, noise, match_px, coverage, pairs, block)
+    agree = work.file("agree", np.float32)
+    # every group's precise cells first; a weak pair's cells only where none has any
+    fill = [RowView(shape, weak_rows(g), strip) for g in order] if c.fuse_weak_pair_cells else []
+    H, source = fuse_groups([precise[g] for g in order] + fill, correct_block=block,
+                            sigmas=[noise[g] for g in order] + [None] * len(fill),
+                            agree_sigmas=c.fusion_agree_sigmas, fill_agreeing=c.fusion_fill_agreeing,
+                            out=work.file("fused", np.float32),
+                            source_out=work.file("source", np.int16), block_rows=strip,
+                            agree_out=agree)
+    return _Fused(H, source, agree, order, noise, match_px, coverage, pairs, block)
+
+
+def _write_products(H: np.ndarray, filled, fused: _Fused, work: _GridWork, grid: Grid, groups: list[int],
+                    sources: dict[int, PointSource], epsg: int, c, out: OutLayout,
+                    quality: dict[int, float] | None, geometry: dict[int, float] | None, step) -> tuple:
+    """dsm.tif, dsm_agreement.tif, cloud.laz and each group's own DSM (removing a previous run's
+    that would not match); returns (the agreement summary, each group's report)."""
+    strip = work.strip
+    step("writing dsm.tif")
+    write_dsm(out.dsm, H, grid)
+    agreement = agreement_layer(fused.agree, H, strip) if fused.agree is not None else None
+    if agreement is not None:
+        write_geotiff(out.dsm_agreement, fused.agree, grid.transform, grid.crs, resampling="nearest",
+                      description="date groups agreeing on the height of dsm.tif (0: a weak pair's "
+                                  "two-view points or a filled small hole)")
+    elif out.dsm_agreement.exists():              # a previous run's: it would not match
+        out.dsm_agreement.unlink()
+    if c.laz:
+        step("writing cloud.laz")
+        write_las(out.cloud, out.cloud_laz, epsg)
+    elif out.cloud_laz.exists():                 # a previous run's: it would not match
+        out.cloud_laz.unlink()
+    groups_report = {}
+    for g in out.group_dsms():                   # a previous run's, of groups not fused now
+        if len(groups) == 1 or g not in groups:
+            out.group_dsm(g).unlink()
+    if len(groups) > 1:
+        n_cells = grid.width * grid.height
+        for k, g in enumerate(fused.order):
+            step(f"writing group {g}'s own DSM")
+            write_dsm(out.group_dsm(g), filled(work.raw[g]), grid)
+            groups_report[str(g)] = {"rank": k, "quality_check_rmse_U_m": (quality or {}).get(g),
+                                     "noise_m": fused.noise[g],
+                                     "geometry_m_per_px": (geometry or {}).get(g),
+                                     "points": int(len(sources[g])),
+                                     "valid_fraction_raw": count_rows(work.raw[g], np.isfinite, strip) / n_cells,
+                                     "precise_fraction": fused.coverage[g] / n_cells,
+                                     "fused_cells_from_it": count_rows(fused.source, lambda v: v == k, strip) / n_cells,
+                                     "fused_cells_from_its_weak_pair":
+                                         count_rows(fused.source, lambda v: v == k + len(fused.order), strip) / n_cells}
+    return agreement, groups_report
+
+
+def _fusion_rule(c, fused: _Fused, groups: list[int]) -> str:
+    """The fusion rule in words, as the report says it."""
+    if len(groups) == 1:
+        return "one group"
+    return ("per cell, the best-ranked group with a precise value (ranked by the "
+            "expected height error: check-point vertical RMSE and the DSM's noise, "
+            + ("its geometry times one matching precision fitted to the groups' "
+               "disagreement" if fused.match_px is not None else
+               "the groups' disagreement split between them") +
+            "; ties: the group with the most precise cells first)" +
+            (f"; lower-ranked groups brought onto the fused surface by a smooth "
+             f"correction ({c.fusion_correction_m:g} m blocks)" if fused.block else "") +
+            (f"; where groups agree within {c.fusion_agree_sigmas:g} sigma, their "
+             "inverse-variance weighted mean" if c.fusion_agree_sigmas > 0 else "") +
+            (f"; a hole of the better groups filled only where {c.fusion_fill_agreeing} "
+             "groups agree" if c.fusion_fill_agreeing > 1 and
+             sum(fused.noise[g] is not None for g in groups) >= 2 else "") +
+            ("; cells only a weak pair's two-view points reach, last"
+             if c.fuse_weak_pair_cells else "; cells only a weak pair's two-view "
+             "points reach are left out (they stay in each group's own DSM)"))
+
+
+def _noise_model(fused: _Fused, groups: list[int]) -> dict | None:
+    if len(groups) == 1:
+        return None
+    return {"matching_precision_px": fused.match_px,
+            "rule": ("each group's geometry (metres per pixel of all its views) times one "
+                     "matching precision fitted to the groups' disagreement") if fused.match_px is not None
+                    else "the groups' disagreement split between them (three-cornered hat)",
+            "pairs": [{"groups": [a, b], "disagreement_nmad_m": float(np.sqrt(v))} for a, b, v in fused.pairs]}
 
 
 def agreement_layer(agree: np.ndarray, H: np.ndarray, block_rows: int = 1024) -> dict | None:

@@ -85,13 +85,13 @@ class GroundReference:
 
     def height_doubt(self, lon: float, lat: float) -> "HeightDoubt | None":
         """How far the DEM's height at a spot can be trusted: its range within 1 m and within
-        1.5 of its cells around it (a 5 m DEM smooths a roof into its surroundings: a roof
+        DOUBT_CELLS of its cells around it (a 5 m DEM smooths a roof into its surroundings: a roof
         corner gets a height between the roof's and the ground's, and only the wider ring shows
         the change). None without a DEM or where it has no height."""
         if self.dem is None:
             return None
         cell = self.dem.cell_m(lat)
-        radius = max(1.0, 1.5 * cell)
+        radius = max(1.0, DOUBT_CELLS * cell)
         spread = [x for x in (self.height_spread(lon, lat, 1.0), self.height_spread(lon, lat, radius))
                   if x is not None]
         return None if not spread else HeightDoubt(max(spread), radius, cell)
@@ -99,7 +99,7 @@ class GroundReference:
 
 @dataclass(frozen=True)
 class HeightDoubt:
-    """The DEM's change around a spot: spread_m (max - min) within radius_m (1.5 of its cells of
+    """The DEM's change around a spot: spread_m (max - min) within radius_m (DOUBT_CELLS of its cells of
     cell_m metres)."""
 
     spread_m: float
@@ -117,6 +117,10 @@ class HeightDoubt:
 
 
 EDGE_SPREAD_M = 1.0   # a DEM changing more than this around the spot: its height is uncertain
+# ... within this many of its cells (and 1 m). A 5 m DEM averaged from bench_operator's city, 6000
+# random spots: 0.75 flags 99 % of the heights more than 0.5 m off (99 % of the others within
+# 0.6 m) and 49 % of spots on flat ground; 1.5 flagged 100 % and 79 %, 0.5 96 % and 35 %
+DOUBT_CELLS = 0.75
 
 
 def open_ground_reference(ortho: str | Path, dem: str | Path | None = None) -> GroundReference:

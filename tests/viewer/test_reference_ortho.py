@@ -187,7 +187,7 @@ def _roof_reference(tmp_path, site, cell_m: float = 5.0):
 
 def test_a_dem_height_at_a_roof_corner_is_doubtful(tiny_site, tmp_path):
     """A roof corner clicked on the orthoimage: the 5 m DEM gives it a height between the roof's
-    and the ground's; within 1.5 of the DEM's cells it changes by metres: the height is
+    and the ground's; within three quarters of the DEM's cells it changes by metres: the height is
     doubtful, its sigma half that change. Flat ground far from the block is not."""
     ref = _roof_reference(tmp_path, tiny_site)
     lon, lat, h = ref.ground_at(101.5, 101.5)                # 0.75 m inside the roof's corner
