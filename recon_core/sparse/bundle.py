@@ -75,57 +75,19 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
     8 x 8 blocks over the pairs of cameras that share points, sparse LU; the ties as a low-rank
     term; needs `compiled`) or "auto" (sparse from SPARSE_SOLVE_MIN camera unknowns).
     """
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r} (auto, dense, sparse)")
-    if solver == "sparse" and not compiled:
-        raise ValueError("the block-sparse system needs the compiled kernels (compiled=True)")
+    _check_solver(solver, compiled)
     t0 = time.time()
     cams, X = cams.astype(np.float64).copy(), X.astype(np.float64).copy()
     T, N = len(cams), len(X)
-    fixed = np.zeros((T, 2, 4), bool) if fixed is None else fixed
-    cam_free = np.zeros(T, bool)
-    cam_free[np.asarray(free_cams, dtype=np.int64)] = True
-    pt_free = np.zeros(N, bool)
-    pt_free[np.asarray(free_pts, dtype=np.int64)] = True
-    use = cam_free[obs_cam] | pt_free[obs_pt]
-    oc, op, ox = obs_cam[use], obs_pt[use], obs_xy[use]
-    K = len(oc)
-    if K == 0:
+    u = _Unknowns.of(T, N, fixed, free_cams, free_pts, obs_cam, obs_pt, obs_xy)
+    if u.K == 0:
         return BAResult(cams, X, 0.0, 0.0, 0.0, 0, 0.0)
-
-    # camera parameter columns (free entries of free cameras); point slots (free points)
-    free_entries = (cam_free[:, None, None] & ~fixed).reshape(T, 8)
-    cam_col = np.full((T, 8), -1, np.int64)
-    nc = int(free_entries.sum())
-    cam_col[free_entries] = np.arange(nc)
-    fp = np.flatnonzero(pt_free)
-    pslot = np.full(N, -1, np.int64)
-    pslot[fp] = np.arange(len(fp))
-    npt = len(fp)
-    ps = pslot[op]                                   # (K,) point slot or -1
-    has_p = ps >= 0
-
-    def residuals(c, Xp):
-        return np.einsum("kij,kj->ki", c[oc, :, :3], Xp[op]) + c[oc, :, 3] - ox
-
-    ties = list(ties or [])
-    flat_col = cam_col.reshape(-1)
-    tie_cols = [flat_col[t.idx] for t in ties]
-
-    def cost_of(r, c):
-        rho, w = _robust(np.sum(r * r, axis=1), loss, f_scale)
-        flat = c.reshape(-1)
-        return 0.5 * float(rho.sum()) + sum(t.cost(flat) for t in ties), w
+    oc, op, K = u.oc, u.op, u.K
+    free_entries, cam_col, nc, fp, npt, ps, has_p = u.free_entries, u.cam_col, u.nc, u.fp, u.npt, u.ps, u.has_p
 
     use_blocks = compiled and (solver == "sparse" or (solver == "auto" and nc >= SPARSE_SOLVE_MIN))
-    tie_q = [] if use_blocks else [t.dense_q() for t in ties]
-
-    def add_ties(U, g_c, c):
-        for q, cc in zip(tie_q, tie_cols):
-            m = cc >= 0
-            if m.any():
-                U[np.ix_(cc[m], cc[m])] += q[np.ix_(m, m)]
-        _add_tie_gradient(g_c, ties, tie_cols, c.reshape(-1))
+    obj = _Objective(u, list(ties or []), loss, f_scale, dense_ties=not use_blocks)
+    residuals, cost_of, add_ties = obj.residuals, obj.cost, obj.add_ties
 
     r = residuals(cams, X)
     cost, w = cost_of(r, cams)
@@ -135,24 +97,10 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
     if compiled:
         from recon_core.sparse import ba_kernels as kern
 
-        with_p = np.flatnonzero(has_p)
-        order = with_p[np.argsort(ps[with_p], kind="stable")]
-        # an observation in a held camera adds nothing to the reduced system (a local
-        # adjustment's points are mostly seen by held cameras): left out of the per-point pass
-        order = order[(cam_col >= 0).any(axis=1)[oc[order]]]
-        start = np.searchsorted(ps[order], np.arange(npt + 1)).astype(np.int64)
-        # points ordered by the cameras that see them (first, last), for the cache
-        first = np.full(npt, T, np.int64)
-        last = np.full(npt, T, np.int64)
-        seen = np.flatnonzero(start[:-1] < start[1:])
-        if len(seen):
-            occ = oc[order].astype(np.int64)
-            first[seen] = np.minimum.reduceat(occ, start[seen])
-            last[seen] = np.maximum.reduceat(occ, start[seen])
-        porder = np.lexsort((last, first)).astype(np.int64)
+        order, start, porder = _point_passes(oc, ps, has_p, cam_col, npt, T)
         cc, cams_cc = _compact_cameras(cam_col)
         if use_blocks:
-            blocks = _BlockSystem(cam_col, oc, op, X, order, start, ties, tie_cols)
+            blocks = _BlockSystem(cam_col, oc, op, X, order, start, obj.ties, obj.tie_cols)
     for it in range(1, max_nfev + 1):
         h = np.concatenate([X[op], np.ones((K, 1))], axis=1)        # (K, 4)
         M = np.ascontiguousarray(cams[oc, :, :3])                     # (K, 2, 3)
@@ -170,27 +118,129 @@ def bundle_adjust(cams: np.ndarray, X: np.ndarray, obs_cam: np.ndarray, obs_pt: 
         else:
             step = _sparse_normal_equations(h, M, r, w, oc, cam_col, ps, has_p, nc, npt, K,
                                             lambda U, g: add_ties(U, g, cams))
-        improved = False
-        for _ in range(8):                                            # LM damping attempts
-            dc, dp = step(lam)
+        def apply(dc, dp):
             new_cams = cams.copy()
-            flat = new_cams.reshape(T, 8)
-            flat[free_entries] += dc[cam_col[free_entries]]
+            new_cams.reshape(T, 8)[free_entries] += dc[cam_col[free_entries]]
             new_X = X.copy()
             new_X[fp] += dp
             r_new = residuals(new_cams, new_X)
-            cost_new, w_new = cost_of(r_new, new_cams)
-            if np.isfinite(cost_new) and cost_new < cost:
-                rel = (cost - cost_new) / max(cost, 1e-300)
-                cams, X, r, cost, w = new_cams, new_X, r_new, cost_new, w_new
-                lam = max(lam / 3.0, 1e-9)
-                improved = True
-                break
-            lam *= 4.0
-        if not improved or rel < rel_tol:   # relative decrease of the robust cost
+            return (new_cams, new_X, r_new) + cost_of(r_new, new_cams)
+
+        got, lam = _damped_step(step, apply, cost, lam)
+        if got is None:
+            break
+        rel = (cost - got[3]) / max(cost, 1e-300)
+        cams, X, r, cost, w = got
+        if rel < rel_tol:                   # relative decrease of the robust cost
             break
     rms = float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
     return BAResult(cams, X, cost0, cost, rms, K, time.time() - t0, it)
+
+
+@dataclass
+class _Unknowns:
+    """The adjustment's unknowns: the observations it uses (oc, op, ox: K of them, those whose
+    camera or point is free), the camera parameter columns (free entries of free cameras:
+    cam_col (T, 8), -1 when held; nc of them) and the point slots (free points fp, npt of them;
+    ps (K,) each observation's slot or -1)."""
+
+    oc: np.ndarray
+    op: np.ndarray
+    ox: np.ndarray
+    K: int
+    free_entries: np.ndarray
+    cam_col: np.ndarray
+    nc: int
+    fp: np.ndarray
+    npt: int
+    ps: np.ndarray
+    has_p: np.ndarray
+
+    @classmethod
+    def of(cls, T: int, N: int, fixed, free_cams, free_pts, obs_cam, obs_pt, obs_xy) -> "_Unknowns":
+        fixed = np.zeros((T, 2, 4), bool) if fixed is None else fixed
+        cam_free = np.zeros(T, bool)
+        cam_free[np.asarray(free_cams, dtype=np.int64)] = True
+        pt_free = np.zeros(N, bool)
+        pt_free[np.asarray(free_pts, dtype=np.int64)] = True
+        use = cam_free[obs_cam] | pt_free[obs_pt]
+        oc, op, ox = obs_cam[use], obs_pt[use], obs_xy[use]
+        free_entries = (cam_free[:, None, None] & ~fixed).reshape(T, 8)
+        cam_col = np.full((T, 8), -1, np.int64)
+        nc = int(free_entries.sum())
+        cam_col[free_entries] = np.arange(nc)
+        fp = np.flatnonzero(pt_free)
+        pslot = np.full(N, -1, np.int64)
+        pslot[fp] = np.arange(len(fp))
+        ps = pslot[op]
+        return cls(oc, op, ox, len(oc), free_entries, cam_col, nc, fp, len(fp), ps, ps >= 0)
+
+
+def _check_solver(solver: str, compiled: bool) -> None:
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r} (auto, dense, sparse)")
+    if solver == "sparse" and not compiled:
+        raise ValueError("the block-sparse system needs the compiled kernels (compiled=True)")
+
+
+class _Objective:
+    """The robust cost of the reprojection residuals plus the ties' quadratic penalties, and the
+    ties' share of the camera normal equations (dense_ties: added to a dense system)."""
+
+    def __init__(self, u: _Unknowns, ties: list, loss: str, f_scale: float, dense_ties: bool):
+        self.u, self.ties, self.loss, self.f_scale = u, ties, loss, f_scale
+        flat_col = u.cam_col.reshape(-1)
+        self.tie_cols = [flat_col[t.idx] for t in ties]
+        self.tie_q = [t.dense_q() for t in ties] if dense_ties else []
+
+    def residuals(self, c: np.ndarray, Xp: np.ndarray) -> np.ndarray:
+        u = self.u
+        return np.einsum("kij,kj->ki", c[u.oc, :, :3], Xp[u.op]) + c[u.oc, :, 3] - u.ox
+
+    def cost(self, r: np.ndarray, c: np.ndarray) -> tuple[float, np.ndarray]:
+        rho, w = _robust(np.sum(r * r, axis=1), self.loss, self.f_scale)
+        flat = c.reshape(-1)
+        return 0.5 * float(rho.sum()) + sum(t.cost(flat) for t in self.ties), w
+
+    def add_ties(self, U: np.ndarray, g_c: np.ndarray, c: np.ndarray) -> None:
+        for q, cc in zip(self.tie_q, self.tie_cols):
+            m = cc >= 0
+            if m.any():
+                U[np.ix_(cc[m], cc[m])] += q[np.ix_(m, m)]
+        _add_tie_gradient(g_c, self.ties, self.tie_cols, c.reshape(-1))
+
+
+def _point_passes(oc: np.ndarray, ps: np.ndarray, has_p: np.ndarray, cam_col: np.ndarray, npt: int,
+                  T: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The compiled kernels' per-point pass: (the observations grouped by point, where each
+    point's start, the points ordered by the cameras that see them)."""
+    with_p = np.flatnonzero(has_p)
+    order = with_p[np.argsort(ps[with_p], kind="stable")]
+    # an observation in a held camera adds nothing to the reduced system (a local
+    # adjustment's points are mostly seen by held cameras): left out of the per-point pass
+    order = order[(cam_col >= 0).any(axis=1)[oc[order]]]
+    start = np.searchsorted(ps[order], np.arange(npt + 1)).astype(np.int64)
+    # points ordered by the cameras that see them (first, last), for the cache
+    first = np.full(npt, T, np.int64)
+    last = np.full(npt, T, np.int64)
+    seen = np.flatnonzero(start[:-1] < start[1:])
+    if len(seen):
+        occ = oc[order].astype(np.int64)
+        first[seen] = np.minimum.reduceat(occ, start[seen])
+        last[seen] = np.maximum.reduceat(occ, start[seen])
+    return order, start, np.lexsort((last, first)).astype(np.int64)
+
+
+def _damped_step(step, apply, cost: float, lam: float, attempts: int = 8):
+    """One Levenberg-Marquardt iteration: solve with damping lam, keep the update if it lowers
+    the robust cost, else damp more (x4) and try again, up to `attempts` times. Returns (the
+    new (cams, X, r, cost, w), or None when no attempt improved; the damping to go on with)."""
+    for _ in range(attempts):
+        got = apply(*step(lam))
+        if np.isfinite(got[3]) and got[3] < cost:
+            return got, max(lam / 3.0, 1e-9)
+        lam *= 4.0
+    return None, lam
 
 
 def warm_compiled_kernels() -> None:
