@@ -373,6 +373,24 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
             "images": len(images), "warp_shares": [], "warps_seen": 0, "residual_rms_px": 0.0,
             "range_change": 0.0,
             "warp_rms_px": 0.0}
+    nu = 10 if range_free else 9
+    warp, cams, mono, Tinv = _whitened_frame(X, images)
+    N, b, K, rss = _bend_equations(X, images, depth, cams, mono, Tinv, nu, trim, chunk, focal_plane)
+    C = _warp_unknowns(X, warp, directions, pair, nu)
+    coef, seen, share = _visible_warps(N, b, C, K, min_share, nu)
+    range_change = float(coef[9]) if nu == 10 else 0.0
+    coef = coef[:9]
+    warp.coef = coef
+    moved = float(np.sqrt(np.mean(((mono @ coef.reshape(3, 3).T) ** 2).sum(1))))
+    return warp, {"images": len(images), "warp_shares": share.tolist(), "warps_seen": int(seen.sum()),
+                  "residual_rms_px": float(np.sqrt(rss / max(K, 1))), "warp_rms_px": moved,
+                  "range_change": range_change}
+
+
+def _whitened_frame(X: np.ndarray, images: list) -> tuple[BendWarp, list, np.ndarray, np.ndarray]:
+    """The frame the warps are estimated in: X whitened by the images' mean camera rows (T), its
+    best plane with unit spread on each axis, and the warps' monomials over the points:
+    (a zero BendWarp in that frame, each image's camera rows, the monomials (N, 3), T^-1)."""
     cams = [_image_coords(X[p], xy)[0][:, :3] for p, xy in images]
     M = np.vstack(cams)
     lam, V = np.linalg.eigh(M.T @ M / len(cams))
@@ -385,8 +403,13 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     warp = BendWarp(x0, T, S, w0, np.zeros(9))
     p = warp._plane(X)
     mono = np.stack([p[:, 0] ** 2, np.sqrt(2.0) * p[:, 0] * p[:, 1], p[:, 1] ** 2], 1)
-    Tinv = np.linalg.inv(T)
-    nu = 10 if range_free else 9
+    return warp, cams, mono, np.linalg.inv(T)
+
+
+def _bend_equations(X: np.ndarray, images: list, depth: list, cams: list, mono: np.ndarray, Tinv: np.ndarray,
+                    nu: int, trim: float, chunk: int, focal_plane: bool) -> tuple[np.ndarray, np.ndarray, int, float]:
+    """The normal equations (N, b) of the nu warp unknowns once every image's model is eliminated
+    (_unexplained, by chunks), with the observations used (K) and their residual sum of squares."""
     N, b, K, rss = np.zeros((nu, nu)), np.zeros(nu), 0, 0.0
     for (pts, xy), P3, s_i in zip(images, cams, depth):
         _, Xn, r, c, uv, p0 = _image_coords(X[pts], xy)
@@ -426,6 +449,15 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
             b += bk
             rss += rk
             K += nk
+    return N, b, K, rss
+
+
+def _warp_unknowns(X: np.ndarray, warp: BendWarp, directions: np.ndarray | None, pair: np.ndarray | None,
+                   nu: int) -> np.ndarray:
+    """C: the warp coefficients (and the range change) as functions of the unknowns estimated,
+    coef = C q: one per (direction, monomial), each direction of unit whitened length; with
+    `pair`, only the projective pair of its plane (estimate_bend's docstring)."""
+    T, x0, p = warp.T, warp.x0, warp._plane(X)
     # the unknowns: coef = C q, q per (direction, monomial), each direction of unit whitened length
     dirs = np.eye(3) if directions is None else np.asarray(directions, np.float64) @ T.T
     if pair is not None and len(dirs) != 2:
@@ -455,6 +487,13 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
             Q[-1, -1] = 1.0
         C = C @ Q
         C[:, :2] /= np.maximum(np.linalg.norm(C[:, :2], axis=0), 1e-300)
+    return C
+
+
+def _visible_warps(N: np.ndarray, b: np.ndarray, C: np.ndarray, K: int, min_share: float,
+                   nu: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The warps the images see (their share of the pixel motion at least min_share), solved in
+    that subspace: (coef (nu,), which were seen, every share, largest first)."""
     lam, V = np.linalg.eigh(C.T @ N @ C)
     lam, V = lam[::-1], V[:, ::-1]
     share = np.sqrt(np.maximum(lam, 0.0) / max(K / 2.0, 1.0))  # px per px of motion, per observation
@@ -462,13 +501,7 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     coef = C @ (V[:, seen] @ ((V[:, seen].T @ (C.T @ b)) / lam[seen]))
     if not np.isfinite(coef).all():                 # a degenerate structure: nothing estimated
         coef, seen = np.zeros(nu), np.zeros(nu, bool)
-    range_change = float(coef[9]) if nu == 10 else 0.0
-    coef = coef[:9]
-    warp.coef = coef
-    moved = float(np.sqrt(np.mean(((mono @ coef.reshape(3, 3).T) ** 2).sum(1))))
-    return warp, {"images": len(images), "warp_shares": share.tolist(), "warps_seen": int(seen.sum()),
-                  "residual_rms_px": float(np.sqrt(rss / max(K, 1))), "warp_rms_px": moved,
-                  "range_change": range_change}
+    return coef, seen, share
 
 
 def _stacked_r(rows, n: int, chunk: int, keep: np.ndarray | None = None) -> np.ndarray:
