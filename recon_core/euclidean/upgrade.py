@@ -602,6 +602,16 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
                            reproj_warn_px, prior, fit, hold if held else None)
     if dropped:
         result.warnings.append(_dropped_text(dropped) + ("" if held else "; the GCPs alone fix the height scale"))
+    _check_point_warnings(result, gcps, reasons, ctrl, Xa, Xe, inl, H, ransac_thresh_m, held)
+    return result
+
+
+def _check_point_warnings(result: UpgradeResult, gcps: list[GcpInput], reasons: dict, ctrl: list[int],
+                          Xa: np.ndarray, Xe: np.ndarray, inl: np.ndarray, H: np.ndarray, thresh: float,
+                          held: bool) -> None:
+    """What the check points say of the fit, as warnings: a RANSAC that could as well have
+    rejected another control GCP (and how the check points fare either way), and check points
+    off by more than the control GCPs must agree within."""
     checks = [i for i, g in enumerate(gcps) if g.role == "check" and reasons[i] is None]
 
     def check_rmse(Hx: np.ndarray) -> float | None:
@@ -612,7 +622,7 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
         return float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
     now = check_rmse(H)
     if len(ctrl) > 4 and not inl.all() and not held:
-        rivals = _rival_consensus(Xa, Xe, inl, ransac_thresh_m)
+        rivals = _rival_consensus(Xa, Xe, inl, thresh)
         if rivals:
             now_out = ", ".join(gcps[ctrl[j]].id for j in np.flatnonzero(~inl))
             alt_out = sorted({gcps[ctrl[i]].id for _, i, _ in rivals})
@@ -624,12 +634,11 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
                 text += (f"; the check points are off by {now:.2f} m RMS (3D) with this fit, "
                          f"{alts[0][0]:.2f} m if {alts[0][1]} is rejected instead")
             result.warnings.append(text)
-    if now is not None and now > ransac_thresh_m:
+    if now is not None and now > thresh:
         result.warnings.append(
-            f"the check points are off by {now:.2f} m RMS (3D), more than the {ransac_thresh_m:g} m "
+            f"the check points are off by {now:.2f} m RMS (3D), more than the {thresh:g} m "
             "the control GCPs must agree within: a control GCP (or a check point) is probably wrong; "
             "see the per-point residuals")
-    return result
 
 
 def _rival_consensus(Xa: np.ndarray, Xe: np.ndarray, inl: np.ndarray, thresh: float
@@ -775,6 +784,22 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, cond, 
                      "control residuals are zero by construction and say nothing. What still "
                      "tells: the check points and each GCP's reprojection residual "
                      "(reproj_rms_px), which catches a bad click even at N = 4.")
+    warnings += _fit_warnings(rows, stats, cond, n, thresh, fit is not None, reproj_warn_px)
+    if not res["check"]:
+        notes.append("no check points: hold one or more GCPs out as 'check' for an independent "
+                     "accuracy figure")
+    return UpgradeResult(H=H, points=rows, stats=stats, dof=3 * n - 12 + k, n_control_used=n,
+                         rejections=rejections, conditioning=cond, notes=notes,
+                         warnings=warnings, metric_prior=prior.report if prior is not None else None,
+                         views=views)
+
+
+def _fit_warnings(rows: list[dict], stats: dict, cond: dict, n: int, thresh: float, held: bool,
+                  reproj_warn_px: float) -> list[str]:
+    """The fit's warnings: the control GCPs RANSAC rejected (and a rejection nothing is left to
+    confirm), what the conditioning leaves loose beside what the check points measure, and the
+    GCPs whose clicks disagree (their reprojection residuals)."""
+    warnings = []
     rejected = [r for r in rows if r["status"] == "rejected"]
     n_ransac = len(rejected)
     if rejected:
@@ -782,7 +807,7 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, cond, 
             f"{r['id']}" + (f" ({r['norm3d_m']:.2f} m off)" if r.get("norm3d_m") is not None else "")
             for r in rejected) + f" (threshold {thresh:g} m): not used for the upgrade; "
             "check their ground coordinates and image observations")
-    if n_ransac and n == (3 if fit is not None else 4):
+    if n_ransac and n == (3 if held else 4):
         warnings.append(f"RANSAC rejected {n_ransac} control GCP(s) and only {n} remain: no "
                         "redundancy is left to confirm the rejection; add control GCPs")
     if cond.get("warning"):
@@ -794,14 +819,7 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, cond, 
                     "full height off the GCPs' plane)") if chk.get("n") else ""
         cond["warning"] = cond["warning"].rstrip(".") + measured + "."
         warnings.append(cond["warning"])
-    warnings += _reproj_warnings(rows, reproj_warn_px)
-    if not res["check"]:
-        notes.append("no check points: hold one or more GCPs out as 'check' for an independent "
-                     "accuracy figure")
-    return UpgradeResult(H=H, points=rows, stats=stats, dof=3 * n - 12 + k, n_control_used=n,
-                         rejections=rejections, conditioning=cond, notes=notes,
-                         warnings=warnings, metric_prior=prior.report if prior is not None else None,
-                         views=views)
+    return warnings + _reproj_warnings(rows, reproj_warn_px)
 
 
 def _images_height_sigma(rows: list[dict], gcps: list[GcpInput], fit) -> None:
