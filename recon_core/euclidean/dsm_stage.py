@@ -509,11 +509,9 @@ def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
     `source_out` (int16); memory holds a few strips and the coarse correction grids, whatever
     the grid's size. The result does not depend on the strips.
     """
-    shape = tuple(dsms[0].shape)
-    h, w = shape
-    step = max(1, int(block_rows))
-    if correct_block > 0:
-        step = max(correct_block, step // correct_block * correct_block)
+    h, w = shape = tuple(dsms[0].shape)
+    step = max(1, int(block_rows))          # strips of whole correction blocks
+    step = max(correct_block, step // correct_block * correct_block) if correct_block > 0 else step
     spans = [(r0, min(h, r0 + step)) for r0 in range(0, h, step)]
     H = out if out is not None else np.empty(shape, np.float32)
     source = source_out if source_out is not None else np.empty(shape, np.int16)
@@ -543,25 +541,7 @@ def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
         return H, source
     for r0, r1 in spans:
         Hb, sb = H[r0:r1], np.asarray(source[r0:r1])
-        # each cell's reference noise: that of the DSM its value came from
-        s_ref = np.full(Hb.shape, np.nan, np.float32)
-        for k, s in enumerate(sig):
-            s_ref[sb == k] = np.nan if s is None else s
-        num = np.zeros(Hb.shape, np.float32)
-        den = np.zeros(Hb.shape, np.float32)
-        n_agree = np.zeros(Hb.shape, np.int16)
-        for k, s in enumerate(sig):
-            if s is None:
-                continue
-            D = corrected(k, r0, r1)
-            with np.errstate(invalid="ignore"):
-                ok = np.isfinite(D) & (np.abs(D - Hb) <= agree_sigmas * np.sqrt(s_ref ** 2 + s * s))
-            wk = 1.0 / (s * s)
-            num[ok] += wk * D[ok]
-            den[ok] += wk
-            n_agree[ok] += 1
-        avg = den > 0
-        Hb[avg] = num[avg] / den[avg]
+        n_agree = _average_agreeing(Hb, sb, sig, lambda k: corrected(k, r0, r1), agree_sigmas)
         if fill_agreeing > 1:
             noisy_fill = np.zeros(Hb.shape, bool)
             for k, s in enumerate(sig):
@@ -573,6 +553,32 @@ def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
         if agree_out is not None:
             agree_out[r0:r1] = np.where(np.isfinite(Hb), n_agree, np.nan)
     return H, source
+
+
+def _average_agreeing(Hb: np.ndarray, sb: np.ndarray, sig: list, corrected, agree_sigmas: float) -> np.ndarray:
+    """fuse_groups' step 2 on one strip: where DSMs with a noise agree with the reference within
+    agree_sigmas of their combined noise, the cell (Hb, in place) becomes their inverse-variance
+    weighted mean; returns how many agree per cell. corrected(k): DSM k's strip, corrected."""
+    # each cell's reference noise: that of the DSM its value came from
+    s_ref = np.full(Hb.shape, np.nan, np.float32)
+    for k, s in enumerate(sig):
+        s_ref[sb == k] = np.nan if s is None else s
+    num = np.zeros(Hb.shape, np.float32)
+    den = np.zeros(Hb.shape, np.float32)
+    n_agree = np.zeros(Hb.shape, np.int16)
+    for k, s in enumerate(sig):
+        if s is None:
+            continue
+        D = corrected(k)
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(D) & (np.abs(D - Hb) <= agree_sigmas * np.sqrt(s_ref ** 2 + s * s))
+        wk = 1.0 / (s * s)
+        num[ok] += wk * D[ok]
+        den[ok] += wk
+        n_agree[ok] += 1
+    avg = den > 0
+    Hb[avg] = num[avg] / den[avg]
+    return n_agree
 
 
 def correction_surface(D, ref, block: int, min_overlap: int = 2000,
