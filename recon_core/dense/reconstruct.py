@@ -498,85 +498,105 @@ def reconstruct_dense_group(model, images: dict[str, ImageInfo], cfg: DenseConfi
     bus = bus or EventBus()
     t0 = time.time()
     jobs = plan_jobs(model, images, cfg, matcher)
-    n_pairs = sum(len(j.partners) for j in jobs)
     own = executor is None
     ex = executor or make_executor(cfg.scheduler, cfg.workers,
                                    on_wait=lambda text: bus.message(text, "warning", model.group))
-    pairs, kernel, job_s = [], 0.0, 0.0
-    next_id = 0
-    views_hist = np.zeros(256, np.int64)
-    n_weak = 0
-    err_edges = np.linspace(0.0, max(cfg.max_reproj_px, 1e-3) * 1.001, 2001)
-    err_hist = np.zeros(len(err_edges) - 1, np.int64)
+    tally = _DenseTally(cfg.max_reproj_px)
     if path is not None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=".dense_parts_", dir=None if path is None else Path(path).parent) as scratch:
         parts: dict[str, Path] = {}
         try:
             for k, res in enumerate(ex.map_unordered(run_job, jobs)):
-                pairs += res.pairs
-                kernel += res.kernel_s
-                job_s += res.seconds
                 if res.message:
                     bus.message(res.message, "warning", model.group)
-                ids = np.arange(next_id, next_id + len(res.xyz))
-                next_id += len(res.xyz)
-                if len(res.xyz):
-                    views_hist += np.bincount(res.n_views, minlength=256)
-                    err_hist += np.histogram(np.minimum(res.reproj_px, err_edges[-1] * 0.999), err_edges)[0]
-                    rec = np.empty(len(res.xyz), _PART_DTYPE)
-                    rec["xyz"], rec["gray"], rec["n_views"], rec["reproj_px"] = (res.xyz, res.gray,
-                                                                                res.n_views, res.reproj_px)
-                    rec["weak"] = False if res.weak is None else res.weak
-                    n_weak += int(rec["weak"].sum())
+                ids, rec = tally.add(res)
+                if rec is not None:
                     parts[res.ref] = Path(scratch) / f"{len(parts):06d}.npy"
                     np.save(parts[res.ref], rec)
                     bus.emit(PointsAdded(model.group, ids, res.xyz, np.repeat(res.gray[:, None], 3, 1),
                                          res.n_views.astype(np.int64), res.reproj_px, kind="dense"))
                 del res
-                bus.progress("dense", k + 1, len(jobs), f"{next_id} points", group=model.group)
+                bus.progress("dense", k + 1, len(jobs), f"{tally.next_id} points", group=model.group)
         finally:
             if own:
                 ex.close()
-        order = sorted(parts)            # deterministic order whatever the executor
-        if path is not None:
-            with dense_writer(path, model.group) as w:
-                for ref in order:
-                    rec = np.load(parts[ref])
-                    w.append(rec["xyz"], rec["gray"][:, None], {"n_views": rec["n_views"].astype(np.float32),
-                                                               "reproj_px": rec["reproj_px"],
-                                                               "weak": rec["weak"].astype(np.float32)})
-            cloud = None
-        else:
-            recs = [np.load(parts[ref]) for ref in order]
-            rec = np.concatenate(recs) if recs else np.zeros(0, _PART_DTYPE)
-            cloud = DenseCloud(rec["xyz"].copy(), rec["gray"].copy(), rec["n_views"].copy(),
-                               rec["reproj_px"].copy(), rec["weak"].astype(bool))
-    n_points = int(views_hist.sum())
-    matched = [p for p in pairs if p.skipped is None]
-    wall = time.time() - t0
-    med_err = None
-    if n_points:
-        k = int(np.searchsorted(np.cumsum(err_hist), (n_points + 1) / 2))
-        med_err = float(0.5 * (err_edges[k] + err_edges[k + 1]))
-    summary = {"jobs": len(jobs), "tile_pairs": n_pairs, "pairs_matched": len(matched),
-               "pairs_not_needed": sum(p.skipped == NOT_NEEDED for p in pairs),
-               "pairs_skipped": {f"{p.ref}~{p.partner}": p.skipped for p in pairs
-                                 if p.skipped and p.skipped != NOT_NEEDED},
-               "points": n_points,
-               "views_histogram": np.trim_zeros(views_hist, "b").tolist(),
-               "weak_pair_points": n_weak,
-               "median_reproj_px": med_err,
-               "median_rectified_row_err_px": float(np.median([p.row_err_px for p in matched])) if matched else None,
-               "median_fa_cam_rms_px": float(np.median([p.fa_cam_rms_px for p in matched])) if matched else None,
-               "median_fa_gs_rms_px": float(np.median([p.fa_gs_rms_px for p in matched])) if matched else None,
-               "matcher_kernel_s": kernel, "job_s": job_s, "wall_s": wall,
-               "overhead_ratio_cpu": job_s / kernel if kernel > 0 else None}
+        cloud = _gather_parts(parts, path, model.group)
+    summary = tally.summary(jobs, time.time() - t0)
     if path is not None:
         summary["path"] = str(path)
-    if not n_points:
+    if not summary["points"]:
         bus.message(f"group {model.group}: dense matching produced no point", "warning", model.group)
     return cloud, summary
+
+
+class _DenseTally:
+    """What the jobs of a group returned, summed as they arrive: their tile pairs, times, points
+    (by number of views), weak-pair points and reprojection errors (a histogram)."""
+
+    def __init__(self, max_reproj_px: float):
+        self.pairs, self.kernel, self.job_s, self.next_id, self.n_weak = [], 0.0, 0.0, 0, 0
+        self.views_hist = np.zeros(256, np.int64)
+        self.err_edges = np.linspace(0.0, max(max_reproj_px, 1e-3) * 1.001, 2001)
+        self.err_hist = np.zeros(len(self.err_edges) - 1, np.int64)
+
+    def add(self, res) -> tuple[np.ndarray, np.ndarray | None]:
+        """File one job's result; returns (its points' ids, its points as a record, or None)."""
+        self.pairs += res.pairs
+        self.kernel += res.kernel_s
+        self.job_s += res.seconds
+        ids = np.arange(self.next_id, self.next_id + len(res.xyz))
+        self.next_id += len(res.xyz)
+        if not len(res.xyz):
+            return ids, None
+        self.views_hist += np.bincount(res.n_views, minlength=256)
+        self.err_hist += np.histogram(np.minimum(res.reproj_px, self.err_edges[-1] * 0.999), self.err_edges)[0]
+        rec = np.empty(len(res.xyz), _PART_DTYPE)
+        rec["xyz"], rec["gray"], rec["n_views"], rec["reproj_px"] = res.xyz, res.gray, res.n_views, res.reproj_px
+        rec["weak"] = False if res.weak is None else res.weak
+        self.n_weak += int(rec["weak"].sum())
+        return ids, rec
+
+    def summary(self, jobs: list, wall: float) -> dict:
+        n_points = int(self.views_hist.sum())
+        pairs = self.pairs
+        matched = [p for p in pairs if p.skipped is None]
+        med_err = None
+        if n_points:
+            k = int(np.searchsorted(np.cumsum(self.err_hist), (n_points + 1) / 2))
+            med_err = float(0.5 * (self.err_edges[k] + self.err_edges[k + 1]))
+        kernel, job_s = self.kernel, self.job_s
+        return {"jobs": len(jobs), "tile_pairs": sum(len(j.partners) for j in jobs), "pairs_matched": len(matched),
+                "pairs_not_needed": sum(p.skipped == NOT_NEEDED for p in pairs),
+                "pairs_skipped": {f"{p.ref}~{p.partner}": p.skipped for p in pairs
+                                  if p.skipped and p.skipped != NOT_NEEDED},
+                "points": n_points,
+                "views_histogram": np.trim_zeros(self.views_hist, "b").tolist(),
+                "weak_pair_points": self.n_weak,
+                "median_reproj_px": med_err,
+                "median_rectified_row_err_px": float(np.median([p.row_err_px for p in matched])) if matched else None,
+                "median_fa_cam_rms_px": float(np.median([p.fa_cam_rms_px for p in matched])) if matched else None,
+                "median_fa_gs_rms_px": float(np.median([p.fa_gs_rms_px for p in matched])) if matched else None,
+                "matcher_kernel_s": kernel, "job_s": job_s, "wall_s": wall,
+                "overhead_ratio_cpu": job_s / kernel if kernel > 0 else None}
+
+
+def _gather_parts(parts: dict[str, Path], path: Path | None, group: int) -> DenseCloud | None:
+    """The jobs' points in a fixed order (by reference tile): streamed into the PLY at `path`
+    (None returned), or as one cloud in memory."""
+    order = sorted(parts)            # deterministic order whatever the executor
+    if path is not None:
+        with dense_writer(path, group) as w:
+            for ref in order:
+                rec = np.load(parts[ref])
+                w.append(rec["xyz"], rec["gray"][:, None], {"n_views": rec["n_views"].astype(np.float32),
+                                                           "reproj_px": rec["reproj_px"],
+                                                           "weak": rec["weak"].astype(np.float32)})
+        return None
+    recs = [np.load(parts[ref]) for ref in order]
+    rec = np.concatenate(recs) if recs else np.zeros(0, _PART_DTYPE)
+    return DenseCloud(rec["xyz"].copy(), rec["gray"].copy(), rec["n_views"].copy(),
+                      rec["reproj_px"].copy(), rec["weak"].astype(bool))
 
 
 _PART_DTYPE = np.dtype([("xyz", "<f8", 3), ("gray", "u1"), ("n_views", "u1"), ("reproj_px", "<f4"),
