@@ -228,36 +228,7 @@ class IncrementalSfM:
                 break
             best = int(cand[np.argmax(counts[cand])])
             self._attempt(best, why, tried_few, counts, img_reg, few=True)
-        # the closing adjustments (recon_core.bend.closing.closing_plan): the per-image ties,
-        # then rounds with the within-tile correction refitted to the tied structure, each
-        # started by the bend step where the sensors are straight line arrays. Only with views
-        # of several dates: one pass's views (2-3, scanned alike) leave the vertical warps
-        # invisible, and the corrections would only move the structure along them
-        # (docs: "What the views can see"). The tie and the correction stand aside for an
-        # image its model does not explain.
-        rounds = self.cfg.correction_rounds if self.n_dates > 1 else 0
-        self._images = check_image_models(m)
-        if self._images.warning():
-            self.bus.message(f"group {m.group}: {self._images.warning()}", "warning", m.group)
-        if self.cfg.bend_step and rounds > 0:
-            self._straight = straight_lines(m)
-            if not self._straight.straight:
-                self.bus.message(f"group {m.group}: the bend step stands aside: {self._straight.why}",
-                                 "info", m.group)
-        elif self.cfg.bend_step:
-            self._straight = StraightLines(False, "one date, or no correction round")
-        bend = []
-        for step in closing_plan(rounds, self._straight.straight):
-            if step.name == "filter":
-                self._filter_outliers()
-            elif step.name == "bend":
-                bend.append(bend_step(m))
-                if bend[-1]["applied"]:
-                    self.bus.message(f"group {m.group}: bend step: {bend[-1]['warps_seen']} of 9 quadratic "
-                                     f"warps seen, the structure unbent by {bend[-1]['warp_rms_px']:.2f} px RMS",
-                                     "info", m.group)
-            else:
-                self._bundle("global", final=True, correct=step.correct, converge=step.converge)
+        bend = self._close()
         self._emit_model()
         counts = self._correspondence_counts()
         reasons = {}
@@ -278,6 +249,40 @@ class IncrementalSfM:
                    "bend_step": {**self._straight.summary(), "steps": bend},
                    "seconds": time.time() - t0}
         return m
+
+    def _close(self) -> list[dict]:
+        """The closing adjustments (recon_core.bend.closing.closing_plan): the per-image ties, then
+        rounds with the within-tile correction refitted to the tied structure, each started by the
+        bend step where the sensors are straight line arrays. Only with views of several dates:
+        one pass's views (2-3, scanned alike) leave the vertical warps invisible, and the
+        corrections would only move the structure along them (docs: "What the views can see").
+        The tie and the correction stand aside for an image its model does not explain. Returns
+        the bend steps' summaries."""
+        m = self.m
+        rounds = self.cfg.correction_rounds if self.n_dates > 1 else 0
+        self._images = check_image_models(m)
+        if self._images.warning():
+            self.bus.message(f"group {m.group}: {self._images.warning()}", "warning", m.group)
+        if self.cfg.bend_step and rounds > 0:
+            self._straight = straight_lines(m)
+            if not self._straight.straight:
+                self.bus.message(f"group {m.group}: the bend step stands aside: {self._straight.why}",
+                                 "info", m.group)
+        elif self.cfg.bend_step:
+            self._straight = StraightLines(False, "one date, or no correction round")
+        bend: list[dict] = []
+        for step in closing_plan(rounds, self._straight.straight):
+            if step.name == "filter":
+                self._filter_outliers()
+            elif step.name == "bend":
+                bend.append(bend_step(m))
+                if bend[-1]["applied"]:
+                    self.bus.message(f"group {m.group}: bend step: {bend[-1]['warps_seen']} of 9 quadratic "
+                                     f"warps seen, the structure unbent by {bend[-1]['warp_rms_px']:.2f} px RMS",
+                                     "info", m.group)
+            else:
+                self._bundle("global", final=True, correct=step.correct, converge=step.converge)
+        return bend
 
     def _correspondence_counts(self) -> np.ndarray:
         """(T,) number of 2D-3D correspondences of every tile (one pass over the observations)."""

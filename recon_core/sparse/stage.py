@@ -136,60 +136,11 @@ def _features_and_matches(group: Group, cfg: Config, bus: EventBus, tiles: dict[
         tones, tone_warnings = group_tone_curves(group.images, cfg.features.stretch_percentiles)
         for w in tone_warnings:
             bus.message(f"group {g}: {w}", "warning", g)
-        feats: list[ImageFeatures] = []
-        # progress by detection block (a 30,000 px image is ~900 of them: minutes), and a stop
-        # between blocks when the run is interrupted (the threads would finish their images)
-        total = sum(detect_blocks(im, cfg.features) for im in group.images)
-        blocks, lock, stop = [0], threading.Lock(), threading.Event()
-
-        def on_block(name: str) -> None:
-            if stop.is_set():
-                raise KeyboardInterrupt
-            with lock:
-                blocks[0] += 1
-                bus.progress("features", blocks[0], total, name, group=g)
-
-        bus.progress("features", 0, total, names[0], group=g)
-        # images in parallel threads (OpenCV and GDAL release the GIL): the same features in the
-        # same order, in about half the time on 2 cores
-        with ThreadPoolExecutor(max_workers=max(1, min(FEATURE_THREADS, len(names)))) as ex:
-            detected = ex.map(lambda k: detect_image(group.images[k], cfg.features, tones[k],
-                                                     spill=spill / f"{k}.desc",
-                                                     on_block=lambda: on_block(names[k])), range(len(names)))
-            try:
-                for k, f in enumerate(detected):
-                    feats.append(f)
-                    if len(feats[-1]) < 100:
-                        bus.message(f"group {g}: {names[k]}: only {len(feats[-1])} keypoints (blank, saturated "
-                                    "or very small image?): its tiles will hardly register", "warning", g)
-            except BaseException:
-                stop.set()                      # the other threads stop at their next block
-                raise
-        bus.progress("features", total, total, f"{sum(len(f) for f in feats)} keypoints", group=g)
+        feats = _detect_group(group, cfg, bus, tones, spill)
         timings["features"] = time.time() - t0
 
         t0 = time.time()
-        factor = cfg.matching.coarse_factor
-        overviews = [detect_overview(im, max(1, min(factor, min(im.width, im.height) // 128)), tones[k])
-                     for k, im in enumerate(group.images)]
-        links: dict[tuple[int, int], CoarseLink] = {}
-        for a, b in itertools.combinations(range(len(names)), 2):
-            link = coarse_link(names[a], overviews[a], names[b], overviews[b])
-            if link is not None:
-                links[(a, b)] = link
-        chosen = select_pairs(links, len(names), cfg.matching.k_partners, image_groups,
-                              cfg.sfm.joint_partners if image_groups else 0)
-        pairs: dict[tuple[int, int], PairMatches] = {}
-        for n, (a, b) in enumerate(chosen):
-            bus.progress("matching", n, len(chosen), f"{names[a]} x {names[b]}", group=g)
-            pm = match_pair(feats[a], feats[b], links[(a, b)], tiles[names[a]], tiles[names[b]],
-                            cfg.matching, rng)
-            if pm.n >= cfg.matching.min_inliers:
-                pairs[(a, b)] = pm
-            else:
-                bus.message(f"group {g}: {names[a]} x {names[b]}: only {pm.n} verified matches, pair dropped",
-                            "warning", g)
-        bus.progress("matching", len(chosen), len(chosen), f"{sum(p.n for p in pairs.values())} matches", group=g)
+        links, pairs = _match_group(group, cfg, bus, feats, tones, tiles, rng, image_groups)
         timings["matching"] = time.time() - t0
         if image_groups is not None:
             cross = np.zeros(len(names), int)
@@ -207,6 +158,74 @@ def _features_and_matches(group: Group, cfg: Config, bus: EventBus, tiles: dict[
 
         # matching done: the refinement and the SfM need positions and intensities only
         return [f.without_descriptors() for f in feats], links, pairs
+
+
+def _detect_group(group: Group, cfg: Config, bus: EventBus, tones: list, spill: Path) -> list[ImageFeatures]:
+    """Each image's SIFT features (descriptors spilled to files in `spill`), the images in
+    parallel threads, progress by detection block."""
+    g = group.index
+    names = [im.name for im in group.images]
+    feats: list[ImageFeatures] = []
+    # progress by detection block (a 30,000 px image is ~900 of them: minutes), and a stop
+    # between blocks when the run is interrupted (the threads would finish their images)
+    total = sum(detect_blocks(im, cfg.features) for im in group.images)
+    blocks, lock, stop = [0], threading.Lock(), threading.Event()
+
+    def on_block(name: str) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        with lock:
+            blocks[0] += 1
+            bus.progress("features", blocks[0], total, name, group=g)
+
+    bus.progress("features", 0, total, names[0], group=g)
+    # images in parallel threads (OpenCV and GDAL release the GIL): the same features in the
+    # same order, in about half the time on 2 cores
+    with ThreadPoolExecutor(max_workers=max(1, min(FEATURE_THREADS, len(names)))) as ex:
+        detected = ex.map(lambda k: detect_image(group.images[k], cfg.features, tones[k],
+                                                 spill=spill / f"{k}.desc",
+                                                 on_block=lambda: on_block(names[k])), range(len(names)))
+        try:
+            for k, f in enumerate(detected):
+                feats.append(f)
+                if len(feats[-1]) < 100:
+                    bus.message(f"group {g}: {names[k]}: only {len(feats[-1])} keypoints (blank, saturated "
+                                "or very small image?): its tiles will hardly register", "warning", g)
+        except BaseException:
+            stop.set()                      # the other threads stop at their next block
+            raise
+    bus.progress("features", total, total, f"{sum(len(f) for f in feats)} keypoints", group=g)
+    return feats
+
+
+def _match_group(group: Group, cfg: Config, bus: EventBus, feats: list[ImageFeatures], tones: list,
+                 tiles: dict[str, list[Tile]], rng, image_groups: list[int] | None) -> tuple[dict, dict]:
+    """The coarse links between the group's images (their overviews) and the verified matches of
+    the pairs chosen from them: (links, pairs)."""
+    g = group.index
+    names = [im.name for im in group.images]
+    factor = cfg.matching.coarse_factor
+    overviews = [detect_overview(im, max(1, min(factor, min(im.width, im.height) // 128)), tones[k])
+                 for k, im in enumerate(group.images)]
+    links: dict[tuple[int, int], CoarseLink] = {}
+    for a, b in itertools.combinations(range(len(names)), 2):
+        link = coarse_link(names[a], overviews[a], names[b], overviews[b])
+        if link is not None:
+            links[(a, b)] = link
+    chosen = select_pairs(links, len(names), cfg.matching.k_partners, image_groups,
+                          cfg.sfm.joint_partners if image_groups else 0)
+    pairs: dict[tuple[int, int], PairMatches] = {}
+    for n, (a, b) in enumerate(chosen):
+        bus.progress("matching", n, len(chosen), f"{names[a]} x {names[b]}", group=g)
+        pm = match_pair(feats[a], feats[b], links[(a, b)], tiles[names[a]], tiles[names[b]],
+                        cfg.matching, rng)
+        if pm.n >= cfg.matching.min_inliers:
+            pairs[(a, b)] = pm
+        else:
+            bus.message(f"group {g}: {names[a]} x {names[b]}: only {pm.n} verified matches, pair dropped",
+                        "warning", g)
+    bus.progress("matching", len(chosen), len(chosen), f"{sum(p.n for p in pairs.values())} matches", group=g)
+    return links, pairs
 
 
 # -- several date groups in one frame ------------------------------------------------------------
