@@ -470,6 +470,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"aerec {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
 
+    _add_info(sub)
+    _add_run(sub)
+    _add_config(sub)
+    _add_site(sub)
+    _add_gcps(sub)
+    _add_eval(sub)
+    _add_plugin_commands(sub)
+    return p
+
+
+def _add_info(sub) -> None:
+    """`aerec info`'s arguments."""
     s = sub.add_parser("info", help="describe a site: images, dates, groups, GCPs, RPC/GT presence")
     s.add_argument("site", type=Path, help="the site folder (images/, gcps.geojson, site.json)")
     s.add_argument("--max-gap-days", type=float, default=15.0,
@@ -478,6 +490,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a date group spans at most this many days (grouping.max_span_days)")
     s.set_defaults(func=cmd_info)
 
+
+def _add_run(sub) -> None:
+    """`aerec run`'s arguments."""
     s = sub.add_parser("run", help="reconstruct a site (resumes finished stages)")
     s.add_argument("site", type=Path, help="the site folder (docs/site-format.md)")
     s.add_argument("--out", required=True, help="output folder")
@@ -508,6 +523,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="recompute this stage and the later ones (sparse, dense, upgrade, dsm, eval)")
     s.add_argument("--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=cmd_run)
+
+
+def _add_config(sub) -> None:
+    """`aerec config`'s arguments."""
     s = sub.add_parser("config", help="print the parameters of a run (TOML, each with its comment)")
     s.add_argument("--dump", action="store_true", help="print the defaults (or --preset's)")
     s.add_argument("--preset", default="default", help="the preset whose values are printed (default, tiny)")
@@ -515,6 +534,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="paper: the paper's plain path (every correction beyond it off)")
     s.set_defaults(func=cmd_config)
 
+
+def _add_site(sub) -> None:
+    """`aerec site`'s arguments."""
     s = sub.add_parser("site", help="make a site from vendor products (no pixel copied)")
     s.add_argument("action", choices=["init"], help="init: write a new site")
     s.add_argument("site", type=Path, help="the new site folder (must not exist or be empty)")
@@ -530,6 +552,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gcps", type=Path, default=None, help="a gcps.geojson to copy into the site")
     s.add_argument("--name", default=None, help="the site's name (site.json)")
     s.set_defaults(func=cmd_site)
+
+
+def _add_gcps(sub) -> None:
+    """`aerec gcps`'s arguments."""
     s = sub.add_parser("gcps", help="convert a GCP list between gcps.geojson and CSV")
     s.add_argument("action", choices=["convert"], help="convert: from SRC to DST")
     s.add_argument("src", type=Path, help="gcps.geojson or .csv")
@@ -541,6 +567,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="check the observations against this site's images (names, pixel bounds)")
     s.set_defaults(func=cmd_gcps)
 
+
+def _add_eval(sub) -> None:
+    """`aerec eval`'s arguments."""
     s = sub.add_parser("eval", help="score a DSM against a ground-truth (or reference) DSM",
                        description="Evaluate a DSM against a ground-truth DSM (align3d-style "
                                    "alignment and metrics).")
@@ -548,9 +577,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_arguments(s)
     s.set_defaults(func=cmd_eval)
-
-    _add_plugin_commands(sub)
-    return p
 
 
 def _add_plugin_commands(sub) -> None:
