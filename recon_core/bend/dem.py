@@ -192,6 +192,37 @@ def _huber_fit(A: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, fl
     return sol, w, scale
 
 
+def _cell_medians(E: np.ndarray, N: np.ndarray, r: np.ndarray, cell_m: float):
+    """The median of r per cell of cell_m metres holding MIN_POINTS_PER_CELL points or more:
+    (those cells' indices, their medians, their points' mean E and N)."""
+    key = np.stack([np.floor(E / cell_m), np.floor(N / cell_m)], 1).astype(np.int64)
+    _, cell, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    cell = cell.ravel()
+    order = np.argsort(cell, kind="stable")
+    bounds = np.r_[0, np.cumsum(cnt)]
+    rs, es, ns = r[order], E[order], N[order]
+    full = np.flatnonzero(cnt >= MIN_POINTS_PER_CELL)
+    med = np.array([np.median(rs[bounds[i]:bounds[i + 1]]) for i in full])
+    cE = np.add.reduceat(es, bounds[:-1])[full] / cnt[full]
+    cN = np.add.reduceat(ns, bounds[:-1])[full] / cnt[full]
+    return full, med, cE, cN
+
+
+def _bootstrap_blocks(cE: np.ndarray, cN: np.ndarray, block_m: float) -> list[np.ndarray]:
+    """The block bootstrap's blocks: the cells in each square of block_m metres."""
+    _, blk = np.unique(np.floor(np.stack([cE, cN], 1) / block_m).astype(np.int64), axis=0, return_inverse=True)
+    blk = blk.ravel()
+    return [np.flatnonzero(blk == b) for b in range(int(blk.max()) + 1)]
+
+
+def _bootstrap_sigma(A: np.ndarray, w: np.ndarray, med: np.ndarray, Q: np.ndarray, draws_idx: list) -> float:
+    """The bend's standard error over the grid Q: a block bootstrap of the weighted fit (the
+    Huber weights of the final fit kept), the largest over the grid."""
+    Aw, mw = A * w[:, None], med * w
+    draws = [Q @ np.linalg.lstsq(Aw[idx], mw[idx], rcond=None)[0][3:] for idx in draws_idx]
+    return float(np.max(np.std(np.array(draws), axis=0)))
+
+
 def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray, half: float,
                 cell_m: float | None = None, seed: int = 0, gate: bool = True,
                 degree: int = 2) -> tuple[np.ndarray | None, dict]:
@@ -227,16 +258,7 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
     info: dict = {"points": int(len(r)), "cell_m": cell_m}
     if len(r) == 0:
         return None, {**info, "reason": "the reference DEM has no height under the structure"}
-    key = np.stack([np.floor(E / cell_m), np.floor(N / cell_m)], 1).astype(np.int64)
-    _, cell, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    cell = cell.ravel()
-    order = np.argsort(cell, kind="stable")
-    bounds = np.r_[0, np.cumsum(cnt)]
-    rs, es, ns = r[order], E[order], N[order]
-    full = np.flatnonzero(cnt >= MIN_POINTS_PER_CELL)
-    med = np.array([np.median(rs[bounds[i]:bounds[i + 1]]) for i in full])
-    cE = np.add.reduceat(es, bounds[:-1])[full] / cnt[full]
-    cN = np.add.reduceat(ns, bounds[:-1])[full] / cnt[full]
+    full, med, cE, cN = _cell_medians(E, N, r, cell_m)
     ce, cn = (cE - centre[0]) / half, (cN - centre[1]) / half
     info["cells"] = int(len(full))
     if len(full) < MIN_CELLS:
@@ -248,12 +270,9 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
     if span < MIN_SPAN:
         return None, {**info, "reason": f"the DEM covers {span:.0%} of the site along one axis, "
                                         f"{MIN_SPAN:.0%} needed to fit its bend"}
-    # blocks of the bootstrap
     block_m = min(1000.0, extent.min() / 5.0)
-    _, blk = np.unique(np.floor(np.stack([cE, cN], 1) / block_m).astype(np.int64), axis=0, return_inverse=True)
-    blk = blk.ravel()
-    nb = int(blk.max()) + 1
-    members = [np.flatnonzero(blk == b) for b in range(nb)]
+    members = _bootstrap_blocks(cE, cN, block_m)
+    nb = len(members)
     info["degree_asked"] = degree = max(2, int(degree))
     # each degree up to the one asked that has 4 cells per unknown (a cubic that fails the gate
     # falls back to the quadratic)
@@ -265,14 +284,10 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
     rng = np.random.default_rng(seed)
     draws_idx = [np.concatenate([members[b] for b in rng.integers(0, nb, nb)]) for _ in range(200)]
     while True:
-        A = _columns(ce, cn, degree)
         sol, w, scale = fits[degree]
         Q = monomials(ge, gn, degree)
         surf = Q @ sol[3:]
-        # block bootstrap of the weighted fit (the Huber weights of the final fit kept)
-        Aw, mw = A * w[:, None], med * w
-        draws = [Q @ np.linalg.lstsq(Aw[idx], mw[idx], rcond=None)[0][3:] for idx in draws_idx]
-        sigma = float(np.max(np.std(np.array(draws), axis=0)))
+        sigma = _bootstrap_sigma(_columns(ce, cn, degree), w, med, Q, draws_idx)
         passes = sigma <= max(MAX_BEND_SIGMA_M, float(np.ptp(surf)) / MIN_BEND_SNR)
         if passes or not gate or degree == 2:
             break
