@@ -26,8 +26,6 @@ from typing import Callable
 import numpy as np
 
 from recon_core.errors import AerecError
-from recon_core.euclidean.control import count_words
-from recon_core.io.gcps import picked_positions
 
 from .display import (
     COLOR_MODES,
@@ -37,30 +35,13 @@ from .display import (
     plane_point,
 )
 from .framerate import BudgetGovernor, ViewRateMeter
+from .gcp_controller import GcpController
 from .gcp_marks import GcpMarks
 from .gcp_panel import GcpPanel
-from .gcp_session import (
-    GcpError,
-    add_observation,
-    edit_gcp,
-    merge_last,
-    new_gcp,
-    open_session,
-    set_affine_position,
-    undo,
-)
+from .gcp_session import GcpError, open_session
 from .imagery import ImageSource
-from .picking import PickingView, pixel_from_ray
-from .results import (
-    DsmPanel,
-    UpgradeOutcome,
-    gcp_readiness,
-    gcp_state_table,
-    gcps_key,
-    outcome_markdown,
-    run_upgrade,
-    upgrade_readiness,
-)
+from .picking import PickingView
+from .results import DsmPanel
 from .scene import TILE_MODES, SceneView, tile_windows_for
 from .worker import DisplaySnapshot, ReconWorker
 
@@ -141,10 +122,7 @@ class ViewerApp:
         self.session = open_session(self.out, self.site)
         self.models: dict = {}
         self._models_version = 0
-        self.upgrade: UpgradeOutcome | None = None
-        self._dsm_rerun_pending = False
         self.frame = "affine"
-        self.last_click: tuple | None = None          # (gcp id, image, col, row) of the last pick
         self.update_hz = update_hz
         self._euclid: dict[int, DisplayTransform] = {}
         self._auto_frame_tried = False
@@ -158,11 +136,10 @@ class ViewerApp:
         self._seen_version = -1
         self._framed = False
         self._state_table_key = None
+        self.gcp = GcpController(self)       # the clicks, the working set's edits, the upgrade
         self.picking = PickingView(self)     # the picking plane and its loupe (/gcp/plane)
         self.marks = GcpMarks(self)          # every other /gcp node
-        self._armed = None
         self._gui_cache: dict[str, object] = {}
-        self._tri_cache: dict = {}
         self._build_gui()
         self._camera_moved: dict[int, tuple] = {}   # client id -> (position, wxyz, time it moved)
         self.server.on_client_connect(self._on_connect)
@@ -192,7 +169,7 @@ class ViewerApp:
         return self
 
     def stop(self) -> None:
-        self._dsm_rerun_pending = False
+        self.gcp.dsm_rerun_pending = False
         self._stop.set()
         self.worker.stop(timeout=2.0)
         self._wake.set()
@@ -267,9 +244,9 @@ class ViewerApp:
             self.marks.invalidate()
             self.gcp_panel.relabel()          # "images placed n/N" counts registered images
             self.gcp_panel.listing.content = self.gcp_panel.working_set_table()   # residuals need the models
-            self._update_upgrade_button()
-        if self._dsm_rerun_pending and self.worker.done.is_set():
-            self._start_dsm_rerun()
+            self.gcp.update_upgrade_button()
+        if self.gcp.dsm_rerun_pending and self.worker.done.is_set():
+            self.gcp.start_dsm_rerun()
         if snap.version == self._seen_version and self.marks.key is not None:
             return None
         self._seen_version = snap.version
@@ -445,7 +422,7 @@ class ViewerApp:
         self.g_dense.on_update(setter(lambda: (setattr(s, "show_dense", self.g_dense.value),
                                                self.scene.apply_visibility(), self._force())))
         self.g_reset.on_click(lambda ev: sub(lambda: self.frame_client(ev.client)))
-        self.g_upgrade.on_click(setter(self.do_upgrade))
+        self.g_upgrade.on_click(setter(self.gcp.do_upgrade))
         self.g_frame_sel.on_update(setter(lambda: self.set_frame(
             "euclidean" if self.g_frame_sel.value == "Euclidean" else "affine")))
 
@@ -494,7 +471,7 @@ class ViewerApp:
         self._set_md(self.g_frame, f"*Frame:* {label}" if label else "")
         msgs = [m for m in snap.messages if m[0] != "debug"][-6:]
         self._set_md(self.g_messages, "\n".join(f"- {lvl}: {txt}" for lvl, txt in msgs))
-        self._update_upgrade_button()
+        self.gcp.update_upgrade_button()
 
     def _stats_md(self, snap: DisplaySnapshot) -> str:
         rows = ["| | |", "|---|---:|"]
@@ -618,230 +595,17 @@ class ViewerApp:
             client.camera.look_at = tuple(look + shift)
         return spot
 
-    # -- GCPs -----------------------------------------------------------------------------------
-    def on_plane_click(self, ray_origin, ray_direction, client=None) -> tuple[float, float] | None:
-        """A click on the picking plane: an observation of the selected (or a new) GCP; with
-        "Click zooms in first", a click outside the loupe opens the loupe there instead."""
-        pick = self.picking
-        if self._armed is not None or pick.plane is None:
-            return None
-        pix = pixel_from_ray(pick.plane, ray_origin, ray_direction)
-        if pix is None:
-            self.note("the click missed the image", "warning")
-            return None
-        if self.reference is not None and pick.plane.window.image == self.reference.ortho.name:
-            return self.on_reference_click(pix, client)
-        gid = self.gcp_panel.selected()
-        if gid is None:
-            x, y, h, epsg = self.gcp_panel.ground()
-            if x == 0.0 and y == 0.0:
-                raise GcpError("select a GCP, or type the new GCP's ground coordinates "
-                               "(or take one from the site list) before clicking")
-        self.gcp_panel.check_choice(client)
-        in_loupe = pick.in_loupe(pick.plane.window)
-        if in_loupe and not pick.owns_loupe(gid, client):
-            raise GcpError(self._not_your_loupe(gid, client))
-        if not in_loupe and self.gcp_panel.zoom_click.value:
-            pick.open_loupe(pix, client, gcp=gid)
-            return None
-        if gid is None:
-            gid = new_gcp(self.session, self.gcp_panel.gid.value or None, x=x, y=y, h=h,
-                          epsg=epsg, role=self.gcp_panel.role.value).id
-            created = True
-        else:
-            created = False
-        image = pick.plane.window.image
-        try:
-            add_observation(self.session, gid, image, *pix)
-        except GcpError:
-            if created:                       # the click created nothing after all
-                undo(self.session)
-            raise
-        if created:
-            merge_last(self.session, 2, f"new {gid} observed in {image}")
-            self.gcp_panel.note_choice(client, gid)
-        self.last_click = (gid, image, pix[0], pix[1])
-        if in_loupe:
-            pick.close_loupe(client)
-        self.gcps_changed(select=gid, note=f"{gid}: observed in {image} at col {pix[0]:.2f}, "
-                                           f"row {pix[1]:.2f}")
-        if in_loupe:                          # a precise click: on to the GCP's next image
-            self.gcp_panel.walk_on(gid, client)
-        return pix
 
-    def on_reference_click(self, pix: tuple[float, float], client=None) -> tuple[float, float] | None:
-        """A click on the reference orthoimage: the selected GCP's ground position (lon, lat from
-        the orthoimage, h from the DEM), or a new GCP there when none is selected; with "Click
-        zooms in first", a click outside the loupe opens the loupe there instead."""
-        ref, pick = self.reference, self.picking
-        self.gcp_panel.check_choice(client)
-        gid = self.gcp_panel.selected()
-        in_loupe = pick.in_loupe(pick.plane.window)
-        if in_loupe and not pick.owns_loupe(gid, client):
-            raise GcpError(self._not_your_loupe(gid, client))
-        if not in_loupe and self.gcp_panel.zoom_click.value:
-            pick.open_loupe(pix, client, gcp=gid)
-            return None
-        lon, lat, h = ref.ground_at(*pix)
-        sigma_h = None
-        if h is None:
-            h = float(self.gcp_panel.h.value) if gid is None else self.session.get(gid).h
-            where = ("no DEM given (--reference-dem): h kept at " if ref.dem is None
-                     else "the DEM has no height there: h kept at ") + f"{h:.2f} m, type it"
-        else:
-            where, sigma_h = height_words(h, ref.height_doubt(lon, lat), self._views_known())
-        if gid is None:
-            g = new_gcp(self.session, self.gcp_panel.gid.value or None, x=lon, y=lat, h=h,
-                        role=self.gcp_panel.role.value, sigma_h_m=sigma_h)
-            self.gcp_panel.note_choice(client, g.id)
-            what = f"new {g.id}"
-        else:
-            g = edit_gcp(self.session, gid, x=lon, y=lat, h=h,
-                         sigma_h_m=sigma_h if ref.dem is not None else "typed")
-            what = g.id
-        if in_loupe:
-            pick.close_loupe(client)
-        back = self.gcp_panel.walk.value and not g.observations
-        self.gcps_changed(select=g.id, note=f"{what}: ground position from the reference orthoimage at col "
-                                            f"{pix[0]:.2f}, row {pix[1]:.2f}: lon {lon:.7f}, lat {lat:.7f}; "
-                                            f"{where}. Now place it in the images"
-                                            + (f" ({self.gcp_panel.last_site_image} shown)" if back else ""))
-        if back:           # "Then its next image": back to the site image shown before the reference
-            self.gcp_panel.image.value = self.gcp_panel.last_site_image
-        return pix
 
-    def _views_known(self) -> bool:
-        """Do two or more images state their viewing direction (the upgrade then takes a GCP's
-        doubtful height from them)?"""
-        return sum(1 for im in self.site.images if im.view is not None) >= 2
 
-    def _not_your_loupe(self, gid: str | None, client) -> str:
-        """Why a click in the open loupe was not recorded (it is another GCP's, or another tab's)."""
-        pick = self.picking
-        if pick.loupe_gcp != gid:
-            return (f"nothing recorded: the loupe shows {pick.loupe_gcp or 'the new GCP'}'s spot, not "
-                    f"{gid or 'the new GCP'}'s; Escape leaves it, then click {gid or 'the new GCP'} in the image")
-        return ("nothing recorded: the picture is another tab's loupe (40 px around its click, stretched over "
-                "the plane); wait for that tab to place it, or press Escape to leave it")
 
-    def arm_cloud_pick(self) -> None:
-        """The next click in the scene sets the selected GCP's affine position."""
-        gid = self.gcp_panel.selected()
-        if gid is None:
-            raise GcpError("select a GCP first")
-        if self._armed is not None:
-            self.server.scene.remove_click_callback(self._armed)
 
-        def on_click(ev) -> None:
-            self.submit(lambda: self.on_cloud_click(gid, ev.ray_origin, ev.ray_direction))
 
-        self._armed = on_click
-        self.server.scene.on_click()(on_click)
-        self.note(f"click a point of the cloud to place {gid}")
 
-    def on_cloud_click(self, gcp_id: str, ray_origin, ray_direction) -> np.ndarray | None:
-        """Set a GCP's affine position to the displayed point nearest to the click ray."""
-        if self._armed is not None:
-            self.server.scene.remove_click_callback(self._armed)
-            self._armed = None
-        best = self.pick_cloud_point(ray_origin, ray_direction)
-        if best is None:
-            self.note("no point of the cloud near the click; press the button and try again",
-                      "warning")
-            return None
-        g, xyz = best
-        set_affine_position(self.session, gcp_id, g, xyz)
-        self.gcps_changed(select=gcp_id, note=f"{gcp_id}: affine position picked on the cloud "
-                                              f"of group {g}")
-        return xyz
 
-    def pick_cloud_point(self, ray_origin, ray_direction) -> tuple[int, np.ndarray] | None:
-        """(group, affine xyz) of the displayed point nearest to a ray, or None."""
-        return self.scene.nearest_point(ray_origin, ray_direction)
 
-    def gcps_changed(self, select: str | None = "keep", note: str | None = None) -> None:
-        self.gcp_panel.refresh(select)
-        self.marks.invalidate()
-        if note:
-            self.note(note)
-        self._update_upgrade_button()
-        self.marks.draw()
 
-    def gcp_affine_positions(self, g: int) -> dict[str, np.ndarray]:
-        """Affine position of every GCP placeable in group g (picked, else triangulated)."""
-        from recon_core.euclidean.georef import triangulate_gcp
 
-        model = self.models.get(g)
-        out = picked_positions(self.session.gcps, g)
-        if model is None:
-            return out
-        for gcp in self.session.gcps:
-            if gcp.id in out:
-                continue
-            key = (g, gcp.id, tuple(sorted(gcp.observations.items())))
-            if key not in self._tri_cache:
-                self._tri_cache[key] = triangulate_gcp(model, gcp.observations).xyz
-            if self._tri_cache[key] is not None:
-                out[gcp.id] = self._tri_cache[key]
-        return out
-
-    # -- upgrade --------------------------------------------------------------------------------
-    def _update_upgrade_button(self) -> None:
-        ready = gcp_readiness(self.session, self.models)
-        can, n, need = upgrade_readiness(self.session, self.models, {im.name: im for im in self.site.images},
-                                         self.cfg)
-        can = bool(self.models) and can
-        self.g_upgrade.disabled = not can
-        why = "waiting for the sparse model" if not self.models else count_words(n, need)
-        stale = ""
-        if self.upgrade is not None and self.upgrade.gcps_key != gcps_key(self.session):
-            stale = "\n\n*The GCPs changed since the last upgrade: press Upgrade again.*"
-        self._set_md(self.g_ready, f"{why}.{stale}")
-        def doubt(gid: str) -> str:
-            sh = self.session.get(gid).sigma_h_m
-            return "" if sh is None else f"; **height known only to +- {sh:.1f} m** (from the DEM)"
-        self._set_md(self.g_ready_list, "\n".join(f"- {gid} ({self.session.get(gid).role}): {txt}{doubt(gid)}"
-                                                  for gid, (_, txt) in ready.items()))
-        key = (self.session.version, len(self.models), id(next(iter(self.models.values()), None)))
-        if key != self._state_table_key:          # recomputed when the GCPs or the models change
-            self._state_table_key = key
-            self._set_md(self.g_state_table, gcp_state_table(self.session, self.models,
-                                                             sorted(self.session.images)))
-
-    def do_upgrade(self) -> UpgradeOutcome:
-        """The Upgrade button: fit H_A with the pipeline's own function, switch the scene to
-        the Euclidean frame, show the residuals, then recompute the DSM and the error map from
-        this GCP set (the pipeline from its upgrade stage, as `aerec run --redo-from upgrade`)."""
-        try:
-            outcome = run_upgrade(self.session, self.models, self.cfg, {im.name: im for im in self.site.images})
-        except AerecError as exc:
-            self._set_md(self.g_upgrade_md, f"**Upgrade failed:** {exc}")
-            raise
-        self.upgrade = outcome
-        self.gcp_panel.listing.content = self.gcp_panel.working_set_table()   # each GCP's error now
-        self._euclid = {g: outcome.transform(g) for g in outcome.results}
-        self._set_md(self.g_upgrade_md, outcome_markdown(outcome))
-        self.g_frame_sel.disabled = False
-        self.set_frame("euclidean")
-        self._update_upgrade_button()
-        self._dsm_rerun_pending = True
-        self._start_dsm_rerun()
-        return outcome
-
-    def _start_dsm_rerun(self) -> None:
-        """Start the pending re-run from the upgrade stage once the worker is free; say why
-        when it cannot be done at all."""
-        if not self._dsm_rerun_pending or self._stop.is_set():
-            return
-        why = self.worker.rerun_from("upgrade")
-        if why == "busy":
-            return                                  # tried again when the current run is done
-        self._dsm_rerun_pending = False
-        if why is None:
-            self.note("recomputing the upgrade records, the DSM and the error map from the "
-                      "working GCP set (as `aerec run --redo-from upgrade`)")
-        else:
-            self.note(f"the DSM is not recomputed from this upgrade: {why}", "warning")
 
     def _load_saved_upgrade(self) -> bool:
         """The display transforms of the upgrade OUT holds (OUT/upgrade/), if any."""
@@ -875,20 +639,6 @@ class ViewerApp:
         self.picking.reset_layout()
         self._tick()
         self.dsm_panel.frame_changed()
-
-
-def height_words(h: float, doubt, views_known: bool) -> tuple[str, float | None]:
-    """(what the operator reads about a height taken from the DEM, its sigma when doubtful)."""
-    where = f"h {h:.2f} m from the DEM"
-    if doubt is None or doubt.flat:
-        return where, None
-    what = ("the upgrade takes its height from the images' viewing angles (\"Take the images' height\" "
-            "after it), or type the surveyed height" if views_known else
-            "type its surveyed height, or pick a spot on flat ground (the images do not state their "
-            "viewing angles, so the upgrade cannot tell its height)")
-    return (where + f", **known only to +- {doubt.sigma_m:.1f} m**: the DEM changes by {doubt.spread_m:.1f} m "
-            f"within {doubt.radius_m:.0f} m of the spot (its cells are {doubt.cell_m:.0f} m: a roof or a "
-            f"wall gets a height between the top's and the ground's); {what}"), doubt.sigma_m
 
 
 def _read_report(out: Path) -> dict:

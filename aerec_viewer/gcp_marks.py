@@ -94,7 +94,7 @@ class GcpMarks:
                                                                   labels.get(gid, gid))
         shown: set[str] = set()
         for g, T in sorted(snap_T.items()):
-            for gid, xyz in app.gcp_affine_positions(g).items():
+            for gid, xyz in app.gcp.affine_positions(g).items():
                 if app.frame == "euclidean" and gid in shown:
                     continue                  # groups share the ENU frame: one marker per GCP
                 shown.add(gid)
@@ -236,7 +236,7 @@ class GcpMarks:
         if was is not None and np.hypot(pix[0] - was[0], pix[1] - was[1]) < 1e-3:
             return None                      # pressed and released without moving
         add_observation(app.session, gid, image, *pix)
-        app.gcps_changed(select="keep", note=f"{gid}: moved in {image} to col {pix[0]:.2f}, "
+        app.gcp.changed(select="keep", note=f"{gid}: moved in {image} to col {pix[0]:.2f}, "
                                               f"row {pix[1]:.2f} (dragged)")
         return pix
 

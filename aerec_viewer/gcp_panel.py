@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 
@@ -37,6 +37,9 @@ from .gcp_session import (
 )
 from .picking import PickingView
 
+if TYPE_CHECKING:
+    from .gcp_controller import GcpController
+
 
 def upgrade_errors(outcome) -> dict[str, str]:
     """GCP id -> "dE / dN / dU" (m) from an upgrade's rows (the first group that scores it): a
@@ -62,10 +65,10 @@ class GcpPanelHost(Protocol):
     site: object
     models: dict                      # group -> SparseModel once the sparse stage is done
 
-    def submit(self, fn: Callable[[], object]) -> object: ...
     picking: PickingView               # the picking plane and its loupe
-    def arm_cloud_pick(self) -> None: ...
-    def gcps_changed(self, select: str | None = "keep", note: str | None = None) -> None: ...
+    gcp: GcpController                 # the clicks, the working set's edits, the upgrade
+
+    def submit(self, fn: Callable[[], object]) -> object: ...
     def note(self, text: str, level: str = "info") -> None: ...
 
 
@@ -218,7 +221,7 @@ class GcpPanel:
             raise GcpError("nudges move an observation in a site image; on the reference orthoimage, "
                            "click the spot again")
         c, r = nudge_observation(self.app.session, gid, image, dcol, drow)
-        self.app.gcps_changed(select=gid, note=f"{gid} in {image}: col {c:.2f}, row {r:.2f}")
+        self.app.gcp.changed(select=gid, note=f"{gid} in {image}: col {c:.2f}, row {r:.2f}")
         return c, r
 
     def new_on_reference(self) -> None:
@@ -287,7 +290,7 @@ class GcpPanel:
         self.create.on_click(lambda _: app.submit(self._create))
         self.take.on_click(lambda _: app.submit(self._take))
         self.take_all.on_click(lambda _: app.submit(self._take_all))
-        self.pick_cloud.on_click(lambda _: app.submit(self.app.arm_cloud_pick))
+        self.pick_cloud.on_click(lambda _: app.submit(self.app.gcp.arm_cloud_pick))
         self.unobserve.on_click(lambda _: app.submit(self._unobserve))
         self.delete.on_click(lambda _: app.submit(self._delete))
         self.forget_pick.on_click(lambda _: app.submit(self._forget_pick))
@@ -357,30 +360,30 @@ class GcpPanel:
         x, y, h, epsg = self.ground()
         g = edit_gcp(self.app.session, gid, new_id=self.gid.value, x=x, y=y, h=h, epsg=epsg,
                      role=self.role.value)
-        self.app.gcps_changed(select=g.id, note=f"{g.id} updated")
+        self.app.gcp.changed(select=g.id, note=f"{g.id} updated")
 
     def _create(self) -> None:
         x, y, h, epsg = self.ground()
         g = new_gcp(self.app.session, self.gid.value or None, x=x, y=y, h=h, epsg=epsg,
                     role=self.role.value)
-        self.app.gcps_changed(select=g.id, note=f"{g.id} created: now click its pixel")
+        self.app.gcp.changed(select=g.id, note=f"{g.id} created: now click its pixel")
 
     def _take(self) -> None:
         added = import_site_gcps(self.app.session, [self.catalogue.value], with_observations=False)
-        self.app.gcps_changed(select=added[0] if added else self.catalogue.value,
+        self.app.gcp.changed(select=added[0] if added else self.catalogue.value,
                               note=f"added {added[0]}: click its pixel in each image" if added
                               else f"{self.catalogue.value} is already in the GCP list")
 
     def _take_all(self) -> None:
         added = import_site_gcps(self.app.session, None, with_observations=True)
-        self.app.gcps_changed(note=f"added {len(added)} site GCP(s)")
+        self.app.gcp.changed(note=f"added {len(added)} site GCP(s)")
 
     def _unobserve(self) -> None:
         gid = self.selected()
         if gid is None:
             raise GcpError("select a GCP first")
         remove_observation(self.app.session, gid, self.image.value)
-        self.app.gcps_changed(select=gid, note=f"removed {gid}'s observation in {self.image.value}")
+        self.app.gcp.changed(select=gid, note=f"removed {gid}'s observation in {self.image.value}")
 
     def _delete(self) -> None:
         """First press: ask for confirmation (the button says what will go); a second press on
@@ -397,7 +400,7 @@ class GcpPanel:
             return
         self._disarm_delete()
         delete_gcp(self.app.session, gid)
-        self.app.gcps_changed(select=None, note=f"deleted {gid} (Undo restores it)")
+        self.app.gcp.changed(select=None, note=f"deleted {gid} (Undo restores it)")
 
     def _disarm_delete(self) -> None:
         self._delete_armed = None
@@ -460,14 +463,14 @@ class GcpPanel:
         if gid is None:
             raise GcpError("select a GCP first")
         g = toggle_role(self.app.session, gid)
-        self.app.gcps_changed(select=gid, note=f"{gid} is now a {g.role} point")
+        self.app.gcp.changed(select=gid, note=f"{gid} is now a {g.role} point")
 
     def _toggle_enabled(self) -> None:
         gid = self.selected()
         if gid is None:
             raise GcpError("select a GCP first")
         g = set_enabled(self.app.session, gid, not self.app.session.get(gid).enabled)
-        self.app.gcps_changed(select=gid, note=f"{gid} {'enabled' if g.enabled else 'disabled: the upgrade leaves it out'}")
+        self.app.gcp.changed(select=gid, note=f"{gid} {'enabled' if g.enabled else 'disabled: the upgrade leaves it out'}")
 
     def export_markers(self, client=None) -> str:
         """The working set as CSV, sent to the tab that asked (and returned)."""
@@ -494,7 +497,7 @@ class GcpPanel:
             except InputError as exc:
                 raise GcpError(f"{name}: {exc.problem}") from None
         added, updated = merge_gcps(self.app.session, gcps, source=name)
-        self.app.gcps_changed(note=f"{name}: {len(added)} GCP(s) added"
+        self.app.gcp.changed(note=f"{name}: {len(added)} GCP(s) added"
                                    + (f" ({', '.join(added)})" if added else "")
                                    + f", {len(updated)} updated" + (f" ({', '.join(updated)})" if updated else ""))
         return added, updated
@@ -511,7 +514,7 @@ class GcpPanel:
         if gid is None:
             raise GcpError("select a GCP first")
         g = self.app.session.get(gid)
-        got = images_height(self.app.upgrade, g)
+        got = images_height(self.app.gcp.upgrade, g)
         if got is None:
             raise GcpError(f"no upgrade has placed {gid} yet: place it in two images, press Upgrade "
                            "(Results tab), then take its height")
@@ -528,7 +531,7 @@ class GcpPanel:
                 ": still doubtful. The other control GCPs' heights are doubtful too, or the images "
                 "hold the heights weakly here: add a control GCP on flat ground (its DEM height is "
                 "then trusted) or type the surveyed height, and press Upgrade again")
-        self.app.gcps_changed(select=gid, note=text)
+        self.app.gcp.changed(select=gid, note=text)
         return h
 
     def _forget_pick(self) -> None:
@@ -541,7 +544,7 @@ class GcpPanel:
         for g in groups:
             set_affine_position(self.app.session, gid, g, None)
         merge_last(self.app.session, len(groups), f"forget {gid}'s cloud pick")
-        self.app.gcps_changed(select=gid, note=f"{gid}: cloud pick forgotten, its image "
+        self.app.gcp.changed(select=gid, note=f"{gid}: cloud pick forgotten, its image "
                                                "observations are used again")
 
     def _predict(self):
@@ -638,7 +641,7 @@ class GcpPanel:
             raise GcpError("the GCP list is empty: add a GCP first")
         new, skipped = self.neighbour(self.selected(), step)
         self.app.picking.retarget(new)             # the last GCP's loupe must not place this one
-        self.app.gcps_changed(select=new, note=self.selection_note(new) + (
+        self.app.gcp.changed(select=new, note=self.selection_note(new) + (
             f"; {skipped} finished GCP(s) passed over" if skipped else ""))
         self.note_choice(client, new)
         return new
@@ -671,7 +674,7 @@ class GcpPanel:
             merge_last(self.app.session, len(done), f"{gid} placed in {len(done)} image(s) by prediction")
         note = (f"{gid}: placed in {', '.join(f'{k} at {v}' for k, v in done.items()) or 'no image'}"
                 + (f"; left to you: {'; '.join(f'{k}: {v}' for k, v in left.items())}" if left else ""))
-        self.app.gcps_changed(select=gid, note=note)
+        self.app.gcp.changed(select=gid, note=note)
         if hints:
             self.show_hint(gid, next(iter(hints.values())), client)
         return {**{k: "placed" for k in done}, **left}
@@ -734,24 +737,24 @@ class GcpPanel:
             raise GcpError("no prediction to accept: press Predict first")
         gid, pred = self.prediction
         if self.app.picking.loupe is not None and not self.app.picking.owns_loupe(gid, client):
-            raise GcpError(self.app._not_your_loupe(gid, client))
+            raise GcpError(self.app.gcp.not_your_loupe(gid, client))
         self.drop_prediction()
         add_observation(self.app.session, gid, pred.image, pred.col, pred.row)
         in_loupe = self.app.picking.loupe is not None
         if in_loupe:
             self.app.picking.close_loupe(client)
-        self.app.gcps_changed(select=gid, note=f"{gid}: observed in {pred.image} at col {pred.col:.2f}, "
+        self.app.gcp.changed(select=gid, note=f"{gid}: observed in {pred.image} at col {pred.col:.2f}, "
                                                f"row {pred.row:.2f} (accepted prediction)")
         if in_loupe:
             self.walk_on(gid, client)
 
     def _undo(self) -> None:
         what = undo(self.app.session)
-        self.app.gcps_changed(note=f"undone: {what}")
+        self.app.gcp.changed(note=f"undone: {what}")
 
     def _redo(self) -> None:
         what = redo(self.app.session)
-        self.app.gcps_changed(note=f"redone: {what}")
+        self.app.gcp.changed(note=f"redone: {what}")
 
     # -- display --------------------------------------------------------------------------------
     def relabel(self, gid: str | None = None) -> None:
@@ -825,7 +828,7 @@ class GcpPanel:
             return "No GCP yet."
         images = self._registered_images()
         sel = self.selected()
-        errors = upgrade_errors(getattr(self.app, "upgrade", None))
+        errors = upgrade_errors(self.app.gcp.upgrade)
         rows = ["| GCP | role | images | error E / N / U (m) | worst residual |", "|---|---|---|---|---|"]
         for g in s.gcps:
             res = self.residuals(g.id) if len(g.observations) >= 2 else {}

@@ -107,13 +107,13 @@ class PickingHost(Protocol):
     scene: object                    # scene.SceneView (its tiles' windows)
     gcp_panel: object                # the GCP tab: chosen image, region, contrast, plane shown
     marks: object                    # gcp_marks.GcpMarks: redrawn over the plane
+    gcp: object                      # gcp_controller.GcpController: what a click records
     frame: str
 
     def scene_bounds(self) -> tuple[np.ndarray, np.ndarray] | None: ...
     def submit(self, fn: Callable[[], object]) -> object: ...
     def note(self, text: str, level: str = "info") -> None: ...
     def moved_just_before(self, client_id: int | None, t_click: float) -> bool: ...
-    def on_plane_click(self, ray_origin, ray_direction, client=None) -> tuple[float, float] | None: ...
     def frame_client(self, client) -> None: ...
 
 
@@ -272,7 +272,7 @@ class PickingView:
                 self.app.submit(lambda: self.app.note("the view moved during that click (a drag): nothing "
                                                       "recorded; click without moving the mouse", "warning"))
                 return
-            self.app.submit(lambda: self.app.on_plane_click(ev.ray_origin, ev.ray_direction, ev.client))
+            self.app.submit(lambda: self.app.gcp.on_plane_click(ev.ray_origin, ev.ray_direction, ev.client))
 
         h.on_click(clicked)
         self._handle, self.plane = h, plane

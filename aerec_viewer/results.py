@@ -453,13 +453,14 @@ def error_map_drape(error_tif: Path, frame, clip_m: float = 3.0,
 
 class DsmPanelHost(Protocol):
     """What the DSM panel needs of the viewer: where the outputs are, the site (its GT DSM),
-    the server (the drape), the current frame and upgrade, and the update thread."""
+    the server (the drape), the current frame and upgrade (the GCP controller's), and the update
+    thread."""
 
     out: Path
     site: object
     server: object
     frame: str
-    upgrade: UpgradeOutcome | None
+    gcp: object                     # gcp_controller.GcpController: its `upgrade`, the last one run
 
     def scene_bounds(self): ...
     def note(self, text: str, level: str = "info") -> None: ...
@@ -621,10 +622,10 @@ class DsmPanel:
             self.drape_handle = None
         if not self.drape.value or p.error_tif is None:
             return False
-        if app.frame != "euclidean" or app.upgrade is None:
+        if app.frame != "euclidean" or app.gcp.upgrade is None:
             app.note("the error map is in metres: press Upgrade first (Results tab)", "warning")
             return False
-        rgba, corners = error_map_drape(p.error_tif, app.upgrade.frame)
+        rgba, corners = error_map_drape(p.error_tif, app.gcp.upgrade.frame)
         b = app.scene_bounds()
         if b is not None:
             corners[:, 2] = float(b[1][2]) + 0.02 * float(np.ptp(corners[:, 0]))

@@ -127,7 +127,7 @@ def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path
             p = app.picking.plane
             target = p.point_of(col, row)
             origin = target + np.array([3.0, -4.0, 40.0]) * p.render_width / 40.0
-            return app.call(lambda: app.on_plane_click(origin, target - origin))
+            return app.call(lambda: app.gcp.on_plane_click(origin, target - origin))
 
         assert click(40.0, 60.0) is not None
         g = app.session.get("ORTHO-1")
@@ -227,7 +227,7 @@ def test_a_doubtful_height_is_flagged_and_the_images_give_it(tiny_run, tmp_path)
         p = app.picking.plane
         target = p.point_of(101.5, 101.5)
         origin = target + np.array([0.0, 0.0, 40.0]) * p.render_width / 40.0
-        app.call(lambda: app.on_plane_click(origin, target - origin))
+        app.call(lambda: app.gcp.on_plane_click(origin, target - origin))
         g = app.session.get("ROOF-1")
         assert g.sigma_h_m is not None and g.sigma_h_m > 2.0
         assert "known only to" in gp.info.content and not gp.take_height.disabled
@@ -243,7 +243,7 @@ def test_a_doubtful_height_is_flagged_and_the_images_give_it(tiny_run, tmp_path)
         true_h = ctrl[0].h
         app.call(lambda: edit_gcp(app.session, ctrl[0].id, x=ctrl[0].lon, y=ctrl[0].lat,
                                   h=true_h - 8.0, sigma_h_m=4.0))
-        app.call(lambda: setattr(app, "upgrade", run_upgrade(app.session, app.models, app.cfg,
+        app.call(lambda: setattr(app.gcp, "upgrade", run_upgrade(app.session, app.models, app.cfg,
                                                              {im.name: im for im in app.site.images})))
         app.call(lambda: gp.select_id(ctrl[0].id))
         app.wait_idle()

@@ -179,9 +179,9 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
                       setattr(gp.x, "value", 55.65), setattr(gp.y, "value", -21.23),
                       setattr(gp.h, "value", 2300.0)))
     o, d = _ray_to(app, 123.25, 200.75)
-    pix = app.call(lambda: app.on_plane_click(o, d))
+    pix = app.call(lambda: app.gcp.on_plane_click(o, d))
     assert pix is not None and abs(pix[0] - 123.25) < 1e-3 and abs(pix[1] - 200.75) < 1e-3
-    assert app.last_click[:2] == ("NEW-1", img)
+    assert app.gcp.last_click[:2] == ("NEW-1", img)
     n_img = len(app.call(gp._registered_images))
     assert f"| **NEW-1** | control | 1 / {n_img} | - | - |" in gp.listing.content      # the working set's table
     saved = json.loads((out / "gcps.geojson").read_text())
@@ -189,16 +189,16 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     assert np.allclose(feat["properties"]["observations"][img], [123.25, 200.75], atol=1e-3)
     # a second click on the same GCP replaces its observation in that image
     o, d = _ray_to(app, 130.0, 190.0)
-    app.call(lambda: app.on_plane_click(o, d))
+    app.call(lambda: app.gcp.on_plane_click(o, d))
     assert np.allclose(app.session.get("NEW-1").observations[img], (130.0, 190.0), atol=1e-3)
     # the cloud pick: a ray through a displayed point sets the GCP's affine position
     ch = app.scene._clouds[(0, "sparse")].chunks[0]
     target = ch.xyz[5].astype(float)
-    app.call(app.arm_cloud_pick)
-    xyz = app.call(lambda: app.on_cloud_click("NEW-1", target + [0, 0, 50.0], [0, 0, -1.0]))
+    app.call(app.gcp.arm_cloud_pick)
+    xyz = app.call(lambda: app.gcp.on_cloud_click("NEW-1", target + [0, 0, 50.0], [0, 0, -1.0]))
     T = app.scene._clouds[(0, "sparse")].transform
     assert np.allclose(T.apply(xyz[None])[0], target, atol=1e-2)
-    assert app._armed is None and 0 in app.session.get("NEW-1").affine_picked
+    assert app.gcp.armed is None and 0 in app.session.get("NEW-1").affine_picked
     # markers: on the plane for observations in this image, on the cloud for placed GCPs
     app.wait_idle()
     names = set(app.marks.items)
@@ -221,12 +221,12 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     assert r_far / r_near == pytest.approx(4.0, rel=1e-6)
     assert r_near == pytest.approx(MARK_RING_PX * 2 * 100.0 * np.tan(0.4) / 900)
     app.call(lambda: delete_gcp(app.session, "NEW-1"))
-    app.call(lambda: app.gcps_changed(select=None))
+    app.call(lambda: app.gcp.changed(select=None))
     assert "NEW-1" not in app.session.ids
 
     # the upgrade with the site's GCPs (copied into the working set on first opening)
     assert not app.g_upgrade.disabled, app.g_ready.content
-    outcome = app.call(app.do_upgrade)
+    outcome = app.call(app.gcp.do_upgrade)
     assert outcome.ok and app.frame == "euclidean"
     res = outcome.results[0].to_dict()
     checks = [p for p in res["points"] if p["status"] == "check"]
@@ -332,27 +332,27 @@ def test_loupe_first_click_zooms_second_click_places(live):
         img = whole.image
         before = dict(app.session.get(gid).observations)
         o, d = _ray_to(app, 150.4, 160.6)
-        assert app.call(lambda: app.on_plane_click(o, d)) is None
+        assert app.call(lambda: app.gcp.on_plane_click(o, d)) is None
         assert app.session.get(gid).observations == before              # nothing recorded
         win = app.picking.plane.window
         assert app.picking.loupe is not None and win == app.picking.loupe[0] and win.image == img
         assert (win.width, win.height) == (LOUPE_PX, LOUPE_PX) and win.contains([(150.4, 160.6)])[0]
         assert not gp.leave_loupe.disabled
         o, d = _ray_to(app, 152.37, 158.81)
-        pix = app.call(lambda: app.on_plane_click(o, d))
+        pix = app.call(lambda: app.gcp.on_plane_click(o, d))
         assert pix is not None and abs(pix[0] - 152.37) < 1e-3 and abs(pix[1] - 158.81) < 1e-3
         assert np.allclose(app.session.get(gid).observations[img], (152.37, 158.81), atol=1e-3)
         assert app.picking.loupe is None and app.picking.plane.window == whole and gp.leave_loupe.disabled
         # Leave the loupe records nothing
         o, d = _ray_to(app, 300.0, 100.0)
-        app.call(lambda: app.on_plane_click(o, d))
+        app.call(lambda: app.gcp.on_plane_click(o, d))
         assert app.picking.loupe is not None
         app.call(app.picking.close_loupe)
         assert app.picking.loupe is None and app.picking.plane.window == whole
         assert np.allclose(app.session.get(gid).observations[img], (152.37, 158.81), atol=1e-3)
     finally:
         app.call(lambda: undo(app.session))
-        app.call(lambda: app.gcps_changed(select=gid))
+        app.call(lambda: app.gcp.changed(select=gid))
         app.call(lambda: setattr(gp.zoom_click, "value", False))
 
 
@@ -371,25 +371,25 @@ def test_next_gcp_with_a_loupe_open_records_nothing_at_the_last_ones_spot(live):
         if app.picking.plane is None:
             app.call(lambda: app.picking.show(wait=True))
         o, d = _ray_to(app, 150.4, 160.6)
-        assert app.call(lambda: app.on_plane_click(o, d)) is None           # A's loupe
+        assert app.call(lambda: app.gcp.on_plane_click(o, d)) is None           # A's loupe
         assert app.picking.loupe is not None and app.picking.loupe_gcp == g1
         g2 = app.call(lambda: gp.step_gcp(+1))                              # N
         app.wait_idle()
         assert g2 != g1 and app.picking.loupe is None                        # A's loupe is gone
         o, d = _ray_to(app, 151.0, 159.0)
-        assert app.call(lambda: app.on_plane_click(o, d)) is None           # B's own loupe opens
+        assert app.call(lambda: app.gcp.on_plane_click(o, d)) is None           # B's own loupe opens
         assert app.picking.loupe_gcp == g2
         assert {g: dict(app.session.get(g).observations) for g in ids} == before
         # a loupe left open by the list's selection of another GCP cannot place it either
         app.picking.loupe_gcp = g1
         o, d = _ray_to(app, 151.5, 159.5)
         with pytest.raises(GcpError, match="the loupe shows"):
-            app.call(lambda: app.on_plane_click(o, d))
+            app.call(lambda: app.gcp.on_plane_click(o, d))
         assert {g: dict(app.session.get(g).observations) for g in ids} == before
     finally:
         app.call(app.picking.close_loupe)
         app.call(lambda: setattr(gp.zoom_click, "value", False))
-        app.call(lambda: app.gcps_changed(select=g1))
+        app.call(lambda: app.gcp.changed(select=g1))
 
 
 def test_another_tabs_click_in_a_loupe_records_nothing(live):
@@ -413,19 +413,19 @@ def test_another_tabs_click_in_a_loupe_records_nothing(live):
         if app.picking.plane is None:
             app.call(lambda: app.picking.show(wait=True))
         o, d = _ray_to(app, 150.4, 160.6)
-        assert app.call(lambda: app.on_plane_click(o, d, a)) is None         # A's loupe
+        assert app.call(lambda: app.gcp.on_plane_click(o, d, a)) is None         # A's loupe
         o, d = _ray_to(app, 152.0, 158.0)
         with pytest.raises(GcpError, match="another tab's loupe"):
-            app.call(lambda: app.on_plane_click(o, d, b))
+            app.call(lambda: app.gcp.on_plane_click(o, d, b))
         assert dict(app.session.get(gid).observations) == before and app.picking.loupe is not None
-        assert app.call(lambda: app.on_plane_click(o, d, a)) is not None     # A places it
+        assert app.call(lambda: app.gcp.on_plane_click(o, d, a)) is not None     # A places it
         assert len(app.session._undo) == n_undo + 1
     finally:
         for _ in range(len(app.session._undo) - n_undo):
             app.call(lambda: undo(app.session))
         app.call(app.picking.close_loupe)
         app.call(lambda: setattr(gp.zoom_click, "value", False))
-        app.call(lambda: app.gcps_changed(select=gid))
+        app.call(lambda: app.gcp.changed(select=gid))
 
 
 def test_a_click_in_the_loupe_walks_on_to_the_gcps_next_image(live):
@@ -457,9 +457,9 @@ def test_a_click_in_the_loupe_walks_on_to_the_gcps_next_image(live):
     try:
         app.call(lambda: app.picking.show(wait=True))
         o, d = _ray_to(app, *tob[first])
-        app.call(lambda: app.on_plane_click(o, d))                     # opens the loupe
+        app.call(lambda: app.gcp.on_plane_click(o, d))                     # opens the loupe
         o, d = _ray_to(app, *tob[first])
-        app.call(lambda: app.on_plane_click(o, d))                     # records, walks on
+        app.call(lambda: app.gcp.on_plane_click(o, d))                     # records, walks on
         app.wait_idle()
         nxt = gp.image.value
         assert nxt != first and nxt in tob and app.picking.loupe is not None and app.picking.loupe[0].image == nxt
@@ -491,7 +491,7 @@ def test_a_click_in_the_loupe_walks_on_to_the_gcps_next_image(live):
         for im, xy in saved.items():
             app.call(lambda im=im, xy=xy: add_observation(app.session, gid, im, *xy))
         app.call(lambda: setattr(gp.zoom_click, "value", False))
-        app.call(lambda: app.gcps_changed(select=gid))
+        app.call(lambda: app.gcp.changed(select=gid))
 
 
 def test_go_to_an_observation_opens_it_in_the_loupe_and_flags_a_large_residual(live):
@@ -509,7 +509,7 @@ def test_go_to_an_observation_opens_it_in_the_loupe_and_flags_a_large_residual(l
     assert set(gp.jump.options) == {gp.JUMP_NONE, *obs}
     c, r = obs[im]
     app.call(lambda: add_observation(app.session, gid, im, c + 6.0, r))     # a misclick
-    app.call(lambda: app.gcps_changed(select=gid))
+    app.call(lambda: app.gcp.changed(select=gid))
     line = next(ln for ln in gp.info.content.splitlines() if ln.startswith(f"- {im}"))
     assert "check it" in line, gp.info.content
     try:
@@ -521,7 +521,7 @@ def test_go_to_an_observation_opens_it_in_the_loupe_and_flags_a_large_residual(l
     finally:
         app.call(app.picking.close_loupe)
         app.call(lambda: undo(app.session))
-        app.call(lambda: app.gcps_changed(select=gid))
+        app.call(lambda: app.gcp.changed(select=gid))
     assert app.session.get(gid).observations[im] == obs[im]
 
 
@@ -557,7 +557,7 @@ def test_next_gcp_passes_over_finished_gcps(live):
             assert set(seen) == set(todo)
     finally:
         app.call(lambda: undo(app.session))
-        app.call(lambda: app.gcps_changed(select=target))
+        app.call(lambda: app.gcp.changed(select=target))
     # all finished again: N walks every GCP
     if all(app.call(lambda g=g: gp.finished(g)) for g in ids):
         app.call(lambda: gp.refresh(select=ids[-1]))
@@ -605,7 +605,7 @@ def test_next_previous_gcp_and_place_it_in_its_other_images(live):
     assert set(app.session.get(gid).observations) == {keep}
     for im, xy in site_obs.items():                                 # as the site has it
         app.call(lambda im=im, xy=xy: add_observation(app.session, gid, im, *xy))
-    app.call(lambda: app.gcps_changed(select=gid))
+    app.call(lambda: app.gcp.changed(select=gid))
 
 
 def test_an_image_left_by_place_all_opens_in_the_loupe_and_enter_accepts(live, monkeypatch):
@@ -643,7 +643,7 @@ def test_an_image_left_by_place_all_opens_in_the_loupe_and_enter_accepts(live, m
         app.call(lambda: undo(app.session))
         if had is not None:
             app.call(lambda: add_observation(app.session, gid, target, *had))
-        app.call(lambda: app.gcps_changed(select=gid))
+        app.call(lambda: app.gcp.changed(select=gid))
 
 
 def test_role_and_enable_toggles_are_saved_undoable_and_drive_readiness(live):
@@ -693,22 +693,22 @@ def test_a_click_never_lands_on_the_gcp_another_tab_chose(live):
         app.call(lambda: app.picking.show(wait=True))
     o, d = _ray_to(app, 120.0, 130.0)
     with pytest.raises(GcpError, match=f"another tab changed the GCP to {g2}"):
-        app.call(lambda: app.on_plane_click(o, d, a))
+        app.call(lambda: app.gcp.on_plane_click(o, d, a))
     assert {g: dict(app.session.get(g).observations) for g in (g1, g2)} == before
     n_undo = len(app.session._undo)
     try:
-        assert app.call(lambda: app.on_plane_click(o, d, b)) is not None          # B: its own GCP
-        assert app.call(lambda: app.on_plane_click(o, d, a)) is not None          # A, warned: goes through
+        assert app.call(lambda: app.gcp.on_plane_click(o, d, b)) is not None          # B: its own GCP
+        assert app.call(lambda: app.gcp.on_plane_click(o, d, a)) is not None          # A, warned: goes through
         assert len(app.session._undo) == n_undo + 2
         # one tab's own actions that change the list on the server (Create, Delete, Undo, a
         # selection made for it) never refuse its click
         app.call(lambda: gp.refresh(select=g1))
-        assert app.call(lambda: app.on_plane_click(o, d, b)) is not None
+        assert app.call(lambda: app.gcp.on_plane_click(o, d, b)) is not None
         assert len(app.session._undo) == n_undo + 3
     finally:
         for _ in range(len(app.session._undo) - n_undo):
             app.call(lambda: undo(app.session))
-        app.call(lambda: app.gcps_changed(select=g1))
+        app.call(lambda: app.gcp.changed(select=g1))
     assert {g: dict(app.session.get(g).observations) for g in (g1, g2)} == before
 
 
@@ -726,7 +726,7 @@ def test_gcp_panel_is_safe_to_edit(live):
     n = len(app.session.ids)
     o, d = _ray_to(app, 100.0, 100.0)
     with pytest.raises(GcpError):
-        app.call(lambda: app.on_plane_click(o, d))
+        app.call(lambda: app.gcp.on_plane_click(o, d))
     assert len(app.session.ids) == n                         # nothing created
     # delete: the first press only asks, the second deletes, Undo restores
     app.call(lambda: gp.refresh(select=first))
@@ -780,8 +780,8 @@ def test_dsm_and_height_error_panel(live):
     app.call(lambda: dp_.refresh(None, force=True))
     assert dp_.err_img.visible and "median abs. height error" in dp_.md.content
     assert "completeness" in dp_.md.content and not dp_.evaluate.visible
-    if app.upgrade is None:
-        app.call(app.do_upgrade)
+    if app.gcp.upgrade is None:
+        app.call(app.gcp.do_upgrade)
     app.call(lambda: app.set_frame("euclidean"))
     app.call(lambda: setattr(dp_.drape, "value", True))
     assert app.call(dp_.show_drape) and dp_.drape_handle is not None
@@ -887,7 +887,7 @@ def test_viewer_upgrade_equals_aerec_run_redo_from_upgrade(tiny_run, tmp_path):
     try:
         assert app.worker.done.wait(60) and app.worker.snapshot().status == "reopened"
         app.wait_idle()
-        outcome = app.call(app.do_upgrade)
+        outcome = app.call(app.gcp.do_upgrade)
         deadline = time.time() + 120
         while not (app.worker.done.is_set() and app.worker.redo_from == "upgrade"):
             assert time.time() < deadline, "the viewer's DSM re-run did not start and finish"
@@ -1038,7 +1038,7 @@ def test_residual_vectors_on_the_image_plane(live):
     gid = sorted(expect)[0]
     (c, r), _ = vecs[gid]
     app.call(lambda: add_observation(app.session, gid, img, c + 4.0, r - 3.0))   # a misclick
-    app.call(lambda: app.gcps_changed(select=gid))
+    app.call(lambda: app.gcp.changed(select=gid))
     (c2, r2), (dx, dy) = app.call(app.marks.residual_vectors)[gid]
     assert (c2, r2) == (c + 4.0, r - 3.0) and np.hypot(dx, dy) > 1.0
     seg = app.marks.residual_nodes[0]
@@ -1054,7 +1054,7 @@ def test_residual_vectors_on_the_image_plane(live):
     assert app.marks.residual_scale() >= max(20.0, 0.05 * max(w.width, w.height))
     assert f"x{app.marks.residual_scale():g}" in app.marks.residual_nodes[1].text
     app.call(lambda: undo(app.session))
-    app.call(lambda: app.gcps_changed(select=gid))
+    app.call(lambda: app.gcp.changed(select=gid))
 
 
 def test_gcp_state_table_shows_each_images_state(tiny_run, tmp_path):

@@ -132,14 +132,14 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     target = (win.col0 + 0.43 * win.width, win.row0 + 0.57 * win.height)
     x, y = project(client, plane.point_of(*target))
     assert 0 < x < 950 and 0 < y < VIEW["height"], (x, y)
-    before = app.last_click
+    before = app.gcp.last_click
     view_before = client.camera.position.copy()
     # the first click opens the loupe there: the plane shows the full-resolution pixels around
     # it, enlarged, and this tab's camera goes straight above it
     page.mouse.click(x, y)
     wait_for(lambda: app.picking.loupe is not None and app.picking.plane.window == app.picking.loupe[0], 20,
              "the first click to open the loupe")
-    assert app.last_click is before                      # nothing recorded
+    assert app.gcp.last_click is before                      # nothing recorded
     loupe = app.picking.plane
     assert loupe.window.width < 0.2 * win.width
     wait_for(lambda: np.linalg.norm(client.camera.position[:2] - loupe.position[:2])
@@ -149,9 +149,9 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     aim = (app.picking.loupe[1][0] + 0.31, app.picking.loupe[1][1] - 0.42)   # the exact pixel, seen enlarged
     x, y = project(client, loupe.point_of(*aim))
     page.mouse.click(x, y)
-    wait_for(lambda: app.last_click is not before and app.last_click is not None, 20,
+    wait_for(lambda: app.gcp.last_click is not before and app.gcp.last_click is not None, 20,
              "the click in the loupe to reach the server")
-    got_gid, image, col, row = app.last_click
+    got_gid, image, col, row = app.gcp.last_click
     px_per_css = loupe.window.width / (loupe.render_width * (VIEW["height"] / 2) / np.tan(client.camera.fov / 2)
                                        / np.linalg.norm(client.camera.position - loupe.position))
     assert px_per_css < 0.15, px_per_css                 # a tenth of a pixel per screen pixel
@@ -181,7 +181,7 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     wait_for(lambda: any("moved during that click" in t for _, t in app.worker.snapshot().messages),
              30, "the drag guard's note")
     app.wait_idle()
-    assert app.session.get(gid).observations == recorded and app.last_click[2:] == (col, row)
+    assert app.session.get(gid).observations == recorded and app.gcp.last_click[2:] == (col, row)
     time.sleep(DRAG_GUARD_S)
 
     # safe editing from the browser: Undo reverts the click, Redo re-applies it; Delete only
