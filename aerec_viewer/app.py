@@ -28,7 +28,6 @@ import numpy as np
 from recon_core.errors import AerecError
 
 from .display import (
-    COLOR_MODES,
     DisplayTransform,
     euclidean_display_transform,
     image_footprint,
@@ -41,8 +40,9 @@ from .gcp_panel import GcpPanel
 from .gcp_session import GcpError, open_session
 from .imagery import ImageSource
 from .picking import PickingView
+from .recon_panel import ReconstructionPanel
 from .results import DsmPanel
-from .scene import TILE_MODES, SceneView, tile_windows_for
+from .scene import SceneView, tile_windows_for
 from .worker import DisplaySnapshot, ReconWorker
 
 log = logging.getLogger("aerec.viewer")
@@ -227,7 +227,7 @@ class ViewerApp:
     # -- the update -----------------------------------------------------------------------------
     def _tick(self) -> int | None:
         """Apply the newest worker state; returns the number of points sent (None: no change)."""
-        self._govern_budget()
+        self.recon.govern_budget()
         snap = self.worker.snapshot()
         if snap.status in ("done", "reopened") and not self._auto_frame_tried:
             # a finished run that holds an upgrade opens in metres (the affine frame "may be
@@ -254,7 +254,8 @@ class ViewerApp:
             sent = self.scene.sync(snap, self.transforms(snap))
             if snap.status in ("done", "reopened"):
                 self.scene.finish()
-            self._update_panel(snap)
+            self.recon.update(snap)
+            self.gcp.update_upgrade_button()
             self.picking.relayout()
             if sent and not self._framed:
                 self._framed = True
@@ -267,38 +268,6 @@ class ViewerApp:
             self.dsm_panel.refresh(snap)
         return sent
 
-    def _govern_budget(self) -> None:
-        """After each gesture, the point budget follows the page's view-update rate (framerate.py).
-        What it did stays said under the slider; the messages list hears of it once (a slow
-        page would otherwise fill it); a budget the operator sets is kept."""
-        fps = self.view_rate.rate(time.monotonic())
-        if fps is None:
-            return
-        s, gov = self.scene.settings, self.governor
-        hid = gov.hide_tiles
-        new = gov.observe(fps, s.budget)
-        said = []
-        if gov.hide_tiles and not hid and s.tiles == "auto":
-            s.tiles = "hidden"
-            self.g_tiles.value = "hidden"
-            self._force()
-            said.append("tile outlines hidden (Tiles)")
-        if new is not None:
-            s.budget = new
-            self.g_budget.value = new // 1000
-            self._force()
-        if new is None and not said:
-            return
-        lowered = s.budget < gov.start
-        text = (f"The view moved at {fps:.0f} updates/s (under {gov.TARGET_FPS:g}: a browser "
-                f"without GPU?): budget lowered from {gov.start // 1000} k to {s.budget // 1000} k"
-                + "".join(f", {x}" for x in said) + ". A budget you set is kept."
-                if lowered or said else
-                f"The view moves at {fps:.0f} updates/s: budget back at {s.budget // 1000} k.")
-        self.g_budget_note.content = text
-        if lowered and not gov.said:
-            gov.said = True
-            self.worker.message(text.rstrip(".") + " (Display)", "warning")
 
     def transforms(self, snap: DisplaySnapshot) -> dict[int, DisplayTransform | None]:
         """The display transform of each group in the current frame.
@@ -356,29 +325,7 @@ class ViewerApp:
         gui = self.server.gui
         tabs = gui.add_tab_group()
         with tabs.add_tab("Reconstruction"):
-            self.g_title = gui.add_markdown(f"### AE-Rec · {self.site.name}")
-            self.g_status = gui.add_markdown("starting…")
-            self.g_progress = gui.add_progress_bar(0.0, animated=True)
-            self.g_stats = gui.add_markdown("")
-            self.g_frame = gui.add_markdown("")
-            self.g_pause = gui.add_button("Pause", hint="pauses the reconstruction at its next step")
-            with gui.add_folder("Display"):
-                self.g_size = gui.add_slider("Point size", 0.1, 5.0, 0.1, 1.0)
-                self.g_color = gui.add_dropdown("Colour by", list(COLOR_MODES),
-                                                initial_value=self.scene.settings.color_mode)
-                self.g_budget = gui.add_slider("Point budget (k)", 10, 2000, 10,
-                                               self.scene.settings.budget // 1000,
-                                               hint="points displayed at most; the full cloud "
-                                                    "stays on disk")
-                self.g_budget_note = gui.add_markdown("")
-                self.g_tiles = gui.add_dropdown(
-                    "Tiles", list(TILE_MODES), initial_value=self.scene.settings.tiles,
-                    hint="; ".join(f"{k}: {v}" for k, v in TILE_MODES.items())
-                    + " (textured tiles are slow to draw without a GPU)")
-                self.g_sparse = gui.add_checkbox("Sparse points", True)
-                self.g_dense = gui.add_checkbox("Dense points", True)
-                self.g_reset = gui.add_button("Reset view")
-            self.g_messages = gui.add_markdown("")
+            self.recon = ReconstructionPanel(self, gui)
         with tabs.add_tab("GCPs"):
             self.gcp_panel = GcpPanel(self, gui)
         with tabs.add_tab("Results"):
@@ -398,104 +345,26 @@ class ViewerApp:
         self.picking.set_regions()
 
     def _wire(self) -> None:
-        s = self.scene.settings
         sub = self.submit
 
         def setter(fn):
             return lambda _: sub(fn)
 
-        self.g_pause.on_click(setter(self.toggle_pause))
-        self.g_size.on_update(setter(lambda: (setattr(s, "point_size", float(self.g_size.value)),
-                                              self.scene.apply_point_size())))
-        self.g_color.on_update(setter(lambda: (setattr(s, "color_mode", self.g_color.value),
-                                               self.scene.apply_colors())))
-        def budget_set(ev) -> None:
-            if ev.client is not None:       # the operator's choice: kept from now on
-                self.governor.user_set = True
-            sub(lambda: (setattr(s, "budget", int(self.g_budget.value) * 1000), self._force()))
-        self.g_budget.on_update(budget_set)
-        self.g_tiles.on_update(setter(lambda: (setattr(s, "tiles", self.g_tiles.value),
-                                               self.scene.set_tiles_visible(self.g_tiles.value != "hidden"),
-                                               self._force())))
-        self.g_sparse.on_update(setter(lambda: (setattr(s, "show_sparse", self.g_sparse.value),
-                                                self.scene.apply_visibility())))
-        self.g_dense.on_update(setter(lambda: (setattr(s, "show_dense", self.g_dense.value),
-                                               self.scene.apply_visibility(), self._force())))
-        self.g_reset.on_click(lambda ev: sub(lambda: self.frame_client(ev.client)))
         self.g_upgrade.on_click(setter(self.gcp.do_upgrade))
         self.g_frame_sel.on_update(setter(lambda: self.set_frame(
             "euclidean" if self.g_frame_sel.value == "Euclidean" else "affine")))
 
-    def _force(self) -> None:
+    def force(self) -> None:
         self._seen_version = -1
 
-    def _set_md(self, handle, text: str) -> None:
+    def set_md(self, handle, text: str) -> None:
         key = id(handle)
         if self._gui_cache.get(key) != text:
             self._gui_cache[key] = text
             handle.content = text
 
-    def _update_panel(self, snap: DisplaySnapshot) -> None:
-        done = ("affine reconstruction finished: **place the control GCPs** (GCPs tab), then Upgrade"
-                if snap.awaiting_gcps else "finished")
-        status = {"running": "running", "paused": "**paused**", "done": done,
-                  "reopened": "reopened (nothing recomputed)", "failed": "**failed**",
-                  "stopped": "stopped", "starting": "starting"}.get(snap.status, snap.status)
-        stage = ""
-        if snap.stage and snap.status not in ("done", "reopened", "stopped"):
-            grp = "" if snap.stage_group is None else f" [group {snap.stage_group}]"
-            stage = f" · stage **{snap.stage}**{grp}"
-            if snap.stage_total:
-                stage += f" {snap.stage_done}/{snap.stage_total}"
-            if snap.stage_message:
-                stage += f" · {snap.stage_message}"
-        if snap.status == "failed" and snap.failed_stage:
-            status = f"**failed in the {snap.failed_stage} stage**"
-            stage = ""
-        text = f"{status}{stage}"
-        if snap.error:
-            text += f"\n\n**Error:** {snap.error}"
-        if snap.hint:
-            text += f"\n\n*What to do:* {snap.hint}"
-        self._set_md(self.g_status, text)
-        if snap.stage_total:
-            self.g_progress.value = float(100.0 * snap.stage_done / snap.stage_total)
-        done = snap.status in ("done", "reopened", "failed", "stopped")
-        if done:
-            self.g_progress.value = 100.0
-        self.g_progress.animated = not done and snap.status != "paused"
-        self.g_pause.label = "Resume" if snap.status == "paused" else "Pause"
-        self.g_pause.disabled = done
-        self._set_md(self.g_stats, self._stats_md(snap))
-        label = next((T.label for T in self.transforms(snap).values() if T is not None), "")
-        self._set_md(self.g_frame, f"*Frame:* {label}" if label else "")
-        msgs = [m for m in snap.messages if m[0] != "debug"][-6:]
-        self._set_md(self.g_messages, "\n".join(f"- {lvl}: {txt}" for lvl, txt in msgs))
-        self.gcp.update_upgrade_button()
 
-    def _stats_md(self, snap: DisplaySnapshot) -> str:
-        rows = ["| | |", "|---|---:|"]
-        for g, gs in sorted(snap.groups.items()):
-            pre = f"g{g} " if len(snap.groups) > 1 else ""
-            rows.append(f"| {pre}tiles registered | {len(gs.tiles)} / {gs.total_tiles} |")
-            rows.append(f"| {pre}sparse points | {gs.sparse.n:,} |")
-            if gs.dense.n:
-                thin = "" if gs.dense.kept_fraction >= 1 else f" (kept 1/{1 / gs.dense.kept_fraction:.0f})"
-                rows.append(f"| {pre}dense points | {gs.dense.n:,}{thin} |")
-            if gs.ba:
-                rows.append(f"| {pre}reprojection RMS (last BA) | {gs.ba['rms_px']:.3f} px |")
-                rows.append(f"| {pre}BA cost ({gs.ba['scope']}) | {gs.ba['cost_before']:.4g} → "
-                            f"{gs.ba['cost_after']:.4g} |")
-        rows.append(f"| points displayed | {self.scene.displayed_points():,} |")
-        for k, v in snap.stages_finished.items():
-            rows.append(f"| {k} done | {v:.1f} s |")
-        return "\n".join(rows)
 
-    def toggle_pause(self) -> None:
-        if self.worker.paused:
-            self.worker.resume()
-        else:
-            self.worker.pause()
 
     def note(self, text: str, level: str = "info") -> None:
         """Show a one-line status in the GCP tab and in the messages list."""
@@ -633,7 +502,7 @@ class ViewerApp:
             return
         self.frame = frame
         self.scene.clear()
-        self._force()
+        self.force()
         self._framed = False
         self.marks.invalidate()
         self.picking.reset_layout()

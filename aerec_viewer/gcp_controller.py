@@ -228,16 +228,16 @@ class GcpController:
         stale = ""
         if self.upgrade is not None and self.upgrade.gcps_key != gcps_key(self.app.session):
             stale = "\n\n*The GCPs changed since the last upgrade: press Upgrade again.*"
-        self.app._set_md(self.app.g_ready, f"{why}.{stale}")
+        self.app.set_md(self.app.g_ready, f"{why}.{stale}")
         def doubt(gid: str) -> str:
             sh = self.app.session.get(gid).sigma_h_m
             return "" if sh is None else f"; **height known only to +- {sh:.1f} m** (from the DEM)"
-        self.app._set_md(self.app.g_ready_list, "\n".join(f"- {gid} ({self.app.session.get(gid).role}): {txt}{doubt(gid)}"
+        self.app.set_md(self.app.g_ready_list, "\n".join(f"- {gid} ({self.app.session.get(gid).role}): {txt}{doubt(gid)}"
                                                   for gid, (_, txt) in ready.items()))
         key = (self.app.session.version, len(self.app.models), id(next(iter(self.app.models.values()), None)))
         if key != self.app._state_table_key:          # recomputed when the GCPs or the models change
             self.app._state_table_key = key
-            self.app._set_md(self.app.g_state_table, gcp_state_table(self.app.session, self.app.models,
+            self.app.set_md(self.app.g_state_table, gcp_state_table(self.app.session, self.app.models,
                                                              sorted(self.app.session.images)))
 
     def do_upgrade(self) -> UpgradeOutcome:
@@ -247,12 +247,12 @@ class GcpController:
         try:
             outcome = run_upgrade(self.app.session, self.app.models, self.app.cfg, {im.name: im for im in self.app.site.images})
         except AerecError as exc:
-            self.app._set_md(self.app.g_upgrade_md, f"**Upgrade failed:** {exc}")
+            self.app.set_md(self.app.g_upgrade_md, f"**Upgrade failed:** {exc}")
             raise
         self.upgrade = outcome
         self.app.gcp_panel.listing.content = self.app.gcp_panel.working_set_table()   # each GCP's error now
         self.app._euclid = {g: outcome.transform(g) for g in outcome.results}
-        self.app._set_md(self.app.g_upgrade_md, outcome_markdown(outcome))
+        self.app.set_md(self.app.g_upgrade_md, outcome_markdown(outcome))
         self.app.g_frame_sel.disabled = False
         self.app.set_frame("euclidean")
         self.update_upgrade_button()

@@ -117,10 +117,10 @@ def test_live_run_grows_points_and_tiles_to_the_end(live):
     assert all(c.xyz.dtype == np.float32 for c in st.chunks)
     assert np.abs(np.concatenate([c.xyz for c in st.chunks])).max() < 1e5   # local origin
     # progress reached the end: bar full, sfm stage counted every registered tile
-    assert app.g_progress.value == 100.0
-    assert "finished" in app.g_status.content
-    assert f"{len(g0.tiles)} / {g0.total_tiles}" in app.g_stats.content
-    assert "affine frame" in app.g_frame.content
+    assert app.recon.g_progress.value == 100.0
+    assert "finished" in app.recon.g_status.content
+    assert f"{len(g0.tiles)} / {g0.total_tiles}" in app.recon.g_stats.content
+    assert "affine frame" in app.recon.g_frame.content
 
 
 def test_tiles_are_textured_until_the_dense_cloud_covers_them(live):
@@ -152,10 +152,10 @@ def test_display_controls_apply_to_the_scene(live):
     for mode in dp.COLOR_MODES:
         app.call(lambda: (setattr(app.scene.settings, "color_mode", mode), app.scene.apply_colors()))
     n_all = app.scene.displayed_points()
-    app.call(lambda: (setattr(app.scene.settings, "budget", max(10, n_all // 4)), app._force()))
+    app.call(lambda: (setattr(app.scene.settings, "budget", max(10, n_all // 4)), app.force()))
     app.wait_idle()
     assert app.scene.displayed_points() < 0.5 * n_all
-    app.call(lambda: (setattr(app.scene.settings, "budget", 150_000), app._force()))
+    app.call(lambda: (setattr(app.scene.settings, "budget", 150_000), app.force()))
     app.wait_idle()
     assert app.scene.displayed_points() == n_all
 
@@ -246,7 +246,7 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
     assert "stops after the sparse stage" in app.worker.rerun_from("upgrade")   # --until sparse
     app.wait_idle()
     st = app.scene._clouds[(0, "sparse")]
-    assert st.transform.kind == "euclidean" and "Euclidean frame" in app.g_frame.content
+    assert st.transform.kind == "euclidean" and "Euclidean frame" in app.recon.g_frame.content
     # metres, z up: the ENU cloud spans a plausible site and its heights are metric
     P = np.concatenate([c.xyz for c in st.chunks]).astype(float)
     assert 20.0 < np.ptp(P[:, 0]) < 20_000.0 and np.ptp(P[:, 2]) < np.ptp(P[:, 0])
@@ -1110,21 +1110,21 @@ def test_a_slow_page_lowers_the_point_budget_and_says_so(live):
         t0 = time.monotonic() - 10.0
         for k in range(12):
             app.view_rate.moved(99, t0 + k / 3.0)
-        app.call(app._govern_budget)
-        assert s.budget < 150_000 and app.g_budget.value == s.budget // 1000
-        assert "budget lowered from 150 k" in app.g_budget_note.content
+        app.call(app.recon.govern_budget)
+        assert s.budget < 150_000 and app.recon.g_budget.value == s.budget // 1000
+        assert "budget lowered from 150 k" in app.recon.g_budget_note.content
         assert sum("budget lowered" in text for _, text in app.worker.snapshot().messages) == 1
         # the operator sets it: kept, however slow
         app.governor.user_set = True
         app.call(lambda: setattr(s, "budget", 150_000))
         for k in range(12):
             app.view_rate.moved(99, t0 + 5.0 + k / 3.0)
-        app.call(app._govern_budget)
+        app.call(app.recon.govern_budget)
         assert s.budget == 150_000
     finally:
         app.governor.user_set = False
-        app.g_budget_note.content = ""
-        app.call(lambda: (setattr(s, "budget", before), setattr(s, "tiles", tiles), app._force()))
+        app.recon.g_budget_note.content = ""
+        app.call(lambda: (setattr(s, "budget", before), setattr(s, "tiles", tiles), app.force()))
 
 
 def test_the_gcp_list_names_each_gcps_role_and_images_placed(live):

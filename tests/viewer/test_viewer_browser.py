@@ -227,7 +227,7 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     page.get_by_role("cell", name="check").first.wait_for(timeout=15_000)
     time.sleep(2.5)
     shot(page, shots, "4_after_upgrade")
-    assert "Euclidean" in app.g_frame.content
+    assert "Euclidean" in app.recon.g_frame.content
 
 
     # keyboard: N selects the next GCP, P the previous one (viser commands with hotkeys; the
