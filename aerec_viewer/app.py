@@ -31,7 +31,6 @@ from .display import (
     DisplayTransform,
     euclidean_display_transform,
     image_footprint,
-    plane_point,
 )
 from .framerate import BudgetGovernor, ViewRateMeter
 from .gcp_controller import GcpController
@@ -41,15 +40,13 @@ from .gcp_session import GcpError, open_session
 from .imagery import ImageSource
 from .picking import PickingView
 from .recon_panel import ReconstructionPanel
+from .views import ClientViews
 from .results import DsmPanel
 from .scene import SceneView, tile_windows_for
 from .worker import DisplaySnapshot, ReconWorker
 
 log = logging.getLogger("aerec.viewer")
 
-# A click that arrives within this many seconds of its client's camera moving was a drag (an
-# orbit that ended where it started, a wobble while pressing): it records nothing
-DRAG_GUARD_S = 0.35
 class _OneLine(logging.Filter):
     """A client's malformed handshake or frame is the client's problem: one line on the console,
     not a traceback (the server goes on either way)."""
@@ -141,12 +138,7 @@ class ViewerApp:
         self.marks = GcpMarks(self)          # every other /gcp node
         self._gui_cache: dict[str, object] = {}
         self._build_gui()
-        self._camera_moved: dict[int, tuple] = {}   # client id -> (position, wxyz, time it moved)
-        self.server.on_client_connect(self._on_connect)
-        for modifier, factor in (("shift", self.ZOOM_STEP), ("cmd/ctrl+shift", 1.0 / self.ZOOM_STEP)):
-            self.server.scene.on_click(modifier=modifier)(
-                lambda ev, f=factor: self.submit(
-                    lambda: self.zoom_at(ev.client, ev.ray_origin, ev.ray_direction, f)))
+        self.views = ClientViews(self)       # each tab's camera: framing, zoom at the cursor, the drag guard
 
     # -- lifecycle ------------------------------------------------------------------------------
     @property
@@ -263,7 +255,7 @@ class ViewerApp:
                     self.picking.reframe = True
                     self.picking.show()
                 for client in self.server.get_clients().values():
-                    self.frame_client(client)
+                    self.views.frame_client(client)
             self.marks.draw()
             self.dsm_panel.refresh(snap)
         return sent
@@ -364,8 +356,6 @@ class ViewerApp:
             handle.content = text
 
 
-
-
     def note(self, text: str, level: str = "info") -> None:
         """Show a one-line status in the GCP tab and in the messages list."""
         self.gcp_panel.status.content = f"**{level}:** {text}" if level != "info" else text
@@ -393,87 +383,6 @@ class ViewerApp:
             lo[:2] = np.minimum(lo[:2], fp[:, :2].min(axis=0))
             hi[:2] = np.maximum(hi[:2], fp[:, :2].max(axis=0))
         return lo, hi
-
-    def _on_connect(self, client) -> None:
-        self.gcp_panel.note_choice(client, chooser=False)   # what this tab sees at first
-        client.camera.on_update(self._camera_update)
-        self.submit(lambda: self.frame_client(client))
-
-    def _camera_update(self, camera) -> None:
-        """Remember when each client's view last moved (the drag guard of on_plane_click)."""
-        key = camera.client.client_id
-        pose = (np.asarray(camera.position, float).copy(), np.asarray(camera.wxyz, float).copy())
-        old = self._camera_moved.get(key)
-        if old is None or not (np.allclose(old[0], pose[0], rtol=0, atol=1e-9)
-                               and np.allclose(old[1], pose[1], rtol=0, atol=1e-9)):
-            self._camera_moved[key] = (*pose, time.time())
-            self.view_rate.moved(key, time.monotonic())
-            d = float(np.linalg.norm(np.asarray(camera.position) - np.asarray(camera.look_at)))
-            view = (d, float(camera.fov), int(camera.image_height))
-            before = self.marks.ring_view
-            self.marks.ring_view = view
-            if before is None or abs(d / max(before[0], 1e-12) - 1.0) > 0.2:
-                self.submit(self.marks.resize)
-
-    def moved_just_before(self, client_id: int | None, t_click: float) -> bool:
-        """Did this client's view move during the DRAG_GUARD_S before a click (a drag)?"""
-        moved = self._camera_moved.get(client_id)
-        return moved is not None and 0.0 <= t_click - moved[2] < DRAG_GUARD_S
-
-    def frame_client(self, client) -> None:
-        """Point a client's camera at the cloud, obliquely from the south, leaving room for the
-        panel on the right (the picking plane lies further east: "Look at the image plane")."""
-        b = self.scene_bounds()
-        if b is None:
-            return
-        lo, hi = (np.asarray(v, dtype=np.float64) for v in b)
-        c = (lo + hi) / 2
-        size = float(max(hi[0] - lo[0], hi[1] - lo[1], 1e-6))
-        look = c + np.array([0.22 * size, 0.0, 0.0])      # the panel covers the right side
-        client.camera.far = 50.0 * size
-        client.camera.near = 1e-4 * size
-        client.camera.max_orbit_distance = 20.0 * size
-        client.camera.up_direction = (0.0, 0.0, 1.0)
-        client.camera.position = tuple(look + size * np.array([0.0, -0.6, 0.7]))
-        client.camera.look_at = tuple(look)
-
-    ZOOM_STEP = 2.0        # shift+click: this much closer to the spot; ctrl+shift+click: back
-
-    def zoom_at(self, client, ray_origin, ray_direction, factor: float) -> np.ndarray:
-        """Zoom toward the spot under the cursor (viser's wheel zooms toward the view's centre):
-        the camera moves along the click ray, 1 - 1/factor of the way to what the ray meets (the
-        picking plane, else the nearest displayed point, else the depth of the view's centre),
-        and keeps its orientation, so the spot stays under the cursor. Returns the spot."""
-        o = np.asarray(ray_origin, float)
-        d = np.asarray(ray_direction, float)
-        d = d / np.linalg.norm(d)
-        spot = None
-        pl = self.picking.plane
-        if pl is not None and pl.hit(o, d) is not None:
-            fx, fy = pl.hit(o, d)
-            spot = plane_point(fx, fy, position=pl.position, wxyz=pl.wxyz,
-                               render_width=pl.render_width, render_height=pl.render_height)
-        if spot is None:
-            spot = self.scene.nearest_display_point(o, d)
-        look = np.asarray(client.camera.look_at, float)
-        if spot is None or (spot - o) @ d <= 0:
-            spot = o + max(float((look - o) @ d), 1e-6) * d
-        shift = (1.0 - 1.0 / factor) * (spot - o)
-        with client.atomic():
-            client.camera.position = tuple(o + shift)
-            client.camera.look_at = tuple(look + shift)
-        return spot
-
-
-
-
-
-
-
-
-
-
-
 
 
     def _load_saved_upgrade(self) -> bool:

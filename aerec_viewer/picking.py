@@ -108,13 +108,12 @@ class PickingHost(Protocol):
     gcp_panel: object                # the GCP tab: chosen image, region, contrast, plane shown
     marks: object                    # gcp_marks.GcpMarks: redrawn over the plane
     gcp: object                      # gcp_controller.GcpController: what a click records
+    views: object                    # views.ClientViews: the drag guard, framing a tab
     frame: str
 
     def scene_bounds(self) -> tuple[np.ndarray, np.ndarray] | None: ...
     def submit(self, fn: Callable[[], object]) -> object: ...
     def note(self, text: str, level: str = "info") -> None: ...
-    def moved_just_before(self, client_id: int | None, t_click: float) -> bool: ...
-    def frame_client(self, client) -> None: ...
 
 
 class PickingView:
@@ -268,7 +267,7 @@ class PickingView:
                                             cast_shadow=False, receive_shadow=False)
 
         def clicked(ev) -> None:
-            if self.app.moved_just_before(ev.client_id, time.time()):
+            if self.app.views.moved_just_before(ev.client_id, time.time()):
                 self.app.submit(lambda: self.app.note("the view moved during that click (a drag): nothing "
                                                       "recorded; click without moving the mouse", "warning"))
                 return
@@ -282,7 +281,7 @@ class PickingView:
         if self.reframe:                    # the first view should show the plane too
             self.reframe = False
             for client in self.app.server.get_clients().values():
-                self.app.frame_client(client)
+                self.app.views.frame_client(client)
 
     def _bounds_key(self):
         b = self.app.scene_bounds()

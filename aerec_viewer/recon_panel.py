@@ -70,7 +70,7 @@ class ReconstructionPanel:
                                                 self.app.scene.apply_visibility())))
         self.g_dense.on_update(setter(lambda: (setattr(s, "show_dense", self.g_dense.value),
                                                self.app.scene.apply_visibility(), self.app.force())))
-        self.g_reset.on_click(lambda ev: sub(lambda: self.app.frame_client(ev.client)))
+        self.g_reset.on_click(lambda ev: sub(lambda: self.app.views.frame_client(ev.client)))
 
     def govern_budget(self) -> None:
         """After each gesture, the point budget follows the page's view-update rate (framerate.py).

@@ -212,10 +212,10 @@ def test_gcp_picks_through_the_click_handlers_then_upgrade(live):
                                wxyz=np.array([1.0, 0.0, 0.0, d]), look_at=np.zeros(3), fov=0.8,
                                image_height=900)
 
-    app._camera_update(view(400.0))
+    app.views.camera_update(view(400.0))
     app.wait_idle()
     r_far = app.marks.items["/gcp/plane_marks/NEW-1"].radius
-    app._camera_update(view(100.0))
+    app.views.camera_update(view(100.0))
     app.wait_idle()
     r_near = app.marks.items["/gcp/plane_marks/NEW-1"].radius
     assert r_far / r_near == pytest.approx(4.0, rel=1e-6)
@@ -1166,15 +1166,15 @@ def test_shift_click_zooms_toward_the_spot_under_the_cursor(live):
     client = SimpleNamespace(camera=SimpleNamespace(position=tuple(o), look_at=tuple(look)),
                              atomic=contextlib.nullcontext)
     d = spot_true - o
-    spot = app.call(lambda: app.zoom_at(client, o, d, 2.0))
+    spot = app.call(lambda: app.views.zoom_at(client, o, d, 2.0))
     assert np.allclose(spot, spot_true, atol=1e-6 * np.linalg.norm(d))
     p1, l1 = np.asarray(client.camera.position), np.asarray(client.camera.look_at)
     assert np.allclose(p1, o + 0.5 * d)                      # on the ray, half the way
     assert np.allclose(l1 - p1, look - o)                    # same orientation
-    app.call(lambda: app.zoom_at(client, p1, d, 0.5))
+    app.call(lambda: app.views.zoom_at(client, p1, d, 0.5))
     assert np.allclose(np.asarray(client.camera.position), o, atol=1e-6 * np.linalg.norm(d))
     # a ray that meets nothing: the depth of the view's centre
     up = np.array([0.0, 0.0, 1.0])
-    spot = app.call(lambda: app.zoom_at(client, o, up + 1e-3, 2.0))
+    spot = app.call(lambda: app.views.zoom_at(client, o, up + 1e-3, 2.0))
     assert np.all(np.isfinite(spot))
 

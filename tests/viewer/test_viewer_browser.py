@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aerec_viewer.app import DRAG_GUARD_S
+from aerec_viewer.views import DRAG_GUARD_S
 from aerec_viewer.display import quat_to_matrix
 from aerec_viewer.picking import LOUPE_PX
 from recon_core.events import TileRegistered
@@ -223,7 +223,7 @@ def test_live_reconstruction_then_pick_a_pixel_then_upgrade(browser_app):
     page.get_by_role("button", name="Upgrade to Euclidean").click()
     wait_for(lambda: app.frame == "euclidean", 30, "the upgrade button to reach the server")
     app.wait_idle()
-    app.call(lambda: app.frame_client(client))
+    app.call(lambda: app.views.frame_client(client))
     page.get_by_role("cell", name="check").first.wait_for(timeout=15_000)
     time.sleep(2.5)
     shot(page, shots, "4_after_upgrade")
