@@ -323,6 +323,11 @@ class ViewerApp:
         with tabs.add_tab("Results"):
             self.g_upgrade = gui.add_button("Upgrade to Euclidean", disabled=True)
             self.g_ready = gui.add_markdown("")
+            self.g_allow_flat = gui.add_checkbox(
+                "Accept GCPs nearly on one plane", self.cfg.upgrade.allow_flat_gcps,
+                hint="the upgrade then goes on where it would refuse control GCPs that cannot fix the "
+                     "height scale (the images state no viewing angles): its expected height error is "
+                     "said with the result (upgrade.allow_flat_gcps)")
             with gui.add_folder("GCP placement", expand_by_default=False):
                 self.g_ready_list = gui.add_markdown("")
                 self.g_state_table = gui.add_markdown("")
@@ -343,6 +348,7 @@ class ViewerApp:
             return lambda _: sub(fn)
 
         self.g_upgrade.on_click(setter(self.gcp.do_upgrade))
+        self.g_allow_flat.on_update(setter(lambda: self.gcp.allow_flat(bool(self.g_allow_flat.value))))
         self.g_frame_sel.on_update(setter(lambda: self.set_frame(
             "euclidean" if self.g_frame_sel.value == "Euclidean" else "affine")))
 

@@ -70,11 +70,8 @@ class GcpController:
                 raise GcpError("select a GCP, or type the new GCP's ground coordinates "
                                "(or take one from the site list) before clicking")
         self.app.gcp_panel.check_choice(client)
-        in_loupe = pick.in_loupe(pick.plane.window)
-        if in_loupe and not pick.owns_loupe(gid, client):
-            raise GcpError(self.not_your_loupe(gid, client))
-        if not in_loupe and self.app.gcp_panel.zoom_click.value:
-            pick.open_loupe(pix, client, gcp=gid)
+        in_loupe = self._loupe_gate(pix, gid, client)
+        if in_loupe is None:
             return None
         if gid is None:
             gid = new_gcp(self.app.session, self.app.gcp_panel.gid.value or None, x=x, y=y, h=h,
@@ -108,11 +105,8 @@ class GcpController:
         ref, pick = self.app.reference, self.app.picking
         self.app.gcp_panel.check_choice(client)
         gid = self.app.gcp_panel.selected()
-        in_loupe = pick.in_loupe(pick.plane.window)
-        if in_loupe and not pick.owns_loupe(gid, client):
-            raise GcpError(self.not_your_loupe(gid, client))
-        if not in_loupe and self.app.gcp_panel.zoom_click.value:
-            pick.open_loupe(pix, client, gcp=gid)
+        in_loupe = self._loupe_gate(pix, gid, client)
+        if in_loupe is None:
             return None
         lon, lat, h = ref.ground_at(*pix)
         sigma_h = None
@@ -141,6 +135,20 @@ class GcpController:
         if back:           # "Then its next image": back to the site image shown before the reference
             self.app.gcp_panel.image.value = self.app.gcp_panel.last_site_image
         return pix
+
+    def _loupe_gate(self, pix: tuple[float, float], gid: str | None, client) -> bool | None:
+        """Where a click on the plane stands with the loupe: True, in the loupe this GCP and tab
+        own (a precise click); False, on the whole image (recorded as it is); None, the click
+        opened the loupe there ("Click zooms in first") and records nothing. A click in a loupe
+        another GCP or tab owns raises GcpError, saying whose it is."""
+        pick = self.app.picking
+        in_loupe = pick.in_loupe(pick.plane.window)
+        if in_loupe and not pick.owns_loupe(gid, client):
+            raise GcpError(self.not_your_loupe(gid, client))
+        if not in_loupe and self.app.gcp_panel.zoom_click.value:
+            pick.open_loupe(pix, client, gcp=gid)
+            return None
+        return in_loupe
 
     def views_known(self) -> bool:
         """Do two or more images state their viewing direction (the upgrade then takes a GCP's
@@ -247,7 +255,10 @@ class GcpController:
         try:
             outcome = run_upgrade(self.app.session, self.app.models, self.app.cfg, {im.name: im for im in self.app.site.images})
         except AerecError as exc:
-            self.app.set_md(self.app.g_upgrade_md, f"**Upgrade failed:** {exc}")
+            text = str(exc).replace("set upgrade.allow_flat_gcps = true (aerec run --config FILE)",
+                                    "tick *Accept GCPs nearly on one plane* above and press Upgrade again; or "
+                                    "add a control GCP off their plane")
+            self.app.set_md(self.app.g_upgrade_md, f"**Upgrade failed:** {text}")
             raise
         self.upgrade = outcome
         self.app.gcp_panel.listing.content = self.app.gcp_panel.working_set_table()   # each GCP's error now
@@ -259,6 +270,14 @@ class GcpController:
         self.dsm_rerun_pending = True
         self.start_dsm_rerun()
         return outcome
+
+    def allow_flat(self, on: bool) -> None:
+        """The Results tab's "Accept GCPs nearly on one plane": upgrade.allow_flat_gcps for this
+        session's upgrades and the DSM they recompute."""
+        self.app.cfg = self.app.cfg.with_overrides({"upgrade.allow_flat_gcps": on})
+        self.app.worker.cfg = self.app.cfg
+        self.app.note("GCPs nearly on one plane are " + ("accepted: the result says the height error to expect; "
+                                                         "press Upgrade" if on else "refused again"))
 
     def start_dsm_rerun(self) -> None:
         """Start the pending re-run from the upgrade stage once the worker is free; say why

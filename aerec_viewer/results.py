@@ -526,9 +526,11 @@ def no_dsm_markdown(snap) -> str:
             text += f"\n\n*What to do:* {snap.hint}"
         return text
     if snap is not None and getattr(snap, "awaiting_gcps", False) and snap.status == "done":
-        return ("**No DSM yet: the affine reconstruction is done; the next step is yours.** Place 4 "
-                "control GCPs in the GCP tab (each in 2 images, not all on one plane), then press "
-                "Upgrade: the Euclidean upgrade, the DSM and the height-error maps follow.")
+        from recon_core.euclidean.control import need_words
+
+        return ("**No DSM yet: the affine reconstruction is done; the next step is yours.** Place "
+                f"{need_words()} in the GCP tab, then press Upgrade: the Euclidean upgrade, the DSM and "
+                "the height-error maps follow.")
     if snap is not None and snap.status in ("stopped", "done", "reopened"):
         return f"No DSM in this output folder (the run is {snap.status})."
     return "No DSM yet (OUT/dsm.tif): it appears here when the DSM stage has run."

@@ -111,9 +111,6 @@ def flat_spots(site: Path, ortho: Path, names: list[str], n: int) -> list[dict]:
     RPCs (the generator's cameras to 0.01 px), their height the truth DSM's."""
     import cv2
     import rasterio
-    from pyproj import Transformer
-
-    from recon_core.geometry.rpc import RPCModel
 
     with rasterio.open(site / "gt_dsm.tif") as ds:
         dsm, tf, crs, nd = ds.read(1).astype(np.float64), ds.transform, ds.crs, ds.nodata
@@ -125,20 +122,7 @@ def flat_spots(site: Path, ortho: Path, names: list[str], n: int) -> list[dict]:
     lo = cv2.erode(np.where(ok, dsm, 1e9).astype(np.float32), k)
     corner = cv2.cornerMinEigenVal(img / max(img.max(), 1.0), 5)
     good = ok & (hi - lo < 0.3) & (corner > np.percentile(corner[ok], 90))
-    rpcs = {}
-    for name in names:
-        with rasterio.open(site / "images" / name) as ds:
-            rpcs[name] = (RPCModel.from_rasterio(ds.rpcs), ds.width, ds.height)
-    rows, cols = np.nonzero(good)
-    e, nn = tf.c + (cols + 0.5) * tf.a, tf.f + (rows + 0.5) * tf.e
-    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(e, nn)
-    llh = np.column_stack([lon, lat, dsm[rows, cols]])
-    inside = np.ones(len(llh), bool)
-    pix = {}
-    for name, (rpc, w, h) in rpcs.items():
-        p = rpc.project(llh)
-        pix[name] = p
-        inside &= (p[:, 0] > 100) & (p[:, 0] < w - 100) & (p[:, 1] > 100) & (p[:, 1] < h - 100)
+    rows, cols, llh, pix, inside = _seen_cells(site, names, good, dsm, tf, crs)
     H, W = dsm.shape
     out = []
     for qr, qc in ((0.25, 0.25), (0.25, 0.75), (0.75, 0.75), (0.75, 0.25)):
@@ -161,7 +145,6 @@ def roof_spots(site: Path, ortho: Path, dem: Path, names: list[str], n: int, roo
     from pyproj import Transformer
 
     from recon_core.bend.dem import open_reference_dem
-    from recon_core.geometry.rpc import RPCModel
 
     with rasterio.open(site / "gt_dsm.tif") as ds:
         dsm, tf, crs, nd = ds.read(1).astype(np.float64), ds.transform, ds.crs, ds.nodata
@@ -176,7 +159,6 @@ def roof_spots(site: Path, ortho: Path, dem: Path, names: list[str], n: int, roo
     k = int(max(1, round(2.0 / abs(tf.a))))                      # 2 m in cells
     k_open = int(max(1, round(5.0 / abs(tf.a))))                 # 5 m: open ground
     lo = cv2.erode(np.where(ok, dsm, 1e9).astype(np.float32), np.ones((2 * k + 1, 2 * k + 1), np.uint8))
-    hi = cv2.dilate(np.where(ok, dsm, -1e9).astype(np.float32), np.ones((2 * k + 1, 2 * k + 1), np.uint8))
     corner = cv2.cornerMinEigenVal(img / max(img.max(), 1.0), 5)
     textured = corner > np.percentile(corner[ok], 80)
     roof = ok & (above > 2.0) & (dsm - lo > 2.0) & textured
@@ -186,20 +168,7 @@ def roof_spots(site: Path, ortho: Path, dem: Path, names: list[str], n: int, roo
     flat = ok & (np.abs(above) < 0.3) & (open_range < 0.3) & textured
     kind = np.where(roof, 1, np.where(flat, 2, 0))
     good = kind > 0
-    rpcs = {}
-    for name in names:
-        with rasterio.open(site / "images" / name) as ds:
-            rpcs[name] = (RPCModel.from_rasterio(ds.rpcs), ds.width, ds.height)
-    rows, cols = np.nonzero(good)
-    e, nn = tf.c + (cols + 0.5) * tf.a, tf.f + (rows + 0.5) * tf.e
-    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(e, nn)
-    llh = np.column_stack([lon, lat, dsm[rows, cols]])
-    inside = np.ones(len(llh), bool)
-    pix = {}
-    for name, (rpc, w, h) in rpcs.items():
-        p = rpc.project(llh)
-        pix[name] = p
-        inside &= (p[:, 0] > 100) & (p[:, 0] < w - 100) & (p[:, 1] > 100) & (p[:, 1] < h - 100)
+    rows, cols, llh, pix, inside = _seen_cells(site, names, good, dsm, tf, crs)
     H, W = dsm.shape
     out = []
     kinds = kind[rows, cols]
@@ -254,6 +223,29 @@ def images_heights(site: Path, out: Path) -> dict[str, tuple[float, float | None
     up = upgrade_models(gcps, models, Config(), {im.name: im for im in st.images})
     outcome = UpgradeOutcome(**{f.name: getattr(up, f.name) for f in fields(up)}, gcps_version=0, gcps_key="")
     return {g.id: (g.h, images_height(outcome, g)) for g in gcps if g.sigma_h_m is not None}
+
+
+def _seen_cells(site: Path, names: list[str], good: np.ndarray, dsm: np.ndarray, tf, crs):
+    """The truth DSM's cells `good` as candidate spots: (rows, cols, their lon, lat, h, their
+    true pixels per image by the images' RPCs, seen 100 px or more inside every image)."""
+    import rasterio
+    from pyproj import Transformer
+
+    from recon_core.geometry.rpc import RPCModel
+
+    rows, cols = np.nonzero(good)
+    e, nn = tf.c + (cols + 0.5) * tf.a, tf.f + (rows + 0.5) * tf.e
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(e, nn)
+    llh = np.column_stack([lon, lat, dsm[rows, cols]])
+    inside = np.ones(len(llh), bool)
+    pix = {}
+    for name in names:
+        with rasterio.open(site / "images" / name) as ds:
+            rpc, w, h = RPCModel.from_rasterio(ds.rpcs), ds.width, ds.height
+        p = rpc.project(llh)
+        pix[name] = p
+        inside &= (p[:, 0] > 100) & (p[:, 0] < w - 100) & (p[:, 1] > 100) & (p[:, 1] < h - 100)
+    return rows, cols, llh, pix, inside
 
 
 def prepare_out(site: Path, out: Path, gcps: list[dict]) -> None:

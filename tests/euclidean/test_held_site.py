@@ -43,6 +43,16 @@ def _flattest_four(gcps) -> set[str]:
     return {gcps[i].id for i in q}
 
 
+def _widest_triangle(gcps):
+    """(the GCPs' ENU positions, the 3 of them spanning the largest triangle in plan)."""
+    enu = frame_for(gcps).geodetic_to_enu(np.array([g.llh for g in gcps]))
+
+    def area(q):
+        (a, b), (c, d) = enu[q[1], :2] - enu[q[0], :2], enu[q[2], :2] - enu[q[0], :2]
+        return abs(a * d - b * c)
+    return enu, max(combinations(range(len(enu)), 3), key=area)
+
+
 def test_nearly_coplanar_gcps_get_the_true_height_scale_from_the_images(minifp):
     site, models = minifp.site, minifp.models
     assert all(im.view is not None for im in site.images)
@@ -72,11 +82,7 @@ def test_nearly_coplanar_gcps_get_the_true_height_scale_from_the_images(minifp):
 def test_three_gcps_and_the_images(minifp):
     """3 control GCPs, spread, with the images' viewing directions: the upgrade holds."""
     site, models = minifp.site, minifp.models
-    enu = frame_for(site.gcps).geodetic_to_enu(np.array([g.llh for g in site.gcps]))
-    def area(q):
-        (a, b), (c, d) = enu[q[1], :2] - enu[q[0], :2], enu[q[2], :2] - enu[q[0], :2]
-        return abs(a * d - b * c)
-    q = max(combinations(range(len(enu)), 3), key=area)
+    enu, q = _widest_triangle(site.gcps)
     gcps = [replace(g, role="control" if k in q else "check") for k, g in enumerate(site.gcps)]
     up = upgrade_models(gcps, models, preset("tiny"), {im.name: im for im in site.images})
     res = up.results[min(up.results)]
@@ -93,11 +99,7 @@ def test_a_height_known_worse_is_taken_from_the_images(minifp):
     but says so (sigma_h_m): the images' lines of sight and the other GCPs fix the height scale,
     and its residual is the images' height for it; without sigma_h_m the error bends the fit."""
     site, models = minifp.site, minifp.models
-    enu = frame_for(site.gcps).geodetic_to_enu(np.array([g.llh for g in site.gcps]))
-    def area(q):
-        (a, b), (c, d) = enu[q[1], :2] - enu[q[0], :2], enu[q[2], :2] - enu[q[0], :2]
-        return abs(a * d - b * c)
-    q = max(combinations(range(len(enu)), 3), key=area)
+    enu, q = _widest_triangle(site.gcps)
     q4 = q + (max((k for k in range(len(enu)) if k not in q),
                   key=lambda k: min(np.hypot(*(enu[k, :2] - enu[j, :2])) for j in q)),)
     wrong = site.gcps[q4[3]].id

@@ -100,19 +100,25 @@ def test_references_of_another_place_or_without_heights_are_refused(tiny_site, t
     assert not (tmp_path / "o").exists()
 
 
-def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path):
+def _reopened(state, tmp_path, ref):
+    """The viewer on a copy of a finished run's OUT with a ground reference, started and idle."""
     from aerec_viewer.app import ViewerApp
 
-    state, _ = tiny_run
     out = tmp_path / "out"
     shutil.copytree(state.out, out, ignore=shutil.ignore_patterns(".aerec.lock"))
-    ortho, dem_path, dem, crs, tf = _reference(tmp_path, state.site.root)
-    ref = open_ground_reference(ortho, dem_path)
     app = ViewerApp(out, state.site.root, None, mode="reopen", port=0, update_hz=20.0, reference=ref)
     app.start()
+    assert app.worker.done.wait(60)
+    app.wait_idle()
+    return app
+
+
+def test_a_click_on_the_orthoimage_places_a_gcp_on_the_ground(tiny_run, tmp_path):
+    state, _ = tiny_run
+    ortho, dem_path, dem, crs, tf = _reference(tmp_path, state.site.root)
+    ref = open_ground_reference(ortho, dem_path)
+    app = _reopened(state, tmp_path, ref)
     try:
-        assert app.worker.done.wait(60)
-        app.wait_idle()
         gp = app.gcp_panel
         assert gp.image.options[-1] == ref.ortho.name
         app.call(lambda: (setattr(gp.zoom_click, "value", False), setattr(gp.walk, "value", False),
@@ -204,20 +210,14 @@ def test_a_doubtful_height_is_flagged_and_the_images_give_it(tiny_run, tmp_path)
     upgrade (its sigma, on its marker and in the upgrade's list); a control GCP 8 m low that says
     so gets its height from the images: "Take the images' height" puts it within 0.5 m, with the
     images' own sigma."""
-    from aerec_viewer.app import ViewerApp
     from aerec_viewer.gcp_session import edit_gcp
     from aerec_viewer.results import run_upgrade
 
     state, _ = tiny_run
     assert sum(im.view is not None for im in state.site.images) >= 2
-    out = tmp_path / "out"
-    shutil.copytree(state.out, out, ignore=shutil.ignore_patterns(".aerec.lock"))
     ref = _roof_reference(tmp_path, state.site.root)
-    app = ViewerApp(out, state.site.root, None, mode="reopen", port=0, update_hz=20.0, reference=ref)
-    app.start()
+    app = _reopened(state, tmp_path, ref)
     try:
-        assert app.worker.done.wait(60)
-        app.wait_idle()
         gp = app.gcp_panel
         app.call(lambda: (setattr(gp.zoom_click, "value", False), setattr(gp.walk, "value", False),
                           setattr(gp.image, "value", ref.ortho.name), gp.select_id(None)))

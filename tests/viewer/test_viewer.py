@@ -760,6 +760,31 @@ def test_upgrade_with_too_few_gcps_explains_itself(live, tmp_path):
         run_upgrade(s, app.models, app.cfg)
 
 
+def test_a_flat_gcp_refusal_offers_what_the_page_can_do(live, monkeypatch):
+    """The refusal of GCPs nearly on one plane names the Results tab's checkbox (not `aerec run
+    --config`, which the page cannot pass), and the checkbox sets upgrade.allow_flat_gcps for the
+    page's upgrades and the DSM they recompute."""
+    from aerec_viewer import gcp_controller
+    from recon_core.errors import ReconstructionError
+
+    app = live[0]
+
+    def refuse(*a, **k):
+        raise ReconstructionError("refused: the 4 control GCPs lie near one plane. To go on anyway, set "
+                                  "upgrade.allow_flat_gcps = true (aerec run --config FILE).")
+    monkeypatch.setattr(gcp_controller, "run_upgrade", refuse)
+    with pytest.raises(ReconstructionError):
+        app.call(app.gcp.do_upgrade)
+    md = app.g_upgrade_md.content
+    assert "Accept GCPs nearly on one plane" in md and "--config" not in md
+    before = app.cfg
+    try:
+        app.call(lambda: app.gcp.allow_flat(True))
+        assert app.cfg.upgrade.allow_flat_gcps and app.worker.cfg.upgrade.allow_flat_gcps
+    finally:
+        app.cfg = app.worker.cfg = before
+
+
 def test_dsm_and_height_error_panel(live):
     """With OUT/dsm.tif (here: the site's GT DSM itself) the panel shows the DSM, evaluates it
     against gt_dsm.tif, shows the error map and its figures, and drapes it in the scene."""
