@@ -8,7 +8,7 @@ the plane; the viewer calls it after every change and reads the rest of its stat
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple, Protocol
 
 import numpy as np
 
@@ -47,10 +47,30 @@ class _Marker(NamedTuple):
     text: str = ""
 
 
+class GcpMarksHost(Protocol):
+    """What the markers need of the viewer: the working set and its controller, the picking
+    plane, the GCP tab's selection, the reference orthoimage, the frames and the scene."""
+
+    server: object                   # its scene: the marker nodes
+    worker: object                   # the newest display snapshot (transforms per group)
+    session: object                  # gcp_session.GcpSession: the working set
+    gcp: object                      # gcp_controller.GcpController: affine positions, edits
+    gcp_panel: object                # the GCP tab: the selected GCP
+    picking: object                  # picking.PickingView: the plane and its loupe
+    reference: object | None         # the reference orthoimage (ground positions on it), or None
+    models: dict
+    frame: str
+
+    def transforms(self, snap) -> dict: ...
+    def scene_bounds(self): ...
+    def submit(self, fn: Callable[[], object]) -> object: ...
+    def note(self, text: str, level: str = "info") -> None: ...
+
+
 class GcpMarks:
     """The markers' scene nodes and the state that decides when they are redrawn."""
 
-    def __init__(self, app):
+    def __init__(self, app: GcpMarksHost):
         self.app = app
         self.items: dict[str, _Marker] = {}   # one per GCP and place: path -> its label, ...
         self.rings: dict[str, object] = {}    # <place>/rings[_selected] -> merged ring node
