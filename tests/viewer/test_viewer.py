@@ -612,7 +612,7 @@ def test_an_image_left_by_place_all_opens_in_the_loupe_and_enter_accepts(live, m
     """When "Place it in its other images" leaves an image to the operator with a prediction,
     the plane switches to that image and the loupe opens at the predicted pixel; accepting
     records exactly that pixel there; nothing else was recorded."""
-    from aerec_viewer import gcp_panel as gpm
+    from aerec_viewer import gcp_actions as gpm
     from recon_core.euclidean.gcp_transfer import Prediction
 
     app, events, trace, out, site, cfg = live
