@@ -118,3 +118,35 @@ def test_every_option_of_every_command_says_what_it_does():
             if isinstance(a, argparse._HelpAction):
                 continue
             assert a.help, f"aerec {name}: {', '.join(a.option_strings) or a.dest} has no help text"
+
+
+def test_every_default_a_docstring_names_is_the_configurations():
+    """Where the code's text says what a parameter is by default ("off by default
+    (SfmConfig.tie_sigma_px = 0)", "sfm.bend_step = true by default"), the value is the
+    configuration's default: a default changed in config.py cannot leave its old value in the
+    prose."""
+    from recon_core.config import Config
+
+    cfg = Config().to_dict()
+    sections = {k.lower(): k for k in cfg if isinstance(cfg[k], dict)}
+    name = r"(?:(?P<cls>[A-Z][A-Za-z]*)Config|(?P<sec>" + "|".join(sections) + r"))\.(?P<field>[a-z_0-9]+)"
+    value = r"\s*=\s*(?P<val>-?[0-9.]+(?:e-?[0-9]+)?|true|false|True|False)\b"
+    pattern = re.compile(r"default[^.\n]{0,60}?" + name + value + "|" + name.replace("?P<", "?P<b_") + value.replace(
+        "?P<val>", "?P<b_val>") + r"[^.\n]{0,30}?by default")
+    root = Path(__file__).resolve().parents[1]
+    found, wrong = 0, []
+    for p in sorted([*root.joinpath("recon_core").rglob("*.py"), *root.joinpath("aerec_viewer").rglob("*.py")]):
+        text = p.read_text()
+        for m in pattern.finditer(text):
+            g = {k.removeprefix("b_"): v for k, v in m.groupdict().items() if v is not None}
+            sec = g.get("sec") or sections.get((g.get("cls") or "").lower())
+            if sec is None or g["field"] not in cfg[sec]:
+                wrong.append(f"{p.name}: {m.group(0)!r} names no parameter")
+                continue
+            found += 1
+            said = {"true": True, "false": False}.get(g["val"].lower(), None)
+            said = float(g["val"]) if said is None else said
+            have = cfg[sec][g["field"]]
+            if (said != have) if isinstance(have, bool) else (float(have) != said):
+                wrong.append(f"{p.name}: says {sec}.{g['field']} = {g['val']} by default; config.py has {have!r}")
+    assert found >= 1 and not wrong, wrong
