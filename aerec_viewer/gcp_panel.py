@@ -66,6 +66,8 @@ class GcpPanel(GcpActions):
         names = sorted(s.images)
         self.last_site_image = names[0]
         ref = getattr(app, "reference", None)
+        # the latest prompt or warning, first: at 1000 px it sat below the fold, under the buttons
+        self.status = gui.add_markdown("")
         self.image = gui.add_dropdown("Image", names + ([ref.ortho.name] if ref is not None else []),
                                       initial_value=names[0],
                                       hint=None if ref is None else "the reference orthoimage (last): "
@@ -153,7 +155,6 @@ class GcpPanel(GcpActions):
         self.delete = gui.add_button("Delete the selected GCP", color="red")
         self.undo = gui.add_button("Undo", disabled=True)
         self.redo = gui.add_button("Redo", disabled=True)
-        self.status = gui.add_markdown("")
         self._delete_armed: tuple[str, float] | None = None
         self.prediction = None              # (gid, Prediction) shown, waiting for Accept
         self.chosen: dict[int, str] = {}     # client id -> what that tab chose or saw in the GCP list
