@@ -132,7 +132,6 @@ class ViewerApp:
         self._thread: threading.Thread | None = None
         self._seen_version = -1
         self._framed = False
-        self._state_table_key = None
         self.gcp = GcpController(self)       # the clicks, the working set's edits, the upgrade
         self.picking = PickingView(self)     # the picking plane and its loupe (/gcp/plane)
         self.marks = GcpMarks(self)          # every other /gcp node

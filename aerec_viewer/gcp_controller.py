@@ -49,6 +49,8 @@ class GcpController:
         self.last_click: tuple | None = None             # (gcp id, image, col, row) of the last pick
         self.armed = None                                # the click callback of a cloud pick
         self.tri_cache: dict = {}                        # (group, gcp, observations) -> affine point
+        self._ready_key = None                           # what the readiness below was computed for
+        self._readiness: tuple[bool, int, int] = (False, 0, 0)
 
     # -- GCPs -----------------------------------------------------------------------------------
     def on_plane_click(self, ray_origin, ray_direction, client=None) -> tuple[float, float] | None:
@@ -227,26 +229,30 @@ class GcpController:
 
     # -- upgrade --------------------------------------------------------------------------------
     def update_upgrade_button(self) -> None:
-        ready = gcp_readiness(self.app.session, self.app.models)
-        can, n, need = upgrade_readiness(self.app.session, self.app.models, {im.name: im for im in self.app.site.images},
-                                         self.app.cfg)
-        can = bool(self.app.models) and can
-        self.app.g_upgrade.disabled = not can
-        why = "waiting for the sparse model" if not self.app.models else count_words(n, need)
+        """The Results tab's Upgrade button and its lists. The readiness (which triangulates every
+        control GCP in every group) and the state table are recomputed only when the GCPs, the
+        models or the configuration change, not at every update of the panel."""
+        app = self.app
+        key = (app.session.version, tuple(id(m) for m in app.models.values()), id(app.cfg))
+        if key != self._ready_key:
+            self._ready_key = key
+            ready = gcp_readiness(app.session, app.models)
+            self._readiness = upgrade_readiness(app.session, app.models, {im.name: im for im in app.site.images},
+                                                app.cfg)
+
+            def doubt(gid: str) -> str:
+                sh = app.session.get(gid).sigma_h_m
+                return "" if sh is None else f"; **height known only to +- {sh:.1f} m** (from the DEM)"
+            app.set_md(app.g_ready_list, "\n".join(f"- {gid} ({app.session.get(gid).role}): {txt}{doubt(gid)}"
+                                                    for gid, (_, txt) in ready.items()))
+            app.set_md(app.g_state_table, gcp_state_table(app.session, app.models, sorted(app.session.images)))
+        can, n, need = self._readiness
+        app.g_upgrade.disabled = not (bool(app.models) and can)
+        why = "waiting for the sparse model" if not app.models else count_words(n, need)
         stale = ""
-        if self.upgrade is not None and self.upgrade.gcps_key != gcps_key(self.app.session):
+        if self.upgrade is not None and self.upgrade.gcps_key != gcps_key(app.session):
             stale = "\n\n*The GCPs changed since the last upgrade: press Upgrade again.*"
-        self.app.set_md(self.app.g_ready, f"{why}.{stale}")
-        def doubt(gid: str) -> str:
-            sh = self.app.session.get(gid).sigma_h_m
-            return "" if sh is None else f"; **height known only to +- {sh:.1f} m** (from the DEM)"
-        self.app.set_md(self.app.g_ready_list, "\n".join(f"- {gid} ({self.app.session.get(gid).role}): {txt}{doubt(gid)}"
-                                                  for gid, (_, txt) in ready.items()))
-        key = (self.app.session.version, len(self.app.models), id(next(iter(self.app.models.values()), None)))
-        if key != self.app._state_table_key:          # recomputed when the GCPs or the models change
-            self.app._state_table_key = key
-            self.app.set_md(self.app.g_state_table, gcp_state_table(self.app.session, self.app.models,
-                                                             sorted(self.app.session.images)))
+        app.set_md(app.g_ready, f"{why}.{stale}")
 
     def do_upgrade(self) -> UpgradeOutcome:
         """The Upgrade button: fit H_A with the pipeline's own function, switch the scene to

@@ -285,8 +285,10 @@ def delete_gcp(s: GcpSession, gcp_id: str) -> None:
     _changed(s, f"delete {gcp_id}")
 
 
-def add_observation(s: GcpSession, gcp_id: str, image: str, col: float, row: float) -> GCP:
-    """Record (or replace) a GCP's observation in an image: full-image pixel (col, row)."""
+def add_observation(s: GcpSession, gcp_id: str, image: str, col: float, row: float,
+                    what: str | None = None) -> GCP:
+    """Record (or replace) a GCP's observation in an image: full-image pixel (col, row); `what`
+    names the edit in the history (default: add or move)."""
     g = s.get(gcp_id)
     if image not in s.images:
         raise GcpError(f"unknown image {image!r}")
@@ -295,7 +297,7 @@ def add_observation(s: GcpSession, gcp_id: str, image: str, col: float, row: flo
         raise GcpError(f"pixel ({col:.1f}, {row:.1f}) lies outside {image} ({w} x {h})")
     had = image in g.observations
     g.observations[image] = (float(col), float(row))
-    _changed(s, f"{'move' if had else 'add'} {gcp_id}'s observation in {image}")
+    _changed(s, what or f"{'move' if had else 'add'} {gcp_id}'s observation in {image}")
     return g
 
 
@@ -308,8 +310,7 @@ def nudge_observation(s: GcpSession, gcp_id: str, image: str, dcol: float, drow:
     c, r = g.observations[image]
     what = f"nudge {gcp_id}'s observation in {image}"
     again = bool(s._undo) and s._undo[-1][1] == what and not s._redo
-    add_observation(s, gcp_id, image, c + dcol, r + drow)
-    s._undo[-1] = (s._undo[-1][0], what)
+    add_observation(s, gcp_id, image, c + dcol, r + drow, what=what)
     if again:
         merge_last(s, 2, what)
     return g.observations[image]

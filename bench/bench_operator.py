@@ -209,17 +209,13 @@ def images_heights(site: Path, out: Path) -> dict[str, tuple[float, float | None
     from recon_core.config import Config
     from recon_core.euclidean.upgrade_stage import upgrade_models
     from recon_core.io.gcps import read_gcps_geojson
+    from recon_core.io.layout import OutLayout
     from recon_core.io.models import load_model
     from recon_core.io.site import load_site
 
     st = load_site(site)
     gcps = read_gcps_geojson(out / "gcps.geojson")
-    models = {}
-    for g in range(8):
-        try:
-            models[g] = load_model(out, g)
-        except (OSError, ValueError, KeyError):
-            break
+    models = {g: load_model(out, g) for g in OutLayout(out).model_groups()}
     up = upgrade_models(gcps, models, Config(), {im.name: im for im in st.images})
     outcome = UpgradeOutcome(**{f.name: getattr(up, f.name) for f in fields(up)}, gcps_version=0, gcps_key="")
     return {g.id: (g.h, images_height(outcome, g)) for g in gcps if g.sigma_h_m is not None}
