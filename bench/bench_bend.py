@@ -72,10 +72,14 @@ def main(argv=None) -> int:
     ap.add_argument("--image-size", type=int, default=0, help="every image this many px a side (cameras only)")
     ap.add_argument("--ring-step", type=float, default=300.0, help="ring width (m) of --grow and --closing")
     ap.add_argument("--bend-step", action="store_true", help="--closing: then rounds started by the bend step")
+    ap.add_argument("--focal-plane", action="store_true",
+                    help="sensors as real ones are: bowed, distorted lines and a drift (demofp's)")
     ap.add_argument("--physics", default="", help="--bend-step: then the metric bend step (see above)")
     a = ap.parse_args(argv)
     t0 = time.time()
     preset = PRESETS[a.preset]
+    if a.focal_plane:
+        preset = replace(preset, name=f"{preset.name}fp", bow_px=1.0, distortion_px=3.0, drift=10.0)
     if a.image_size:
         preset = replace(preset, name=f"{preset.name}-{a.image_size}px", image_size=(a.image_size,) * 2,
                          first_image_size=None)

@@ -7,7 +7,7 @@ import argparse
 import time
 from pathlib import Path
 
-PRESET_NAMES = ("tiny", "tiny2", "tiny2fp", "mini", "minifp", "quick", "demo", "demofp", "flat", "large", "wide", "wide3")   # recon_core.synthetic.generator.PRESETS
+PRESET_NAMES = ("tiny", "tiny2", "tiny2fp", "mini", "minifp", "quick", "demo", "demofp", "flat", "flatfp", "large", "wide", "wide3")   # recon_core.synthetic.generator.PRESETS
 
 
 def cmd_synth(args) -> int:

@@ -149,6 +149,13 @@ PRESETS: dict[str, SynthPreset] = {
                         size_jitter=0.04, supersample=1, accel_cell=2.0, accel_sample=0.5,
                         bh=(0.08, 0.45), n_gcps=20, block_rows=256,
                         scene=(("park", 0.3), ("open", 0.35), ("tall", 0.15), ("terrain", 0.5))),
+    # `flat` with sensors as real ones are (`demofp`'s focal plane and drift, which over a
+    # 5000-row scan reach pixels): the one-date bend of real sensors over kilometres
+    "flatfp": SynthPreset(name="flatfp", groups=(3,), group_months=(5,), image_size=(5000, 5000),
+                          size_jitter=0.04, supersample=1, accel_cell=2.0, accel_sample=0.5,
+                          bh=(0.08, 0.45), n_gcps=20, block_rows=256,
+                          scene=(("park", 0.3), ("open", 0.35), ("tall", 0.15), ("terrain", 0.5)),
+                          bow_px=1.0, distortion_px=3.0, drift=10.0),
     "large": SynthPreset(name="large", groups=(3, 3, 3), group_months=(2, 6, 10),
                          image_size=(6000, 6000), size_jitter=0.1,
                          first_image_size=(8192, 8192), supersample=1, accel_cell=2.0,
