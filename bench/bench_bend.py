@@ -12,6 +12,7 @@ and its peak-to-peak range.
     python bench/bench_bend.py --preset large                 # all 9 images in one adjustment
     python bench/bench_bend.py --preset flat --sigma-tie 0.05,0.01 --noise 0
     python bench/bench_bend.py --preset flat --observability        # what 3 views can see
+    python bench/bench_bend.py --preset flatfp --drive --seed 1      # the expected bend vs the actual
     python bench/bench_bend.py --preset flat --grow --sigma-tie 0.01   # incremental growth,
                                                                      # the within-tile correction
     python bench/bench_bend.py --preset large --closing 7   # the SfM's closing rounds (per round)
@@ -72,6 +73,8 @@ def main(argv=None) -> int:
     ap.add_argument("--image-size", type=int, default=0, help="every image this many px a side (cameras only)")
     ap.add_argument("--ring-step", type=float, default=300.0, help="ring width (m) of --grow and --closing")
     ap.add_argument("--bend-step", action="store_true", help="--closing: then rounds started by the bend step")
+    ap.add_argument("--drive", action="store_true",
+                    help="the expected bend (bend.drive) against the actual one (and stop)")
     ap.add_argument("--focal-plane", action="store_true",
                     help="sensors as real ones are: bowed, distorted lines and a drift (demofp's)")
     ap.add_argument("--physics", default="", help="--bend-step: then the metric bend step (see above)")
@@ -104,6 +107,9 @@ def main(argv=None) -> int:
                 big = ", ".join(f"{o['labels'][j]} {w[j]:+.2f}" for j in np.argsort(-np.abs(w))[:3])
                 print(f"  {sv:9.5f} px/m   vertical {np.linalg.norm(w[6:]):.2f}   ({big})")
         return 0
+    if a.drive:
+        drive(site)
+        return 0
     if a.closing:
         physics = [p for p in a.physics.split(",") if p]
         if any(p.startswith("true") for p in physics):
@@ -133,6 +139,31 @@ def main(argv=None) -> int:
     if a.grow:
         grow(site, sigma_obs, [float(s) for s in a.sigma_tie.split(",") if s][-1], a.rounds, a.ring_step)
     return 0
+
+
+def drive(site) -> None:
+    """The adjustment of independent tile cameras from the truth, put in the frame of its best
+    affine map to the truth (as an upgrade would), then the bend the images' departures from
+    affine make one expect (recon_core.bend.drive) against the actual quadratic bend."""
+    from recon_core.bend.drive import expected_bend
+
+    t0 = time.time()
+    base = site.adjust(site.best_tile_cameras(site.X_true), site.X_true)
+    A = np.hstack([base.X, np.ones((len(base.X), 1))])
+    Y = A @ np.linalg.lstsq(A, site.X_true, rcond=None)[0]
+    e, n = ((Y[:, :2] - Y[:, :2].mean(0)) / (np.ptp(Y[:, :2], axis=0).max() / 2)).T
+    lin = np.column_stack([np.ones_like(e), e, n])
+    B = np.hstack([lin, np.column_stack([e * e, e * n, n * n])])
+    q = B @ np.linalg.lstsq(B, Y[:, 2] - site.X_true[:, 2], rcond=None)[0]
+    q -= lin @ np.linalg.lstsq(lin, q, rcond=None)[0]
+    d = expected_bend(Y, site.views_per_image(20000, 0))
+    print(line("independent tile cameras", structure_vs_truth(base.X, site.X_true), f"[{time.time() - t0:.0f} s]"))
+    if d is None:
+        print("  no expected bend (fewer than 2 images)")
+        return
+    print(f"  actual quadratic bend (beyond an affine map) {q.std():.2f} m RMS, {np.abs(q).max():.2f} m at most; "
+          f"expected {d.expected_rms_m:.2f} m RMS, {d.expected_edge_m:.2f} m at the edge "
+          f"(departures {d.departure_px:.2f} px, their spread {d.spread_px:.2f} px, {d.dof} dof)")
 
 
 def _gauge_and_obs(site, cams, on):

@@ -14,6 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from recon_core.bend.drive import BendDrive
 from recon_core.bend.pushbroom import warp_observability
 from recon_core.geometry.affine import apply_affine_3d
 
@@ -114,18 +115,24 @@ def bend_seen(b: BendView | None) -> str | None:
     return None
 
 
-def bend_warning(b: BendView | None, gcp_fit: dict | None = None) -> str | None:
+def bend_warning(b: BendView | None, gcp_fit: dict | None = None, drive: BendDrive | None = None) -> str | None:
     """One line when the views cannot see a vertical bend of a site wider than
     BEND_WARN_WIDTH_KM (and the control GCPs did not hold it: gcp_fit, the summary of
-    recon_core.bend.gcp); None otherwise."""
+    recon_core.bend.gcp); None otherwise. With `drive` (recon_core.bend.drive), it says how
+    large a bend the images' own departures from affine suggest."""
     if b is None or bend_seen(b):
         return None
     s = b.weakest_vertical_px_per_m
     text = (f"its {b.views} views cannot see a bend of the structure (a height warp of 1 m over "
             f"its {b.site_width_km:.1f} km moves them by {s:.0e} px): 4 GCPs fix an affine map, not a "
-            "bend, so heights away from the GCPs may be off by metres (3 views of one date: 1.5-2.9 m "
-            "over 2.5 km, 30 m RMS over 10 km); views of another date, or more control GCPs spread "
-            "over the site, hold it")
+            "bend, so heights away from the GCPs may be off")
+    if drive is not None:
+        text += (f"; the images' own departures from affine ({drive.departure_px:.1f} px) suggest a bend "
+                 f"of about {drive.expected_rms_m:.1f} m RMS, {drive.expected_edge_m:.1f} m at the edges "
+                 "(its order of magnitude)")
+    else:
+        text += " by metres (3 views of one date: 1.5-2.9 m over 2.5 km, 30 m RMS over 10 km)"
+    text += "; more views make it smaller, control GCPs spread over the site hold it"
     need = (gcp_fit or {}).get("control_gcps_needed")
     if need and gcp_fit.get("control_gcps", 0) < need:
         text += f" ({need} or more control GCPs fit the {gcp_fit['invisible_warps']} warps it cannot see)"

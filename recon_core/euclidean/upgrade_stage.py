@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from recon_core.bend.dem import bend_kind, fit_dem_bend, open_reference_dem
+from recon_core.bend.drive import BendDrive, bend_drive
 from recon_core.bend.gcp import fit_gcp_bend
 from recon_core.bend.metric import metric_bend, warped_model
 from recon_core.bend.observability import (
@@ -66,6 +67,7 @@ class GroupUpgrade:
         affine: GCP id -> GcpAffine: how each GCP was placed in the group's affine frame.
         gsd_m: ground sample distance of the group's tile cameras (m/px).
         bend: what the group's views can see of a bend (recon_core.bend.observability).
+        drive: the bend to expect where they cannot see one (recon_core.bend.drive).
         warp: the metric bend step's warp (None: it stood aside or is off), and `metric` its
             summary.
         enu_warp: the bend fitted to the control GCPs or taken from the reference DEM (None:
@@ -81,11 +83,12 @@ class GroupUpgrade:
     enu_warp: EnuWarp | None = None
     gcp_bend: dict = field(default_factory=dict)
     dem_bend: dict = field(default_factory=dict)
+    drive: BendDrive | None = None
 
     @classmethod
     def of(cls, st: ModelUpgrade, gsd_m: float) -> "GroupUpgrade":
         return cls(st.result, st.affine, gsd_m, st.bend, st.warp, st.metric, st.enu_warp, st.gcp_bend,
-                   st.dem_bend)
+                   st.dem_bend, st.drive)
 
     @property
     def map(self) -> EnuMap:
@@ -101,6 +104,8 @@ class GroupUpgrade:
         d["gsd_m"] = self.gsd_m
         if self.bend is not None:
             d["bend_observability"] = self.bend.to_dict()
+        if self.drive is not None:
+            d["bend_drive"] = self.drive.to_dict()
         if self.metric:
             d["metric_bend"] = self.metric
         if self.warp is not None:
@@ -182,6 +187,7 @@ class ModelUpgrade:
     warp: BendWarp | None = None    # the metric bend step's warp (None: it stood aside or is off)
     metric: dict = field(default_factory=dict)     # ... and its summary
     bend: BendView | None = None                   # what the views see of a bend, in the frame H_A gives
+    drive: BendDrive | None = None                 # ... and the bend to expect where they see none
     enu_warp: EnuWarp | None = None  # the bend fitted to GCPs or taken from the reference DEM
     gcp_bend: dict = field(default_factory=dict)   # the GCP fit's summary
     dem_bend: dict = field(default_factory=dict)   # the reference DEM's fit's summary
@@ -214,6 +220,7 @@ def _metric_bend(st: ModelUpgrade) -> None:
 
 def _observe(st: ModelUpgrade) -> None:
     st.bend = bend_observability(st.model, st.result.H)
+    st.drive = bend_drive(st.model, st.result.H)
 
 
 def _gcp_bend(st: ModelUpgrade) -> None:
@@ -230,7 +237,7 @@ def _dem_bend(st: ModelUpgrade) -> None:
 
 
 def _warn(st: ModelUpgrade) -> None:
-    _warn_bend(st.result, st.bend, st.gcp_bend, st.dem_bend)
+    _warn_bend(st.result, st.bend, st.gcp_bend, st.dem_bend, st.drive)
 
 
 # One model's upgrade, in order: H_A (with the cameras' metric constraint when asked) and the
@@ -388,10 +395,11 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config, images: dict | No
     return up
 
 
-def _warn_bend(res: UpgradeResult, bend: BendView | None, gcp_fit: dict | None = None, dem_fit: dict | None = None) -> None:
+def _warn_bend(res: UpgradeResult, bend: BendView | None, gcp_fit: dict | None = None, dem_fit: dict | None = None,
+               drive: BendDrive | None = None) -> None:
     if (gcp_fit or {}).get("applied") or (dem_fit or {}).get("applied"):
         return                 # the GCPs or the reference DEM hold what the views cannot see
-    text = bend_warning(bend, gcp_fit)
+    text = bend_warning(bend, gcp_fit, drive)
     if text and (dem_fit or {}).get("reason"):
         text += f"; the reference DEM could not: {dem_fit['reason']}"
     elif text:

@@ -180,3 +180,45 @@ def test_bend_warp_cameras_follow():
     moved = np.hstack([X + warp(X), np.ones((200, 1))])
     assert np.abs(moved @ P[0].T - seen).max() > 0.1           # the warp moves the pixels
     assert np.abs(moved @ warp.follow(P, X.mean(0)[None])[0].T - seen).max() < 1e-3
+
+
+def test_the_expected_bend_is_the_size_of_the_bend(untied, flat_site):
+    """bend.drive: where the views cannot see a bend, the size the images' own departures from
+    affine drive it to. On `flat` (3 views over 2.5 km), the structure the adjustment of
+    independent tile cameras settles on is bent by about 0.35 m RMS (quadratic, beyond an
+    affine map); the estimate, made from the images and the structure alone in the frame of the
+    best affine map (as the upgrade's H_A gives it), is within a factor of 2.5 of it."""
+    from recon_core.bend.drive import expected_bend
+
+    X, Xt = untied.X, flat_site.X_true
+    A = np.hstack([X, np.ones((len(X), 1))])
+    Y = A @ np.linalg.lstsq(A, Xt, rcond=None)[0]
+    d = expected_bend(Y, flat_site.views_per_image(20000, 0))
+    # the actual bend: the quadratic part of the vertical residual, beyond an affine map
+    e, n = ((Y[:, :2] - Y[:, :2].mean(0)) / (np.ptp(Y[:, :2], axis=0).max() / 2)).T
+    lin = np.column_stack([np.ones_like(e), e, n])
+    quad = np.column_stack([e * e, e * n, n * n])
+    q = np.hstack([lin, quad]) @ np.linalg.lstsq(np.hstack([lin, quad]), Y[:, 2] - Xt[:, 2], rcond=None)[0]
+    actual = float((q - lin @ np.linalg.lstsq(lin, q, rcond=None)[0]).std())
+    assert actual > 0.2
+    assert d is not None and d.views == 3 and d.dof == 9
+    assert actual / 2.5 < d.expected_rms_m < actual * 2.5
+    assert d.expected_edge_m > d.expected_rms_m
+
+
+def test_no_departure_from_affine_no_expected_bend():
+    """Images that are exactly affine drive no bend: the expected bend is nil, and with one
+    image there is nothing to estimate."""
+    from recon_core.bend.drive import expected_bend
+
+    rng = np.random.default_rng(5)
+    Y = rng.uniform(-1200, 1200, (3000, 3)) * [1, 1, 0.01]
+    images = []
+    for P in (np.array([[2.0, 0.1, 0.6, 2500.0], [-0.1, 2.0, -0.9, 2400.0]]),
+              np.array([[2.0, -0.2, -0.3, 2600.0], [0.2, 2.0, 0.8, 2500.0]]),
+              np.array([[1.9, 0.0, 0.1, 2450.0], [0.0, 2.1, 0.3, 2550.0]])):
+        k = np.sort(rng.choice(len(Y), 2000, replace=False))
+        images.append((k, Y[k] @ P[:, :3].T + P[:, 3]))
+    d = expected_bend(Y, images)
+    assert d is not None and d.expected_rms_m < 1e-6 and d.departure_px < 1e-6
+    assert expected_bend(Y, images[:1]) is None
