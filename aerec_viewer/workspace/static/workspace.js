@@ -380,12 +380,12 @@ class View {
       this.text.classList.toggle("bad", o.residual_px > 1);
       acts.push(btn("Remove", "Delete", () => edit("/api/remove", {gcp: g.id, image: this.info.name})));
     } else if (p) {
-      this.text.textContent = `${g.id} predicted at col ${fmt(p.at[0])}, row ${fmt(p.at[1])}: click its exact pixel, or Enter`;
+      this.text.textContent = `${g.id} predicted at col ${fmt(p.at[0])}, row ${fmt(p.at[1])} · Enter accepts`;
       this.text.title = p.how;
       this.text.classList.remove("bad");
       acts.push(btn("Accept", "Enter", () => this.accept()));
     } else {
-      this.text.textContent = `${g.id} is not placed here and nothing predicts it: find the spot, click it`;
+      this.text.textContent = `${g.id}: not placed, not predicted here · find it, click it`;
       this.text.classList.remove("bad");
     }
     this.actions.replaceChildren(...acts);
