@@ -41,6 +41,7 @@ from .imagery import ImageSource
 from .picking import PickingView
 from .recon_panel import ReconstructionPanel
 from .views import ClientViews
+from .workspace import WorkspaceServer
 from .results import DsmPanel
 from .scene import SceneView, tile_windows_for
 from .worker import DisplaySnapshot, ReconWorker
@@ -78,12 +79,14 @@ class ViewerApp:
         host, port: where to serve (port 0: any free port; a busy port moves to the next one,
             so read `port` after construction).
         update_hz: scene updates per second at most.
+        workspace_port: the image workspace's port (default: the one after viser's, or any
+            free one when viser's is; a busy one moves to the next).
     """
 
     def __init__(self, out: str | Path, site: str | Path | None = None, cfg=None, *,
                  mode: str = "run", host: str = "127.0.0.1", port: int = 8080,
                  update_hz: float = 4.0, until: str | None = None, budget: int | None = None,
-                 reference=None):
+                 reference=None, workspace_port: int | None = None):
         import viser
 
         from recon_core.config import Config, config_from_dict
@@ -133,6 +136,9 @@ class ViewerApp:
         self._seen_version = -1
         self._framed = False
         self.gcp = GcpController(self)       # the clicks, the working set's edits, the upgrade
+        # the image workspace (its own page and port): bound now, so the GCP tab can link to it
+        self.workspace = WorkspaceServer(self, host, (0 if port == 0 else self.port + 1)
+                                         if workspace_port is None else workspace_port)
         self.picking = PickingView(self)     # the picking plane and its loupe (/gcp/plane)
         self.marks = GcpMarks(self)          # every other /gcp node
         self._gui_cache: dict[str, object] = {}
@@ -157,6 +163,7 @@ class ViewerApp:
         self.worker.start()
         self._thread = threading.Thread(target=self._loop, name="aerec-viewer", daemon=True)
         self._thread.start()
+        self.workspace.start()
         return self
 
     def stop(self) -> None:
@@ -166,6 +173,7 @@ class ViewerApp:
         self._wake.set()
         if self._thread is not None:
             self._thread.join(5.0)
+        self.workspace.stop()
         self.server.stop()
 
     def submit(self, fn: Callable[[], object]) -> Future:

@@ -321,10 +321,12 @@ def cmd_view(args) -> int:
     what = "reopening" if mode == "reopen" else "reconstructing"
     print(f"aerec view: {what} {app.site.root} -> {out}")
     print(f"aerec view: open {app.url}")
+    print(f"aerec view: image workspace (GCPs side by side in the images) at {app.workspace.url}")
     if not args.no_browser_hint:
         if args.host in ("127.0.0.1", "localhost"):
+            ws = app.workspace.port
             print("  (bound to this machine only; from another machine use "
-                  f"`ssh -L {app.port}:127.0.0.1:{app.port} HOST` or --host 0.0.0.0)")
+                  f"`ssh -L {app.port}:127.0.0.1:{app.port} -L {ws}:127.0.0.1:{ws} HOST` or --host 0.0.0.0)")
         print("  Ctrl-C to quit; picked GCPs are saved to "
               f"{app.session.path} after every change.")
     sys.stdout.flush()

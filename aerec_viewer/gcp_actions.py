@@ -173,13 +173,10 @@ class GcpActions:
 
     def residuals(self, gid: str) -> dict[str, float]:
         """Image -> reprojection residual (px) of the GCP's observations, per group."""
-        from recon_core.euclidean.gcp_transfer import observation_residuals
+        from .results import residual_vectors
 
         g = self.app.session.get(gid)
-        out: dict[str, float] = {}
-        for m in self.app.models.values():
-            out.update({im: float(np.hypot(*v)) for im, v in observation_residuals(m, g.observations).items()})
-        return out
+        return {im: float(np.hypot(*v)) for im, v in residual_vectors(self.app.models, g.observations).items()}
 
     def _toggle_role(self) -> None:
         gid = self.selected()
@@ -471,11 +468,15 @@ class GcpActions:
         if in_loupe:
             self.walk_on(gid, client)
 
-    def _undo(self) -> None:
+    def _undo(self) -> str:
+        """Undo the latest edit (whoever made it: this page, another tab, the image workspace);
+        returns what was undone."""
         what = undo(self.app.session)
         self.app.gcp.changed(note=f"undone: {what}")
+        return what
 
-    def _redo(self) -> None:
+    def _redo(self) -> str:
         what = redo(self.app.session)
         self.app.gcp.changed(note=f"redone: {what}")
+        return what
 

@@ -22,10 +22,11 @@ if TYPE_CHECKING:
     from .gcp_controller import GcpController
 
 
-def upgrade_errors(outcome) -> dict[str, str]:
-    """GCP id -> "dE / dN / dU" (m) from an upgrade's rows (the first group that scores it): a
-    control point's leave-one-out error (marked *) where there is one, else its residual."""
-    out: dict[str, str] = {}
+def upgrade_errors_m(outcome) -> dict[str, tuple[float, float, float, bool]]:
+    """GCP id -> (dE, dN, dU in metres, left out) from an upgrade's rows (the first group that
+    scores it): a control point's leave-one-out error (left out: True) where there is one, else
+    its residual (a check point's is always its error, the fit never saw it)."""
+    out: dict[str, tuple[float, float, float, bool]] = {}
     if outcome is None:
         return out
     for g in sorted(outcome.results):
@@ -33,9 +34,23 @@ def upgrade_errors(outcome) -> dict[str, str]:
             if p["id"] in out or p.get("dU") is None:
                 continue
             loo = p.get("loo_dU") is not None and p["role"] == "control"
-            e, n, u = (p[f"loo_d{a}"] if loo else p[f"d{a}"] for a in "ENU")
-            out[p["id"]] = f"{e:+.2f} / {n:+.2f} / {u:+.2f}" + ("*" if loo else "")
+            e, n, u = (float(p[f"loo_d{a}"] if loo else p[f"d{a}"]) for a in "ENU")
+            out[p["id"]] = (e, n, u, loo)
     return out
+
+
+def upgrade_errors(outcome) -> dict[str, str]:
+    """GCP id -> "dE / dN / dU" (m) of upgrade_errors_m, a leave-one-out error marked *."""
+    return {gid: f"{e:+.2f} / {n:+.2f} / {u:+.2f}" + ("*" if loo else "")
+            for gid, (e, n, u, loo) in upgrade_errors_m(outcome).items()}
+
+
+def workspace_link_html(url: str) -> str:
+    """The GCP tab's link to the image workspace (a new browser tab: this page stays open)."""
+    return (f'<div style="padding: 0 0.75rem 0.5rem; font-size: 0.875rem"><a href="{url}" target="_blank" '
+            f'rel="noopener" style="font-weight: 600">Open the image workspace</a> ({url}): the selected '
+            "GCP side by side in every image; drag to pan, the wheel zooms at the cursor, a click places "
+            "it; each browser tab keeps its own selection</div>")
 
 
 class GcpPanelHost(Protocol):
@@ -68,6 +83,8 @@ class GcpPanel(GcpActions):
         ref = getattr(app, "reference", None)
         # the latest prompt or warning, first: at 1000 px it sat below the fold, under the buttons
         self.status = gui.add_markdown("")
+        ws = getattr(app, "workspace", None)
+        self.workspace_link = None if ws is None else gui.add_html(workspace_link_html(ws.url))
         self.image = gui.add_dropdown("Image", names + ([ref.ortho.name] if ref is not None else []),
                                       initial_value=names[0],
                                       hint=None if ref is None else "the reference orthoimage (last): "

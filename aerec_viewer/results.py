@@ -86,13 +86,41 @@ def gcp_readiness(session: GcpSession, models: dict) -> dict[str, tuple[bool, st
     return out
 
 
+def predict_unobserved(models: dict, observations: dict, images) -> dict:
+    """Image -> geometric Prediction (recon_core.euclidean.gcp_transfer, no matching: cheap) of a
+    GCP's pixel in each of `images` it is not observed in, from its observations in that image's
+    group; images nothing predicts are left out. What the state table and the image workspace
+    call "predicted"."""
+    from recon_core.euclidean.gcp_transfer import predict_observation
+
+    out = {}
+    for im in images:
+        if im in observations:
+            continue
+        model = next((m for m in models.values() if im in m.images), None)
+        seen = {} if model is None else {k: v for k, v in observations.items() if k in model.images}
+        pred = predict_observation(model, {}, seen, im, refine=False) if seen else None
+        if pred is not None:
+            out[im] = pred
+    return out
+
+
+def residual_vectors(models: dict, observations: dict) -> dict[str, tuple[float, float]]:
+    """Image -> reprojection residual (observed - reprojected, px) of a GCP's observations, in
+    every group where >= 2 of them triangulate it (gcp_transfer.observation_residuals)."""
+    from recon_core.euclidean.gcp_transfer import observation_residuals
+
+    out: dict[str, tuple[float, float]] = {}
+    for m in models.values():
+        out.update(observation_residuals(m, observations))
+    return out
+
+
 def gcp_state_table(session: GcpSession, models: dict, images: list[str]) -> str:
     """Markdown table: one row per GCP, one column per image: "placed" (usable: a registered tile
     contains it), "unusable" (observed, but no registered tile there), "predicted" (not observed,
     but predictable there from its observations in that image's group: the loupe can show it),
     "-" (neither), and "picked" (a cloud pick replaces the observations)."""
-    from recon_core.euclidean.gcp_transfer import predict_observation
-
     if not session.gcps:
         return ""
     head = "| GCP | role | " + " | ".join(images) + " |"
@@ -101,13 +129,11 @@ def gcp_state_table(session: GcpSession, models: dict, images: list[str]) -> str
         usable: set[str] = set()
         for m in models.values():
             usable.update(usable_observations(m, g.observations)[0])
+        predicted = predict_unobserved(models, g.observations, images)
         cells = []
         for im in images:
             if im not in g.observations:
-                model = next((m for m in models.values() if im in m.images), None)
-                seen = {} if model is None else {k: v for k, v in g.observations.items() if k in model.images}
-                pred = predict_observation(model, {}, seen, im, refine=False) if seen else None
-                cells.append("-" if pred is None else "predicted")
+                cells.append("predicted" if im in predicted else "-")
             elif not models or im in usable:
                 cells.append("placed")
             else:

@@ -1,0 +1,244 @@
+"""The image workspace's HTTP API against a real viewer (the finished `tiny` run, reopened):
+every edit changes the working set exactly as the GCP tab's functions do, is saved, and shows
+in the 3D viewer's panel; a GCP or observation that is gone is a 409, bad input a 400, each
+with one line; tiles are read by windows inside the image."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+import urllib.error
+import urllib.request
+
+import cv2
+import numpy as np
+import pytest
+
+from aerec_viewer.gcp_session import add_observation, delete_gcp, remove_observation, undo
+from aerec_viewer.results import predict_unobserved, residual_vectors
+from aerec_viewer.workspace import tiles as tiles_mod
+from recon_core.io.gcps import read_gcps_geojson
+
+
+@pytest.fixture(scope="module")
+def ws(tiny_run, tmp_path_factory):
+    """A viewer reopening a copy of the `tiny` run, with its workspace served."""
+    from aerec_viewer.app import ViewerApp
+
+    state, _ = tiny_run
+    out = tmp_path_factory.mktemp("ws") / "out"
+    shutil.copytree(state.out, out)
+    app = ViewerApp(out, state.site.root, None, mode="reopen", port=0)
+    app.start()
+    t0 = time.time()
+    while not app.models and time.time() - t0 < 60:
+        time.sleep(0.1)
+        app.wait_idle()
+    assert app.models, "the reopened models did not load"
+    yield app
+    app.stop()
+
+
+def call(app, path: str, body=None, *, raw: bytes | None = None, headers: dict | None = None,
+         ) -> tuple[int, object]:
+    """(status, decoded answer) of a request to the workspace: JSON, or bytes for the rest."""
+    data, hdr = None, dict(headers or {})
+    if body is not None:
+        data = json.dumps(body).encode()
+        hdr.setdefault("Content-Type", "application/json")
+    elif raw is not None:
+        data = raw
+    req = urllib.request.Request(app.workspace.url.rstrip("/") + path, data=data, headers=hdr,
+                                 method="POST" if data is not None else "GET")
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            status, ctype, payload = r.status, r.headers.get_content_type(), r.read()
+    except urllib.error.HTTPError as err:
+        status, ctype, payload = err.code, err.headers.get_content_type(), err.read()
+    return status, json.loads(payload) if ctype == "application/json" else payload
+
+
+def refused(app, status: int, path: str, body=None, **kw) -> str:
+    """The one-line refusal of a request that must get `status`."""
+    got, out = call(app, path, body, **kw)
+    assert got == status, (got, out)
+    line = out["error"]
+    assert line and "\n" not in line and "Traceback" not in line
+    return line
+
+
+def observed_gcp(app, n: int = 2):
+    """A GCP observed in >= n images (the tiny site's GCPs are), its id and first image."""
+    g = next(g for g in app.session.gcps if len(g.observations) >= n)
+    return g.id, sorted(g.observations)[0]
+
+
+def test_the_state_names_every_gcp_and_its_pixels_as_the_viewer_computes_them(ws):
+    status, st = call(ws, "/api/state")
+    assert status == 200
+    assert [g["id"] for g in st["gcps"]] == ws.session.ids
+    assert [im["name"] for im in st["images"]] == list(ws.session.images)
+    assert isinstance(st["version"], int) and st["model"] is True
+    for entry, g in zip(st["gcps"], ws.session.gcps):
+        assert entry["role"] == g.role and entry["enabled"] == g.enabled and entry["sigma_h_m"] == g.sigma_h_m
+        res = residual_vectors(ws.models, g.observations)
+        for im, (c, r) in g.observations.items():
+            got = entry["images"][im]
+            assert got["observed"] == pytest.approx([c, r], abs=1e-3)
+            if im in res:
+                assert got["residual_px"] == pytest.approx(math.hypot(*res[im]), abs=1e-3)
+                assert got["predicted"] == pytest.approx([c - res[im][0], r - res[im][1]], abs=1e-3)
+    # an observation removed (on the session, as the 3D viewer would): predicted there instead
+    gid, image = observed_gcp(ws, 3)
+    keep = ws.session.get(gid).observations[image]
+    g = ws.session.get(gid)
+    ws.call(lambda: (remove_observation(ws.session, gid, image), ws.gcp.changed()))
+    try:
+        pred = predict_unobserved(ws.models, g.observations, [image])[image]
+        entry = next(e for e in call(ws, "/api/state")[1]["gcps"] if e["id"] == gid)
+        assert entry["images"][image]["observed"] is None
+        assert entry["images"][image]["predicted"] == pytest.approx([pred.col, pred.row], abs=1e-3)
+    finally:
+        ws.call(lambda: (undo(ws.session), ws.gcp.changed()))
+    assert ws.session.get(gid).observations[image] == keep
+
+
+def test_the_version_moves_with_every_edit_from_anywhere_and_only_then(ws):
+    v0 = call(ws, "/api/version")[1]["version"]
+    assert call(ws, "/api/version")[1]["version"] == v0
+    gid, image = observed_gcp(ws)
+    c, r = ws.session.get(gid).observations[image]
+    ws.call(lambda: (add_observation(ws.session, gid, image, c + 1.0, r), ws.gcp.changed()))   # the 3D viewer's edit
+    v1 = call(ws, "/api/version")[1]["version"]
+    assert v1 > v0
+    assert call(ws, "/api/state")[1]["version"] == v1
+    ws.call(lambda: (undo(ws.session), ws.gcp.changed()))
+    assert call(ws, "/api/version")[1]["version"] > v1
+
+
+def test_observe_nudge_remove_undo_redo_change_the_session_exactly(ws):
+    gid, image = observed_gcp(ws)
+    before = ws.session.get(gid).observations[image]
+    v = call(ws, "/api/version")[1]["version"]
+    status, out = call(ws, "/api/observe", {"gcp": gid, "image": image, "col": 10.25, "row": 20.5, "version_seen": v})
+    assert status == 200 and out["ok"] and out["stale"] is False and out["version"] > v
+    assert ws.session.get(gid).observations[image] == (10.25, 20.5)
+    assert read_gcps_geojson(ws.session.path)[ws.session.ids.index(gid)].observations[image] == pytest.approx((10.25, 20.5))
+    assert f"image workspace: {gid} moved in {image}" in ws.gcp_panel.status.content      # the 3D viewer's panel says so
+    for _ in range(3):
+        assert call(ws, "/api/nudge", {"gcp": gid, "image": image, "dcol": 0.1, "drow": -1.0})[0] == 200
+    assert ws.session.get(gid).observations[image] == pytest.approx((10.55, 17.5))
+    assert call(ws, "/api/remove", {"gcp": gid, "image": image})[0] == 200
+    assert image not in ws.session.get(gid).observations
+    status, out = call(ws, "/api/undo", {})
+    assert status == 200 and out["note"] == f"undone: remove {gid}'s observation in {image}"
+    assert ws.session.get(gid).observations[image] == pytest.approx((10.55, 17.5))
+    call(ws, "/api/undo", {})                           # the three nudges are one step
+    assert ws.session.get(gid).observations[image] == (10.25, 20.5)
+    call(ws, "/api/redo", {})
+    assert ws.session.get(gid).observations[image] == pytest.approx((10.55, 17.5))
+    call(ws, "/api/undo", {})
+    call(ws, "/api/undo", {})
+    assert ws.session.get(gid).observations[image] == before
+
+
+def test_an_edit_of_a_gcp_or_observation_that_is_gone_is_refused_with_409(ws):
+    gid, image = observed_gcp(ws)
+    v = call(ws, "/api/version")[1]["version"]
+    assert "no longer exists" in refused(ws, 409, "/api/observe", {"gcp": "GCP-XX", "image": image, "col": 1, "row": 1,
+                                                                   "version_seen": v})
+    ws.call(lambda: (delete_gcp(ws.session, gid), ws.gcp.changed()))         # deleted in another tab
+    try:
+        n = len(ws.session._undo)
+        assert gid in refused(ws, 409, "/api/observe", {"gcp": gid, "image": image, "col": 1, "row": 1, "version_seen": v})
+        assert gid in refused(ws, 409, "/api/nudge", {"gcp": gid, "image": image, "dcol": 0.1, "drow": 0})
+        assert len(ws.session._undo) == n                # nothing recorded
+    finally:
+        ws.call(lambda: (undo(ws.session), ws.gcp.changed()))
+    ws.call(lambda: (remove_observation(ws.session, gid, image), ws.gcp.changed()))
+    try:
+        assert "no observation" in refused(ws, 409, "/api/remove", {"gcp": gid, "image": image})
+        assert "no observation" in refused(ws, 409, "/api/nudge", {"gcp": gid, "image": image, "dcol": 0, "drow": 1})
+    finally:
+        ws.call(lambda: (undo(ws.session), ws.gcp.changed()))
+
+
+def test_bad_input_is_refused_with_400_and_one_line(ws):
+    gid, image = observed_gcp(ws)
+    w, h = ws.session.images[image]
+    ok = {"gcp": gid, "image": image, "col": 5.0, "row": 5.0, "version_seen": 0}
+    for change, words in [({"col": None}, "col"), ({"col": "abc"}, "not a number"), ({"col": True}, "not a number"),
+                          ({"col": float("nan")}, "outside"), ({"col": w + 1.0}, "outside"), ({"row": -0.6}, "outside"),
+                          ({"image": "nope.tif"}, "no image"), ({"gcp": ""}, "gcp"), ({"gcp": 3}, "gcp"),
+                          ({"version_seen": 1.5}, "whole number"), ({"version_seen": 10 ** 9}, "newer")]:
+        assert words in refused(ws, 400, "/api/observe", {**ok, **change}), change
+    assert "outside" in refused(ws, 400, "/api/nudge", {"gcp": gid, "image": image, "dcol": 1e6, "drow": 0})
+    assert "JSON" in refused(ws, 400, "/api/observe", raw=b"gcp=1", headers={"Content-Type": "text/plain"})
+    assert "JSON" in refused(ws, 400, "/api/observe", raw=b"{bad", headers={"Content-Type": "application/json"})
+    assert "object" in refused(ws, 400, "/api/observe", raw=b"[1]", headers={"Content-Type": "application/json"})
+    assert "X-Aerec-Workspace" in refused(ws, 400, "/api/import", raw=b"id\n")
+    assert "level" in refused(ws, 400, f"/api/tile?image={image}&level=9&tx=0&ty=0")
+    assert "outside" in refused(ws, 400, f"/api/tile?image={image}&level=0&tx=99&ty=0")
+    assert "contrast" in refused(ws, 400, f"/api/tile?image={image}&level=0&tx=0&ty=0&contrast=0")
+    refused(ws, 404, "/api/nothing")
+    refused(ws, 404, "/static/../server.py")
+    assert "localhost" in refused(ws, 403, "/api/version", headers={"Host": "evil.example:80"})
+
+
+def test_tiles_are_read_by_windows_inside_the_image(ws, monkeypatch):
+    image = sorted(ws.session.images)[0]
+    w, h = ws.session.images[image]
+    reads = []
+    real = tiles_mod.read_window
+
+    def spy(im, col0, row0, width, height, **kw):
+        reads.append((col0, row0, width, height, kw.get("out_shape")))
+        return real(im, col0, row0, width, height, **kw)
+    monkeypatch.setattr(tiles_mod, "read_window", spy)
+    ws.workspace.api.tiles = tiles_mod.TileSource(ws.images)          # empty caches
+    n = tiles_mod.levels(w, h)
+    for level in range(n):
+        side = tiles_mod.TILE << level
+        for ty in range(-(-h // side)):
+            for tx in range(-(-w // side)):
+                status, png = call(ws, f"/api/tile?image={image}&level={level}&tx={tx}&ty={ty}&contrast=1.5&gamma=1")
+                assert status == 200
+                px = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+                ww, hh = min(side, w - tx * side), min(side, h - ty * side)
+                assert px.shape == (-(-hh // (1 << level)), -(-ww // (1 << level)))
+    assert reads and all(0 <= c and 0 <= r and c + ww <= w and r + hh <= h for c, r, ww, hh, _ in reads)
+    assert max(ww * hh for _, _, ww, hh, _ in reads) <= (tiles_mod.TILE << (n - 1)) ** 2
+    k = len(reads)
+    assert call(ws, f"/api/tile?image={image}&level=0&tx=0&ty=0&contrast=2")[0] == 200
+    assert len(reads) == k                                # another contrast: the raw tile is cached
+
+
+def test_markers_go_out_and_come_back_as_csv(ws):
+    status, text = call(ws, "/api/export.csv")
+    assert status == 200 and text.decode().startswith("id,role,")
+    gid, image = observed_gcp(ws)
+    before = ws.session.get(gid).observations[image]
+    lines = text.decode().splitlines()
+    head = lines[0].split(",")
+    row = next(ln.split(",") for ln in lines[1:] if ln.split(",")[0] == gid and ln.split(",")[head.index("image")] == image)
+    row[head.index("col")] = "12.5"
+    status, out = call(ws, "/api/import?name=fix.csv", raw=(",".join(head) + "\n" + ",".join(row) + "\n").encode(),
+                       headers={"X-Aerec-Workspace": "1"})
+    assert status == 200 and out["updated"] == [gid]
+    assert ws.session.get(gid).observations[image][0] == 12.5
+    call(ws, "/api/undo", {})
+    assert ws.session.get(gid).observations[image] == before
+    assert "nothing imported" in refused(ws, 400, "/api/import?name=bad.csv", raw=(",".join(head) + "\n" + ",".join(
+        row[:head.index("image")] + ["nope.tif"] + row[head.index("image") + 1:]) + "\n").encode(),
+        headers={"X-Aerec-Workspace": "1"})
+
+
+def test_the_gcp_tab_links_to_the_workspace_and_the_page_is_served(ws):
+    assert ws.workspace.url in ws.gcp_panel.workspace_link.content
+    assert "Open the image workspace" in ws.gcp_panel.workspace_link.content
+    status, html = call(ws, "/")
+    assert status == 200 and b"/static/workspace.js" in html
+    for name in ("workspace.js", "workspace.css"):
+        assert call(ws, f"/static/{name}")[0] == 200
