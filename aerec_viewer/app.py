@@ -40,11 +40,11 @@ from .gcp_session import GcpError, open_session
 from .imagery import ImageSource
 from .picking import PickingView
 from .recon_panel import ReconstructionPanel
-from .views import ClientViews
-from .workspace import WorkspaceServer
 from .results import DsmPanel
 from .scene import SceneView, tile_windows_for
+from .views import ClientViews
 from .worker import DisplaySnapshot, ReconWorker
+from .workspace import WorkspaceServer
 
 log = logging.getLogger("aerec.viewer")
 
