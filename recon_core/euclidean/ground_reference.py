@@ -182,7 +182,10 @@ def _raster_lonlat_box(path: Path, crs, transform, width: int, height: int) -> n
     from pyproj import Transformer
 
     t = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
-    corners = [transform * (x, y) for x, y in ((0, 0), (width, 0), (width, height), (0, height))]
+    a, b, c, d, e, f = transform[:6]           # the affine's coefficients (no operator that
+                                               # changes meaning across affine's versions)
+    corners = [(a * x + b * y + c, d * x + e * y + f)
+               for x, y in ((0, 0), (width, 0), (width, height), (0, height))]
     return np.array([t.transform(x, y) for x, y in corners], np.float64)
 
 
