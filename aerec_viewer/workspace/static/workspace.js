@@ -162,8 +162,9 @@ function renderDetails() {
     + (g.sigma_h_m !== null ? `; its height is known only to ±${g.sigma_h_m.toFixed(1)} m` : "")
     + (g.picked_on_cloud.length ? "; picked on the cloud (that pick replaces its image observations)" : "");
   const t = document.createElement("table");
-  t.innerHTML = "<thead><tr><th>image</th><th>observed col, row</th><th>predicted col, row</th><th>residual px</th>" +
-    "<th title=\"after an upgrade: from the observation to where its surveyed position projects (its error in the upgrade, in pixels)\">to surveyed px</th></tr></thead>";
+  t.innerHTML = "<thead><tr><th>image</th><th title=\"col, row\">observed</th><th title=\"col, row\">predicted</th>" +
+    "<th title=\"observed minus predicted\">residual px</th>" +
+    "<th title=\"after an upgrade: from the observation to where its surveyed position projects (its error in the upgrade, in pixels)\">to survey px</th></tr></thead>";
   const tb = document.createElement("tbody");
   for (const im of tab.data.images) {
     const o = g.images[im.name];
@@ -389,8 +390,8 @@ class View {
       this.text.classList.toggle("bad", o.residual_px > 1);
       acts.push(btn("Remove", "Delete", () => edit("/api/remove", {gcp: g.id, image: this.info.name})));
     } else if (p) {
-      this.text.textContent = `${g.id} predicted${p.surveyed ? " from its surveyed position" : ""} at ` +
-        `col ${fmt(p.at[0])}, row ${fmt(p.at[1])} · Enter accepts`;
+      this.text.textContent = `${g.id} predicted at col ${fmt(p.at[0])}, row ${fmt(p.at[1])}` +
+        `${p.surveyed ? " from its surveyed position" : ""} · Enter accepts`;
       this.text.title = p.how;
       this.text.classList.remove("bad");
       acts.push(btn("Accept", "Enter", () => this.accept()));
@@ -474,9 +475,10 @@ class View {
     }
     const g = gcp(tab.selected), o = this.entry(), p = this.prediction();
     if (!g) return;
-    // where its surveyed position projects, unless that is the prediction drawn below; from an
-    // observation, a dashed line to it: the GCP's error in the upgrade, true scale
-    if (o && o.surveyed && !(p && !o.observed && p.surveyed)) {
+    // where its surveyed position projects (around the prediction drawn below when that is
+    // where it comes from); from an observation, a dashed line to it: the GCP's error in the
+    // upgrade, true scale
+    if (o && o.surveyed) {
       const [x, y] = this.toScreen(...o.surveyed);
       if (o.observed) {
         const [xo, yo] = this.toScreen(...o.observed);
@@ -517,7 +519,7 @@ function mark(ctx, kind, x, y, colour, label) {
     } else if (kind === "predicted") {
       ctx.moveTo(x, y - 8); ctx.lineTo(x + 8, y); ctx.lineTo(x, y + 8); ctx.lineTo(x - 8, y); ctx.closePath();
     } else if (kind === "surveyed") {
-      ctx.moveTo(x, y - 9); ctx.lineTo(x + 8, y + 5); ctx.lineTo(x - 8, y + 5); ctx.closePath();
+      ctx.moveTo(x, y - 13); ctx.lineTo(x + 11, y + 7); ctx.lineTo(x - 11, y + 7); ctx.closePath();
     } else if (kind === "residual") {
       ctx.moveTo(x - 8, y + 6); ctx.lineTo(x + 8, y - 6);
     } else {
