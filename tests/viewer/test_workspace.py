@@ -258,7 +258,8 @@ def _saved_upgrade(app):
 def test_a_gcp_with_no_observation_is_predicted_from_its_surveyed_position_once_upgraded(ws):
     """A new GCP, no observation yet: before an upgrade nothing predicts it; with the run's
     upgrade, its surveyed position predicts it in every image (the state table says "predicted
-    from survey", the workspace's state carries the pixels, /api/predict gives the same). A GCP
+    from survey", the workspace's state carries the pixels, /api/predict, the GCP tab's Predict
+    and its walk to the next image after a first observation give the same). A GCP
     placed in its images also gets, in each, where its surveyed position projects: beside its
     observation, within a pixel or two (the upgrade's error and the clicks' noise)."""
     from aerec_viewer.gcp_session import new_gcp
@@ -300,6 +301,22 @@ def test_a_gcp_with_no_observation_is_predicted_from_its_surveyed_position_once_
         row = next(ln for ln in md.splitlines() if ln.startswith("| G-NEW |"))
         assert [c.strip() for c in row.strip("|").split("|")][2:] == ["predicted from survey"] * len(images)
         assert "*predicted from survey*: where its surveyed position projects" in md
+        # the GCP tab: its state table, Predict, and after a first observation the walk on to
+        # the next image, at the pixel its surveyed position gives there
+        assert "| G-NEW | check | " + " | ".join(["predicted from survey"] * len(images)) in ws.g_state_table.content
+        gp = ws.gcp_panel
+        ws.call(lambda: gp.refresh(select="G-NEW"))
+        ws.call(lambda: setattr(gp.image, "value", images[0]))
+        ws.wait_idle()
+        p = ws.call(gp._predict)
+        assert p.source == FROM_SURVEY and (p.col, p.row) == pytest.approx((pred[images[0]].col, pred[images[0]].row))
+        assert "surveyed position" in p.how and "upgrade" in p.uncertainty()
+        ws.call(lambda: add_observation(ws.session, "G-NEW", images[0], p.col, p.row))
+        assert ws.call(lambda: gp.walk_on("G-NEW")) == images[1]
+        ws.wait_idle()
+        assert gp.prediction is not None and gp.prediction[1].source == FROM_SURVEY
+        assert (gp.prediction[1].col, gp.prediction[1].row) == pytest.approx((pred[images[1]].col, pred[images[1]].row))
+        ws.call(lambda: (ws.picking.close_loupe(), gp.drop_prediction(), undo(ws.session), ws.gcp.changed()))
         # a placed GCP: its surveyed position's pixel beside each observation
         e = next(e for e in st["gcps"] if e["id"] == placed.id)
         gaps = [math.hypot(e["images"][im]["observed"][0] - e["images"][im]["surveyed"][0],
