@@ -296,12 +296,12 @@ class GcpActions:
                       f"({pred.how}; {pred.uncertainty()}); Accept records it, or click the right pixel")
         return pred
 
-    def predict_shown(self, g, image: str, observations: dict | None = None):
+    def predict_shown(self, g, image: str):
         """The GCP g's prediction in `image` as the GCP tab shows it (results.predict_in, refined
-        by matching): from its observations (`observations`, default its own), or from its
-        surveyed position once the image's group is upgraded and it has fewer than 2 there."""
-        return predict_in(self.app.models, image, g.observations if observations is None else observations,
-                          g.llh, self.app.gcp.upgrade_maps(), {im.name: im for im in self.app.site.images})
+        by matching): from its observations, or from its surveyed position once the image's
+        group is upgraded and it has fewer than 2 observations there."""
+        return predict_in(self.app.models, image, g.observations, g.llh, self.app.gcp.upgrade_maps(),
+                          {im.name: im for im in self.app.site.images})
 
     def note_choice(self, client, value: str | None = None, chooser: bool = True) -> None:
         """Remember what this tab chose in the GCP list (the list itself is shared by all tabs);

@@ -18,8 +18,8 @@ import numpy as np
 
 from recon_core.bend.dem import bend_kind
 from recon_core.config import Config
-from recon_core.errors import ReconstructionError
 from recon_core.context import UpgradeMaps
+from recon_core.errors import ReconstructionError
 from recon_core.euclidean.gcp_transfer import (
     FROM_SURVEY,
     Prediction,
