@@ -25,6 +25,7 @@ from typing import Callable
 
 import numpy as np
 
+from recon_core.context import UpgradeMaps
 from recon_core.errors import AerecError
 
 from .display import (
@@ -125,6 +126,7 @@ class ViewerApp:
         self.frame = "affine"
         self.update_hz = update_hz
         self._euclid: dict[int, DisplayTransform] = {}
+        self.saved_upgrade: UpgradeMaps | None = None   # the upgrade OUT holds, once a run is done
         self._auto_frame_tried = False
         self._shifted: dict = {}
         self._offsets: dict[int, float] = {}
@@ -409,6 +411,7 @@ class ViewerApp:
         if not saved or not saved[0]:
             return False
         maps, frame = saved
+        self.saved_upgrade = UpgradeMaps(maps, frame)
         self._euclid = {g: euclidean_display_transform(m.H, frame.origin_llh, m.warp, m.enu_warp)
                         for g, m in maps.items()}
         self.g_frame_sel.disabled = False

@@ -21,6 +21,7 @@ import numpy as np
 
 from recon_core.evaluation.colormap import sequential
 from recon_core.geometry.camera import AffineCamera
+from recon_core.geometry.enu_map import EnuMap
 
 COLOR_MODES = ("image colour", "height", "number of views", "reprojection error")
 
@@ -62,20 +63,9 @@ class DisplayTransform:
         return Y.astype(np.float32)
 
     def inverse(self, Y: np.ndarray) -> np.ndarray:
-        """(n, 3) display points -> (n, 3) float64 frame points (with a warp, by fixed-point
-        iteration: it is smooth and far smaller than the site)."""
-        Y = np.asarray(Y, dtype=np.float64).reshape(-1, 3)
-        if self.post is not None and len(Y):
-            Y0 = Y
-            for _ in range(8):
-                Y = Y0 - self.post(Y)
-        X0 = np.linalg.solve(self.A, (Y - self.b).T).T
-        if self.warp is None or not len(X0):
-            return X0
-        X = X0
-        for _ in range(8):
-            X = X0 - self.warp(X)
-        return X
+        """(n, 3) display points -> (n, 3) float64 frame points: the same map as the upgrade's
+        (recon_core.geometry.enu_map.EnuMap, H = [A | b]), undone as it undoes it."""
+        return EnuMap(np.hstack([self.A, self.b[:, None]]), self.warp, self.post).inverse(Y)
 
 
 def _robust_span(v: np.ndarray) -> float:

@@ -10,7 +10,7 @@ from typing import Callable
 
 import numpy as np
 
-from recon_core.euclidean.gcp_transfer import place_in_other_images
+from recon_core.euclidean.gcp_transfer import FROM_SURVEY, place_in_other_images
 
 from .gcp_session import (
     GcpError,
@@ -29,6 +29,7 @@ from .gcp_session import (
     toggle_role,
     undo,
 )
+from .results import image_group, predict_in, surveyed_in
 
 
 class GcpActions:
@@ -269,8 +270,6 @@ class GcpActions:
 
     def _predict(self):
         """Predict the selected GCP's pixel in the plane's image; Accept records it."""
-        from recon_core.euclidean.gcp_transfer import predict_observation
-
         gid = self.selected()
         if gid is None:
             raise GcpError("select a GCP first")
@@ -280,20 +279,29 @@ class GcpActions:
             raise GcpError("the reference orthoimage gives ground positions, not observations: click "
                            f"{gid}'s spot on it, or choose one of the site's images to predict in")
         g = self.app.session.get(gid)
-        model = next((m for m in self.app.models.values() if image in m.images), None)
-        if model is None:
+        found = image_group(self.app.models, image)
+        if found is None:
             raise GcpError(f"no registered model holds {image} yet (wait for the sparse stage)")
-        images = {im.name: im for im in self.app.site.images}
-        pred = predict_observation(model, images, g.observations, image)
+        pred = self.predict_shown(g, image)
         if pred is None:
-            raise GcpError(f"cannot predict {gid} in {image}: observe it in another image of its "
-                           "group first (where a registered tile contains it)")
+            upgraded = surveyed_in(self.app.gcp.upgrade_maps(), found[0], g.llh) is not None
+            raise GcpError(f"cannot predict {gid} in {image}: "
+                           + ("its surveyed position falls outside every registered tile there; "
+                              if upgraded else "") + "observe it in another image of its group first "
+                           "(where a registered tile contains it)")
         self.prediction = (gid, pred)
         self.accept.disabled = False
         self.accept.label = f"Accept: {gid} at col {pred.col:.2f}, row {pred.row:.2f}"
         self.app.note(f"{gid} predicted in {image} at col {pred.col:.2f}, row {pred.row:.2f} "
                       f"({pred.how}; {pred.uncertainty()}); Accept records it, or click the right pixel")
         return pred
+
+    def predict_shown(self, g, image: str):
+        """The GCP g's prediction in `image` as the GCP tab shows it (results.predict_in, refined
+        by matching): from its observations, or from its surveyed position once the image's
+        group is upgraded and it has fewer than 2 observations there."""
+        return predict_in(self.app.models, image, g.observations, g.llh, self.app.gcp.upgrade_maps(),
+                          {im.name: im for im in self.app.site.images})
 
     def note_choice(self, client, value: str | None = None, chooser: bool = True) -> None:
         """Remember what this tab chose in the GCP list (the list itself is shared by all tabs);
@@ -392,6 +400,13 @@ class GcpActions:
                 hints.update(hint)
         if done:
             merge_last(self.app.session, len(done), f"{gid} placed in {len(done)} image(s) by prediction")
+        # an image left to the operator shows what the GCP tab shows there: the prediction from
+        # the surveyed position when the GCP still has fewer than 2 observations in that group
+        obs = self.app.session.get(gid).observations
+        for image in list(hints):
+            shown = predict_in(self.app.models, image, obs, g.llh, self.app.gcp.upgrade_maps(), refine=False)
+            if shown is not None and shown.source == FROM_SURVEY:
+                hints[image] = shown
         note = (f"{gid}: placed in {', '.join(f'{k} at {v}' for k, v in done.items()) or 'no image'}"
                 + (f"; left to you: {'; '.join(f'{k}: {v}' for k, v in left.items())}" if left else ""))
         self.app.gcp.changed(select=gid, note=note)
@@ -414,14 +429,14 @@ class GcpActions:
 
     def walk_on(self, gid: str, client=None) -> str | None:
         """After an observation of `gid`: open the loupe in the next image of its group(s) that
-        has none, at the GCP's predicted pixel there (from every observation so far); returns
-        that image, or None when every image that can see it has an observation."""
-        from recon_core.euclidean.gcp_transfer import predict_observation
-
+        has none, at the GCP's predicted pixel there (from every observation so far, or from its
+        surveyed position once that image's group is upgraded: predict_shown); returns that
+        image, or None when every image that can see it has an observation."""
         if not self.walk.value or gid not in self.app.session.ids:
             return None
-        obs = self.app.session.get(gid).observations
-        images = {im.name: im for im in self.app.site.images}
+        g = self.app.session.get(gid)
+        obs = g.observations
+        upgrade = self.app.gcp.upgrade_maps()
         order = [im.name for im in self.app.site.images]
         current = self.image.value
         start = order.index(current) + 1 if current in order else 0
@@ -429,10 +444,11 @@ class GcpActions:
         for image in order[start:] + order[:start]:
             if image in obs:
                 continue
-            model = next((m for m in self.app.models.values() if image in m.images), None)
-            if model is None or not any(im in model.images for im in obs):
+            found = image_group(self.app.models, image)
+            if found is None or not (any(im in found[1].images for im in obs)
+                                     or surveyed_in(upgrade, found[0], g.llh) is not None):
                 continue
-            pred = predict_observation(model, images, obs, image)
+            pred = self.predict_shown(g, image)
             if pred is None:
                 skipped.append(image)
                 continue

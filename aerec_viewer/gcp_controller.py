@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from recon_core.context import UpgradeMaps
 from recon_core.errors import AerecError
 from recon_core.euclidean.control import count_words
 from recon_core.io.gcps import picked_positions
@@ -228,12 +229,22 @@ class GcpController:
         return out
 
     # -- upgrade --------------------------------------------------------------------------------
+    def upgrade_maps(self) -> UpgradeMaps | None:
+        """Each upgraded group's map to local ENU and the frame, of the upgrade the viewer
+        shows: the last one the page ran, else the one OUT holds (a finished or reopened run);
+        None before any. What predicts a GCP from its surveyed position."""
+        if self.upgrade is not None:
+            return UpgradeMaps(self.upgrade.maps, self.upgrade.frame)
+        return self.app.saved_upgrade
+
     def update_upgrade_button(self) -> None:
         """The Results tab's Upgrade button and its lists. The readiness (which triangulates every
         control GCP in every group) and the state table are recomputed only when the GCPs, the
-        models or the configuration change, not at every update of the panel."""
+        models, the configuration or the upgrade (its predictions from the surveyed positions)
+        change, not at every update of the panel."""
         app = self.app
-        key = (app.session.version, tuple(id(m) for m in app.models.values()), id(app.cfg))
+        key = (app.session.version, tuple(id(m) for m in app.models.values()), id(app.cfg), id(self.upgrade),
+               id(app.saved_upgrade))
         if key != self._ready_key:
             self._ready_key = key
             ready = gcp_readiness(app.session, app.models)
@@ -245,7 +256,8 @@ class GcpController:
                 return "" if sh is None else f"; **height known only to +- {sh:.1f} m** (from the DEM)"
             app.set_md(app.g_ready_list, "\n".join(f"- {gid} ({app.session.get(gid).role}): {txt}{doubt(gid)}"
                                                     for gid, (_, txt) in ready.items()))
-            app.set_md(app.g_state_table, gcp_state_table(app.session, app.models, sorted(app.session.images)))
+            app.set_md(app.g_state_table, gcp_state_table(app.session, app.models, sorted(app.session.images),
+                                                          self.upgrade_maps()))
         can, n, need = self._readiness
         app.g_upgrade.disabled = not (bool(app.models) and can)
         why = "waiting for the sparse model" if not app.models else count_words(n, need)

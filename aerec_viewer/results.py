@@ -18,7 +18,15 @@ import numpy as np
 
 from recon_core.bend.dem import bend_kind
 from recon_core.config import Config
+from recon_core.context import UpgradeMaps
 from recon_core.errors import ReconstructionError
+from recon_core.euclidean.gcp_transfer import (
+    FROM_SURVEY,
+    Prediction,
+    Surveyed,
+    predict_from_ground,
+    predict_gcp,
+)
 from recon_core.euclidean.upgrade_stage import Upgrade, upgrade_models
 from recon_core.io.gcps import read_gcps_geojson
 from recon_core.io.layout import OutLayout
@@ -86,20 +94,55 @@ def gcp_readiness(session: GcpSession, models: dict) -> dict[str, tuple[bool, st
     return out
 
 
-def predict_unobserved(models: dict, observations: dict, images) -> dict:
-    """Image -> geometric Prediction (recon_core.euclidean.gcp_transfer, no matching: cheap) of a
-    GCP's pixel in each of `images` it is not observed in, from its observations in that image's
-    group; images nothing predicts are left out. What the state table and the image workspace
-    call "predicted"."""
-    from recon_core.euclidean.gcp_transfer import predict_observation
+def image_group(models: dict, image: str) -> tuple[int, object] | None:
+    """(group, model) of the group whose model holds `image`, or None."""
+    return next(((g, m) for g, m in models.items() if image in m.images), None)
 
+
+def surveyed_in(upgrade: UpgradeMaps | None, group: int, llh) -> Surveyed | None:
+    """A GCP's surveyed position (lon, lat, h) with the group's upgrade map, what predicts it
+    from the ground (gcp_transfer.predict_from_ground); None before the group is upgraded."""
+    if upgrade is None or llh is None or group not in upgrade.maps:
+        return None
+    return Surveyed(tuple(float(v) for v in llh), upgrade.maps[group], upgrade.frame)
+
+
+def predict_in(models: dict, image: str, observations: dict, llh=None, upgrade: UpgradeMaps | None = None,
+               images: dict | None = None, refine: bool = True) -> Prediction | None:
+    """A GCP's prediction in `image` as the viewer shows it (gcp_transfer.predict_gcp in the
+    image's group): from its observations there when 2 or more are usable, else, once the group
+    is upgraded (`upgrade`, and the GCP's surveyed position `llh`), from that position, else from
+    its one observation; refined by matching in `images` (name -> ImageInfo) when `refine`. None
+    when no model holds the image or nothing predicts it there."""
+    found = image_group(models, image)
+    if found is None:
+        return None
+    g, model = found
+    return predict_gcp(model, images or {}, observations, image, surveyed_in(upgrade, g, llh), refine=refine)
+
+
+def predict_unobserved(models: dict, observations: dict, images, upgrade: UpgradeMaps | None = None,
+                       llh=None) -> dict:
+    """Image -> geometric Prediction (predict_in, no matching: cheap) of a GCP's pixel in each of
+    `images` it is not observed in; images nothing predicts are left out. What the state table
+    and the image workspace call "predicted"."""
     out = {}
     for im in images:
-        if im in observations:
-            continue
-        model = next((m for m in models.values() if im in m.images), None)
-        seen = {} if model is None else {k: v for k, v in observations.items() if k in model.images}
-        pred = predict_observation(model, {}, seen, im, refine=False) if seen else None
+        pred = None if im in observations else predict_in(models, im, observations, llh, upgrade, refine=False)
+        if pred is not None:
+            out[im] = pred
+    return out
+
+
+def predict_surveyed(models: dict, images, upgrade: UpgradeMaps | None, llh) -> dict:
+    """Image -> Prediction from a GCP's surveyed position alone (predict_from_ground) in each
+    of `images` of an upgraded group where a registered tile sees it, observed or not: where
+    the ground says it is, to set beside where the operator placed it."""
+    out = {}
+    for im in images:
+        found = image_group(models, im)
+        sv = None if found is None else surveyed_in(upgrade, found[0], llh)
+        pred = None if sv is None else predict_from_ground(found[1], sv.emap, sv.frame, sv.llh, im)
         if pred is not None:
             out[im] = pred
     return out
@@ -116,24 +159,31 @@ def residual_vectors(models: dict, observations: dict) -> dict[str, tuple[float,
     return out
 
 
-def gcp_state_table(session: GcpSession, models: dict, images: list[str]) -> str:
+def gcp_state_table(session: GcpSession, models: dict, images: list[str],
+                    upgrade: UpgradeMaps | None = None) -> str:
     """Markdown table: one row per GCP, one column per image: "placed" (usable: a registered tile
     contains it), "unusable" (observed, but no registered tile there), "predicted" (not observed,
     but predictable there from its observations in that image's group: the loupe can show it),
-    "-" (neither), and "picked" (a cloud pick replaces the observations)."""
+    "predicted from survey" (not observed, predicted from its surveyed position through the
+    group's `upgrade`: it has fewer than 2 observations there), "-" (neither), and "picked" (a
+    cloud pick replaces the observations)."""
     if not session.gcps:
         return ""
     head = "| GCP | role | " + " | ".join(images) + " |"
     rows = [head, "|---|---|" + "---|" * len(images)]
+    surveyed = False
     for g in session.gcps:
         usable: set[str] = set()
         for m in models.values():
             usable.update(usable_observations(m, g.observations)[0])
-        predicted = predict_unobserved(models, g.observations, images)
+        predicted = predict_unobserved(models, g.observations, images, upgrade, g.llh)
         cells = []
         for im in images:
             if im not in g.observations:
-                cells.append("predicted" if im in predicted else "-")
+                p = predicted.get(im)
+                cells.append("-" if p is None else "predicted from survey" if p.source == FROM_SURVEY
+                             else "predicted")
+                surveyed |= p is not None and p.source == FROM_SURVEY
             elif not models or im in usable:
                 cells.append("placed")
             else:
@@ -141,6 +191,9 @@ def gcp_state_table(session: GcpSession, models: dict, images: list[str]) -> str
         picked = " (picked)" if g.affine_picked else ""
         role = g.role if g.enabled else f"{g.role}, **disabled**"
         rows.append(f"| {g.id}{picked} | {role} | " + " | ".join(cells) + " |")
+    if surveyed:
+        rows.append("\n*predicted from survey*: where its surveyed position projects through the upgrade "
+                    "(it has fewer than 2 observations in that date group)")
     return "\n".join(rows)
 
 

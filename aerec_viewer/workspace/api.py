@@ -61,7 +61,7 @@ class WorkspaceApi:
         self.tiles = TileSource(app.images)
         self._lock = threading.Lock()
         self._key: tuple | None = None
-        self._upgrade = None
+        self._upgrade: tuple = (None, None)     # (the page's last upgrade, OUT's) the version saw
         self._version = 0
         self._state: tuple[int, bytes] | None = None      # (version, state JSON)
 
@@ -69,12 +69,14 @@ class WorkspaceApi:
     def version(self) -> int:
         """A counter that grows whenever what the page shows may have changed: the GCP set (any
         edit, undo, redo, from any tab or the 3D viewer), the models (new predictions) or the
-        upgrade (new errors in metres). Cheap: the page polls it."""
+        upgrade (new errors in metres, new predictions from the surveyed positions): the one the
+        page ran or the one OUT holds. Cheap: the page polls it."""
         app = self.app
         key = (app.session.version, app._models_version)
+        up = (app.gcp.upgrade, app.saved_upgrade)
         with self._lock:
-            if key != self._key or app.gcp.upgrade is not self._upgrade:
-                self._key, self._upgrade = key, app.gcp.upgrade
+            if key != self._key or any(a is not b for a, b in zip(up, self._upgrade)):
+                self._key, self._upgrade = key, up
                 self._version += 1
             return self._version
 
@@ -86,7 +88,7 @@ class WorkspaceApi:
             s = app.session
             up = app.gcp.upgrade
             return Snapshot(self.version(), copy.deepcopy(s.gcps), dict(s.images),
-                            app.gcp_panel._registered_images(), dict(app.models), up,
+                            app.gcp_panel._registered_images(), dict(app.models), up, app.gcp.upgrade_maps(),
                             up is not None and up.gcps_key != gcps_key(s), can_undo(s), can_redo(s),
                             app.site.name)
         return self.on_update_thread(take)
@@ -105,22 +107,23 @@ class WorkspaceApi:
         return body
 
     def predict(self, gcp: str, image: str) -> dict:
-        """The GCP's pixel in `image` predicted from its other observations and refined by
-        matching (recon_core.euclidean.gcp_transfer.predict_observation, as the GCP tab's
-        Predict): slower than the state's geometric prediction, asked for one image at a time."""
-        from recon_core.euclidean.gcp_transfer import predict_observation
+        """The GCP's pixel in `image` as the GCP tab's Predict gives it (results.predict_in): from
+        its other observations and refined by matching, or from its surveyed position once the
+        image's group is upgraded and it has fewer than 2 observations there; slower than the
+        state's geometric prediction, asked for one image at a time."""
+        from ..results import image_group, predict_in
 
         self.check_image(image)
-        obs = self.on_update_thread(lambda: dict(self.existing(gcp).observations))
-        model = next((m for m in self.app.models.values() if image in m.images), None)
-        if model is None:
+        g = self.on_update_thread(lambda: copy.deepcopy(self.existing(gcp)))
+        if image_group(self.app.models, image) is None:
             raise conflict(f"no registered model holds {image} yet (wait for the sparse stage)")
-        pred = predict_observation(model, {im.name: im for im in self.app.site.images}, obs, image)
+        pred = predict_in(self.app.models, image, g.observations, g.llh, self.app.gcp.upgrade_maps(),
+                          {im.name: im for im in self.app.site.images})
         if pred is None:
             raise conflict(f"cannot predict {gcp} in {image}: observe it in another image of its "
                            "date group first")
         return {"gcp": gcp, "image": image, "col": pred.col, "row": pred.row, "how": pred.how,
-                "uncertainty": pred.uncertainty()}
+                "uncertainty": pred.uncertainty(), "source": pred.source}
 
     def tile(self, image: str, level: int, tx: int, ty: int, **stretch) -> bytes:
         self.check_image(image)

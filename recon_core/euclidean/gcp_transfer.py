@@ -10,8 +10,14 @@
    sub-pixel by a parabola through the peak. The refinement is kept only when the correlation is
    clear (score and margin); otherwise the geometric prediction stands.
 
-Part of the core (no display here): the viewer's GCP panel calls `predict_observation` and shows
-the result for the operator to accept or adjust; any other front end (a script, a CLI) can too.
+Once the group has a Euclidean upgrade, a GCP's surveyed position predicts it too, as a
+georeferenced model does in Metashape (`predict_from_ground`): its ENU position through the
+inverse of the group's upgrade map to the affine frame, projected as in 2. That needs no
+observation at all; where the GCP has fewer than two, it is the one to show (`predict_gcp`).
+The gap between an observation and this prediction is what the GCP's error in the upgrade is.
+
+Part of the core (no display here): the viewer's GCP panel calls `predict_gcp` and shows the
+result for the operator to accept or adjust; any other front end (a script, a CLI) can too.
 """
 
 from __future__ import annotations
@@ -22,7 +28,15 @@ import cv2
 import numpy as np
 
 from recon_core.euclidean.georef import triangulate_gcp
+from recon_core.geometry.enu_map import EnuMap
+from recon_core.geometry.geodesy import LocalFrame
 from recon_core.io.site import ImageInfo, read_window
+
+# Prediction.source: from the GCP's observations in the group's other images, or from its
+# surveyed position through the group's upgrade
+FROM_OBSERVATIONS = "observations"
+FROM_SURVEY = "surveyed"
+SURVEYED_HOW = "from its surveyed position, through the upgrade"
 
 
 @dataclass(frozen=True)
@@ -37,10 +51,14 @@ class Prediction:
                                     # well they agree. From one observation none: the spread of
                                     # the nearby sparse depths did not predict the error (measured
                                     # on `tiny`: 17 px stated for 1 px off, 0.3 px for 45 px off)
+    source: str = FROM_OBSERVATIONS  # FROM_OBSERVATIONS or FROM_SURVEY (predict_from_ground)
 
     def uncertainty(self) -> str:
         """Plain words for the panel: how well the observations it comes from agree, how far
-        matching moved it, or that nothing tells how far off it is."""
+        matching moved it, that it is as good as the upgrade, or that nothing tells how far off
+        it is."""
+        if self.source == FROM_SURVEY:
+            return "as far off as the upgrade's error at this GCP: check it in the loupe"
         parts = []
         if self.reach_px is not None:
             parts.append(f"its observations agree to {max(self.reach_px, 0.1):.1f} px")
@@ -69,6 +87,28 @@ def _project(model, t: int, X: np.ndarray) -> np.ndarray:
     the SfM's within-tile correction there (what the camera was fitted to is pixel - correction)."""
     p = model.camera(t).project(X)
     return p + model.correction_at(t, p)
+
+
+def _project_in_image(model, image: str, X: np.ndarray) -> tuple[int, np.ndarray] | None:
+    """(the registered tile of `image` that sees the affine point X (3,), X's pixel by that
+    tile): projected by any registered tile of the image first, then by the one that contains
+    that projection, once more when the pixel then falls outside it; None when the image has
+    no registered tile there. The pixel may still lie outside the tile (the caller checks
+    when it matters: model.tiles[t].contains)."""
+    cand = [t for t, tile in enumerate(model.tiles) if tile.image == image and model.registered[t]]
+    if not cand:
+        return None
+    guess = _project(model, cand[0], X[None])[0]
+    t = _tile_camera(model, image, guess)
+    if t is None:
+        return None
+    p = _project(model, t, X[None])[0]
+    if not model.tiles[t].contains(p[None])[0]:
+        t = _tile_camera(model, image, p)
+        if t is None:
+            return None
+        p = _project(model, t, X[None])[0]
+    return t, p
 
 
 def _near_ray(model, t: int, cr, radius_px: float) -> np.ndarray:
@@ -198,21 +238,10 @@ def predict_observation(model, images: dict[str, ImageInfo], observations: dict,
                 break
     if X is None:
         return None
-    # the target tile: project with any registered tile of the target first, then take the one
-    # that contains the projection
-    cand = [t for t, tile in enumerate(model.tiles) if tile.image == target and model.registered[t]]
-    if not cand:
+    got = _project_in_image(model, target, X)
+    if got is None:                         # no registered tile of the target sees the point
         return None
-    guess = _project(model, cand[0], X[None])[0]
-    tb = _tile_camera(model, target, guess)
-    if tb is None:                          # no registered tile of the target sees the point
-        return None
-    p = _project(model, tb, X[None])[0]
-    if not model.tiles[tb].contains(p[None])[0]:
-        tb = _tile_camera(model, target, p)
-        if tb is None:
-            return None
-        p = _project(model, tb, X[None])[0]
+    tb, p = got
     geometric = (float(p[0]), float(p[1]))
     if not refine or span is None:
         # triangulated from >= 2 images, the projection is already as good as the clicks
@@ -240,6 +269,58 @@ def predict_observation(model, images: dict[str, ImageInfo], observations: dict,
     (c, r), score = got
     return Prediction(target, c, r, geometric, score, how + f"; refined by matching {src} (NCC {score:.2f})",
                       reach)
+
+
+@dataclass(frozen=True)
+class Surveyed:
+    """A GCP's surveyed position and the upgrade of a group that carries it to that group's
+    affine frame: what `predict_from_ground` needs besides the model."""
+
+    llh: tuple[float, float, float]   # lon, lat (degrees), ellipsoidal height (m)
+    emap: EnuMap                      # the group's whole upgrade (GroupUpgrade.map)
+    frame: LocalFrame                 # the upgrade's local ENU frame
+
+
+def predict_from_ground(model, emap: EnuMap, frame: LocalFrame, gcp_llh, target: str) -> Prediction | None:
+    """A GCP's pixel in `target` (an image of the model's group) from its surveyed position
+    gcp_llh (lon, lat, h): to local ENU in `frame`, through the inverse of the group's upgrade
+    map `emap` to the affine frame, projected by the registered tile of the target that
+    contains it. None when the target is not the model's or no registered tile contains the
+    projection. Needs no observation: after an upgrade every GCP is predicted in every image,
+    and an observation's distance to this prediction is the GCP's error in the upgrade, in
+    pixels."""
+    if target not in model.images:
+        return None
+    enu = frame.geodetic_to_enu(np.asarray(gcp_llh, np.float64).reshape(1, 3))
+    X = emap.inverse(enu)[0]
+    got = _project_in_image(model, target, X)
+    if got is None:
+        return None
+    t, p = got
+    if not model.tiles[t].contains(p[None])[0]:
+        return None
+    at = (float(p[0]), float(p[1]))
+    return Prediction(target, *at, at, None, SURVEYED_HOW, source=FROM_SURVEY)
+
+
+def n_usable(model, observations: dict, target: str | None = None) -> int:
+    """How many of a GCP's observations (other than in `target`) the model can use: in an image
+    of its group, where a registered tile contains the pixel."""
+    return sum(1 for im, cr in observations.items()
+               if im != target and im in model.images and model.tiles_at(im, cr))
+
+
+def predict_gcp(model, images: dict[str, ImageInfo], observations: dict, target: str,
+                surveyed: Surveyed | None = None, refine: bool = True) -> Prediction | None:
+    """The prediction to show of a GCP in `target`: from its own observations in the group's
+    other images when it has 2 or more usable ones there (triangulated: what the operator's
+    clicks say), else, when the group has an upgrade (`surveyed`), from its surveyed position
+    (predict_from_ground); else from its one observation (predict_observation), or None."""
+    if surveyed is not None and n_usable(model, observations, target) < 2:
+        got = predict_from_ground(model, surveyed.emap, surveyed.frame, surveyed.llh, target)
+        if got is not None:
+            return got
+    return predict_observation(model, images, observations, target, refine=refine)
 
 
 def observation_residuals(model, observations: dict) -> dict[str, tuple[float, float]]:

@@ -117,6 +117,24 @@ class EnuWarp:
         return cls(np.asarray(d["centre"], np.float64), float(d["half"]), np.asarray(d["coef"], np.float64))
 
 
+def undo_displacement(D, Z: np.ndarray, max_iter: int = 50) -> np.ndarray:
+    """(n, 3) points X with X + D(X) = Z, D a smooth displacement field far smaller than the
+    site (a BendWarp, an EnuWarp: centimetres to metres over kilometres), by the fixed-point
+    iteration X <- Z - D(X): it contracts by the warp's gradient (~1e-3), so a few steps
+    reach float64 precision; it stops once a step moves no point by more than 1e-12 of the
+    coordinates' scale."""
+    Z = np.asarray(Z, dtype=np.float64)
+    tol = 1e-12 * (1.0 + float(np.abs(Z).max(initial=0.0)))
+    X = Z
+    for _ in range(max_iter):
+        X_new = Z - D(X)
+        done = float(np.abs(X_new - X).max(initial=0.0)) <= tol
+        X = X_new
+        if done:
+            break
+    return X
+
+
 @dataclass
 class EnuMap:
     """The Euclidean upgrade of a group: affine frame -> local ENU metres,
@@ -135,6 +153,18 @@ class EnuMap:
         if self.enu_warp is not None and len(Y):
             Y = Y + self.enu_warp(Y)
         return Y
+
+    def inverse(self, Y: np.ndarray) -> np.ndarray:
+        """(n, 3) affine-frame points of local ENU positions Y (n, 3): the map undone step by
+        step, each warp by fixed-point iteration (`undo_displacement`), H exactly. What a
+        position known on the ground (a GCP's survey) is in the frame the cameras project."""
+        Y = np.asarray(Y, dtype=np.float64).reshape(-1, 3)
+        if self.enu_warp is not None and len(Y):
+            Y = undo_displacement(self.enu_warp, Y)
+        X = np.linalg.solve(self.H[:3, :3], (Y - self.H[:3, 3]).T).T
+        if self.warp is not None and len(X):
+            X = undo_displacement(self.warp, X)
+        return X
 
     def same(self, other: "EnuMap") -> bool:
         """The same map (one joint reconstruction's groups share one)."""

@@ -242,3 +242,88 @@ def test_the_gcp_tab_links_to_the_workspace_and_the_page_is_served(ws):
     assert status == 200 and b"/static/workspace.js" in html
     for name in ("workspace.js", "workspace.css"):
         assert call(ws, f"/static/{name}")[0] == 200
+
+
+def _saved_upgrade(app):
+    """The upgrade the reopened run holds (OUT/upgrade), once the viewer has read it."""
+    t0 = time.time()
+    while app.saved_upgrade is None and time.time() - t0 < 60:
+        time.sleep(0.1)
+        app.wait_idle()
+    up = app.call(app.gcp.upgrade_maps)
+    assert up is not None, "the reopened run's upgrade was not read"
+    return up
+
+
+def test_a_gcp_with_no_observation_is_predicted_from_its_surveyed_position_once_upgraded(ws):
+    """A new GCP, no observation yet: before an upgrade nothing predicts it; with the run's
+    upgrade, its surveyed position predicts it in every image (the state table says "predicted
+    from survey", the workspace's state carries the pixels, /api/predict, the GCP tab's Predict
+    and its walk to the next image after a first observation give the same). A GCP
+    placed in its images also gets, in each, where its surveyed position projects: beside its
+    observation, within a pixel or two (the upgrade's error and the clicks' noise)."""
+    from aerec_viewer.gcp_session import new_gcp
+    from aerec_viewer.results import gcp_state_table
+    from recon_core.euclidean.gcp_transfer import FROM_SURVEY
+
+    up = _saved_upgrade(ws)
+    images = list(ws.session.images)
+    placed = next(g for g in ws.session.gcps if len(g.observations) >= 2)
+    enu = up.frame.geodetic_to_enu(placed.llh[None])[0] + [2.0, -1.0, 0.0]      # 2 m east, 1 m south
+    lon, lat, h = up.frame.enu_to_geodetic(enu[None])[0]
+    assert predict_unobserved(ws.models, {}, images, None, (lon, lat, h)) == {}
+    pred = predict_unobserved(ws.models, {}, images, up, (lon, lat, h))
+    assert set(pred) == set(images) and all(p.source == FROM_SURVEY for p in pred.values())
+    saved = ws.saved_upgrade
+    ws.call(lambda: (new_gcp(ws.session, "G-NEW", x=lon, y=lat, h=h, role="check"), ws.gcp.changed()))
+    try:
+        # before an upgrade (none run, none read from OUT): no prediction anywhere
+        ws.call(lambda: setattr(ws, "saved_upgrade", None))
+        entry = next(e for e in call(ws, "/api/state")[1]["gcps"] if e["id"] == "G-NEW")
+        assert entry["images"] == {}
+        md = gcp_state_table(ws.session, ws.models, images, None)
+        row = next(ln for ln in md.splitlines() if ln.startswith("| G-NEW |"))
+        assert [c.strip() for c in row.strip("|").split("|")][2:] == ["-"] * len(images)
+        assert "cannot predict G-NEW" in refused(ws, 409, f"/api/predict?gcp=G-NEW&image={images[0]}")
+        # the run's upgrade: predicted from its surveyed position in every image
+        ws.call(lambda: setattr(ws, "saved_upgrade", saved))
+        st = call(ws, "/api/state")[1]
+        entry = next(e for e in st["gcps"] if e["id"] == "G-NEW")
+        assert set(entry["images"]) == set(images)
+        for im, o in entry["images"].items():
+            assert o["observed"] is None and o["source"] == "surveyed" and "surveyed position" in o["how"]
+            assert o["predicted"] == pytest.approx([pred[im].col, pred[im].row], abs=1e-3)
+            assert o["surveyed"] == o["predicted"]
+        got = call(ws, f"/api/predict?gcp=G-NEW&image={images[0]}")[1]
+        assert got["source"] == "surveyed" and (got["col"], got["row"]) == pytest.approx(
+            (pred[images[0]].col, pred[images[0]].row), abs=1e-6)
+        md = gcp_state_table(ws.session, ws.models, images, up)
+        row = next(ln for ln in md.splitlines() if ln.startswith("| G-NEW |"))
+        assert [c.strip() for c in row.strip("|").split("|")][2:] == ["predicted from survey"] * len(images)
+        assert "*predicted from survey*: where its surveyed position projects" in md
+        # the GCP tab: its state table, Predict, and after a first observation the walk on to
+        # the next image, at the pixel its surveyed position gives there
+        assert "| G-NEW | check | " + " | ".join(["predicted from survey"] * len(images)) in ws.g_state_table.content
+        gp = ws.gcp_panel
+        ws.call(lambda: gp.refresh(select="G-NEW"))
+        ws.call(lambda: setattr(gp.image, "value", images[0]))
+        ws.wait_idle()
+        p = ws.call(gp._predict)
+        assert p.source == FROM_SURVEY and (p.col, p.row) == pytest.approx((pred[images[0]].col, pred[images[0]].row))
+        assert "surveyed position" in p.how and "upgrade" in p.uncertainty()
+        ws.call(lambda: add_observation(ws.session, "G-NEW", images[0], p.col, p.row))
+        assert ws.call(lambda: gp.walk_on("G-NEW")) == images[1]
+        ws.wait_idle()
+        assert gp.prediction is not None and gp.prediction[1].source == FROM_SURVEY
+        assert (gp.prediction[1].col, gp.prediction[1].row) == pytest.approx((pred[images[1]].col, pred[images[1]].row))
+        ws.call(lambda: (ws.picking.close_loupe(), gp.drop_prediction(), undo(ws.session), ws.gcp.changed()))
+        # a placed GCP: its surveyed position's pixel beside each observation
+        e = next(e for e in st["gcps"] if e["id"] == placed.id)
+        gaps = [math.hypot(e["images"][im]["observed"][0] - e["images"][im]["surveyed"][0],
+                           e["images"][im]["observed"][1] - e["images"][im]["surveyed"][1])
+                for im in placed.observations]
+        assert max(gaps) < 2.0, gaps
+    finally:
+        ws.call(lambda: setattr(ws, "saved_upgrade", saved))
+        ws.call(lambda: (undo(ws.session), ws.gcp.changed()))
+    assert "G-NEW" not in ws.session.ids

@@ -196,3 +196,42 @@ def test_an_arrow_key_nudges_the_observation_by_a_tenth_of_a_pixel(ws_browser):
         wait_for(lambda: s.get(gid).observations[image] == (c0, r0), 10, "the undo")
     finally:
         page.close()
+
+
+def test_after_an_upgrade_a_gcp_without_observations_is_predicted_from_its_surveyed_position(ws_browser):
+    """With the reopened run's upgrade, a new GCP with no observation is predicted in every
+    image from its surveyed position (its view says so, Enter records that pixel), and a placed
+    GCP's views say how far each observation lies from where its surveyed position projects."""
+    from aerec_viewer.gcp_session import new_gcp, undo
+
+    app, ctx = ws_browser
+    s = app.session
+    up = wait_for(lambda: app.saved_upgrade or app.wait_idle(), 60, "the run's upgrade")
+    placed = next(g for g in s.gcps if len(g.observations) >= 2)
+    enu = up.frame.geodetic_to_enu(placed.llh[None])[0] + [3.0, 2.0, 0.0]
+    lon, lat, h = up.frame.enu_to_geodetic(enu[None])[0]
+    app.call(lambda: (new_gcp(s, "G-SURVEY", x=lon, y=lat, h=h, role="check"), app.gcp.changed()))
+    n_undo = len(s._undo)
+    page = open_tab(app, ctx)
+    try:
+        choose(page, "G-SURVEY")
+        images = list(s.images)
+        page.wait_for_function("[...document.querySelectorAll('.view .what')].every(e => "
+                               "/^G-SURVEY predicted at .* from its surveyed position/.test(e.textContent))",
+                               timeout=10_000)
+        want = page.evaluate(f"workspace.tab.data.gcps.find(g => g.id === 'G-SURVEY').images[{images[0]!r}].predicted")
+        page.mouse.move(*centre_of(page, images[0]))
+        page.keyboard.press("Enter")
+        settle(page)
+        wait_for(lambda: images[0] in s.get("G-SURVEY").observations, 10, "Enter on the prediction")
+        assert s.get("G-SURVEY").observations[images[0]] == pytest.approx(tuple(want), abs=1e-3)
+        choose(page, placed.id)
+        page.wait_for_function("[...document.querySelectorAll('.view .what')].some(e => "
+                               "/px from its surveyed position/.test(e.textContent))", timeout=10_000)
+        assert page.locator('canvas.icon[data-icon="surveyed"]').count() == 1
+        assert not page.errors, page.errors
+    finally:
+        page.close()
+        while len(s._undo) >= n_undo:
+            app.call(lambda: (undo(s), app.gcp.changed()))
+    assert "G-SURVEY" not in s.ids

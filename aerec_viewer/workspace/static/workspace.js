@@ -9,7 +9,7 @@ const POLL_MS = 700;          // version poll
 const DRAG_PX = 4;            // a press that moves less than this is a click
 const LOCATED_ZOOM = 4;       // screen px per image px when a canvas centres on the GCP
 const MAX_ZOOM = 64;
-const COLOURS = {observed: "#ffd400", predicted: "#00e5ff", residual: "#ff8c00",
+const COLOURS = {observed: "#ffd400", predicted: "#00e5ff", residual: "#ff8c00", surveyed: "#ff5cf0",
                  control: "#e53935", check: "#1e88e5", off: "#9e9e9e"};
 
 const tab = {
@@ -162,20 +162,27 @@ function renderDetails() {
     + (g.sigma_h_m !== null ? `; its height is known only to ±${g.sigma_h_m.toFixed(1)} m` : "")
     + (g.picked_on_cloud.length ? "; picked on the cloud (that pick replaces its image observations)" : "");
   const t = document.createElement("table");
-  t.innerHTML = "<thead><tr><th>image</th><th>observed col, row</th><th>predicted col, row</th><th>residual px</th></tr></thead>";
+  t.innerHTML = "<thead><tr><th>image</th><th title=\"col, row\">observed</th><th title=\"col, row\">predicted</th>" +
+    "<th title=\"observed minus predicted\">residual px</th>" +
+    "<th title=\"after an upgrade: from the observation to where its surveyed position projects (its error in the upgrade, in pixels)\">to survey px</th></tr></thead>";
   const tb = document.createElement("tbody");
   for (const im of tab.data.images) {
     const o = g.images[im.name];
     const tr = document.createElement("tr");
     const cells = [im.name, o && o.observed ? `${fmt(o.observed[0])}, ${fmt(o.observed[1])}` : "–",
                    o && o.predicted ? `${fmt(o.predicted[0])}, ${fmt(o.predicted[1])}` : "–",
-                   o && o.residual_px !== null ? fmt(o.residual_px) : "–"];
+                   o && o.residual_px !== null ? fmt(o.residual_px) : "–", fmt(surveyGap(o))];
     for (const c of cells) { const td = document.createElement("td"); td.textContent = c; tr.append(td); }
-    if (o && o.residual_px > 1) tr.lastChild.classList.add("bad");
+    if (o && o.residual_px > 1) tr.children[3].classList.add("bad");
     tb.append(tr);
   }
   t.append(tb);
   el.replaceChildren(h, p, t);
+}
+
+// pixels from the observation to where the surveyed position projects (null: either missing)
+function surveyGap(o) {
+  return o && o.observed && o.surveyed ? Math.hypot(o.observed[0] - o.surveyed[0], o.observed[1] - o.surveyed[1]) : null;
 }
 
 function renderHelp() {
@@ -352,7 +359,7 @@ class View {
       const ref = tab.refined.get(`${tab.selected}|${this.info.name}|${tab.data.version}`);
       if (ref) return {at: [ref.col, ref.row], how: `${ref.how} (${ref.uncertainty})`};
     }
-    return {at: o.predicted, how: o.how};
+    return {at: o.predicted, how: o.how, surveyed: o.source === "surveyed"};
   }
 
   accept() {
@@ -375,12 +382,16 @@ class View {
     const acts = [btn("Centre", "C", () => { this.locate(this.anchor()); this.draw(); })];
     if (!g) this.text.textContent = "choose a GCP";
     else if (o && o.observed) {
+      const gap = surveyGap(o);
       this.text.textContent = `${g.id} at col ${fmt(o.observed[0])}, row ${fmt(o.observed[1])}` +
-        (o.residual_px !== null ? ` · residual ${fmt(o.residual_px)} px` : "");
+        (o.residual_px !== null ? ` · residual ${fmt(o.residual_px)} px` : "") +
+        (gap !== null ? ` · ${fmt(gap)} px from its surveyed position` : "");
+      this.text.title = gap !== null ? "the surveyed position: where its ground coordinates project through the upgrade" : "";
       this.text.classList.toggle("bad", o.residual_px > 1);
       acts.push(btn("Remove", "Delete", () => edit("/api/remove", {gcp: g.id, image: this.info.name})));
     } else if (p) {
-      this.text.textContent = `${g.id} predicted at col ${fmt(p.at[0])}, row ${fmt(p.at[1])} · Enter accepts`;
+      this.text.textContent = `${g.id} predicted at col ${fmt(p.at[0])}, row ${fmt(p.at[1])}` +
+        `${p.surveyed ? " from its surveyed position" : ""} · Enter accepts`;
       this.text.title = p.how;
       this.text.classList.remove("bad");
       acts.push(btn("Accept", "Enter", () => this.accept()));
@@ -464,6 +475,18 @@ class View {
     }
     const g = gcp(tab.selected), o = this.entry(), p = this.prediction();
     if (!g) return;
+    // where its surveyed position projects (around the prediction drawn below when that is
+    // where it comes from); from an observation, a dashed line to it: the GCP's error in the
+    // upgrade, true scale
+    if (o && o.surveyed) {
+      const [x, y] = this.toScreen(...o.surveyed);
+      if (o.observed) {
+        const [xo, yo] = this.toScreen(...o.observed);
+        ctx.save(); ctx.setLineDash([4, 3]); ctx.strokeStyle = COLOURS.surveyed; ctx.lineWidth = 1.5;
+        ctx.beginPath(); ctx.moveTo(xo, yo); ctx.lineTo(x, y); ctx.stroke(); ctx.restore();
+      }
+      mark(ctx, "surveyed", x, y, COLOURS.surveyed, "");
+    }
     if (p) {
       const [x, y] = this.toScreen(...p.at);
       if (o && o.observed) {
@@ -481,7 +504,8 @@ class View {
 }
 
 // The markers: shapes differ, not only colours. `kind`: observed (a crosshair open at its
-// centre, so the pixel stays visible), predicted (a diamond), others (a small ring).
+// centre, so the pixel stays visible), predicted (a diamond), surveyed (a triangle, the survey
+// mark's sign), others (a small ring).
 function mark(ctx, kind, x, y, colour, label) {
   ctx.save();
   ctx.lineWidth = 2;
@@ -494,6 +518,8 @@ function mark(ctx, kind, x, y, colour, label) {
       for (const [dx, dy] of [[1, 0], [-1, 0], [0, 1], [0, -1]]) { ctx.moveTo(x + 3 * dx, y + 3 * dy); ctx.lineTo(x + 14 * dx, y + 14 * dy); }
     } else if (kind === "predicted") {
       ctx.moveTo(x, y - 8); ctx.lineTo(x + 8, y); ctx.lineTo(x, y + 8); ctx.lineTo(x - 8, y); ctx.closePath();
+    } else if (kind === "surveyed") {
+      ctx.moveTo(x, y - 13); ctx.lineTo(x + 11, y + 7); ctx.lineTo(x - 11, y + 7); ctx.closePath();
     } else if (kind === "residual") {
       ctx.moveTo(x - 8, y + 6); ctx.lineTo(x + 8, y - 6);
     } else {
@@ -531,7 +557,7 @@ async function askRefined(g) {
   try {
     for (const [im, o] of Object.entries(g.images)) {
       const key = `${g.id}|${im}|${tab.data.version}`;
-      if (o.observed || !o.predicted || tab.refined.has(key) || g.id !== tab.selected) continue;
+      if (o.observed || !o.predicted || o.source === "surveyed" || tab.refined.has(key) || g.id !== tab.selected) continue;
       try {
         tab.refined.set(key, await api(`/api/predict?gcp=${encodeURIComponent(g.id)}&image=${encodeURIComponent(im)}`));
       } catch (err) {
@@ -619,7 +645,8 @@ function centreAll() {
 function drawLegend() {
   for (const cv of document.querySelectorAll("canvas.icon")) {
     const ctx = cv.getContext("2d"), kind = cv.dataset.icon;
-    const colour = {observed: COLOURS.observed, predicted: COLOURS.predicted, residual: COLOURS.residual}[kind];
+    const colour = {observed: COLOURS.observed, predicted: COLOURS.predicted, residual: COLOURS.residual,
+                    surveyed: COLOURS.surveyed}[kind];
     ctx.fillStyle = "#202124"; ctx.fillRect(0, 0, cv.width, cv.height);
     if (kind === "others") {
       mark(ctx, "others", 7, 11, COLOURS.control, "");
