@@ -18,6 +18,7 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from recon_core.errors import InputError
 from recon_core.model.images import ImageInfo
@@ -54,7 +55,7 @@ class GroundReference:
         lon, lat = self._to_wgs84.transform(e, n)
         return float(lon), float(lat)
 
-    def pixel_of(self, lon: np.ndarray, lat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def pixel_of(self, lon: npt.ArrayLike, lat: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """(col, row) in the orthoimage of points (lon, lat): where GCPs' ground positions lie."""
         e, n = self._from_wgs84.transform(np.asarray(lon, np.float64), np.asarray(lat, np.float64))
         inv = ~self.transform
