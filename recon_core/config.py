@@ -377,7 +377,7 @@ def config_from_dict(d: dict, *, unknown: list[str] | None = None) -> Config:
             raise KeyError(f"{old} and {new} are one parameter (its new name is {new}): give it once")
     cfg = Config()
     for key, v in flat.items():
-        key = LEGACY_KEYS.get(key, key)
+        key = LEGACY_KEYS[key] if key in LEGACY_KEYS else key
         if key in REMOVED_KEYS:
             continue
         if key in RETIRED_KEYS:
