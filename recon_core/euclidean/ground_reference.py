@@ -16,12 +16,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from recon_core.errors import InputError
 from recon_core.model.images import ImageInfo
+
+if TYPE_CHECKING:
+    from affine import Affine
+
+    from recon_core.bend.dem import ReferenceDem
 
 ORTHO_NAME = "reference orthoimage"
 
@@ -32,8 +38,8 @@ class GroundReference:
 
     ortho: ImageInfo              # named "reference orthoimage: <file>"
     crs: object
-    transform: object
-    dem: object | None = None     # dem_bend.ReferenceDem
+    transform: Affine
+    dem: ReferenceDem | None = None
 
     @cached_property
     def _to_wgs84(self):
