@@ -21,7 +21,7 @@ from collections import deque
 from concurrent.futures import Future
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -46,6 +46,9 @@ from .scene import SceneView, tile_windows_for
 from .views import ClientViews
 from .worker import DisplaySnapshot, ReconWorker
 from .workspace import WorkspaceServer
+
+if TYPE_CHECKING:
+    from recon_core.euclidean.ground_reference import GroundReference
 
 log = logging.getLogger("aerec.viewer")
 
@@ -87,7 +90,7 @@ class ViewerApp:
     def __init__(self, out: str | Path, site: str | Path | None = None, cfg=None, *,
                  mode: str = "run", host: str = "127.0.0.1", port: int = 8080,
                  update_hz: float = 4.0, until: str | None = None, budget: int | None = None,
-                 reference=None, workspace_port: int | None = None):
+                 reference: GroundReference | None = None, workspace_port: int | None = None):
         import viser
 
         from recon_core.config import Config, config_from_dict
@@ -125,7 +128,7 @@ class ViewerApp:
         self._models_version = 0
         self.frame = "affine"
         self.update_hz = update_hz
-        self._euclid: dict[int, DisplayTransform] = {}
+        self._euclid: dict[int, DisplayTransform | None] = {}
         self.saved_upgrade: UpgradeMaps | None = None   # the upgrade OUT holds, once a run is done
         self._auto_frame_tried = False
         self._shifted: dict = {}
@@ -143,7 +146,7 @@ class ViewerApp:
                                          if workspace_port is None else workspace_port)
         self.picking = PickingView(self)     # the picking plane and its loupe (/gcp/plane)
         self.marks = GcpMarks(self)          # every other /gcp node
-        self._gui_cache: dict[str, object] = {}
+        self._gui_cache: dict[int, object] = {}   # id(handle) -> the content it shows
         self._build_gui()
         self.views = ClientViews(self)       # each tab's camera: framing, zoom at the cursor, the drag guard
 
@@ -318,6 +321,7 @@ class ViewerApp:
         if gs is None or gs.transform is None or first is None:
             return 0.0, 0.0
         im = self.images.images.get(first.image)
+        assert im is not None                # a tile's image is one of the site's
         fp = image_footprint(gs.transform, first.camera, im.width, im.height)
         return float(fp[:, 0].min()), float(fp[:, 0].max())
 
@@ -354,7 +358,9 @@ class ViewerApp:
         sub = self.submit
 
         def setter(fn):
-            return lambda _: sub(fn)
+            def callback(_) -> None:
+                sub(fn)
+            return callback
 
         self.g_upgrade.on_click(setter(self.gcp.do_upgrade))
         self.g_allow_flat.on_update(setter(lambda: self.gcp.allow_flat(bool(self.g_allow_flat.value))))

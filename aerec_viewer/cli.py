@@ -189,6 +189,7 @@ class DemoPreparation:
         """generate_site's progress(stage, done, total): one bar over the whole generation."""
         if not isinstance(stage, str) or not total:
             return
+        assert done is not None                  # given with total
         from recon_core.synthetic.generator import PRESETS
 
         self._done[stage] = min(1.0, float(done) / float(total))

@@ -16,6 +16,7 @@ Display coordinates are what the scene receives: float32, small numbers, z up. T
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -49,8 +50,8 @@ class DisplayTransform:
     label: str
     z_scale: float = 1.0
     camera: np.ndarray | None = None     # (2, 3) camera rows of the horizontal axes (affine)
-    warp: object | None = None           # X -> D(X) (n, 3), applied before A (a BendWarp)
-    post: object | None = None           # Y -> G(Y) (n, 3), applied after A and b (an EnuWarp)
+    warp: Callable[[np.ndarray], np.ndarray] | None = None   # X -> D(X) (n, 3), applied before A (a BendWarp)
+    post: Callable[[np.ndarray], np.ndarray] | None = None   # Y -> G(Y) (n, 3), applied after A and b (an EnuWarp)
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """(n, 3) frame points -> (n, 3) float32 display points."""

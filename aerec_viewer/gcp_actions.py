@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -31,9 +31,34 @@ from .gcp_session import (
 )
 from .results import image_group, predict_in, surveyed_in
 
+if TYPE_CHECKING:
+    from .gcp_panel import GcpPanelHost
+
 
 class GcpActions:
     """The GCP tab's actions (a mixin of GcpPanel: its widgets and `app` are on self)."""
+
+    if TYPE_CHECKING:                    # what GcpPanel puts on self (declared for the checker only)
+        app: GcpPanelHost
+        NEW: str
+        CONFIRM_S: float
+        chosen: dict[int, str]
+        _ids: dict[str, str]
+        # its widgets (viser GUI handles)
+        image: Any
+        select: Any
+        catalogue: Any
+        accept: Any
+        delete: Any
+        jump: Any
+        walk: Any
+        gid: Any
+        role: Any
+        crs: Any
+        epsg: Any
+        x: Any
+        y: Any
+        h: Any
 
     def selected(self) -> str | None:
         """The GCP chosen in the list (its id), None for a new one."""

@@ -106,6 +106,7 @@ class GcpController:
         the orthoimage, h from the DEM), or a new GCP there when none is selected; with "Click
         zooms in first", a click outside the loupe opens the loupe there instead."""
         ref, pick = self.app.reference, self.app.picking
+        assert ref is not None               # only a viewer with a reference orthoimage shows it
         self.app.gcp_panel.check_choice(client)
         gid = self.app.gcp_panel.selected()
         in_loupe = self._loupe_gate(pix, gid, client)
@@ -145,6 +146,7 @@ class GcpController:
         opened the loupe there ("Click zooms in first") and records nothing. A click in a loupe
         another GCP or tab owns raises GcpError, saying whose it is."""
         pick = self.app.picking
+        assert pick.plane is not None        # the click was on it
         in_loupe = pick.in_loupe(pick.plane.window)
         if in_loupe and not pick.owns_loupe(gid, client):
             raise GcpError(self.not_your_loupe(gid, client))

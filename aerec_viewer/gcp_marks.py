@@ -8,7 +8,7 @@ the plane; the viewer calls it after every change and reads the rest of its stat
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Callable, NamedTuple, Protocol
 
 import numpy as np
 
@@ -16,6 +16,17 @@ from .display import quat_to_matrix
 from .gcp_session import add_observation
 from .picking import PickPlane, pixel_from_ray
 from .scene import safe_name
+
+if TYPE_CHECKING:
+    import viser
+
+    from recon_core.euclidean.ground_reference import GroundReference
+
+    from .gcp_controller import GcpController
+    from .gcp_panel import GcpPanel
+    from .gcp_session import GcpSession
+    from .picking import PickingView
+    from .worker import ReconWorker
 
 MARK_RING_PX = 11.0     # radius of a GCP marker ring on screen (pixels), whatever the zoom
 MARK_SEL = (255, 220, 0)
@@ -40,7 +51,7 @@ class _Marker(NamedTuple):
     """A GCP's marker in one place (the picking plane, a group's cloud): its ring is drawn with
     the others of that place (`GcpMarks._draw_rings`), its label is its own node."""
 
-    label: object
+    label: viser.LabelHandle
     colour: tuple[int, int, int]
     radius: float
     pos: np.ndarray
@@ -51,18 +62,18 @@ class GcpMarksHost(Protocol):
     """What the markers need of the viewer: the working set and its controller, the picking
     plane, the GCP tab's selection, the reference orthoimage, the frames and the scene."""
 
-    server: object                   # its scene: the marker nodes
-    worker: object                   # the newest display snapshot (transforms per group)
-    session: object                  # gcp_session.GcpSession: the working set
-    gcp: object                      # gcp_controller.GcpController: affine positions, edits
-    gcp_panel: object                # the GCP tab: the selected GCP
-    picking: object                  # picking.PickingView: the plane and its loupe
-    reference: object | None         # the reference orthoimage (ground positions on it), or None
+    server: viser.ViserServer        # its scene: the marker nodes
+    worker: ReconWorker              # the newest display snapshot (transforms per group)
+    session: GcpSession              # the working set
+    gcp: GcpController               # affine positions, edits
+    gcp_panel: GcpPanel              # the GCP tab: the selected GCP
+    picking: PickingView             # the plane and its loupe
+    reference: GroundReference | None  # the reference orthoimage (ground positions on it), or None
     models: dict
     frame: str
 
     def transforms(self, snap) -> dict: ...
-    def scene_bounds(self): ...
+    def scene_bounds(self) -> tuple[np.ndarray, np.ndarray] | None: ...
     def submit(self, fn: Callable[[], object]) -> object: ...
     def note(self, text: str, level: str = "info") -> None: ...
 
@@ -73,7 +84,7 @@ class GcpMarks:
     def __init__(self, app: GcpMarksHost):
         self.app = app
         self.items: dict[str, _Marker] = {}   # one per GCP and place: path -> its label, ...
-        self.rings: dict[str, object] = {}    # <place>/rings[_selected] -> merged ring node
+        self.rings: dict[str, viser.LineSegmentsHandle] = {}    # <place>/rings[_selected] -> merged ring node
         self.residual_nodes: list = []        # the residual vectors on the plane and their legend
         self.drag_handle = None               # the drag handle on the selected observation (loupe)
         self.drag_key = None
@@ -96,7 +107,7 @@ class GcpMarks:
                   for g in app.session.gcps}
 
         def colour(gid):
-            return MARK_SEL if gid == sel else {"check": MARK_CHECK, "disabled": MARK_OFF}.get(roles.get(gid), MARK)
+            return MARK_SEL if gid == sel else {"check": MARK_CHECK, "disabled": MARK_OFF}.get(roles.get(gid, ""), MARK)
 
         want = {}
         r = self.radius()
@@ -209,7 +220,8 @@ class GcpMarks:
         loupe: dragging them moves the observation, which is recorded when the drag ends."""
         app = self.app
         want = self.drag_target()
-        key = None if want is None else (want, tuple(app.picking.plane.position))
+        pl = app.picking.plane                # not None when want is not (drag_target)
+        key = None if want is None or pl is None else (want, tuple(pl.position))
         if key == self.drag_key:
             return
         if self.drag_handle is not None:
@@ -219,7 +231,7 @@ class GcpMarks:
         if want is None:
             return
         gid, image, ob = want
-        pl = app.picking.plane
+        assert pl is not None
         h = app.server.scene.add_transform_controls(
             "/gcp/drag", scale=0.18 * pl.render_width, line_width=2.0, disable_rotations=True,
             active_axes=(True, True, False), depth_test=False,

@@ -19,6 +19,8 @@ from .gcp_session import (
 from .picking import PickingView
 
 if TYPE_CHECKING:
+    from recon_core.io.site import Site
+
     from .gcp_controller import GcpController
 
 
@@ -58,7 +60,7 @@ class GcpPanelHost(Protocol):
     update thread, and the scene actions its buttons trigger."""
 
     session: GcpSession
-    site: object
+    site: Site
     models: dict                      # group -> SparseModel once the sparse stage is done
 
     picking: PickingView               # the picking plane and its loupe

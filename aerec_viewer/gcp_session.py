@@ -17,6 +17,7 @@ import copy
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -231,7 +232,7 @@ def merge_gcps(s: GcpSession, gcps: list[GCP], source: str = "CSV") -> tuple[lis
 
 def edit_gcp(s: GcpSession, gcp_id: str, *, new_id: str | None = None, x: float | None = None,
              y: float | None = None, h: float | None = None, epsg: int | None = None,
-             role: str | None = None, sigma_h_m: float | None | str = "typed") -> GCP:
+             role: str | None = None, sigma_h_m: float | None | Literal["typed"] = "typed") -> GCP:
     """Change a GCP's id, role or ground coordinates (x, y, h all given, or none). sigma_h_m:
     how well the new height is known (metres; None: as the horizontal); "typed" (the default):
     a height typed in is the operator's (as well known as the rest), an unchanged one keeps its

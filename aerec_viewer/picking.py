@@ -11,13 +11,23 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 
 from recon_core.model.tiling import Window
 
 from .display import FLAT_WXYZ, plane_hit, plane_point
+
+if TYPE_CHECKING:
+    import viser
+
+    from .gcp_controller import GcpController
+    from .gcp_marks import GcpMarks
+    from .gcp_panel import GcpPanel
+    from .imagery import ImageSource
+    from .scene import SceneView
+    from .views import ClientViews
 
 
 @dataclass(frozen=True)
@@ -102,13 +112,13 @@ def loupe_texture(gray: np.ndarray, win: Window, centre: tuple[float, float],
 class PickingHost(Protocol):
     """What the picking view needs of the viewer."""
 
-    server: object
-    images: object                   # imagery.ImageSource
-    scene: object                    # scene.SceneView (its tiles' windows)
-    gcp_panel: object                # the GCP tab: chosen image, region, contrast, plane shown
-    marks: object                    # gcp_marks.GcpMarks: redrawn over the plane
-    gcp: object                      # gcp_controller.GcpController: what a click records
-    views: object                    # views.ClientViews: the drag guard, framing a tab
+    server: viser.ViserServer
+    images: ImageSource
+    scene: SceneView                 # its tiles' windows
+    gcp_panel: GcpPanel              # the GCP tab: chosen image, region, contrast, plane shown
+    marks: GcpMarks                  # redrawn over the plane
+    gcp: GcpController               # what a click records
+    views: ClientViews               # the drag guard, framing a tab
     frame: str
 
     def scene_bounds(self) -> tuple[np.ndarray, np.ndarray] | None: ...
@@ -175,7 +185,9 @@ class PickingView:
         """Show the full-resolution pixels around pix (in the plane's image, or `image`, the one
         chosen in the GCP tab) on the picking plane and put the client's camera straight above
         it; the next click, from that client, places `gcp` (None: a new GCP)."""
-        image = image or self.plane.window.image
+        if not image:
+            assert self.plane is not None    # a loupe opens on the plane shown, or on `image`
+            image = self.plane.window.image
         im = self.app.images.info(image)
         win = loupe_window(im.width, im.height, image, *pix)
         self.loupe = (win, (float(pix[0]), float(pix[1])))

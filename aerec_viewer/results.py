@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 
@@ -33,6 +33,13 @@ from recon_core.io.layout import OutLayout
 
 from .display import DisplayTransform, euclidean_display_transform
 from .gcp_session import GcpSession
+
+if TYPE_CHECKING:
+    import viser
+
+    from recon_core.io.site import Site
+
+    from .gcp_controller import GcpController
 
 
 @dataclass
@@ -215,6 +222,7 @@ def upgrade_readiness(session: GcpSession, models: dict, images: dict, cfg) -> t
         key = (n >= need, n - need)
         if best is None or key > best[0]:
             best = (key, n, need)
+    assert best is not None                  # models is not empty
     return best[0][0], best[1], best[2]
 
 
@@ -308,11 +316,11 @@ def _loose_text(lo: dict) -> str:
     """'+-x % (y m on a 40 m roof), heights leaning +-a / +-b mm per m' of a looseness dict."""
     if lo.get("height_scale_sigma") is None:
         return "not fixed"
-    lean = [lo.get("shear_sigma_E"), lo.get("shear_sigma_N")]
+    lean_e, lean_n = lo.get("shear_sigma_E"), lo.get("shear_sigma_N")
     return (f"+-{100 * lo['height_scale_sigma']:.1f} % ({lo['expected_height_error_m']:.2f} m on a "
             f"{lo['structure_height_m']:.0f} m building)"
-            + (f", heights leaning +-{1e3 * lean[0]:.0f} / {1e3 * lean[1]:.0f} mm per m east / north"
-               if None not in lean else ""))
+            + (f", heights leaning +-{1e3 * lean_e:.0f} / {1e3 * lean_n:.0f} mm per m east / north"
+               if lean_e is not None and lean_n is not None else ""))
 
 
 def height_scale_lines(cond: dict) -> list[str]:
@@ -536,12 +544,12 @@ class DsmPanelHost(Protocol):
     thread."""
 
     out: Path
-    site: object
-    server: object
+    site: Site
+    server: viser.ViserServer
     frame: str
-    gcp: object                     # gcp_controller.GcpController: its `upgrade`, the last one run
+    gcp: GcpController              # its `upgrade`, the last one run
 
-    def scene_bounds(self): ...
+    def scene_bounds(self) -> tuple[np.ndarray, np.ndarray] | None: ...
     def note(self, text: str, level: str = "info") -> None: ...
     def submit(self, fn: Callable[[], object]) -> object: ...
 

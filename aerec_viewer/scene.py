@@ -22,6 +22,7 @@ from __future__ import annotations
 import re
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,6 +44,9 @@ from .display import (
 )
 from .imagery import ImageSource
 from .worker import CloudView, DisplaySnapshot, PointBatch, TileView, concat_batches
+
+if TYPE_CHECKING:
+    import viser
 
 CHUNK_MAX = 250_000           # points per chunk node at a rebuild
 MAX_CHUNKS = 48               # more incremental chunks than this: consolidate
@@ -77,7 +81,7 @@ class Settings:
 
 @dataclass
 class _Chunk:
-    handle: object
+    handle: viser.PointCloudHandle
     xyz: np.ndarray                      # display coordinates sent
     batch: PointBatch                    # displayed subset (for recolouring)
     t_sent: float
@@ -103,9 +107,9 @@ class _TileNode:
     version: int
     transform: DisplayTransform
     corners: np.ndarray
-    color: tuple[int, int, int]
-    image: object | None = None
-    frame: object | None = None          # QuadFrame the texture was warped for
+    color: tuple[int, ...]               # (r, g, b)
+    image: viser.ImageHandle | None = None
+    frame: QuadFrame | None = None       # QuadFrame the texture was warped for
 
 
 def _footprint(xyz: np.ndarray) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
@@ -144,9 +148,9 @@ class SceneView:
         self._clouds: dict[tuple[int, str], _Cloud] = {}
         self._tiles: dict[tuple[int, str], _TileNode] = {}
         self._newest: dict[int, tuple[str, int, int]] = {}
-        self._newest_nodes: dict[int, tuple[object, object]] = {}
+        self._newest_nodes: dict[int, tuple[viser.LineSegmentsHandle, viser.LabelHandle]] = {}
         self._tile_mode: dict[int, str] = {}
-        self._outlines: dict[int, object] = {}   # group -> its outlines node
+        self._outlines: dict[int, viser.LineSegmentsHandle] = {}   # group -> its outlines node
         self.finished = False
         self._slack = 1.5
         self.sent_log: list[dict] = []    # one entry per point chunk sent (for the bench)
@@ -227,6 +231,7 @@ class SceneView:
             st.extent, st.box = _footprint(xyz)
         elif len(xyz) >= 50:               # a cloud growing tile by tile: its footprint grows
             _, (lo, hi) = _footprint(xyz)
+            assert st.box is not None      # set with the first chunk
             lo, hi = np.minimum(st.box[0], lo), np.maximum(st.box[1], hi)
             st.box, st.extent = (lo, hi), float(max(np.max(hi - lo), 1e-6))
         return self._send(key, st, sub, xyz, visible, tuple(x.t_added for x in batches))
@@ -298,7 +303,11 @@ class SceneView:
         """(group, affine xyz) of the displayed point nearest in angle to a click ray (within
         max_angle radians), or None: the scene answers picks on its own clouds."""
         got = self._nearest(ray_origin, ray_direction, max_angle)
-        return None if got is None else (got[0], got[1].transform.inverse(got[2][None])[0])
+        if got is None:
+            return None
+        g, st, xyz = got
+        assert st.transform is not None      # _nearest skips a cloud without one
+        return g, st.transform.inverse(xyz[None])[0]
 
     def nearest_display_point(self, ray_origin, ray_direction, max_angle: float = 0.02
                               ) -> np.ndarray | None:
@@ -403,7 +412,8 @@ class SceneView:
             np.ascontiguousarray(cols.reshape(-1, 2, 3)), thickness=1.5, thickness_units="screen",
             visible=mode != "hidden")
 
-    def _tile_image(self, base: str, tv: TileView, corners: np.ndarray, side: int):
+    def _tile_image(self, base: str, tv: TileView, corners: np.ndarray, side: int
+                    ) -> tuple[viser.ImageHandle | None, QuadFrame | None]:
         tile = self.tile_windows.get(tv.tile_id)
         if tile is None or tile.image not in self.images.images:
             return None, None

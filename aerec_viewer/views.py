@@ -12,6 +12,9 @@ import numpy as np
 from .display import plane_point
 
 if TYPE_CHECKING:
+    import viser
+    from viser._messages import KeyModifier
+
     from .app import ViewerApp
 
 # A click that arrives within this many seconds of its client's camera moving was a drag (an
@@ -26,12 +29,15 @@ class ClientViews:
 
     def __init__(self, app: "ViewerApp"):
         self.app = app
-        self.moved: dict[int, tuple] = {}   # client id -> (position, wxyz, time it moved)
+        self.moved: dict[int | None, tuple] = {}   # client id -> (position, wxyz, time it moved)
         self.app.server.on_client_connect(self.on_connect)
-        for modifier, factor in (("shift", self.ZOOM_STEP), ("cmd/ctrl+shift", 1.0 / self.ZOOM_STEP)):
-            self.app.server.scene.on_click(modifier=modifier)(
-                lambda ev, f=factor: self.app.submit(
-                    lambda: self.zoom_at(ev.client, ev.ray_origin, ev.ray_direction, f)))
+        zooms: tuple[tuple[KeyModifier, float], ...] = (("shift", self.ZOOM_STEP),
+                                                        ("cmd/ctrl+shift", 1.0 / self.ZOOM_STEP))
+        for modifier, factor in zooms:
+            def zoom(ev: viser.SceneClickEvent, f: float = factor) -> None:
+                self.app.submit(lambda: self.zoom_at(ev.client, ev.ray_origin, ev.ray_direction, f))
+
+            self.app.server.scene.on_click(modifier=modifier)(zoom)
 
     def on_connect(self, client) -> None:
         self.app.gcp_panel.note_choice(client, chooser=False)   # what this tab sees at first
@@ -86,8 +92,9 @@ class ClientViews:
         d = d / np.linalg.norm(d)
         spot = None
         pl = self.app.picking.plane
-        if pl is not None and pl.hit(o, d) is not None:
-            fx, fy = pl.hit(o, d)
+        hit = None if pl is None else pl.hit(o, d)
+        if pl is not None and hit is not None:
+            fx, fy = hit
             spot = plane_point(fx, fy, position=pl.position, wxyz=pl.wxyz,
                                render_width=pl.render_width, render_height=pl.render_height)
         if spot is None:

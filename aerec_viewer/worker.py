@@ -73,7 +73,7 @@ class PointBatch:
     def __len__(self) -> int:
         return len(self.ids)
 
-    def subset(self, m: np.ndarray) -> "PointBatch":
+    def subset(self, m: np.ndarray | slice) -> "PointBatch":
         return PointBatch(self.ids[m], self.xyz[m], self.rgb[m], self.n_views[m], self.reproj[m],
                           self.t_added)
 
@@ -170,6 +170,11 @@ class GroupState:
     def __post_init__(self) -> None:
         self.sparse = self.sparse or PointStore(salt=cloud_salt(self.index, "sparse"))
         self.dense = self.dense or PointStore(cap=DENSE_CAP, salt=cloud_salt(self.index, "dense"))
+
+    def stores(self) -> tuple[PointStore, PointStore]:
+        """(sparse, dense): both made by __post_init__."""
+        assert self.sparse is not None and self.dense is not None
+        return self.sparse, self.dense
 
 
 @dataclass(frozen=True)
@@ -380,7 +385,8 @@ class ReconWorker:
         elif isinstance(ev, PointsAdded):
             gs = self._group(ev.group)
             batch = _batch(ev.ids, ev.xyz, ev.rgb, ev.n_views, ev.reproj_px, now)
-            (gs.dense if ev.kind == "dense" else gs.sparse).append(batch)
+            sparse, dense = gs.stores()
+            (dense if ev.kind == "dense" else sparse).append(batch)
             self._ensure_transform(gs, batch.xyz)
         elif isinstance(ev, ModelUpdated):
             self._fold_model(ev, now)
@@ -416,7 +422,7 @@ class ReconWorker:
                 gs.tiles[tid] = replace(t, camera=np.asarray(ev.cameras.get(tid, t.camera), float),
                                         footprint=np.asarray(fp, float), version=t.version + 1)
         batch = _batch(ev.ids, ev.xyz, ev.rgb, ev.n_views, ev.reproj_px, now)
-        gs.sparse.replace(batch)
+        gs.stores()[0].replace(batch)
         if gs.transform is not None:
             gs.transform = refine_affine_transform(gs.transform, batch.xyz)
         self._ensure_transform(gs, batch.xyz)
@@ -438,7 +444,7 @@ class ReconWorker:
     def snapshot(self) -> DisplaySnapshot:
         with self._lock:
             groups = {g: GroupSnapshot(g, dict(s.tiles), s.newest_tile, s.total_tiles,
-                                       s.sparse.view(), s.dense.view(),
+                                       s.stores()[0].view(), s.stores()[1].view(),
                                        None if s.ba is None else dict(s.ba), s.transform)
                       for g, s in self._groups.items()}
             st = self._stage
@@ -490,6 +496,7 @@ class ReconWorker:
         from recon_core.io.site import load_site
 
         cfg = self.cfg or Config()
+        assert self.site is not None          # a run has its site (only a reopen may lack one)
         site = load_site(self.site)
         done = resume.finished_stages(self.out, cfg, site) if self.redo_from is None else set()
         if "sparse" not in done:              # what `aerec run` refuses before any compute
@@ -590,6 +597,7 @@ def replay_dense(out: OutLayout, g: int, listener, chunk: int = 2_000_000) -> in
     rec = open_ply(path)
     for a in range(0, len(rec), chunk):
         xyz, rgb, extra = ply_fields(rec[a:a + chunk])
+        assert rgb is not None              # the dense stage writes colours
         listener(PointsAdded(g, np.arange(a, a + len(xyz)), xyz, rgb, extra["n_views"].astype(np.int64),
                              extra["reproj_px"], kind="dense"))
     return len(rec)

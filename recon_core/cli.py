@@ -9,8 +9,12 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from recon_core.errors import AerecError
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 
 class ProgressPrinter:
@@ -18,7 +22,7 @@ class ProgressPrinter:
 
     def __init__(self, enabled: bool = True):
         self.enabled = enabled
-        self._bars: dict[str, object] = {}
+        self._bars: dict[str, tqdm] = {}
 
     def __call__(self, stage, done=None, total=None, message: str = "") -> None:
         from recon_core.events import Message, StageDone, StageProgress, TileRegistered
@@ -53,6 +57,7 @@ class ProgressPrinter:
                        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
                                   "[{elapsed}<{remaining}{postfix}]")
             self._bars[stage] = bar
+        assert done is not None and total is not None   # a progress count names both
         bar.n = done
         if message:
             bar.set_postfix_str(message, refresh=False)
@@ -345,7 +350,7 @@ def cmd_site(args) -> int:
             inc, az = (float(x) for x in parts) if len(parts) == 2 else (None, None)
         except ValueError:
             inc = az = None
-        if not sep or not name or inc is None or not 0.0 <= inc < 90.0 or not math.isfinite(az):
+        if not sep or not name or inc is None or not 0.0 <= inc < 90.0 or az is None or not math.isfinite(az):
             raise InputError(None, f"--view {v!r}: give NAME=INCIDENCE,AZIMUTH (degrees: from the vertical, "
                                    "0 to 90; of the direction to the satellite, clockwise from north)")
         views[name] = ViewAngles(inc, az % 360.0)
@@ -688,7 +693,8 @@ def _last_resort(exc: BaseException) -> int:
     # the machine, not the input: a full disk, a quota, a file system gone read-only.
     # Outputs are written atomically, so nothing half-written is left; finished stages
     # are reused by the next run.
-    where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+    filename = getattr(exc, "filename", None)
+    where = f"{filename}: " if filename else ""
     what = getattr(exc, "strerror", None) or f"a write failed ({exc}): is the disk full?"
     print(f"aerec: error: {where}{what} (nothing half-written was kept; "
           "free space or fix the folder, then rerun: finished stages are reused)", file=sys.stderr)

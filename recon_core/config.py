@@ -6,7 +6,7 @@ Named presets (`PRESETS`) tune them for test-size and production-size inputs.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 
@@ -303,36 +303,25 @@ class DsmConfig:
     spill_above_points: int = _p(20_000_000, lo=0, hi=1e12)  # above this many points the DSM accumulates on disk
 
 
-def _section_defaults(cls):
-    """Give each field of `cls` annotated with a section (a configuration dataclass of this
-    module) and no default a fresh instance of that section as its default."""
-    for name, ann in cls.__annotations__.items():
-        section = globals().get(ann) if isinstance(ann, str) else ann
-        if isinstance(section, type) and is_dataclass(section) and name not in vars(cls):
-            setattr(cls, name, field(default_factory=section))
-    return cls
-
-
 @dataclass
-@_section_defaults
 class Config:
     # the sparse stage: grouping by date, tiles, features, matches, incremental SfM
-    grouping: GroupingConfig
-    tiling: TilingConfig
-    features: FeatureConfig
-    matching: MatchingConfig
-    sfm: SfmConfig
-    bundle: BundleConfig
+    grouping: GroupingConfig = field(default_factory=GroupingConfig)
+    tiling: TilingConfig = field(default_factory=TilingConfig)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    sfm: SfmConfig = field(default_factory=SfmConfig)
+    bundle: BundleConfig = field(default_factory=BundleConfig)
 
     # the dense stage and its matchers
-    dense: DenseConfig
-    sgbm: SgbmConfig
-    mgm: MgmConfig
-    pandora: PandoraConfig
+    dense: DenseConfig = field(default_factory=DenseConfig)
+    sgbm: SgbmConfig = field(default_factory=SgbmConfig)
+    mgm: MgmConfig = field(default_factory=MgmConfig)
+    pandora: PandoraConfig = field(default_factory=PandoraConfig)
 
     # the Euclidean upgrade and the DSM
-    upgrade: UpgradeConfig
-    dsm: DsmConfig
+    upgrade: UpgradeConfig = field(default_factory=UpgradeConfig)
+    dsm: DsmConfig = field(default_factory=DsmConfig)
 
     # the whole run
     seed: int = _p(0, lo=0, hi=2**63 - 1)  # seeds every random choice (RANSAC, sampling)
@@ -388,7 +377,7 @@ def config_from_dict(d: dict, *, unknown: list[str] | None = None) -> Config:
             raise KeyError(f"{old} and {new} are one parameter (its new name is {new}): give it once")
     cfg = Config()
     for key, v in flat.items():
-        key = LEGACY_KEYS.get(key, key)
+        key = LEGACY_KEYS[key] if key in LEGACY_KEYS else key
         if key in REMOVED_KEYS:
             continue
         if key in RETIRED_KEYS:

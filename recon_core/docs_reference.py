@@ -210,7 +210,7 @@ def main(argv=None) -> int:
     import argparse
     from pathlib import Path
 
-    ap = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(main.__doc__ or "").splitlines()[0])
     ap.add_argument("--check", action="store_true")
     ap.add_argument("--docs", type=Path, default=Path(__file__).resolve().parents[1] / "docs")
     args = ap.parse_args(argv)

@@ -13,6 +13,7 @@ import shutil
 import time
 import zipfile
 from pathlib import Path
+from typing import Sequence
 
 from recon_core.config import Config
 from recon_core.context import RunState, Stage
@@ -164,7 +165,7 @@ def _reload(module, state: RunState, stage: str, bus: EventBus) -> bool:
         return False
 
 
-def _drop_later_products(state: RunState, later: list[str], why: str, bus: EventBus) -> None:
+def _drop_later_products(state: RunState, later: Sequence[str], why: str, bus: EventBus) -> None:
     """A run that recomputed `recomputed` and stopped before `later`: what those stages wrote
     came from other inputs (another site, other images, other GCPs): remove their products,
     records and report entries, so OUT holds only what this run's report describes."""

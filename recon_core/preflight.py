@@ -172,6 +172,7 @@ def check_pixels_readable(path: Path, what: str, side: int = 1024) -> None:
     """A raster the run will read at its end, read now at most `side` px a side: a truncated or
     damaged file is refused before the compute, not after it."""
     import rasterio
+    import rasterio.errors
 
     try:
         with rasterio.open(path) as src:

@@ -83,7 +83,7 @@ class ImageModelCheck:
         """One line when the model misses some images, else None."""
         if not self.unexplained_names:
             return None
-        worst = max(self.unexplained_names, key=self.misfit_px.get)
+        worst = max(self.unexplained_names, key=lambda name: self.misfit_px[name])
         return (f"the pushbroom model does not explain {len(self.unexplained_names)} of {len(self.misfit_px)} "
                 f"images ({worst}: {self.misfit_px[worst]:.2f} px > {MAX_MODEL_MISFIT_PX} px, systematic): "
                 "the tie and the within-tile correction stand aside for them")
@@ -205,8 +205,8 @@ def within_tile(m: SparseModel, idx: np.ndarray, unexplained: set[int]) -> dict:
     o = m.obs
     idx = idx[~np.isin(o.img[idx], list(unexplained))]
     corr, info = tile_corrections(m.X[o.track[idx]], o.xy[idx], o.tile[idx], o.img[idx])
-    o.corr[:] = 0.0
-    o.corr[idx] = corr
+    o.correction[:] = 0.0
+    o.correction[idx] = corr
     return info
 
 

@@ -31,12 +31,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+import numpy.typing as npt
 
 from recon_core.bend.result import BendFit
 from recon_core.errors import InputError
 from recon_core.geometry.affine import apply_affine_3d, as_4x4
 from recon_core.geometry.enu_map import EnuWarp, monomial_degree, monomials, n_monomials
+
+if TYPE_CHECKING:
+    from affine import Affine
+
 
 CELL_M = 150.0            # cells of the comparison (each holds ~ 25 sparse points on `wide`)
 MIN_POINTS_PER_CELL = 5   # a cell's median needs this many points
@@ -53,7 +60,7 @@ class ReferenceDem:
 
     path: Path
     crs: object
-    transform: object
+    transform: Affine
     width: int
     height: int
     nodata: float | None
@@ -68,6 +75,7 @@ class ReferenceDem:
     def heights(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
         """Bilinear heights at (lon, lat) (degrees, WGS84); NaN outside the raster or on nodata."""
         import rasterio
+        import rasterio.enums
         from pyproj import Transformer
         from rasterio.windows import Window
         from scipy import ndimage
@@ -95,7 +103,7 @@ class ReferenceDem:
             return out
         w, h = c1 - c0, r1 - r0
         with rasterio.open(self.path) as src:
-            z = src.read(1, window=Window(c0, r0, w, h), out_shape=(int(np.ceil(h / step)), int(np.ceil(w / step))),
+            z = src.read(1, window=Window(c0, r0, w, h), out_shape=(int(np.ceil(h / step)), int(np.ceil(w / step))),  # pyright: ignore[reportCallIssue]
                          masked=True, resampling=rasterio.enums.Resampling.average if step > 1
                          else rasterio.enums.Resampling.nearest)
         z = np.ma.filled(z.astype(np.float64), np.nan)
@@ -304,8 +312,9 @@ def fit_surface(E: np.ndarray, N: np.ndarray, r: np.ndarray, centre: np.ndarray,
     return sol[3:], info
 
 
-def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, centre: np.ndarray, half: float,
-                 refit, cell_m: float | None = None, iters: int = 6, seed: int = 0, degree: int = 2):
+def fit_dem_bend(H: np.ndarray, X_points: np.ndarray, frame, dem: ReferenceDem, centre: npt.ArrayLike, half: float,
+                 refit, cell_m: float | None = None, iters: int = 6, seed: int = 0, degree: int = 2
+                 ) -> BendFit[EnuWarp]:
     """The vertical bend of the structure X_points (n, 3, in the frame H maps) against the DEM.
 
     refit(warp) -> H: the upgrade's own fit of H_A on the control GCPs, their surveyed positions

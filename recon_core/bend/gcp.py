@@ -114,6 +114,7 @@ def _consensus(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, V: np.ndarray, thre
         cost = np.minimum(r, thresh_m).sum()
         if cost < best_cost:
             best, best_cost = r < thresh_m, cost
+    assert best is not None                  # samples is not empty
     for _ in range(5):
         if best.sum() < m:
             break
@@ -126,7 +127,7 @@ def _consensus(Y: np.ndarray, Xe: np.ndarray, warp: EnuWarp, V: np.ndarray, thre
 
 
 @dataclass(frozen=True)
-class GcpBendFit(BendFit):
+class GcpBendFit(BendFit[EnuWarp]):
     """What `fit_gcp_bend` found. When it applies, besides the warp and the new H_A: the control
     GCPs it kept (inliers, (n,) bool) and their leave-one-out residuals ((inliers, 3), m)."""
 
@@ -135,7 +136,7 @@ class GcpBendFit(BendFit):
 
 
 def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: BendView | None,
-                 invisible_px_per_m: float, thresh_m: float = 2.0, seed: int = 0):
+                 invisible_px_per_m: float, thresh_m: float = 2.0, seed: int = 0) -> GcpBendFit:
     """Fit the warps the views cannot see to control GCPs (affine positions X_aff (n, 3) in the
     frame H maps, surveyed ENU X_enu (n, 3): every usable control GCP, whether or not the
     affine fit of H kept it: a bend makes good GCPs disagree with any affine map), with an
@@ -181,7 +182,7 @@ def fit_gcp_bend(H: np.ndarray, X_aff: np.ndarray, X_enu: np.ndarray, obs: BendV
     loo_affine = _rms3(_loo(Y[inl], X_enu[inl], warp, W[:0], z0))
     loos = {name: _loo(Y[inl], X_enu[inl], warp, V, z0) for name, V in families.items()}
     rms = {name: _rms3(r) for name, r in loos.items()}
-    best = min(rms, key=rms.get)
+    best = min(rms, key=lambda name: rms[name])
     V, loo_res, loo_bend = families[best], loos[best], rms[best]
     info.update(loo_rms_affine_m=loo_affine, loo_rms_bend_m=loo_bend, family=best, warps_fitted=len(V),
                 loo_rms_m={name: v for name, v in rms.items()})

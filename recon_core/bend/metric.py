@@ -51,7 +51,7 @@ MAX_RANGE_CHANGE = 0.5      # the data's depths more than 50 % off the orbit's: 
 
 
 def metric_bend(model, H: np.ndarray, altitude_m: float,
-                min_share: float = MIN_METRIC_SHARE, pair_only: bool = True) -> BendFit:
+                min_share: float = MIN_METRIC_SHARE, pair_only: bool = True) -> BendFit[BendWarp]:
     """The metric bend step of a sparse model with its upgrade H (4, 4) (see the module
     docstring), each image's observations once per point, in images of at least
     MIN_TILES_FOR_CORRECTION tiles. Returns a BendFit: the warp (a BendWarp; None when nothing

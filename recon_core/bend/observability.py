@@ -133,9 +133,10 @@ def bend_warning(b: BendView | None, gcp_fit: dict | None = None, drive: BendDri
     else:
         text += " by metres (3 views of one date: 1.5-2.9 m over 2.5 km, 30 m RMS over 10 km)"
     text += "; more views make it smaller, control GCPs spread over the site hold it"
-    need = (gcp_fit or {}).get("control_gcps_needed")
-    if need and gcp_fit.get("control_gcps", 0) < need:
-        text += f" ({need} or more control GCPs fit the {gcp_fit['invisible_warps']} warps it cannot see)"
-    if (gcp_fit or {}).get("loo_rms_bend_m") is not None:
-        text += f"; {gcp_fit['reason']}"
+    fit = gcp_fit or {}
+    need = fit.get("control_gcps_needed")
+    if need and fit.get("control_gcps", 0) < need:
+        text += f" ({need} or more control GCPs fit the {fit['invisible_warps']} warps it cannot see)"
+    if fit.get("loo_rms_bend_m") is not None:
+        text += f"; {fit['reason']}"
     return text

@@ -363,11 +363,11 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
     coordinates along them (the upgrade's rows for east and north): only the projective pair of
     that plane is then estimated, D = (g_1, g_2) (a . g) for the two unit vectors a (its
     quadratic part; g = pair X), the two warps an affine frame's free depths hide."""
-    depth = [None] * len(images) if depth is None else list(depth)
-    if len(depth) != len(images):
+    depths: list[np.ndarray | None] = [None] * len(images) if depth is None else list(depth)
+    if len(depths) != len(images):
         raise ValueError("depth: one entry per image")
     kept = [k for k, (p, _) in enumerate(images) if len(p) >= MIN_POINTS_PER_IMAGE]
-    images, depth = [images[k] for k in kept], [depth[k] for k in kept]
+    images, depths = [images[k] for k in kept], [depths[k] for k in kept]
     if len(images) < 2:
         return BendWarp(X.mean(0), np.eye(3), np.zeros((2, 3)), np.zeros(3), np.zeros(9)), {
             "images": len(images), "warp_shares": [], "warps_seen": 0, "residual_rms_px": 0.0,
@@ -375,7 +375,7 @@ def estimate_bend(X: np.ndarray, images: list[tuple[np.ndarray, np.ndarray]],
             "warp_rms_px": 0.0}
     nu = 10 if range_free else 9
     warp, cams, mono, Tinv = _whitened_frame(X, images)
-    N, b, K, rss = _bend_equations(X, images, depth, cams, mono, Tinv, nu, trim, chunk, focal_plane)
+    N, b, K, rss = _bend_equations(X, images, depths, cams, mono, Tinv, nu, trim, chunk, focal_plane)
     C = _warp_unknowns(X, warp, directions, pair, nu)
     coef, seen, share = _visible_warps(N, b, C, K, min_share, nu)
     range_change = float(coef[9]) if nu == 10 else 0.0
@@ -509,7 +509,7 @@ def _stacked_r(rows, n: int, chunk: int, keep: np.ndarray | None = None) -> np.n
     `chunk` rows (and only the rows in `keep`): the R of each chunk stacked under the R so far
     and decomposed again (a tall-skinny QR). R^T R is the whole matrix's Gram matrix, and
     least-squares projections on its columns are those on the whole matrix's columns."""
-    R = None
+    R: np.ndarray | None = None
     for s0 in range(0, n, chunk):
         sl = np.arange(s0, min(s0 + chunk, n))
         if keep is not None:
@@ -517,7 +517,9 @@ def _stacked_r(rows, n: int, chunk: int, keep: np.ndarray | None = None) -> np.n
         if not len(sl):
             continue
         A = rows(sl)
-        R = np.linalg.qr(A if R is None else np.vstack([R, A]), mode="r")
+        # (numpy's stubs give qr a QRResult whatever the mode; mode "r" returns R alone)
+        R = np.linalg.qr(A if R is None else np.vstack([R, A]), mode="r")  # pyright: ignore[reportAssignmentType]
+    assert R is not None                     # n > 0 rows kept
     return R
 
 

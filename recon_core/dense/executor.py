@@ -152,6 +152,7 @@ class DaskExecutor(Executor):
                 if alone >= self.give_up_s:
                     for f in futures:
                         f.cancel()
+                    assert self.client.scheduler is not None     # connected
                     raise ReconstructionError(
                         f"the Dask scheduler {self.client.scheduler.address} has had no worker for "
                         f"{alone:.0f} s with {left} dense job(s) left: none came back; start "

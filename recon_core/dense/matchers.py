@@ -29,11 +29,13 @@ class StereoMatcher(Protocol):
     @property
     def margin_px(self) -> int:
         """Context (px) the matcher needs beyond the disparity range at the canvas borders."""
+        ...
 
     def match(self, left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float
               ) -> tuple[np.ndarray, np.ndarray]:
         """left, right: (h, w) uint8 rectified images; d_lo <= d <= d_hi the expected range.
         Returns d (h, w) float32 (NaN where invalid) and valid (h, w) bool."""
+        ...
 
 
 def sgbm_params(d_lo: float, d_hi: float) -> tuple[int, int]:
@@ -49,7 +51,7 @@ def sgbm_params(d_lo: float, d_hi: float) -> tuple[int, int]:
 def run_sgbm(left: np.ndarray, right: np.ndarray, min_d: int, num_d: int, cfg: SgbmConfig) -> np.ndarray:
     """StereoSGBM disparity D (float32, px; NaN invalid) with left(x) ~ right(x - D)."""
     bs = cfg.block_size
-    sgbm = cv2.StereoSGBM_create(minDisparity=min_d, numDisparities=num_d, blockSize=bs,
+    sgbm = cv2.StereoSGBM_create(minDisparity=min_d, numDisparities=num_d, blockSize=bs,  # pyright: ignore[reportAttributeAccessIssue]
                                  P1=cfg.p1 * bs * bs, P2=cfg.p2 * bs * bs, disp12MaxDiff=-1,
                                  uniquenessRatio=cfg.uniqueness, speckleWindowSize=cfg.speckle_window,
                                  speckleRange=cfg.speckle_range, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
@@ -133,8 +135,8 @@ def pandora_pipeline(cfg: PandoraConfig) -> dict:
 def _pandora_dataset(img: np.ndarray | None, shape: tuple[int, int], d_min: int, d_max: int):
     """The xarray.Dataset pandora reads for one image (img None: its metadata only, what pandora
     checks a configuration against): band-less, no nodata, one disparity range for every pixel."""
-    import xarray as xr
-    from pandora.img_tools import add_disparity
+    import xarray as xr  # pyright: ignore[reportMissingImports]
+    from pandora.img_tools import add_disparity  # pyright: ignore[reportMissingImports]
 
     h, w = shape
     coords = {"row": np.arange(h), "col": np.arange(w)}
@@ -155,7 +157,7 @@ def _pandora_import():
     global _PANDORA_READY
     import logging
 
-    import pandora
+    import pandora  # pyright: ignore[reportMissingImports]
 
     if not _PANDORA_READY:
         # pandora sets "transitions" to WARNING at each run; its core's binding notes are noise
@@ -183,9 +185,9 @@ class PandoraMatcher:
         import copy
 
         pandora = _pandora_import()
-        from pandora.check_configuration import check_pipeline_section
-        from pandora.constants import Criteria
-        from pandora.state_machine import PandoraMachine
+        from pandora.check_configuration import check_pipeline_section  # pyright: ignore[reportMissingImports]
+        from pandora.constants import Criteria  # pyright: ignore[reportMissingImports]
+        from pandora.state_machine import PandoraMachine  # pyright: ignore[reportMissingImports]
 
         d_min, d_max = int(np.floor(d_lo)), int(np.ceil(d_hi))
         if d_max <= d_min:

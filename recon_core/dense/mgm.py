@@ -25,10 +25,12 @@ Convention (recon_core.dense.matchers): rows are epipolar lines, d = u_right - u
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import njit
 
-_JIT = dict(cache=True, nogil=True)
+_JIT: dict[str, Any] = dict(cache=True, nogil=True)
 
 # the 8 directions' sweeps: (neighbour 1 (dy, dx), neighbour 2 (dy, dx), column-major, y step, x step)
 # neighbour 1 is p - r, neighbour 2 is p - r_perp; the sweep visits both before p
@@ -77,7 +79,7 @@ def _popcount(v: np.uint64) -> int:
 
 
 @njit(**_JIT)
-def cost_volume(cl: np.ndarray, cr: np.ndarray, d0: int, D: int, out_cost: int) -> np.ndarray:
+def cost_volume(cl: np.ndarray, cr: np.ndarray, d0: int, D: int, out_cost: float) -> np.ndarray:
     """(h, w, D) float32: Hamming distance of left census (y, x) and right census (y, x + d0 + k);
     out_cost where x + d0 + k falls outside the right image."""
     h, w = cl.shape
@@ -285,7 +287,7 @@ def remove_speckles(d: np.ndarray, max_size: int, max_diff: float) -> np.ndarray
     bad = np.int16(-32768)
     fixed = np.where(ok, np.round(np.nan_to_num(d) * 16), bad)
     fixed = np.clip(fixed, -32767, 32767).astype(np.int16)
-    cv2.filterSpeckles(fixed, bad, int(max_size), int(round(max_diff * 16)))
+    cv2.filterSpeckles(fixed, float(bad), int(max_size), int(round(max_diff * 16)))
     return np.where(ok & (fixed != bad), d, np.nan).astype(np.float32)
 
 

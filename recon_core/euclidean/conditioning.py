@@ -145,6 +145,7 @@ def _warning(c: dict, d_rms: float, frac: float, err_m: float, sigma: float,
         text += f" with the {images} images' lines of sight" + (
             f" (the GCPs alone: {g:.1f} m)" if g is not None else " (the GCPs alone do not fix it)")
     elif prior:
+        assert prior_ratio is not None
         text += f"{WITH_PRIOR}; the GCPs alone: {err_m / prior_ratio:.1f} m" + (
             "; the constraint is a linear estimate that cannot be relied on to make up for a set this "
             "flat: the check points will tell" if err_m / prior_ratio > REFUSE_HEIGHT_ERROR_M else "")

@@ -15,7 +15,7 @@ import math
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, cast
 
 import numpy as np
 
@@ -247,7 +247,7 @@ def fill_small_holes(H: np.ndarray, max_hole_px: int = 3, min_support: float = 0
         win = np.array(H[a:b], dtype=np.float32, copy=True)
         nan = np.isnan(win)
         if nan.any() and not nan.all():
-            lab, n = ndimage.label(nan)
+            lab, n = cast("tuple[np.ndarray, int]", ndimage.label(nan))     # (labels, count): no output given
             sizes = np.bincount(lab.ravel(), minlength=n + 1)
             small = sizes <= limit
             small[0] = False

@@ -13,7 +13,7 @@ import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Mapping, cast
 
 import numpy as np
 
@@ -246,6 +246,7 @@ def _write_products(H: np.ndarray, filled, fused: _Fused, work: _GridWork, grid:
     write_dsm(out.dsm, H, grid)
     agreement = agreement_layer(fused.agree, H, strip) if fused.agree is not None else None
     if agreement is not None:
+        assert fused.agree is not None           # the agreement layer is made of it
         write_geotiff(out.dsm_agreement, fused.agree, grid.transform, grid.crs, resampling="nearest",
                       description="date groups agreeing on the height of dsm.tif (0: a weak pair's "
                                   "two-view points or a filled small hole)")
@@ -395,7 +396,7 @@ def group_geometry(models: dict, maps: dict) -> dict[int, float]:
     return out
 
 
-def pair_disagreement(dsms: dict[int, np.ndarray], correct_block: int = 0, min_overlap: int = 2000,
+def pair_disagreement(dsms: Mapping[int, np.ndarray | RowView], correct_block: int = 0, min_overlap: int = 2000,
                       max_cells: int = 4_000_000) -> list[tuple[int, int, float]]:
     """(g_a, g_b, v) for each pair of DSMs sharing >= min_overlap cells: v = (1.4826 MAD of
     D_b - D_a)^2 after the smooth relative correction (fuse_groups' step 1), the variance of
@@ -524,8 +525,9 @@ def fuse_groups(dsms: list, correct_block: int = 0, min_overlap: int = 2000,
 
     def corrected(k: int, r0: int, r1: int) -> np.ndarray:
         D = np.asarray(dsms[k][r0:r1], dtype=np.float32)
-        if coarse[k] is not None:
-            D = (D - correction_rows(coarse[k], correct_block, r0, r1, w)).astype(np.float32)
+        ck = coarse[k]
+        if ck is not None:
+            D = (D - correction_rows(ck, correct_block, r0, r1, w)).astype(np.float32)
         return D
 
     for k in range(len(dsms)):
@@ -615,7 +617,7 @@ def correction_surface(D, ref, block: int, min_overlap: int = 2000,
     have = np.isfinite(coarse)
     if not have.any():
         return None
-    idx = ndimage.distance_transform_edt(~have, return_distances=False, return_indices=True)
+    idx = cast(np.ndarray, ndimage.distance_transform_edt(~have, return_distances=False, return_indices=True))
     coarse = coarse[idx[0], idx[1]]
     return ndimage.gaussian_filter(coarse, 1.0, mode="nearest").astype(np.float32)
 

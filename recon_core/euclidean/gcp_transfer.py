@@ -222,6 +222,7 @@ def predict_observation(model, images: dict[str, ImageInfo], observations: dict,
         return None
     ids, span = None, None
     reach = None
+    how = ""                                 # how X was found (set with it)
     if len(obs) >= 2:
         tri = triangulate_gcp(model, obs)
         X = tri.xyz

@@ -16,11 +16,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from recon_core.errors import InputError
 from recon_core.model.images import ImageInfo
+
+if TYPE_CHECKING:
+    from affine import Affine
+
+    from recon_core.bend.dem import ReferenceDem
 
 ORTHO_NAME = "reference orthoimage"
 
@@ -31,8 +38,8 @@ class GroundReference:
 
     ortho: ImageInfo              # named "reference orthoimage: <file>"
     crs: object
-    transform: object
-    dem: object | None = None     # dem_bend.ReferenceDem
+    transform: Affine
+    dem: ReferenceDem | None = None
 
     @cached_property
     def _to_wgs84(self):
@@ -54,7 +61,7 @@ class GroundReference:
         lon, lat = self._to_wgs84.transform(e, n)
         return float(lon), float(lat)
 
-    def pixel_of(self, lon: np.ndarray, lat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def pixel_of(self, lon: npt.ArrayLike, lat: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """(col, row) in the orthoimage of points (lon, lat): where GCPs' ground positions lie."""
         e, n = self._from_wgs84.transform(np.asarray(lon, np.float64), np.asarray(lat, np.float64))
         inv = ~self.transform

@@ -59,8 +59,13 @@ class ControlPoints:
         if self.sigma_h is None:
             self.sigma_h = np.asarray(self.sigma_m, np.float64).copy()
 
+    @property
+    def _sigma_h(self) -> np.ndarray:
+        assert self.sigma_h is not None      # __post_init__ sets it
+        return self.sigma_h
+
     def take(self, idx) -> "ControlPoints":
-        return ControlPoints(self.Xa[idx], self.Xe[idx], self.S[idx], self.sigma_m[idx], self.sigma_h[idx])
+        return ControlPoints(self.Xa[idx], self.Xe[idx], self.S[idx], self.sigma_m[idx], self._sigma_h[idx])
 
     def __len__(self) -> int:
         return len(self.Xa)
@@ -75,7 +80,7 @@ class ControlPoints:
             else:
                 A = H[:3, :3]
                 out[i] = A @ self.S[i] @ A.T
-            out[i] += np.diag([self.sigma_m[i] ** 2, self.sigma_m[i] ** 2, self.sigma_h[i] ** 2])
+            out[i] += np.diag([self.sigma_m[i] ** 2, self.sigma_m[i] ** 2, self._sigma_h[i] ** 2])
         return out
 
 
@@ -220,6 +225,7 @@ def fit_held(pts: ControlPoints, rays: list, frame: LocalFrame | None = None,
         if not changed and abs(sig_new - sig) <= 1e-6 * sig and it >= 2:
             break
         sig = sig_new
+    assert H is not None                     # the loop ran
     dirs = [r.direction(frame, H) for r in rays]
     Jg, _ = _gcp_rows(pts, H)
     Jv = _view_rows(rays, dirs, H, sig)

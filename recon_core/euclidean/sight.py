@@ -98,7 +98,7 @@ def lines_of_sight(model, images: dict) -> list[ViewRay]:
     return rays
 
 
-def _ground_near(model, tile: int) -> np.ndarray:
+def _ground_near(model, tile: int | np.integer) -> np.ndarray:
     """(3,) the mean affine position of the points a tile observes (the model's centre if none)."""
     o = model.obs
     k = np.flatnonzero((o.tile == tile) & o.valid & model.has_point[o.track])

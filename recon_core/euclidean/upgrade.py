@@ -413,6 +413,7 @@ def _screen_views(hold: ImageHold, pts: ControlPoints) -> tuple[ImageHold, list[
             key = (max(fit.view_residual_deg.values()), -off)
             if best is None or key < best[0]:
                 best = (key, r.image, off, rest)
+        assert best is not None              # hold has rays
         _, im, off, rest = best
         if off <= VIEW_BLUNDER_DEG:
             break
@@ -526,6 +527,7 @@ def _consensus(gcps, reasons, ctrl, hold, given, dropped, min_points, thresh, it
         return hold, np.ones(len(ctrl), bool), dropped
     if not held:
         return hold, fit_upgrade_ransac(Xa, Xe, thresh, iters, rng)[1], dropped
+    assert hold is not None                  # held
     pts = control_points(gcps, ctrl)
     inl = fit_held_ransac(Xa, Xe, hold, thresh, iters, rng,
                           slack_u=3.0 * np.maximum(pts.sigma_h - pts.sigma_m, 0.0))
@@ -581,7 +583,7 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
         H = fit_affine_upgrade(Xa, Xe)
     used = [i for i, ok in zip(ctrl, inl) if ok]
     pts = control_points(gcps, used)
-    fit = hold.fit(pts) if held else None
+    fit = hold.fit(pts) if held and hold is not None else None
     if fit is not None:
         H = fit.H
     sigma = _combined_sigma([gcps[i] for i in used], affine_height_sigma_m)
@@ -597,7 +599,7 @@ def upgrade(gcps: list[GcpInput], *, ransac_thresh_m: float = 2.0, min_points: i
                            loose.expected_height_error_m)
     cond = conditioning(Xe[inl], sigma, structure_height_m, warn_height_error_m, poor_height_error_m,
                         prior.ratio if prior is not None else None, loose=loose, loose_gcp=loose_gcp,
-                        images=len(hold.rays) if held else 0, best_next=best_next)
+                        images=len(hold.rays) if held and hold is not None else 0, best_next=best_next)
     result = _build_result(gcps, reasons, ctrl, used, H, Xa[inl], Xe[inl], ransac_thresh_m, cond,
                            reproj_warn_px, prior, fit, hold if held else None)
     if dropped:
@@ -751,6 +753,7 @@ def _build_result(gcps, reasons, ctrl, used, H, Xa_used, Xe_used, thresh, cond, 
     k = len(prior.rows) if prior is not None else 0
     views = None
     if fit is not None:
+        assert hold is not None              # the fit is the hold's
         k = 2 * len(hold.rays)
         views = {"images": len(hold.rays), "sigma_view_deg": fit.sigma_view_deg,
                  "sigma_view_prior_deg": hold.sigma_view_deg, "redundancy": fit.view_redundancy,

@@ -87,7 +87,7 @@ class GroupUpgrade:
 
     @classmethod
     def of(cls, st: ModelUpgrade, gsd_m: float) -> "GroupUpgrade":
-        return cls(st.result, st.affine, gsd_m, st.bend, st.warp, st.metric, st.enu_warp, st.gcp_bend,
+        return cls(st.fitted, st.affine, gsd_m, st.bend, st.warp, st.metric, st.enu_warp, st.gcp_bend,
                    st.dem_bend, st.drive)
 
     @property
@@ -193,6 +193,12 @@ class ModelUpgrade:
     dem_bend: dict = field(default_factory=dict)   # the reference DEM's fit's summary
     images: dict | None = None     # image name -> ImageInfo (viewing directions that hold H_A)
 
+    @property
+    def fitted(self) -> UpgradeResult:
+        """The result, once H_A is fitted (every step after _h_a)."""
+        assert self.result is not None
+        return self.result
+
 
 def _h_a(st: ModelUpgrade) -> None:
     st.result, st.affine = _fit(st.model, st.picks, st.frame, st.cfg, st.images)
@@ -203,7 +209,7 @@ def _metric_bend(st: ModelUpgrade) -> None:
     on the warped model (GCP positions picked on the cloud move with it)."""
     if not st.cfg.upgrade.metric_bend:
         return
-    fit = metric_bend(st.model, st.result.H, st.cfg.upgrade.orbit_altitude_km * 1e3)
+    fit = metric_bend(st.model, st.fitted.H, st.cfg.upgrade.orbit_altitude_km * 1e3)
     st.metric, warp = fit.summary, fit.warp
     if warp is None:
         return
@@ -219,25 +225,25 @@ def _metric_bend(st: ModelUpgrade) -> None:
 
 
 def _observe(st: ModelUpgrade) -> None:
-    st.bend = bend_observability(st.model, st.result.H)
-    st.drive = bend_drive(st.model, st.result.H)
+    st.bend = bend_observability(st.model, st.fitted.H)
+    st.drive = bend_drive(st.model, st.fitted.H)
 
 
 def _gcp_bend(st: ModelUpgrade) -> None:
-    st.result, warp, st.gcp_bend = _fit_gcp_bend(st.result, st.affine, st.gcps, st.frame, st.bend, st.cfg)
+    st.result, warp, st.gcp_bend = _fit_gcp_bend(st.fitted, st.affine, st.gcps, st.frame, st.bend, st.cfg)
     if warp is not None:
         st.enu_warp = warp
 
 
 def _dem_bend(st: ModelUpgrade) -> None:
-    st.result, warp, st.dem_bend = _fit_dem_bend(st.result, st.picks, st.frame, st.model, st.bend,
+    st.result, warp, st.dem_bend = _fit_dem_bend(st.fitted, st.picks, st.frame, st.model, st.bend,
                                                  st.gcp_bend, st.cfg, st.images)
     if warp is not None:
         st.enu_warp = warp
 
 
 def _warn(st: ModelUpgrade) -> None:
-    _warn_bend(st.result, st.bend, st.gcp_bend, st.dem_bend, st.drive)
+    _warn_bend(st.fitted, st.bend, st.gcp_bend, st.dem_bend, st.drive)
 
 
 # One model's upgrade, in order: H_A (with the cameras' metric constraint when asked) and the
@@ -278,6 +284,7 @@ def _fit_gcp_bend(res: UpgradeResult, aff: dict[str, GcpAffine], gcps: list[GCP]
                        BEND_INVISIBLE_PX_PER_M, thresh, cfg.seed)
     if not fit.applied:
         return res, None, fit.summary
+    assert fit.warp is not None and fit.H is not None and fit.inliers is not None and fit.loo is not None
     used = [k for k, ok in zip(ctrl, fit.inliers) if ok]
     rejected = [k for k, ok in zip(ctrl, fit.inliers) if not ok]
     out = rescore_with_bend(res, fit.H, fit.warp, pos, enu, used, rejected, dict(zip(used, fit.loo)), fit.summary,
@@ -305,6 +312,7 @@ def _fit_dem_bend(res: UpgradeResult, gcps: list[GCP], frame: LocalFrame, model,
     seen = bend_seen(bend)
     if seen:
         return res, None, {"applied": False, "reason": seen}
+    assert bend is not None                  # bend_seen(None) says why not
     dem = open_reference_dem(path)
     ids = model.point_ids()
     if len(ids) > max_points:
@@ -376,7 +384,7 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config, images: dict | No
             st = run_steps(ModelUpgrade(joint, [_picks_joint(g, joint.group) for g in gcps], gcps, up.frame,
                                         cfg, images=images), UPGRADE_CHAIN)
             for g, model in sorted(models.items()):
-                gsd = estimate_gsd(model if st.warp is None else warped_model(model, st.warp), st.result.H)
+                gsd = estimate_gsd(model if st.warp is None else warped_model(model, st.warp), st.fitted.H)
                 up.groups[g] = GroupUpgrade.of(st, gsd)
             up.joint = True
             return up
@@ -385,7 +393,7 @@ def upgrade_models(gcps: list[GCP], models: dict, cfg: Config, images: dict | No
     for g, model in sorted(models.items()):
         try:                                  # a group H_A cannot be fitted for is left out
             st = run_steps(ModelUpgrade(model, gcps, gcps, up.frame, cfg, images=images), UPGRADE_FIT)
-            gsd = estimate_gsd(st.model, st.result.H)   # a model without a registered camera stops here
+            gsd = estimate_gsd(st.model, st.fitted.H)   # a model without a registered camera stops here
         except ReconstructionError as exc:
             up.errors[g] = f"group {g}: {exc}"
             continue
@@ -400,8 +408,9 @@ def _warn_bend(res: UpgradeResult, bend: BendView | None, gcp_fit: dict | None =
     if (gcp_fit or {}).get("applied") or (dem_fit or {}).get("applied"):
         return                 # the GCPs or the reference DEM hold what the views cannot see
     text = bend_warning(bend, gcp_fit, drive)
-    if text and (dem_fit or {}).get("reason"):
-        text += f"; the reference DEM could not: {dem_fit['reason']}"
+    dem_reason = (dem_fit or {}).get("reason")
+    if text and dem_reason:
+        text += f"; the reference DEM could not: {dem_reason}"
     elif text:
         text += "; a coarse reference DEM of the site also holds its vertical part (upgrade.reference_dem: SRTM, Copernicus)"
     if text and text not in res.warnings:

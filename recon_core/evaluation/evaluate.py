@@ -30,10 +30,11 @@ import argparse
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import rasterio
+import rasterio.errors
 from rasterio.transform import Affine
 from rasterio.warp import Resampling, reproject, transform_bounds
 from rasterio.warp import transform as warp_transform
@@ -184,7 +185,8 @@ def _cell_size_m(r: Raster, crs: Any) -> tuple[float, float]:
     if r.crs == crs:
         return -t.e, t.a
     cx, cy = t.c + 0.5 * r.values.shape[1] * t.a, t.f + 0.5 * r.values.shape[0] * t.e
-    x, y = warp_transform(r.crs, crs, [cx, cx + t.a, cx], [cy, cy, cy + t.e])
+    x, y = cast("tuple[list[float], list[float]]",          # (xs, ys): no zs given
+                warp_transform(r.crs, crs, [cx, cx + t.a, cx], [cy, cy, cy + t.e]))
     return float(np.hypot(x[2] - x[0], y[2] - y[0])), float(np.hypot(x[1] - x[0], y[1] - y[0]))
 
 
@@ -594,7 +596,7 @@ def run_cli(a) -> int:
     try:
         r = evaluate_dsm(a.dsm, a.gt, a.out, max_shift_m=a.max_shift, step_m=a.step)
     except BaseException:
-        if made and not any(Path(a.out).iterdir()):
+        if made and a.out is not None and not any(Path(a.out).iterdir()):
             Path(a.out).rmdir()
         raise
     print(format_table(r))

@@ -24,7 +24,7 @@ def reference_dsms(site_root) -> list:
 def run(state: RunState, bus: EventBus) -> dict:
     refs = _score_references(state, bus)
     if state.site.gt_dsm is None:
-        out = {"skipped": "the site has no gt_dsm.tif"}
+        out: dict = {"skipped": "the site has no gt_dsm.tif"}
         if refs:
             out["references"] = refs
         return out

@@ -172,9 +172,10 @@ class EnuMap:
             return False
         if (self.enu_warp is None) != (other.enu_warp is None):
             return False
-        if self.enu_warp is not None and self.enu_warp.record() != other.enu_warp.record():
+        if self.enu_warp is not None and other.enu_warp is not None \
+                and self.enu_warp.record() != other.enu_warp.record():
             return False
-        return self.warp is None or warp_record(self.warp) == warp_record(other.warp)
+        return self.warp is None or other.warp is None or warp_record(self.warp) == warp_record(other.warp)
 
     @classmethod
     def from_record(cls, rec: dict) -> "EnuMap":

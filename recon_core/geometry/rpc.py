@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from typing import Any
+
 import numpy as np
 
 N_COEF = 20       # the RPC00B cubic polynomial's coefficients (per numerator and denominator)
@@ -85,7 +87,7 @@ class RPCModel:
 
     # ---- serialisation
     def to_dict(self) -> dict:
-        d = {k: float(getattr(self, k)) for k in (
+        d: dict[str, Any] = {k: float(getattr(self, k)) for k in (
             "line_off", "samp_off", "lat_off", "long_off", "height_off", "line_scale",
             "samp_scale", "lat_scale", "long_scale", "height_scale", "err_bias", "err_rand")}
         for k in ("line_num", "line_den", "samp_num", "samp_den"):
@@ -94,7 +96,7 @@ class RPCModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> "RPCModel":
-        kw = {k: float(d[k]) for k in (
+        kw: dict[str, Any] = {k: float(d[k]) for k in (
             "line_off", "samp_off", "lat_off", "long_off", "height_off", "line_scale",
             "samp_scale", "lat_scale", "long_scale", "height_scale")}
         for k in ("line_num", "line_den", "samp_num", "samp_den"):
@@ -106,16 +108,19 @@ class RPCModel:
         """rasterio.rpc.RPC for writing into GDAL's RPC metadata domain."""
         from rasterio.rpc import RPC
 
-        return RPC(height_off=self.height_off, height_scale=self.height_scale,
-                   lat_off=self.lat_off, lat_scale=self.lat_scale,
-                   line_den_coeff=[float(v) for v in self.line_den],
-                   line_num_coeff=[float(v) for v in self.line_num],
-                   line_off=self.line_off, line_scale=self.line_scale,
-                   long_off=self.long_off, long_scale=self.long_scale,
-                   samp_den_coeff=[float(v) for v in self.samp_den],
-                   samp_num_coeff=[float(v) for v in self.samp_num],
-                   samp_off=self.samp_off, samp_scale=self.samp_scale,
-                   err_bias=self.err_bias, err_rand=self.err_rand)
+        # (as a keyword dict: rasterio's RPC is an untyped attrs class, whose fields a checker
+        # cannot see)
+        kw: dict[str, Any] = dict(height_off=self.height_off, height_scale=self.height_scale,
+                                  lat_off=self.lat_off, lat_scale=self.lat_scale,
+                                  line_den_coeff=[float(v) for v in self.line_den],
+                                  line_num_coeff=[float(v) for v in self.line_num],
+                                  line_off=self.line_off, line_scale=self.line_scale,
+                                  long_off=self.long_off, long_scale=self.long_scale,
+                                  samp_den_coeff=[float(v) for v in self.samp_den],
+                                  samp_num_coeff=[float(v) for v in self.samp_num],
+                                  samp_off=self.samp_off, samp_scale=self.samp_scale,
+                                  err_bias=self.err_bias, err_rand=self.err_rand)
+        return RPC(**kw)
 
     @classmethod
     def from_rasterio(cls, rpcs) -> "RPCModel":

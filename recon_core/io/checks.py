@@ -18,7 +18,7 @@ def finite_number(v) -> bool:
         return False
 
 
-def projected_epsg(value, path: Path, what: str) -> int:
+def projected_epsg(value, path: Path | None, what: str) -> int:
     """An EPSG code of a projected CRS in metres that pyproj knows, else an InputError."""
     from pyproj import CRS
     from pyproj.exceptions import CRSError

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Mapping, Protocol
 
 import numpy as np
 
@@ -19,9 +19,6 @@ from recon_core.errors import InputError
 from recon_core.geometry.geodesy import projected_to_geodetic
 from recon_core.io.checks import finite_number, projected_epsg
 from recon_core.io.files import atomic_path
-
-if TYPE_CHECKING:
-    from recon_core.model.images import ImageInfo
 
 
 @dataclass
@@ -53,7 +50,16 @@ class GCP:
 MAX_ABS_HEIGHT_M = 12_000.0      # ellipsoidal heights of the Earth's surface lie within this
 
 
-def read_gcps_geojson(path: Path, images: dict[str, ImageInfo] | None = None) -> list[GCP]:
+class ImageSize(Protocol):
+    """What an observation is checked against: its image's size (an ImageInfo, or its size)."""
+
+    @property
+    def width(self) -> int: ...
+    @property
+    def height(self) -> int: ...
+
+
+def read_gcps_geojson(path: Path, images: Mapping[str, ImageSize] | None = None) -> list[GCP]:
     """Read GCPs; coordinates converted to geodetic (lon, lat, h). Validates observations."""
     path = Path(path)
     if not path.is_file():

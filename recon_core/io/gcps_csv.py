@@ -21,6 +21,7 @@ import csv
 import io
 import math
 from pathlib import Path
+from typing import Literal, overload
 
 import numpy as np
 
@@ -63,8 +64,14 @@ def gcps_csv_text(gcps: list[GCP], epsg: int | None = None) -> str:
         tail = (["" if g.sigma_h_m is None else f"{g.sigma_h_m:g}"] if with_h else [])
         obs = sorted(g.observations.items()) or [(None, None)]
         for im, cr in obs:
-            w.writerow(base + ([im, f"{cr[0]:.3f}", f"{cr[1]:.3f}"] if im else ["", "", ""]) + tail)
+            w.writerow(base + ([im, f"{cr[0]:.3f}", f"{cr[1]:.3f}"] if im and cr else ["", "", ""]) + tail)
     return buf.getvalue()
+
+
+@overload
+def _number(path: Path, line: int, name: str, text: str, required: Literal[True] = True) -> float: ...
+@overload
+def _number(path: Path, line: int, name: str, text: str, required: bool) -> float | None: ...
 
 
 def _number(path: Path, line: int, name: str, text: str, required: bool = True) -> float | None:

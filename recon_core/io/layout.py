@@ -26,6 +26,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import overload
 
 
 class _At:
@@ -34,7 +35,12 @@ class _At:
     def __init__(self, rel: str):
         self.rel = rel
 
-    def __get__(self, layout: OutLayout | None, owner=None) -> Path:
+    @overload
+    def __get__(self, layout: None, owner=None) -> _At: ...
+    @overload
+    def __get__(self, layout: OutLayout, owner=None) -> Path: ...
+
+    def __get__(self, layout: OutLayout | None, owner=None) -> Path | _At:
         return self if layout is None else layout.root / self.rel
 
 
@@ -45,7 +51,12 @@ class _Each:
     def __init__(self, rel: str):
         self.rel = rel
 
-    def __get__(self, layout: OutLayout | None, owner=None) -> Callable[[int | str], Path]:
+    @overload
+    def __get__(self, layout: None, owner=None) -> _Each: ...
+    @overload
+    def __get__(self, layout: OutLayout, owner=None) -> Callable[[int | str], Path]: ...
+
+    def __get__(self, layout: OutLayout | None, owner=None) -> Callable[[int | str], Path] | _Each:
         if layout is None:
             return self
         return lambda key: layout.root / self.rel.format(key)

@@ -59,7 +59,7 @@ def save_model(model: SparseModel, out: OutLayout | str | Path) -> Path:
     with atomic_path(lay.observations(model.group)) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, tile=o.tile, track=o.track, xy=o.xy, img=o.img, valid=o.valid,
-                                corr=o.corr, gray=model.gray, point_ids=ids)
+                                corr=o.correction, gray=model.gray, point_ids=ids)
     return d
 
 
@@ -113,6 +113,7 @@ def load_dense(out: OutLayout | str | Path, g: int) -> DenseCloud | None:
     if not path.exists():
         return None
     xyz, rgb, extra = ply_fields(open_ply(path))
+    assert rgb is not None                       # the dense stage writes colours
     return DenseCloud(xyz, rgb[:, 0].copy(), extra["n_views"].astype(np.uint8), extra["reproj_px"],
                       extra["weak"] > 0 if "weak" in extra else None)
 
@@ -126,11 +127,15 @@ class PointSource:
         self._xyz, self._gray = xyz, gray
 
     def __len__(self) -> int:
-        return len(self._rec) if self._rec is not None else len(self._xyz)
+        if self._rec is not None:
+            return len(self._rec)
+        assert self._xyz is not None             # arrays when no PLY
+        return len(self._xyz)
 
     def read(self, a: int, b: int, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """(xyz (k, 3) float64, grey (k,) uint8) of points a, a + step, ... < b."""
         if self._rec is None:
+            assert self._xyz is not None and self._gray is not None   # arrays when no PLY
             return np.asarray(self._xyz[a:b:step], np.float64), np.asarray(self._gray[a:b:step], np.uint8)
         xyz, rgb, _ = ply_fields(self._rec[a:b:step])
         return xyz, (rgb[:, 0] if rgb is not None else np.full(len(xyz), 128, np.uint8))
@@ -139,7 +144,7 @@ class PointSource:
         """(k,) uint8 DSM tier of points a..b (1: a weak pair's two-view point, a fallback), or
         None when the cloud has no such marks (arrays, an older dense.ply: every point counts
         alike)."""
-        if self._rec is None or "weak" not in self._rec.dtype.names:
+        if self._rec is None or "weak" not in (self._rec.dtype.names or ()):
             return None
         return (np.asarray(self._rec["weak"][a:b]) > 0).astype(np.uint8)
 

@@ -90,7 +90,7 @@ class PlyWriter:
         ply_name = {np.dtype("<f8"): "double", np.dtype("u1"): "uchar", np.dtype("<f4"): "float"}
         head = ["ply", "format binary_little_endian 1.0", "comment written by AE-Rec",
                 *self.comments, f"element vertex {n}"]
-        head += [f"property {ply_name[self.dtype[k]]} {k}" for k in self.dtype.names]
+        head += [f"property {ply_name[self.dtype[k]]} {k}" for k in (self.dtype.names or ())]
         text = "\n".join(head) + "\n"
         tail = "end_header\n"
         if size:
@@ -115,6 +115,7 @@ class PlyWriter:
             raise ValueError(f"extra fields {sorted(extra)} != {sorted(self.extra)}")
         for k, v in extra.items():
             rec[k] = np.asarray(v).reshape(-1)
+        assert self._f is not None               # open until close()
         rec.tofile(self._f)
         self.n += m
 
@@ -185,7 +186,7 @@ def open_ply(path: str | Path) -> np.ndarray:
     size = path.stat().st_size
     if size < offset + n * dt.itemsize:
         raise InputError(path, f"PLY file truncated: {(size - offset) // dt.itemsize} of {n} vertices")
-    if not {"x", "y", "z"} <= set(dt.names):
+    if not {"x", "y", "z"} <= set(dt.names or ()):
         raise InputError(path, "PLY vertices lack x, y, z")
     if n == 0:
         return np.zeros(0, dtype=dt)
@@ -194,11 +195,11 @@ def open_ply(path: str | Path) -> np.ndarray:
 
 def ply_fields(rec: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, dict[str, np.ndarray]]:
     """(xyz (n, 3) float64, colors (n, 3) uint8 or None, extra) of PLY vertex records (copies)."""
-    names = set(rec.dtype.names)
+    names = set(rec.dtype.names or ())
     xyz = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
     rgb = ("red", "green", "blue")
     colors = np.column_stack([rec[c] for c in rgb]).astype(np.uint8) if set(rgb) <= names else None
-    extra = {k: np.array(rec[k]) for k in rec.dtype.names if k not in ("x", "y", "z", *rgb)}
+    extra = {k: np.array(rec[k]) for k in (rec.dtype.names or ()) if k not in ("x", "y", "z", *rgb)}
     return xyz, colors, extra
 
 

@@ -26,6 +26,7 @@ import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import cast
 from xml.sax.saxutils import escape
 
 import numpy as np
@@ -58,6 +59,7 @@ class ProductImage:
 
 def _open(path: Path):
     import rasterio
+    import rasterio.errors
 
     try:
         with warnings.catch_warnings():
@@ -198,7 +200,7 @@ def describe_image(tiles: list[tuple[Path, int, int]], band: int | None, times: 
     """What the site needs of one product image: its size (tiles mosaicked), band, time, and
     its viewing direction when its metadata (or `views`, by image name) states it."""
     first = tiles[0][0]
-    base = TILE_NAME.match(first.stem).group("base") if TILE_NAME.match(first.stem) else first.stem
+    base = m.group("base") if (m := TILE_NAME.match(first.stem)) else first.stem
     with _open(first) as ds:
         count, dtype = ds.count, ds.dtypes[0]
         if band is None and count not in (1, 3):
@@ -339,10 +341,10 @@ def site_grid(images: list[ProductImage]) -> tuple[dict | None, str | None]:
     the user about where they came from; (None, None) without any."""
     from recon_core.geometry.geodesy import geodetic_to_projected
 
-    lonlat = [ll for im in images if im.rpc_footprint for ll in _footprint_lonlat(im)]
+    lonlat = [ll for im in images if im.rpc_footprint for ll in cast(np.ndarray, _footprint_lonlat(im))]
     note = "the footprint in site.json comes from the products' RPCs (used for nothing else)"
     if not lonlat:
-        lonlat = [ll for im in images if im.crs_footprint for ll in _footprint_lonlat(im)]
+        lonlat = [ll for im in images if im.crs_footprint for ll in cast(np.ndarray, _footprint_lonlat(im))]
         note = "the footprint in site.json comes from the products' georeferencing"
     if not lonlat:
         return None, None
@@ -472,7 +474,7 @@ def init_site(site: Path, products: list[Path], *, band: int | None = None, time
     with atomic_folder(site) as tmp:
         _write_site(tmp, images, hints, name, gcps)
         _check_written(tmp, site, images, gcps)
-    notes = [note] if hints else []
+    notes = [note] if hints and note else []
     return images, notes
 
 

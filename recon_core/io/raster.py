@@ -191,13 +191,13 @@ def _write_gtiff_tiled(tmp: Path, arr: np.ndarray, profile: dict, resampling: st
         for r0 in range(0, arr.shape[0], step):
             r1 = min(r0 + step, arr.shape[0])
             dst.write(np.asarray(arr[r0:r1], dtype=np.float32), 1,
-                      window=Window(0, r0, arr.shape[1], r1 - r0))
+                      window=Window(0, r0, arr.shape[1], r1 - r0))  # pyright: ignore[reportCallIssue]
         _describe(dst, tags, description, units)
         factors, f = [], 2
         while resampling and max(arr.shape) / f >= 256:
             factors.append(f)
             f *= 2
-        if factors:
+        if factors and resampling:
             dst.build_overviews(factors, Resampling[resampling])
 
 

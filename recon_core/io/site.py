@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import rasterio
+import rasterio.errors
 from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 from rasterio.windows import Window
 
@@ -173,11 +174,11 @@ def sample_values(path: Path) -> tuple[np.ndarray, float | None]:
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
         with rasterio.open(path) as ds:
             w, h = min(ds.width, 32), min(ds.height, 32)
-            parts = [ds.read(1, window=Window(0, ds.height - h, ds.width, h)).ravel()]
+            parts = [ds.read(1, window=Window(0, ds.height - h, ds.width, h)).ravel()]  # pyright: ignore[reportCallIssue]
             for fy in (0.1, 0.5, 0.9):
                 for fx in (0.1, 0.5, 0.9):
                     c0, r0 = int(fx * (ds.width - w)), int(fy * (ds.height - h))
-                    parts.append(ds.read(1, window=Window(c0, r0, w, h)).ravel())
+                    parts.append(ds.read(1, window=Window(c0, r0, w, h)).ravel())  # pyright: ignore[reportCallIssue]
             nodata = ds.nodata
     v = np.concatenate(parts).astype(np.float64)
     v = v[np.isfinite(v)]
@@ -207,7 +208,7 @@ def open_image(path: Path) -> ImageInfo:
                     raise InputError(path, f"pixel type {dtype}; expected uint8, uint16 or float32")
                 # Read the last block row: a truncated file fails here, not deep in a stage.
                 h = min(ds.height, 16)
-                ds.read(1, window=Window(0, ds.height - h, ds.width, h))
+                ds.read(1, window=Window(0, ds.height - h, ds.width, h))  # pyright: ignore[reportCallIssue]
                 info = ImageInfo(name=path.name, path=path, width=ds.width, height=ds.height,
                                  bands=ds.count, dtype=dtype, nodata=ds.nodata, acquired=None,
                                  time_source="none", has_rpc=bool(ds.rpcs))
@@ -421,7 +422,7 @@ def read_window(image: ImageInfo, col0: int, row0: int, width: int, height: int,
             with rasterio.open(image.path) as ds:
                 if out_shape is not None:
                     kw["out_shape"] = (ds.count, int(out_shape[0]), int(out_shape[1]))
-                a = ds.read(window=Window(col0, row0, width, height), boundless=False, **kw)
+                a = ds.read(window=Window(col0, row0, width, height), boundless=False, **kw)  # pyright: ignore[reportCallIssue]
     except rasterio.errors.RasterioError as exc:
         raise InputError(image.path, f"cannot read window ({exc})") from None
     out = to_gray_float(a)

@@ -3,9 +3,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from datetime import datetime
 
 from recon_core.errors import InputError
 from recon_core.model.images import ImageInfo, iso_utc
+
+
+def _acquired(im: ImageInfo) -> datetime:
+    """An image's acquisition time (grouping by date needs one: group_by_date checks)."""
+    assert im.acquired is not None
+    return im.acquired
 
 
 @dataclass
@@ -17,10 +24,10 @@ class Group:
 
     @property
     def span_days(self) -> float:
-        return (self.images[-1].acquired - self.images[0].acquired).total_seconds() / 86400.0
+        return (_acquired(self.images[-1]) - _acquired(self.images[0])).total_seconds() / 86400.0
 
     def describe(self) -> str:
-        a, b = self.images[0].acquired, self.images[-1].acquired
+        a, b = _acquired(self.images[0]), _acquired(self.images[-1])
         return (f"group {self.index}: {len(self.images)} image(s), {iso_utc(a)[:10]} .. "
                 f"{iso_utc(b)[:10]} (span {self.span_days:.1f} d)")
 
@@ -41,8 +48,8 @@ def group_by_date(images: list[ImageInfo], max_gap_days: float = 15.0,
     for im in ordered:
         if groups:
             cur = groups[-1]
-            gap = (im.acquired - cur[-1].acquired).total_seconds() / 86400.0
-            span = (im.acquired - cur[0].acquired).total_seconds() / 86400.0
+            gap = (_acquired(im) - _acquired(cur[-1])).total_seconds() / 86400.0
+            span = (_acquired(im) - _acquired(cur[0])).total_seconds() / 86400.0
             if gap < max_gap_days and (max_span_days is None or span <= max_span_days):
                 cur.append(im)
                 continue

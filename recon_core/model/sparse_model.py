@@ -31,9 +31,15 @@ class Observations:
         if self.corr is None:
             self.corr = np.zeros((len(self.tile), 2))
 
+    @property
+    def correction(self) -> np.ndarray:
+        """corr, which __post_init__ always makes (the same array)."""
+        assert self.corr is not None
+        return self.corr
+
     def pixels(self, idx) -> np.ndarray:
         """The pixels an affine tile camera sees, xy - corr, of observations idx."""
-        return self.xy[idx] - self.corr[idx]
+        return self.xy[idx] - self.correction[idx]
 
 
 @dataclass
@@ -68,7 +74,7 @@ class SparseModel:
     has_point: np.ndarray             # (N,) bool
     gray: np.ndarray                  # (N,) uint8 track intensity
     register_order: list[int] = field(default_factory=list)
-    init_tiles: tuple[int, int] = (-1, -1)
+    init_tiles: tuple[int, ...] = (-1, -1)
     stats: dict = field(default_factory=dict)
 
     # -- views of the model ---------------------------------------------------------------
@@ -173,12 +179,12 @@ class SparseModel:
         them (the others carry no correction)."""
         o = self.obs
         k = np.flatnonzero((o.tile == t) & o.valid & self.has_point[o.track]) if obs is None else obs
-        if len(k) < 12 or not np.any(o.corr[k]):
+        if len(k) < 12 or not np.any(o.correction[k]):
             return None
         tile = self.tiles[t]
         f = CorrectionField(np.array([tile.col0 + tile.width / 2.0, tile.row0 + tile.height / 2.0]),
                             max(tile.width, tile.height) / 2.0, np.zeros((6, 2)))
-        f.coef = np.linalg.lstsq(f.basis(o.xy[k]), o.corr[k], rcond=None)[0]
+        f.coef = np.linalg.lstsq(f.basis(o.xy[k]), o.correction[k], rcond=None)[0]
         return f
 
     def correction_at(self, t: int, xy) -> np.ndarray:

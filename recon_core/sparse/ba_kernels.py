@@ -15,10 +15,12 @@ that involve a free camera entry: the others add nothing to S, rhs or the point 
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import njit
 
-_JIT = dict(cache=True, nogil=True, fastmath=False)
+_JIT: dict[str, Any] = dict(cache=True, nogil=True, fastmath=False)
 
 
 @njit(**_JIT)

@@ -218,7 +218,7 @@ def _point_passes(oc: np.ndarray, ps: np.ndarray, has_p: np.ndarray, cam_col: np
     order = with_p[np.argsort(ps[with_p], kind="stable")]
     # an observation in a held camera adds nothing to the reduced system (a local
     # adjustment's points are mostly seen by held cameras): left out of the per-point pass
-    order = order[(cam_col >= 0).any(axis=1)[oc[order]]]
+    order = order[(cam_col >= 0).any(axis=1)[oc[order]]]  # pyright: ignore[reportIndexIssue]
     start = np.searchsorted(ps[order], np.arange(npt + 1)).astype(np.int64)
     # points ordered by the cameras that see them (first, last), for the cache
     first = np.full(npt, T, np.int64)

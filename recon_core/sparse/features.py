@@ -151,7 +151,7 @@ def nonfinite_share(im: ImageInfo) -> float:
             w, h = min(ds.width, 64), min(ds.height, 64)
             for fy in (0.1, 0.5, 0.9):
                 for fx in (0.1, 0.5, 0.9):
-                    a = ds.read(1, window=Window(int(fx * (ds.width - w)), int(fy * (ds.height - h)), w, h))
+                    a = ds.read(1, window=Window(int(fx * (ds.width - w)), int(fy * (ds.height - h)), w, h))  # pyright: ignore[reportCallIssue]
                     bad += int(np.count_nonzero(~np.isfinite(a)))
                     total += a.size
     return bad / max(total, 1)
@@ -200,7 +200,7 @@ def detect_image(image: ImageInfo, cfg: FeatureConfig, tone: ToneCurve | None = 
     progress step; it may raise to stop the detection, e.g. on Ctrl-C)."""
     tone = tone or tone_curve_for([image], cfg.stretch_percentiles)
     budget = max(500, int(cfg.max_features_per_mpx * image.width * image.height / 1e6))
-    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=cfg.contrast_threshold)
+    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=cfg.contrast_threshold)  # pyright: ignore[reportAttributeAccessIssue]
     margin = 48
     parts, descs = [], []
     sink = open(spill, "wb") if spill is not None else None
@@ -240,13 +240,14 @@ def detect_image(image: ImageInfo, cfg: FeatureConfig, tone: ToneCurve | None = 
                              np.zeros(0, np.float32), np.zeros(0, np.float32), np.zeros(0, np.uint8))
     xy, size, resp, gray = (np.concatenate(p) for p in zip(*parts))
     del parts
-    desc = np.concatenate(descs) if sink is None else _mapped_desc(spill, len(xy))
+    desc = np.concatenate(descs) if sink is None or spill is None else _mapped_desc(spill, len(xy))
     feats = ImageFeatures(image.name, xy, desc, size, resp, gray)
     if len(feats) > budget:
         keep = np.sort(np.argsort(-feats.response, kind="stable")[:budget])
         if sink is None:
             feats = feats.subset(keep)
         else:                       # the kept rows copied to a new file by chunks, then renamed
+            assert spill is not None            # the sink writes to it
             tmp = spill.with_name(spill.name + ".kept")
             with open(tmp, "wb") as out:
                 for k in range(0, len(keep), 1 << 20):
@@ -285,7 +286,7 @@ def detect_overview(image: ImageInfo, factor: int, tone: ToneCurve, max_features
     factor = overview_factor(image, factor)
     ov = read_downsampled(image, factor)
     img8 = tone.apply(ov)
-    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.01)
+    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.01)  # pyright: ignore[reportAttributeAccessIssue]
     kps, desc = sift.detectAndCompute(img8, None)
     if desc is None:
         return np.zeros((0, 2)), np.zeros((0, 128), np.uint8)

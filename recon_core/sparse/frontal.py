@@ -22,8 +22,8 @@ from contextlib import nullcontext
 
 import numpy as np
 import scipy.linalg
-from scipy.linalg.blas import dsyrk as _syrk
-from scipy.linalg.blas import dtrsm as _trsm
+from scipy.linalg.blas import dsyrk as _syrk  # pyright: ignore[reportAttributeAccessIssue]
+from scipy.linalg.blas import dtrsm as _trsm  # pyright: ignore[reportAttributeAccessIssue]
 from scipy.sparse import csc_matrix
 from threadpoolctl import ThreadpoolController
 
@@ -52,7 +52,7 @@ class FrontalCholesky:
         if not A.has_canonical_format:
             A = A.copy()
             A.sum_duplicates()
-        n = A.shape[0]
+        n = A.shape[0]  # pyright: ignore[reportOptionalSubscript]
         starts = np.asarray(starts, dtype=np.int64)
         if starts[0] != 0 or starts[-1] != n or np.any(np.diff(starts) <= 0):
             raise ValueError("chunk starts must rise strictly from 0 to n")

@@ -119,7 +119,7 @@ def refine_points(ref: np.ndarray, ref_xy: np.ndarray, tgt: np.ndarray, tgt_xy: 
         Jx = _sample(gx, pts)
         Jy = _sample(gy, pts)
         fin = np.isfinite(T).all(1) & np.isfinite(Jx).all(1) & np.isfinite(Jy).all(1)
-        live[k[~fin]] = False
+        live[k[~fin]] = False  # pyright: ignore[reportIndexIssue]
         k, T, Jx, Jy = k[fin], T[fin], Jx[fin], Jy[fin]
         Tn, _, sT = _normalise(T, w)
         Jx = (Jx - (Jx @ w)[:, None]) / sT[:, None]
@@ -138,13 +138,13 @@ def refine_points(ref: np.ndarray, ref_xy: np.ndarray, tgt: np.ndarray, tgt_xy: 
         d[big] *= (0.5 / np.hypot(dx, dy)[big])[:, None]
         p[k] += d
         step[k] = np.hypot(d[:, 0], d[:, 1])
-        live[k[~good]] = False
-        live[k[step[k] < 1e-3]] = False
+        live[k[~good]] = False  # pyright: ignore[reportIndexIssue]
+        live[k[step[k] < 1e-3]] = False  # pyright: ignore[reportIndexIssue]
     # the correlation at the final position
     pts = p[:, None, :] + gt
     Tn, _, _ = _normalise(_sample(tgt, pts), w)
     fin = np.isfinite(Tn).all(1) & np.isfinite(Rn).all(1)
-    ncc = np.where(fin, np.sum(np.where(fin[:, None], Tn * Rn, 0.0) * w, 1), -1.0)
+    ncc = np.where(fin, np.sum(np.where(fin[:, None], Tn * Rn, 0.0) * w, 1), -1.0)  # pyright: ignore[reportIndexIssue]
     shift = np.hypot(*(p - tgt_xy).T)
     ok = fin & (ncc >= min_ncc) & (shift <= max_shift) & (step < 0.02) & (lam_min >= min_texture)
     return RefineResult(np.where(ok[:, None], p, tgt_xy), ok, ncc, shift)

@@ -580,6 +580,7 @@ class IncrementalSfM:
             # the tiles sharing the most points with `around`, from the observations of its
             # tracks only; then the observations of the free points: every one the adjustment
             # uses (an observation in a free tile is of a free point), in the same order
+            assert around is not None                # a local adjustment is around a tile
             tr = np.unique(o.track[self._active(self._obs_of_tiles(np.array([around])))])
             shared = np.bincount(o.tile[self._active(self._obs_of_tracks(tr))], minlength=len(m.tiles))
             shared[around] = 0

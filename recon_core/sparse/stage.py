@@ -263,6 +263,7 @@ class GroupRouter(EventBus):
         with an image that observes them: the initial pair is often one image of each date,
         whose points would belong to neither group until more tiles register."""
         m = self.model
+        assert m is not None                     # set before any event is routed
         idx = m.active_obs()
         want = np.zeros(len(m.X), bool)
         want[ids] = True
@@ -316,7 +317,7 @@ def split_model(model: SparseModel, group: int, images: list[str]) -> SparseMode
     o = model.obs
     k = keep_t[o.tile]
     obs = Observations(t_map[o.tile[k]], o.track[k].copy(), o.xy[k].copy(), img_map[o.img[k]],
-                       o.valid[k].copy(), o.corr[k].copy())
+                       o.valid[k].copy(), o.correction[k].copy())
     mine = {t.id for t, kt in zip(model.tiles, keep_t) if kt}
     part = SparseModel(group, list(images), [t for t, kt in zip(model.tiles, keep_t) if kt],
                        model.cams[keep_t].copy(), model.registered[keep_t].copy(),

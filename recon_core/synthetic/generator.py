@@ -41,7 +41,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -574,6 +574,7 @@ def _draw_group_views(rng: np.random.Generator, n: int, preset: SynthPreset, alt
         score = sum(max(0, lo - b) + max(0, b - hi) for b in bhs)
         if best is None or score < best[0]:
             best = (score, th, az)
+    assert best is not None                  # tries > 0
     return best[1], best[2]
 
 
@@ -608,7 +609,8 @@ def design_acquisitions(preset: SynthPreset, seed: int, lat: float, lon: float) 
                 size = (int(round(preset.image_size[0] * jit[0] / 2)) * 2,
                         int(round(preset.image_size[1] * jit[1] / 2)) * 2)
             foot = preset.gsd * min(size)
-            off = tuple(float(v) for v in rng.uniform(-0.04, 0.04, 2) * foot)
+            off_e, off_n = (float(v) for v in rng.uniform(-0.04, 0.04, 2) * foot)
+            off = (off_e, off_n)
             acqs.append(Acquisition(name=f"img_{idx:02d}.tif", group=g, when=when,
                                     off_nadir=float(th[k]), view_az=float(vaz[k]),
                                     scan_az=float((heading + deltas[k]) % 360), size=size,
@@ -818,10 +820,11 @@ def render_image(cam: PushbroomCamera, scene: SceneModel, preset: SynthPreset, s
     hmin, hmax = scene.height_bounds()
     h_top, h_bot = hmax + 0.05, hmin - 0.5
     acc = scene.accel
+    assert acc is not None               # built above (build_accel)
     el = math.degrees(math.asin(shade[sm.S_SUNZ]))
     gain = 2300.0 / (0.35 + 0.65 * math.sin(math.radians(el)))
     sub = (np.arange(ss) + 0.5) / ss - 0.5
-    profile = dict(driver="GTiff", width=W, height=Hh, count=1, dtype="uint16", tiled=True,
+    profile: dict[str, Any] = dict(driver="GTiff", width=W, height=Hh, count=1, dtype="uint16", tiled=True,
                    blockxsize=256, blockysize=256, compress="deflate", predictor=2,
                    rpcs=rpc.to_rasterio())
     with atomic_path(out_path) as tmp:
@@ -844,7 +847,7 @@ def render_image(cam: PushbroomCamera, scene: SceneModel, preset: SynthPreset, s
                 sigma = np.sqrt(0.12 * np.maximum(dn, 0) + 2.0 ** 2)
                 dn = dn + sigma * rng.standard_normal(dn.shape)
                 img = np.clip(np.rint(dn), 0, 2047).astype(np.uint16)
-                dst.write(img, 1, window=Window(0, r0, W, r1 - r0))
+                dst.write(img, 1, window=Window(0, r0, W, r1 - r0))  # pyright: ignore[reportCallIssue]
                 if progress is not None:
                     progress(f"render {cam.name}", r1, Hh)
     _publish(out_path)
@@ -1110,7 +1113,7 @@ def _write_gt_dsm(path: Path, scene: SceneModel, bounds, valid: "_Mask", res: fl
     xmin, ymin, xmax, ymax = bounds
     nx = int(round((xmax - xmin) / res))
     ny = int(round((ymax - ymin) / res))
-    profile = dict(driver="GTiff", width=nx, height=ny, count=1, dtype="float32",
+    profile: dict[str, Any] = dict(driver="GTiff", width=nx, height=ny, count=1, dtype="float32",
                    crs=CRS.from_epsg(scene.epsg), transform=Affine(res, 0.0, xmin, 0.0, -res, ymax),
                    nodata=NODATA, tiled=True, blockxsize=256, blockysize=256, compress="deflate",
                    predictor=3)
@@ -1121,7 +1124,7 @@ def _write_gt_dsm(path: Path, scene: SceneModel, bounds, valid: "_Mask", res: fl
                 r1 = min(ny, r0 + step)
                 dsm, _ = scene.gt_dsm((xmin, ymax - r1 * res, xmax, ymax - r0 * res), res)
                 dsm[~valid.block(r0, r1, nx, res)] = NODATA
-                dst.write(dsm, 1, window=Window(0, r0, nx, r1 - r0))
+                dst.write(dsm, 1, window=Window(0, r0, nx, r1 - r0))  # pyright: ignore[reportCallIssue]
                 if progress is not None:
                     progress("gt_dsm", r1, ny)
     _publish(path)
@@ -1153,6 +1156,7 @@ def render_ortho(site: str | Path, out_path: str | Path, preset: str | SynthPres
     nodes = _node_cols(W, 0)
     sub = (np.arange(supersample) + 0.5) / supersample - 0.5
     acc = scene.accel
+    assert acc is not None               # built above (build_accel)
     out = np.empty((H, W), np.uint16)
     for r0 in range(0, H, 256):
         r1 = min(H, r0 + 256)
@@ -1167,7 +1171,7 @@ def render_ortho(site: str | Path, out_path: str | Path, preset: str | SynthPres
                              float(NODE_STEP), 0.0, W, supersample, scene.ctx, acc.cellmax, acc.x0,
                              acc.y0, acc.cs, shade)
         out[r0:r1] = np.clip(np.rint(30.0 + gain * rad), 0, 2047).astype(np.uint16)
-    profile = dict(driver="GTiff", width=W, height=H, count=1, dtype="uint16", crs=crs, transform=tf,
+    profile: dict[str, Any] = dict(driver="GTiff", width=W, height=H, count=1, dtype="uint16", crs=crs, transform=tf,
                    tiled=True, blockxsize=256, blockysize=256, compress="deflate", predictor=2)
     with atomic_path(out_path) as tmp:
         with rasterio.open(tmp, "w", **profile) as dst:

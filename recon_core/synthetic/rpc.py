@@ -61,6 +61,7 @@ def _fit_ratio(M: np.ndarray, y: np.ndarray, reg: float, n_iter: int) -> tuple[n
         den = np.concatenate([[1.0], x[N_COEF:]])
         B = M @ den
         w = 1.0 / np.maximum(np.abs(B), 1e-6)
+    assert num is not None and den is not None   # n_iter >= 1
     return num, den
 
 

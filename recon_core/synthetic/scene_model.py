@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numba import njit, prange
@@ -90,9 +91,9 @@ _INV53 = 1.0 / 9007199254740992.0
 
 # Inner kernels allocate nothing: compiled without reference counting (_nrt=False), which
 # otherwise costs atomic increments on every call that passes the context's arrays.
-_JIT = dict(cache=True, fastmath=True, error_model="numpy", _nrt=False)
-_AJIT = dict(cache=True, fastmath=True, error_model="numpy")          # allocating kernels
-_PJIT = dict(cache=True, fastmath=True, error_model="numpy", parallel=True)
+_JIT: dict[str, Any] = dict(cache=True, fastmath=True, error_model="numpy", _nrt=False)
+_AJIT: dict[str, Any] = dict(cache=True, fastmath=True, error_model="numpy")          # allocating kernels
+_PJIT: dict[str, Any] = dict(cache=True, fastmath=True, error_model="numpy", parallel=True)
 
 
 @njit(inline="always", **_JIT)
@@ -1486,6 +1487,7 @@ class SceneModel:
         points it evaluates (:meth:`ensure_tables`; the methods of this class do it)."""
         if self.tables is None:
             self.ensure_tables(-1.0, -1.0, 1.0, 1.0)
+        assert self.tables is not None          # ensure_tables sets it
         return self.tables["ctx"]
 
     # ---- coordinates
@@ -1629,6 +1631,7 @@ class SceneModel:
     def cast_local(self, top: np.ndarray, bot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cast segments (n, 3) -> (n, 3): first surface hit (scene-local), status (n,) int8."""
         a = self.accel
+        assert a is not None, "cast_local before build_accel"
         pts = np.concatenate([np.asarray(top)[:, :2], np.asarray(bot)[:, :2]])
         self._ensure_points(pts[:, 0], pts[:, 1])
         return cast_rays(np.ascontiguousarray(top, dtype=np.float64),
