@@ -16,13 +16,12 @@ Display coordinates are what the scene receives: float32, small numbers, z up. T
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
 from recon_core.evaluation.colormap import sequential
 from recon_core.geometry.camera import AffineCamera
-from recon_core.geometry.enu_map import EnuMap
+from recon_core.geometry.enu_map import BendWarp, EnuMap, EnuWarp
 
 COLOR_MODES = ("image colour", "height", "number of views", "reprojection error")
 
@@ -50,8 +49,8 @@ class DisplayTransform:
     label: str
     z_scale: float = 1.0
     camera: np.ndarray | None = None     # (2, 3) camera rows of the horizontal axes (affine)
-    warp: Callable[[np.ndarray], np.ndarray] | None = None   # X -> D(X) (n, 3), applied before A (a BendWarp)
-    post: Callable[[np.ndarray], np.ndarray] | None = None   # Y -> G(Y) (n, 3), applied after A and b (an EnuWarp)
+    warp: BendWarp | None = None     # X -> D(X) (n, 3), applied before A
+    post: EnuWarp | None = None      # Y -> G(Y) (n, 3), applied after A and b
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """(n, 3) frame points -> (n, 3) float32 display points."""
@@ -134,8 +133,8 @@ def _pca_display_transform(X: np.ndarray, c: np.ndarray) -> DisplayTransform:
                             "whitened; relief exaggerated; may be depth-reversed", 1.0)
 
 
-def euclidean_display_transform(H: np.ndarray, origin_llh: np.ndarray, warp=None,
-                                post=None) -> DisplayTransform:
+def euclidean_display_transform(H: np.ndarray, origin_llh: np.ndarray, warp: BendWarp | None = None,
+                                post: EnuWarp | None = None) -> DisplayTransform:
     """Display of the Euclidean frame: ENU metres at the local origin, z up (A = H_A[:3, :3],
     after the metric bend step's warp and before the bend fitted to GCPs when there are: the
     same map as the DSM's)."""

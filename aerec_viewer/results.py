@@ -38,6 +38,7 @@ if TYPE_CHECKING:
     import viser
 
     from recon_core.io.site import Site
+    from recon_core.model.sparse_model import SparseModel
 
     from .gcp_controller import GcpController
 
@@ -101,7 +102,7 @@ def gcp_readiness(session: GcpSession, models: dict) -> dict[str, tuple[bool, st
     return out
 
 
-def image_group(models: dict, image: str) -> tuple[int, object] | None:
+def image_group(models: dict[int, SparseModel], image: str) -> tuple[int, SparseModel] | None:
     """(group, model) of the group whose model holds `image`, or None."""
     return next(((g, m) for g, m in models.items() if image in m.images), None)
 
@@ -111,7 +112,8 @@ def surveyed_in(upgrade: UpgradeMaps | None, group: int, llh) -> Surveyed | None
     from the ground (gcp_transfer.predict_from_ground); None before the group is upgraded."""
     if upgrade is None or llh is None or group not in upgrade.maps:
         return None
-    return Surveyed(tuple(float(v) for v in llh), upgrade.maps[group], upgrade.frame)
+    lon, lat, h = (float(v) for v in llh)
+    return Surveyed((lon, lat, h), upgrade.maps[group], upgrade.frame)
 
 
 def predict_in(models: dict, image: str, observations: dict, llh=None, upgrade: UpgradeMaps | None = None,
@@ -148,7 +150,9 @@ def predict_surveyed(models: dict, images, upgrade: UpgradeMaps | None, llh) -> 
     out = {}
     for im in images:
         found = image_group(models, im)
-        sv = None if found is None else surveyed_in(upgrade, found[0], llh)
+        if found is None:
+            continue
+        sv = surveyed_in(upgrade, found[0], llh)
         pred = None if sv is None else predict_from_ground(found[1], sv.emap, sv.frame, sv.llh, im)
         if pred is not None:
             out[im] = pred

@@ -150,7 +150,9 @@ class _GridWork:
 
     def close(self) -> None:
         # let go of the memmaps (also those a traceback would keep) before removing their files
-        self.raw.clear(), self.weak.clear(), self.arrays.clear()
+        self.raw.clear()
+        self.weak.clear()
+        self.arrays.clear()
         self.dir.cleanup()
 
 
