@@ -19,6 +19,7 @@ import time
 import traceback
 from collections import deque
 from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
@@ -189,8 +190,15 @@ class ViewerApp:
         return fut
 
     def call(self, fn: Callable[[], object], timeout: float = 30.0):
-        """Run fn on the update thread and return its result (tests use this)."""
-        return self.submit(fn).result(timeout)
+        """Run fn on the update thread and return its result. Past `timeout` the work is
+        withdrawn if it has not started (TimeoutError): a caller told "busy" may retry without
+        the first try also running later."""
+        fut = self.submit(fn)
+        try:
+            return fut.result(timeout)
+        except FutureTimeout:
+            fut.cancel()
+            raise
 
     def wait_idle(self, timeout: float = 10.0) -> None:
         """Return once the newest worker state has been applied."""
@@ -218,6 +226,8 @@ class ViewerApp:
                 fn, fut = self._queue.get_nowait()
             except queue.Empty:
                 return
+            if not fut.set_running_or_notify_cancel():
+                continue                       # withdrawn by a caller that gave up waiting
             try:
                 fut.set_result(fn())
             except (AerecError, GcpError) as exc:

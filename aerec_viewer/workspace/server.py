@@ -183,6 +183,7 @@ def _handler_class(api: WorkspaceApi, host: str):
     class Handler(BaseHTTPRequestHandler):
         server_version = "aerec-workspace"
         protocol_version = "HTTP/1.1"
+        timeout = 30                # a request that stalls mid-way lets go of its thread
 
         def log_message(self, format: str, *args) -> None:        # noqa: A002 (http.server's name)
             log.debug("%s " + format, self.address_string(), *args)
@@ -207,6 +208,12 @@ def _handler_class(api: WorkspaceApi, host: str):
 
         def _post(self) -> None:
             path = urlsplit(self.path).path
+            if self.headers.get("Transfer-Encoding"):
+                raise ApiError(411, "send a Content-Length, not a chunked body")
+            origin = self.headers.get("Origin")
+            if origin is not None and urlsplit(origin).netloc != self.headers.get("Host", ""):
+                # a browser names the page that sends a request, cross-site no-cors ones too
+                raise ApiError(403, "edits come from the workspace's own page only")
             if path == "/api/import":
                 if not self.headers.get("X-Aerec-Workspace"):
                     raise bad("an upload needs the header X-Aerec-Workspace (sent by the page)")
@@ -251,6 +258,9 @@ def _handler_class(api: WorkspaceApi, host: str):
                 self._error(500, f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
 
         def _error(self, status: int, message: str) -> None:
+            # a refused request's body may be unread: the connection ends with this answer, so
+            # nothing left in it is ever read as a request of its own
+            self.close_connection = True
             line = " ".join(message.split())
             try:
                 self._send(status, "application/json", json.dumps({"error": line}).encode(),
@@ -263,6 +273,10 @@ def _handler_class(api: WorkspaceApi, host: str):
             self.send_header("Content-Type", ctype)
             self.send_header("Content-Length", str(len(body)))
             self.send_header("X-Content-Type-Options", "nosniff")
+            self.send_header("X-Frame-Options", "DENY")           # click-to-edit: never framed
+            self.send_header("Content-Security-Policy", "frame-ancestors 'none'")
+            if self.close_connection:
+                self.send_header("Connection", "close")
             for k, v in headers.items():
                 self.send_header(k, v)
             self.end_headers()

@@ -80,7 +80,7 @@ def _quadratic_basis(xy: np.ndarray) -> np.ndarray:
 
 
 def _image_terms(Y: np.ndarray, xy: np.ndarray, mono: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One image's quadratic departure from affine (6,: row r^2, r c, c^2, then column) and
+    """One image's quadratic departure from affine (6,: column r^2, r c, c^2, then row) and
     what each of the 9 warps (E, N, U x the site's monomials `mono` (k, 3)) does to it (6, 9),
     over its points Y (k, 3, metric) and pixels xy (k, 2)."""
     Yh = np.hstack([Y, np.ones((len(Y), 1))])

@@ -128,7 +128,7 @@ def bend_warning(b: BendView | None, gcp_fit: dict | None = None, drive: BendDri
             "bend, so heights away from the GCPs may be off")
     if drive is not None:
         text += (f"; the images' own departures from affine ({drive.departure_px:.1f} px) suggest a bend "
-                 f"of about {drive.expected_rms_m:.1f} m RMS, {drive.expected_edge_m:.1f} m at the edges "
+                 f"of about {drive.expected_rms_m:.2g} m RMS, {drive.expected_edge_m:.2g} m at the edges "
                  "(its order of magnitude)")
     else:
         text += " by metres (3 views of one date: 1.5-2.9 m over 2.5 km, 30 m RMS over 10 km)"

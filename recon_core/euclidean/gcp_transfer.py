@@ -287,13 +287,16 @@ def predict_from_ground(model, emap: EnuMap, frame: LocalFrame, gcp_llh, target:
     gcp_llh (lon, lat, h): to local ENU in `frame`, through the inverse of the group's upgrade
     map `emap` to the affine frame, projected by the registered tile of the target that
     contains it. None when the target is not the model's or no registered tile contains the
-    projection. Needs no observation: after an upgrade every GCP is predicted in every image,
+    projection, or the position is too far off the site for the map's warps to be undone.
+    Needs no observation: after an upgrade every GCP is predicted in every image,
     and an observation's distance to this prediction is the GCP's error in the upgrade, in
     pixels."""
     if target not in model.images:
         return None
     enu = frame.geodetic_to_enu(np.asarray(gcp_llh, np.float64).reshape(1, 3))
     X = emap.inverse(enu)[0]
+    if not np.isfinite(X).all():            # far off the site: the upgrade's warps do not undo
+        return None
     got = _project_in_image(model, target, X)
     if got is None:
         return None

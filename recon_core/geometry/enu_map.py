@@ -117,22 +117,26 @@ class EnuWarp:
         return cls(np.asarray(d["centre"], np.float64), float(d["half"]), np.asarray(d["coef"], np.float64))
 
 
-def undo_displacement(D, Z: np.ndarray, max_iter: int = 50) -> np.ndarray:
+def undo_displacement(D, Z: np.ndarray, max_iter: int = 50, miss_m: float = 1e-6) -> np.ndarray:
     """(n, 3) points X with X + D(X) = Z, D a smooth displacement field far smaller than the
     site (a BendWarp, an EnuWarp: centimetres to metres over kilometres), by the fixed-point
     iteration X <- Z - D(X): it contracts by the warp's gradient (~1e-3), so a few steps
     reach float64 precision; it stops once a step moves no point by more than 1e-12 of the
-    coordinates' scale."""
+    coordinates' scale. Far outside the site the warp's gradient grows and the iteration may
+    not converge: a point whose X + D(X) misses Z by more than `miss_m` is NaN, never a wrong
+    position."""
     Z = np.asarray(Z, dtype=np.float64)
     tol = 1e-12 * (1.0 + float(np.abs(Z).max(initial=0.0)))
     X = Z
-    for _ in range(max_iter):
-        X_new = Z - D(X)
-        done = float(np.abs(X_new - X).max(initial=0.0)) <= tol
-        X = X_new
-        if done:
-            break
-    return X
+    with np.errstate(over="ignore", invalid="ignore"):
+        for _ in range(max_iter):
+            X_new = Z - D(X)
+            done = float(np.abs(X_new - X).max(initial=0.0)) <= tol
+            X = X_new
+            if done or not np.isfinite(X).all():
+                break
+        miss = np.abs(X + D(X) - Z).max(axis=-1) if len(X) else np.zeros(0)
+    return np.where((np.isfinite(miss) & (miss <= miss_m))[..., None], X, np.nan)
 
 
 @dataclass

@@ -55,3 +55,17 @@ def test_undo_displacement_solves_x_plus_d_of_x():
     _, X = _site(1)
     Z = X + w(X)
     np.testing.assert_allclose(undo_displacement(w, Z), X, rtol=0, atol=1e-9)
+
+
+def test_undo_displacement_says_so_where_it_cannot():
+    """Far outside the site a strong warp's fixed-point inverse does not converge: the point is
+    NaN, never a wrong position, while points on the site still round-trip."""
+    from recon_core.geometry.enu_map import EnuWarp, undo_displacement
+
+    coef = np.zeros(9)
+    coef[0] = 20.0                                # E += 20 e^2, e = E / 500: strong far out
+    w = EnuWarp(np.zeros(2), 500.0, coef)
+    Z = np.array([[100.0, 50.0, 0.0], [20000.0, 0.0, 0.0], [-20000.0, 0.0, 0.0]])
+    X = undo_displacement(w, Z)
+    assert np.allclose(X[0] + w(X[:1])[0], Z[0], atol=1e-6)
+    assert np.isnan(X[1:]).all()

@@ -327,3 +327,25 @@ def test_a_gcp_with_no_observation_is_predicted_from_its_surveyed_position_once_
         ws.call(lambda: setattr(ws, "saved_upgrade", saved))
         ws.call(lambda: (undo(ws.session), ws.gcp.changed()))
     assert "G-NEW" not in ws.session.ids
+
+
+def test_a_refused_request_ends_its_connection(ws):
+    """A request refused before its body is read (here: not JSON) closes the connection, so no
+    body is ever read as a request of its own (a page elsewhere could smuggle an edit in a
+    text/plain body); a POST that names another site as its origin is refused."""
+    import http.client
+
+    host, port = "127.0.0.1", ws.workspace.port
+    inner = b'POST /api/undo HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\nContent-Length: 2\r\n\r\n{}'
+    c = http.client.HTTPConnection(host, int(port), timeout=10)
+    c.request("POST", "/api/undo", body=inner, headers={"Content-Type": "text/plain"})
+    r = c.getresponse()
+    assert r.status == 400 and r.getheader("Connection") == "close"
+    r.read()
+    c.close()
+    c = http.client.HTTPConnection(host, int(port), timeout=10)
+    c.request("POST", "/api/undo", body=b"{}", headers={"Content-Type": "application/json",
+                                                         "Origin": "http://evil.example"})
+    r = c.getresponse()
+    assert r.status == 403 and b"own page" in r.read()
+    c.close()

@@ -365,6 +365,13 @@ class View {
   accept() {
     const o = this.entry(), p = this.prediction();
     if (!p || (o && o.observed)) { say(`no prediction to accept in ${this.info.name}`, "error"); return; }
+    if (p.surveyed) {
+      // where the upgrade puts the survey, not what the image shows: recorded, it would agree
+      // with the upgrade by construction and hide an error in the GCP's coordinates
+      say(`${tab.selected} in ${this.info.name}: the prediction comes from its surveyed position; ` +
+          "click the point itself in the image", "error");
+      return;
+    }
     edit("/api/observe", {gcp: tab.selected, image: this.info.name, col: p.at[0], row: p.at[1],
                           version_seen: tab.data.version});
   }
@@ -391,10 +398,10 @@ class View {
       acts.push(btn("Remove", "Delete", () => edit("/api/remove", {gcp: g.id, image: this.info.name})));
     } else if (p) {
       this.text.textContent = `${g.id} predicted at col ${fmt(p.at[0])}, row ${fmt(p.at[1])}` +
-        `${p.surveyed ? " from its surveyed position" : ""} · Enter accepts`;
+        (p.surveyed ? " from its surveyed position · click the point itself" : " · Enter accepts");
       this.text.title = p.how;
       this.text.classList.remove("bad");
-      acts.push(btn("Accept", "Enter", () => this.accept()));
+      if (!p.surveyed) acts.push(btn("Accept", "Enter", () => this.accept()));
     } else {
       this.text.textContent = `${g.id}: not placed, not predicted here · find it, click it`;
       this.text.classList.remove("bad");
