@@ -6,28 +6,18 @@ cursor held, and an arrow key nudges by 0.1 px."""
 from __future__ import annotations
 
 import shutil
-import time
-from pathlib import Path
 
 import pytest
 
+from tests.viewer.test_viewer_browser import CHROMIUM, wait_for
+
 pytestmark = pytest.mark.browser
 
-CHROMIUM = Path("/usr/bin/chromium")
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 VIEW = {"width": 1400, "height": 900}
 AIM = 1e-4      # image px: Chromium carries a mouse position as a float32 (1e-6 px off here)
 
-
-def wait_for(cond, timeout: float, what: str, step: float = 0.05):
-    t0 = time.time()
-    while time.time() - t0 < timeout:
-        v = cond()
-        if v:
-            return v
-        time.sleep(step)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
 @pytest.fixture(scope="module")
