@@ -113,6 +113,11 @@ class ViewerApp:
         self.out.mkdir(parents=True, exist_ok=True)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.scene.set_up_direction("+z")
+        # everything drawn is unlit (points, images, lines, labels): viser's default lights cast
+        # shadows in 3 cascades, 3 more passes over the scene per frame, and its environment map
+        # is fetched and prefiltered at start; without a GPU both cost frames (docs/viewer.md)
+        self.server.scene.configure_default_lights(enabled=False, cast_shadow=False)
+        self.server.scene.configure_environment_map(hdri=None)
         self.server.gui.configure_theme(control_width="large", dark_mode=False)
         self.worker = ReconWorker(self.site.root, self.out, cfg, mode=mode, until=until)
         self.reference = reference        # euclidean.ground_reference.GroundReference, or None

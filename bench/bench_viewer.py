@@ -264,8 +264,9 @@ def cold(args) -> None:
               if t_screen else "  no points seen on the Chromium screen")
 
 
-# Counts the frames the page draws: a frame clears the canvas (viser 1.1.1: 4 clears within a
-# millisecond, a frame apart they are > 100 ms in software WebGL); viser renders on demand, so
+# Counts the frames the page draws: a frame clears the canvas (viser 1.1.1: once, or 4 times within
+# a millisecond with its default lights' shadow cascades; frames are > 30 ms apart in software
+# WebGL); viser renders on demand, so
 # requestAnimationFrame alone would count frames that draw nothing.
 COUNT_RENDERS = """
   window.__renders = [];
