@@ -15,6 +15,7 @@ plus a part per point, so the budget moves by the measured ratio and converges i
 from __future__ import annotations
 
 import threading
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,34 +23,88 @@ import numpy as np
 GESTURE_GAP_S = 0.6      # camera messages further apart belong to different gestures
 REST_S = 1.0             # a gesture is over (and measured) once the view rests this long
 MIN_INTERVALS = 6        # a gesture shorter than this says nothing
+# With the page's own frame reports: camera messages come at about half the drawn rate, so a
+# slow page (2-4 fps) sends them 0.5-1 s apart; a gesture ends after this long without one.
+DRAWN_GAP_S = 1.5
+MIN_FRAMES = 4           # frame intervals within a gesture needed to measure it
+REPORT_WAIT_S = 3.0      # a finished gesture waits this long for the page's report of its frames
+FRAMES_KEPT_S = 60.0     # frame times kept per client
+FRAMES_SILENT_S = 10.0   # a page that reported no frame for this long is measured by its messages
 
 
 @dataclass
 class ViewRateMeter:
-    """Per client, the times its view moved; `rate` gives the view updates per second of the
-    last finished gesture (the median interval between consecutive moves), once."""
+    """Per client, the times its view moved and (when its page reports them) the times the page
+    drew a frame; `rate` gives the frame rate of the last finished gesture, once.
+
+    A page that reports its frames (the counter iframe, `frames`) is measured by the frames it
+    drew while its view moved (the median interval between frames from its first to its last
+    camera message of the gesture); one that does not, by its camera messages (the median
+    interval between consecutive moves: at most the drawn rate, about half of it in practice)."""
 
     _moves: dict[int, list[float]] = field(default_factory=dict)
-    # camera messages arrive on the server's thread, `rate` is asked on the viewer's
+    _frames: dict[int, deque] = field(default_factory=dict)
+    _reported: dict[int, float] = field(default_factory=dict)   # client -> when it last reported
+    source: str = ""                 # what the last rate measured: "drawn" frames or "camera" messages
+    # camera messages and reports arrive on server threads, `rate` is asked on the viewer's
     _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def drawing(self, client: int, now: float) -> bool:
+        """Does this client's page report its frames (recently)?"""
+        t = self._reported.get(client)
+        return t is not None and now - t < FRAMES_SILENT_S
+
+    def frames(self, client: int, times: list[float], now: float) -> None:
+        """The page of `client` drew frames at `times` (this clock), reported at `now`."""
+        with self._lock:
+            q = self._frames.setdefault(client, deque())
+            q.extend(sorted(times))
+            while q and q[0] < now - FRAMES_KEPT_S:
+                q.popleft()
+            self._reported[client] = now
 
     def moved(self, client: int, t: float) -> None:
         with self._lock:
             ts = self._moves.setdefault(client, [])
-            if ts and t - ts[-1] > GESTURE_GAP_S:
+            gap = DRAWN_GAP_S if self.drawing(client, t) else GESTURE_GAP_S
+            if ts and t - ts[-1] > gap:
                 ts.clear()                # an earlier gesture too short to measure
             ts.append(t)
 
+    def forget(self, client: int) -> None:
+        with self._lock:
+            for d in (self._moves, self._frames, self._reported):
+                d.pop(client, None)
+
     def rate(self, now: float) -> float | None:
         """The rate of a gesture that has just ended (None when none has); slowest client."""
-        rates = []
+        rates: list[tuple[float, str]] = []
         with self._lock:
-            for ts in self._moves.values():
-                if ts and now - ts[-1] >= REST_S:
-                    if len(ts) > MIN_INTERVALS:
-                        rates.append(1.0 / float(np.median(np.diff(ts))))
-                    ts.clear()
-        return min(rates) if rates else None
+            for client, ts in self._moves.items():
+                drawn = self.drawing(client, ts[-1]) if ts else False
+                if not ts or now - ts[-1] < (DRAWN_GAP_S if drawn else REST_S):
+                    continue
+                if drawn:
+                    if self._reported[client] < ts[-1] + 0.05 and now - ts[-1] < REPORT_WAIT_S:
+                        continue          # the frames drawn until the last move are on their way
+                    r = self._drawn_rate(client, ts[0], ts[-1])
+                    if r is not None:
+                        rates.append((r, "drawn"))
+                        ts.clear()
+                        continue
+                if len(ts) > MIN_INTERVALS:
+                    rates.append((1.0 / float(np.median(np.diff(ts))), "camera"))
+                ts.clear()
+        if not rates:
+            return None
+        r, self.source = min(rates)
+        return r
+
+    def _drawn_rate(self, client: int, t0: float, t1: float) -> float | None:
+        f = np.array([t for t in self._frames.get(client, ()) if t0 <= t <= t1 + 0.05])
+        if len(f) <= MIN_FRAMES:
+            return None
+        return 1.0 / float(np.median(np.diff(f)))
 
 
 @dataclass
@@ -89,3 +144,13 @@ class BudgetGovernor:
 def _round(n: float) -> int:
     """To the panel slider's 10 k steps, not under its floor."""
     return int(max(BudgetGovernor.MIN_BUDGET, round(n / 10_000.0) * 10_000))
+
+
+def counter_iframe(workspace_url: str, client: int) -> str:
+    """The HTML of a tab's frame counter (workspace/static/frames.html): a 1-pixel iframe at the
+    top of viser's panel, transparent. Not 0 x 0 nor display:none, and in view: Chromium stops the
+    frames of a cross-origin iframe it considers hidden or off screen."""
+    return (f'<iframe src="{workspace_url.rstrip("/")}/static/frames.html?client={int(client)}" '
+            'title="frame counter" aria-hidden="true" tabindex="-1" '
+            'style="display:block;width:1px;height:1px;border:0;opacity:0;margin:0;'
+            'pointer-events:none"></iframe>')

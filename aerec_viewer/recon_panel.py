@@ -73,7 +73,8 @@ class ReconstructionPanel:
         self.g_reset.on_click(lambda ev: sub(lambda: self.app.views.frame_client(ev.client)))
 
     def govern_budget(self) -> None:
-        """After each gesture, the point budget follows the page's view-update rate (framerate.py).
+        """After each gesture, the point budget follows the page's frame rate while its view moved
+        (framerate.py: the frames it drew, or its camera messages when it does not report them).
         What it did stays said under the slider; the messages list hears of it once (a slow
         page would otherwise fill it); a budget the operator sets is kept."""
         fps = self.app.view_rate.rate(time.monotonic())
@@ -95,11 +96,12 @@ class ReconstructionPanel:
         if new is None and not said:
             return
         lowered = s.budget < gov.start
-        text = (f"The view moved at {fps:.0f} updates/s (under {gov.TARGET_FPS:g}: a browser "
-                f"without GPU?): budget lowered from {gov.start // 1000} k to {s.budget // 1000} k"
+        rate = (f"The page drew {fps:.0f} frames/s while the view moved"
+                if self.app.view_rate.source == "drawn" else f"The view moved at {fps:.0f} updates/s")
+        text = (f"{rate} (under {gov.TARGET_FPS:g}: a browser without GPU?): budget lowered from "
+                f"{gov.start // 1000} k to {s.budget // 1000} k"
                 + "".join(f", {x}" for x in said) + ". A budget you set is kept."
-                if lowered or said else
-                f"The view moves at {fps:.0f} updates/s: budget back at {s.budget // 1000} k.")
+                if lowered or said else f"{rate}: budget back at {s.budget // 1000} k.")
         self.g_budget_note.content = text
         if lowered and not gov.said:
             gov.said = True

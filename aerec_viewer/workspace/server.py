@@ -126,6 +126,8 @@ def post_routes(api: WorkspaceApi) -> dict[str, Callable[[dict], dict]]:
         "/api/remove": lambda b: api.remove(text(b, "gcp"), text(b, "image")),
         "/api/undo": lambda b: api.undo(),
         "/api/redo": lambda b: api.redo(),
+        "/api/frames": lambda b: api.frames(integer(b, "client", 0, 1 << 31), number(b, "now", 0.0, 1e12),
+                                            b.get("frames")),
     }
 
 

@@ -67,3 +67,97 @@ def test_governor_gives_back_what_it_took_and_respects_the_operator():
     assert gov.observe(60.0, 120_000) == 150_000
     gov.user_set = True
     assert gov.observe(2.0, 150_000) is None
+
+
+# -- the page's own frame reports (the counter iframe) -----------------------------------------
+from aerec_viewer.framerate import DRAWN_GAP_S, FRAMES_SILENT_S, REPORT_WAIT_S  # noqa: E402
+
+
+def drawn_gesture(meter, client, t0, fps, seconds, msg_every=2, idle_fps=60.0, report=True):
+    """A gesture on a page that draws at `fps` (camera messages every `msg_every` frames) and
+    reports its frames, with idle frames (rAF runs when nothing moves) before and after."""
+    idle = list(t0 - 2.0 + np.arange(int(2.0 * idle_fps)) / idle_fps)
+    moving = list(t0 + np.arange(int(seconds * fps)) / fps)
+    after = list(moving[-1] + 0.2 + np.arange(int(2.0 * idle_fps)) / idle_fps)
+    if report:                                            # the iframe reports from the start
+        meter.frames(client, idle, t0)
+    for t in moving[::msg_every]:
+        meter.moved(client, float(t))
+    if report:
+        meter.frames(client, moving + after, after[-1])
+    return moving[-1]
+
+
+def test_a_reporting_page_is_measured_by_the_frames_it_drew_while_moving():
+    m = ViewRateMeter()
+    # 3.5 fps drawn, camera messages 0.57 s apart: the camera alone would see 1.75 updates/s
+    end = drawn_gesture(m, 1, 100.0, 3.5, 6.0)
+    assert m.rate(end + REST_S + 0.01) is None           # messages this slow may still continue
+    r = m.rate(end + DRAWN_GAP_S + 0.01)
+    assert abs(r - 3.5) < 1e-6 and m.source == "drawn"
+    assert m.rate(end + 10.0) is None                    # said once
+
+
+def test_messages_a_second_apart_are_one_gesture_when_the_page_reports():
+    m = ViewRateMeter()
+    end = drawn_gesture(m, 1, 0.0, 2.0, 8.0, msg_every=2)   # 2 fps, a message per second
+    assert abs(m.rate(end + DRAWN_GAP_S + 0.01) - 2.0) < 1e-6
+    # without reports, the same messages are no gesture at all (today's blind spot)
+    m = ViewRateMeter()
+    end = drawn_gesture(m, 1, 0.0, 2.0, 8.0, msg_every=2, report=False)
+    assert m.rate(end + DRAWN_GAP_S + 0.01) is None
+
+
+def test_a_finished_gesture_waits_for_the_report_of_its_frames():
+    m = ViewRateMeter()
+    m.frames(1, [0.0, 0.1], 0.2)                          # the iframe is there
+    for t in 1.0 + np.arange(20) / 5.0:                   # 10 fps drawn, messages at 5/s
+        m.moved(1, float(t))
+    end = 1.0 + 19 / 5.0
+    assert m.rate(end + DRAWN_GAP_S + 0.01) is None       # the frames are not in yet
+    m.frames(1, list(1.0 + np.arange(40) / 10.0), end + DRAWN_GAP_S + 0.1)
+    assert abs(m.rate(end + DRAWN_GAP_S + 0.2) - 10.0) < 1e-6
+
+
+def test_a_report_that_never_comes_falls_back_to_the_camera_messages():
+    m = ViewRateMeter()
+    m.frames(1, [0.0, 0.1], 0.2)                          # the iframe loaded, then went silent
+    for t in 1.0 + np.arange(20) / 5.0:
+        m.moved(1, float(t))
+    end = 1.0 + 19 / 5.0
+    assert abs(m.rate(end + REPORT_WAIT_S + 0.01) - 5.0) < 1e-6 and m.source == "camera"
+    # a page silent for long is measured by its messages from the start
+    m = ViewRateMeter()
+    m.frames(1, [0.0], 0.0)
+    end = gesture(m, 1, FRAMES_SILENT_S + 1.0, 8.0, 12)
+    assert abs(m.rate(end + REST_S + 0.01) - 8.0) < 1e-9 and m.source == "camera"
+
+
+def test_the_slowest_moving_tab_counts_and_a_resting_one_does_not():
+    m = ViewRateMeter()
+    e1 = drawn_gesture(m, 1, 50.0, 20.0, 4.0)
+    e2 = drawn_gesture(m, 2, 50.0, 6.0, 4.0)
+    m.frames(3, list(40.0 + np.arange(600) / 60.0), 50.0)   # a tab at rest: its idle rAF is not drawing
+    assert abs(m.rate(max(e1, e2) + DRAWN_GAP_S + 0.01) - 6.0) < 1e-6
+    m.forget(2)
+    e1 = drawn_gesture(m, 1, 70.0, 20.0, 4.0)
+    assert abs(m.rate(e1 + DRAWN_GAP_S + 0.01) - 20.0) < 1e-6
+
+
+def test_the_governor_settles_at_the_target_on_drawn_rates():
+    """A page measured by its frames: 3.5 fps at 150 k (the orbits the camera never measured)
+    reaches 15 fps or, when its fixed part is too slow, the floor with the outlines hidden."""
+    for fixed, outline in ((0.045, 0.0), (0.050, 0.025)):
+        gov = BudgetGovernor(start=150_000)
+        budget, hidden, rates = 150_000, False, []
+        for _ in range(10):
+            m = ViewRateMeter()
+            fps = 1.0 / (fixed + (0.0 if hidden else outline) + 1.5e-6 * budget)
+            end = drawn_gesture(m, 1, 0.0, fps, 6.0)
+            rates.append(m.rate(end + REPORT_WAIT_S))
+            new = gov.observe(rates[-1], budget)
+            hidden = gov.hide_tiles
+            budget = budget if new is None else new
+        assert abs(rates[0] - 1.0 / (fixed + outline + 0.225)) < 0.05
+        assert rates[-1] >= gov.TARGET_FPS and budget < 150_000
+        assert hidden == (outline > 0)

@@ -349,3 +349,23 @@ def test_a_refused_request_ends_its_connection(ws):
     r = c.getresponse()
     assert r.status == 403 and b"own page" in r.read()
     c.close()
+
+
+def test_the_frame_counter_reports_reach_the_rate_meter_and_bad_ones_are_400(ws):
+    """The 3D page's counter iframe (framerate.py) posts its frame times; they land on the
+    viewer's clock, the most recent one about now."""
+    status, page = call(ws, "/static/frames.html?client=7")
+    assert status == 200 and b"requestAnimationFrame" in page
+    t0 = time.monotonic()
+    status, out = call(ws, "/api/frames", {"client": 7, "now": 5000.0, "frames": [4000.0, 4500.5, 5000]})
+    assert status == 200 and out == {"frames": 3}
+    got = list(ws.view_rate._frames[7])
+    assert ws.view_rate.drawing(7, time.monotonic())
+    assert abs(got[-1] - t0) < 1.0 and abs((got[-1] - got[0]) - 1.0) < 1e-9
+    for body in ({"client": -1, "now": 1.0, "frames": []}, {"client": "x", "now": 1.0, "frames": []},
+                 {"client": 1, "frames": []}, {"client": 1, "now": 10.0, "frames": "1,2"},
+                 {"client": 1, "now": 10.0, "frames": [11.0]}, {"client": 1, "now": 10.0, "frames": [None]},
+                 {"client": 1, "now": 1e6, "frames": list(range(6000))}):
+        assert refused(ws, 400, "/api/frames", body)
+    assert refused(ws, 400, "/api/frames", raw=b"client=1", headers={"Content-Type": "text/plain"})
+    ws.view_rate.forget(7)
