@@ -24,10 +24,12 @@ GESTURE_GAP_S = 0.6      # camera messages further apart belong to different ges
 REST_S = 1.0             # a gesture is over (and measured) once the view rests this long
 MIN_INTERVALS = 6        # a gesture shorter than this says nothing
 # With the page's own frame reports: camera messages come at about half the drawn rate, so a
-# slow page (2-4 fps) sends them 0.5-1 s apart; a gesture ends after this long without one.
-DRAWN_GAP_S = 1.5
+# slow page (1-4 fps) sends them 0.5-2 s apart; a gesture ends after this long without one.
+DRAWN_GAP_S = 3.0
 MIN_FRAMES = 4           # frame intervals within a gesture needed to measure it
-REPORT_WAIT_S = 3.0      # a finished gesture waits this long for the page's report of its frames
+MOVING_FRAMES = 8        # more frames than this between two camera messages: the view rested
+EMPTY_FRAME_S = 0.025    # requestAnimationFrame also runs frames that draw nothing (~17 ms apart)
+REPORT_WAIT_S = 5.0      # a finished gesture waits this long for the page's report of its frames
 FRAMES_KEPT_S = 60.0     # frame times kept per client
 FRAMES_SILENT_S = 10.0   # a page that reported no frame for this long is measured by its messages
 
@@ -87,7 +89,7 @@ class ViewRateMeter:
                 if drawn:
                     if self._reported[client] < ts[-1] + 0.05 and now - ts[-1] < REPORT_WAIT_S:
                         continue          # the frames drawn until the last move are on their way
-                    r = self._drawn_rate(client, ts[0], ts[-1])
+                    r = self._drawn_rate(client, ts)
                     if r is not None:
                         rates.append((r, "drawn"))
                         ts.clear()
@@ -100,11 +102,24 @@ class ViewRateMeter:
         r, self.source = min(rates)
         return r
 
-    def _drawn_rate(self, client: int, t0: float, t1: float) -> float | None:
-        f = np.array([t for t in self._frames.get(client, ()) if t0 <= t <= t1 + 0.05])
+    def _drawn_rate(self, client: int, moves: list[float]) -> float | None:
+        """1 / the median interval between the frames drawn while the view moved: the frames
+        between two camera messages at most MOVING_FRAMES apart (more: the hand rested, the
+        idle page ran empty frames), without the empty frames of a slow page."""
+        ts = np.asarray(moves)
+        f = np.array([t for t in self._frames.get(client, ()) if ts[0] <= t <= ts[-1] + 0.05])
         if len(f) <= MIN_FRAMES:
             return None
-        return 1.0 / float(np.median(np.diff(f)))
+        seg = np.searchsorted(ts, f)                  # the message interval each frame is in
+        moving = np.bincount(seg, minlength=len(ts) + 1)[seg] <= MOVING_FRAMES
+        both = moving[1:] & moving[:-1]
+        iv = np.diff(f)[both]
+        if len(iv) < MIN_FRAMES:
+            return None
+        slow = iv[iv > EMPTY_FRAME_S]
+        if len(slow) >= len(iv) / 2:                  # a slow page: its empty frames are not drawn
+            iv = slow
+        return 1.0 / float(np.median(iv))
 
 
 @dataclass

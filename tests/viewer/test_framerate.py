@@ -161,3 +161,20 @@ def test_the_governor_settles_at_the_target_on_drawn_rates():
         assert abs(rates[0] - 1.0 / (fixed + outline + 0.225)) < 0.05
         assert rates[-1] >= gov.TARGET_FPS and budget < 150_000
         assert hidden == (outline > 0)
+
+
+def test_rests_within_a_gesture_and_empty_frames_are_not_counted():
+    m = ViewRateMeter()
+    m.frames(1, list(np.arange(60) / 60.0), 1.0)
+    # 2 fps drawn with an empty frame 17 ms after every other one, a message every 2 frames,
+    # then the hand rests 2 s (idle frames at 60/s) and moves again
+    drawn = list(2.0 + np.arange(8) / 2.0) + list(8.0 + np.arange(8) / 2.0)
+    empty = [t + 0.017 for t in drawn[::2]]
+    idle = list(6.0 + np.arange(100) / 60.0)
+    frames = sorted(drawn + empty + idle)
+    for t in drawn[::2] + [drawn[-1]]:
+        m.frames(1, [f for f in frames if t - 1.0 < f <= t], t)   # reported as they come
+        m.moved(1, float(t))
+    m.frames(1, [f for f in frames if f > drawn[-1]], 12.0)
+    # (an empty frame shortens the interval it ends by a vsync: 2.07, not the 4 of rAF's count)
+    assert abs(m.rate(drawn[-1] + DRAWN_GAP_S + 0.01) - 2.0) < 0.1
