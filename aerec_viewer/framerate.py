@@ -1,15 +1,16 @@
-"""How fast the page redraws while the operator moves the view, and the point budget that follows.
+"""How fast the page draws while the operator moves the view, and the display that follows.
 
-viser draws on demand and reports the camera to the server whenever it changes, once per drawn
-frame at most (throttled to 50 Hz). While the operator orbits, pans or zooms, the camera
-messages therefore arrive at the page's frame rate, or slower when input, not drawing, is what
-limits them: the rate of view updates the operator sees, measured without any script in the
-page. `ViewRateMeter` turns the messages of one gesture into a rate once the hand rests;
-`BudgetGovernor` lowers the point budget while that rate is under TARGET_FPS.
+Each tab counts the frames its page draws: a 1-pixel iframe served by the image workspace
+(`counter_iframe`, workspace/static/frames.html) runs in the page's own frame loop and posts the
+times of its frames. Without those reports the rate falls back on viser's camera messages, sent
+at most once per drawn frame (in practice about every second one). `ViewRateMeter` turns a
+gesture (orbit, pan, zoom) into a frame rate once the hand rests.
 
-Software WebGL (a laptop without GPU, a remote desktop, a VM) is where this matters: its cost per
-frame is a fixed part (the canvas, the image plane, outlines, labels: bench_viewer.py --fps)
-plus a part per point, so the budget moves by the measured ratio and converges in a few steps.
+Software WebGL (a laptop without GPU, a remote desktop, a VM) is where this matters: a frame
+costs a fixed part (the canvas, the picking image, outlines, labels) plus about 1.5 us per point
+(bench_viewer.py --fps). At rest the page draws once and may take its time; while a view moves,
+`MotionGovernor` sets how many points are drawn (motion.py: a nested subsample of those shown)
+and, when the fewest are still too slow, what else is hidden.
 """
 
 from __future__ import annotations
@@ -103,9 +104,11 @@ class ViewRateMeter:
         return r
 
     def _drawn_rate(self, client: int, moves: list[float]) -> float | None:
-        """1 / the median interval between the frames drawn while the view moved: the frames
-        between two camera messages at most MOVING_FRAMES apart (more: the hand rested, the
-        idle page ran empty frames), without the empty frames of a slow page."""
+        """Frames drawn per second while the view moved: the frames between two camera messages
+        at most MOVING_FRAMES apart (more: the hand rested, the idle page ran empty frames),
+        counted over the time they span. On a slow page the frames that came within
+        EMPTY_FRAME_S of the one before drew nothing and are not counted (their time is). A
+        mean, not a median interval: a stall is part of what the operator sees."""
         ts = np.asarray(moves)
         f = np.array([t for t in self._frames.get(client, ()) if ts[0] <= t <= ts[-1] + 0.05])
         if len(f) <= MIN_FRAMES:
@@ -116,49 +119,82 @@ class ViewRateMeter:
         iv = np.diff(f)[both]
         if len(iv) < MIN_FRAMES:
             return None
-        slow = iv[iv > EMPTY_FRAME_S]
-        if len(slow) >= len(iv) / 2:                  # a slow page: its empty frames are not drawn
-            iv = slow
-        return 1.0 / float(np.median(iv))
+        n = int(np.count_nonzero(iv > EMPTY_FRAME_S))
+        if n < len(iv) / 2:                           # a fast page: every frame drew
+            n = len(iv)
+        return n / float(np.sum(iv))
+
+
+# What the moving display sheds after its points, in this order (cheapest loss first): the
+# registered tiles (outlines: fat-line instances; or textured quads), the labels (one instance per
+# glyph), the picking image (the fill of a textured plane: about 20 ms a frame at 1600 x 1000 on
+# a loaded machine).
+SHED = ("tiles", "labels", "image")
 
 
 @dataclass
-class BudgetGovernor:
-    """Lowers the point budget while the view updates under TARGET_FPS, raises it back (never
-    above the budget it started from) when it updates fast, and stops for good once the operator
-    sets the budget. At the slider's floor and still slow, it asks for the tile outlines to be
-    hidden (`hide_tiles`), once: the points are then no longer what is slow."""
+class MotionGovernor:
+    """The display while a view moves: how many points it draws (`budget`; None: all shown) and
+    how much of SHED it hides, set from the frame rate of each finished gesture.
 
-    start: int                             # the budget it may return to
-    user_set: bool = False
+    Under TARGET_FPS the budget moves by the measured ratio (frame time ~ fixed + per point, with
+    a margin, and at least 15 % a step so a noisy measure still converges), down to MIN_BUDGET;
+    at the floor and still slow, the next of SHED goes. Over HIGH_FPS it gives back in the
+    reverse order, up to drawing all the points shown. At rest the display is never thinned."""
+
+    budget: int | None = None
+    shed: int = 0                          # SHED[:shed] are hidden while the view moves
     TARGET_FPS: float = 15.0
     HIGH_FPS: float = 40.0
-    MIN_BUDGET: int = 10_000
-    hide_tiles: bool = False
-    said: bool = False                     # the messages list has heard of it
+    MIN_BUDGET: int = 2_000
+    last: tuple[int, float] | None = None  # (points, frame time) of the last gesture, nothing shed
 
-    def observe(self, fps: float, budget: int) -> int | None:
-        """The new budget after a gesture at `fps` view updates per second (None: keep it)."""
-        if self.user_set:
-            return None
-        new = None
-        if fps < self.TARGET_FPS and budget > self.MIN_BUDGET:
-            # frame time ~ fixed + per point: aim under the target with a margin, and at least
-            # one slider step (15 % from high budgets) so that a noisy measure still converges
-            new = min(_round(budget * fps / (1.2 * self.TARGET_FPS)), _round(0.85 * budget),
-                      max(self.MIN_BUDGET, budget - 10_000))
-        elif fps < self.TARGET_FPS and not self.hide_tiles:
-            self.hide_tiles = True
-        elif fps > self.HIGH_FPS and budget < self.start:
-            new = min(self.start, _round(budget * 1.5))
-        if new is None or new == budget:
-            return None
-        return new
+    def observe(self, fps: float, drawn: int) -> bool:
+        """A gesture drew `drawn` points at `fps` frames a second: did the display change?"""
+        seen, self.last = self.last, ((drawn, 1.0 / fps) if self.shed == 0 else None)
+        if fps < self.TARGET_FPS:
+            floor = self.budget is not None and self.budget <= self.MIN_BUDGET
+            if not floor and drawn > self.MIN_BUDGET * 1.05:
+                aim = self._aim(drawn, fps, seen)
+                self.budget = max(self.MIN_BUDGET, min(aim or self.MIN_BUDGET, _round(0.85 * drawn)))
+                if aim is not None or self.shed == len(SHED):
+                    return True
+            # at the floor, or the rest of the frame alone is over the target: shed the next
+            if self.shed < len(SHED):
+                self.shed += 1
+                return True
+            return not floor
+        if fps > self.HIGH_FPS:
+            if self.shed:
+                self.shed -= 1
+                return True
+            if self.budget is not None:
+                self.budget = _round(max(self.budget, drawn) * 1.5)
+                return True
+        return False
+
+    def _aim(self, drawn: int, fps: float, seen: tuple[int, float] | None) -> int | None:
+        """The points that should draw at the target with a 10 % margin: from the line through
+        this gesture and the one before (frame time = fixed + per point), when they drew
+        different counts and the line rises (None: its fixed part alone is over the target);
+        else by the ratio, with a 20 % margin."""
+        goal = 1.0 / (1.1 * self.TARGET_FPS)
+        if seen is not None and abs(seen[0] - drawn) > 0.1 * drawn:
+            per = (1.0 / fps - seen[1]) / (drawn - seen[0])
+            fixed = 1.0 / fps - per * drawn
+            if per > 0:
+                return _round((goal - fixed) / per) if fixed < goal else None
+        return _round(drawn * fps / (1.2 * self.TARGET_FPS))
+
+    def hidden(self) -> tuple[str, ...]:
+        return SHED[:self.shed]
 
 
 def _round(n: float) -> int:
-    """To the panel slider's 10 k steps, not under its floor."""
-    return int(max(BudgetGovernor.MIN_BUDGET, round(n / 10_000.0) * 10_000))
+    """To 2 significant digits (budgets from a few thousand points to millions)."""
+    n = max(float(n), 1.0)
+    step = 10.0 ** max(0, int(np.floor(np.log10(n))) - 1)
+    return int(round(n / step) * step)
 
 
 def counter_iframe(workspace_url: str, client: int) -> str:

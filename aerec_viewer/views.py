@@ -50,14 +50,17 @@ class ClientViews:
         self.app.submit(lambda: self.frame_client(client))
 
     def camera_update(self, camera) -> None:
-        """Remember when each client's view last moved (the drag guard of on_plane_click)."""
+        """Remember when each client's view last moved (the drag guard of on_plane_click, the
+        frame rate meter, the display while a view moves)."""
         key = camera.client.client_id
         pose = (np.asarray(camera.position, float).copy(), np.asarray(camera.wxyz, float).copy())
         old = self.moved.get(key)
         if old is None or not (np.allclose(old[0], pose[0], rtol=0, atol=1e-9)
                                and np.allclose(old[1], pose[1], rtol=0, atol=1e-9)):
             self.moved[key] = (*pose, time.time())
-            self.app.view_rate.moved(key, time.monotonic())
+            now = time.monotonic()
+            self.app.view_rate.moved(key, now)
+            self.app.motion.moved(now)          # the lighter display while it moves
             d = float(np.linalg.norm(np.asarray(camera.position) - np.asarray(camera.look_at)))
             view = (d, float(camera.fov), int(camera.image_height))
             before = self.app.marks.ring_view

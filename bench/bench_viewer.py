@@ -12,6 +12,7 @@ connected and the time until the first points are rendered on its screen is meas
     python bench/bench_viewer.py --fps OUT            # frames drawn per second while orbiting
     python bench/bench_viewer.py --fps OUT --budgets 150000,40000
     python bench/bench_viewer.py --fps OUT --duration 60 --tabs 2   # the governor at work
+    python bench/bench_viewer.py --fps OUT --duration 60 --load 1   # on a machine doing other work
 """
 
 from __future__ import annotations
@@ -354,6 +355,9 @@ def fps(args) -> None:
                     page.goto(url.rstrip(";"))
                     pages.append(page)
                 time.sleep(args.settle)              # the cloud arrives, textures upload
+                # --load K: K busy processes beside the browser (a machine doing other work)
+                burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                           for _ in range(args.load)]
                 shown = """() => { const t = document.body.innerText;
                     const m = t.match(/points displayed\\s*([\\d,]+)/); return m ? m[1] : '?'; }"""
                 rates, labels, counted = [], [], []
@@ -371,8 +375,10 @@ def fps(args) -> None:
                     if args.duration:
                         print(f"    t {time.time() - t_end + args.duration:5.1f} s tab {k % len(pages)}: "
                               f"drawn {r:.1f} fps (the counter iframe, as the viewer reads it: {iframe:.1f}), "
-                              f"points displayed {labels[-1]}", flush=True)
+                              f"1-min load {os.getloadavg()[0]:.1f}", flush=True)
                     k += 1
+                for p in burners:
+                    p.kill()
                 label = " -> ".join(dict.fromkeys(labels))
                 if args.shots:
                     Path(args.shots).mkdir(parents=True, exist_ok=True)
@@ -460,6 +466,8 @@ def main() -> None:
     p.add_argument("--between", type=float, default=12.0, help="--fps: seconds between measurements")
     p.add_argument("--settle", type=float, default=25.0, help="--fps: seconds for the scene to load")
     p.add_argument("--tabs", type=int, default=1, help="--fps: browser tabs on the viewer")
+    p.add_argument("--load", type=int, default=0,
+                   help="--fps: this many busy processes run beside the browser while it orbits")
     p.add_argument("--duration", type=float, default=0.0,
                    help="--fps: orbit this long (tabs in turn) instead of --repeats times")
     p.add_argument("--shots", default=None, help="--fps: save a screenshot per budget here")

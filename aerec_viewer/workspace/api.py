@@ -69,7 +69,7 @@ class WorkspaceApi:
         self._state: tuple[int, bytes] | None = None      # (version, state JSON)
 
     # -- the 3D page's frame counter (framerate.py) ------------------------------------------------
-    def frames(self, client: int, now_ms: float, frames_ms: list) -> dict:
+    def frames(self, client: int, now_ms: float, frames_ms: object) -> dict:
         """A tab's counter iframe drew frames at `frames_ms` (its performance.now(), ms) and sent
         them at `now_ms`: they reach the viewer's rate meter on this process's clock."""
         if not isinstance(frames_ms, list) or len(frames_ms) > MAX_FRAMES:

@@ -356,6 +356,15 @@ def test_the_frame_counter_reports_reach_the_rate_meter_and_bad_ones_are_400(ws)
     viewer's clock, the most recent one about now."""
     status, page = call(ws, "/static/frames.html?client=7")
     assert status == 200 and b"requestAnimationFrame" in page
+    # framed by viser's page (its port, any host), where every other page is never framed
+    with urllib.request.urlopen(ws.workspace.url + "static/frames.html?client=7", timeout=30) as r:
+        assert r.headers.get("X-Frame-Options") is None
+        assert r.headers.get("Content-Security-Policy") == (
+            f"frame-ancestors http://*:{ws.port} https://*:{ws.port}")
+    for page in ("", "static/workspace.js"):
+        with urllib.request.urlopen(ws.workspace.url + page, timeout=30) as r:
+            assert r.headers.get("X-Frame-Options") == "DENY"
+            assert r.headers.get("Content-Security-Policy") == "frame-ancestors 'none'"
     t0 = time.monotonic()
     status, out = call(ws, "/api/frames", {"client": 7, "now": 5000.0, "frames": [4000.0, 4500.5, 5000]})
     assert status == 200 and out == {"frames": 3}
