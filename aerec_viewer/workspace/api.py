@@ -65,7 +65,10 @@ class WorkspaceApi:
         self._lock = threading.Lock()
         self._key: tuple | None = None
         self._upgrade: tuple = (None, None)     # (the page's last upgrade, OUT's) the version saw
-        self._version = 0
+        # versions start from the boot's time in ms: a viewer restarted behind an open tab
+        # answers with newer versions than any it gave before (a counter from 0 would look older
+        # to the tab, which would then ignore every state and send edits "from the future")
+        self._version = int(time.time() * 1000)
         self._state: tuple[int, bytes] | None = None      # (version, state JSON)
 
     # -- the 3D page's frame counter (framerate.py) ------------------------------------------------

@@ -172,7 +172,7 @@ def test_bad_input_is_refused_with_400_and_one_line(ws):
     for change, words in [({"col": None}, "col"), ({"col": "abc"}, "not a number"), ({"col": True}, "not a number"),
                           ({"col": float("nan")}, "outside"), ({"col": w + 1.0}, "outside"), ({"row": -0.6}, "outside"),
                           ({"image": "nope.tif"}, "no image"), ({"gcp": ""}, "gcp"), ({"gcp": 3}, "gcp"),
-                          ({"version_seen": 1.5}, "whole number"), ({"version_seen": 10 ** 9}, "newer")]:
+                          ({"version_seen": 1.5}, "whole number"), ({"version_seen": 1 << 60}, "newer")]:
         assert words in refused(ws, 400, "/api/observe", {**ok, **change}), change
     assert "outside" in refused(ws, 400, "/api/nudge", {"gcp": gid, "image": image, "dcol": 1e6, "drow": 0})
     assert "JSON" in refused(ws, 400, "/api/observe", raw=b"gcp=1", headers={"Content-Type": "text/plain"})
@@ -378,3 +378,14 @@ def test_the_frame_counter_reports_reach_the_rate_meter_and_bad_ones_are_400(ws)
         assert refused(ws, 400, "/api/frames", body)
     assert refused(ws, 400, "/api/frames", raw=b"client=1", headers={"Content-Type": "text/plain"})
     ws.view_rate.forget(7)
+
+
+def test_a_restarted_viewer_answers_with_newer_versions_than_before(ws):
+    """An open tab keeps the last version it saw: a viewer restarted behind it must not answer
+    with older ones (the tab would ignore its state and send edits "from the future")."""
+    from aerec_viewer.workspace.api import WorkspaceApi
+
+    seen = call(ws, "/api/version")[1]["version"]
+    time.sleep(0.01)
+    again = WorkspaceApi(ws)                   # the API a new viewer process would start with
+    assert again.version() > seen
