@@ -106,9 +106,10 @@ class ViewRateMeter:
     def _drawn_rate(self, client: int, moves: list[float]) -> float | None:
         """Frames drawn per second while the view moved: the frames between two camera messages
         at most MOVING_FRAMES apart (more: the hand rested, the idle page ran empty frames),
-        counted over the time they span. On a slow page the frames that came within
-        EMPTY_FRAME_S of the one before drew nothing and are not counted (their time is). A
-        mean, not a median interval: a stall is part of what the operator sees."""
+        counted over the time they span. On a slow page (most of that time in frames longer than
+        EMPTY_FRAME_S) the frames that came within EMPTY_FRAME_S of the one before drew nothing
+        (requestAnimationFrame runs while the page waits for input) and are not counted; their
+        time is. A mean, not a median interval: a stall is part of what the operator sees."""
         ts = np.asarray(moves)
         f = np.array([t for t in self._frames.get(client, ()) if ts[0] <= t <= ts[-1] + 0.05])
         if len(f) <= MIN_FRAMES:
@@ -119,10 +120,11 @@ class ViewRateMeter:
         iv = np.diff(f)[both]
         if len(iv) < MIN_FRAMES:
             return None
-        n = int(np.count_nonzero(iv > EMPTY_FRAME_S))
-        if n < len(iv) / 2:                           # a fast page: every frame drew
-            n = len(iv)
-        return n / float(np.sum(iv))
+        slow = iv > EMPTY_FRAME_S
+        total = float(np.sum(iv))
+        if float(np.sum(iv[slow])) < total / 2:       # a fast page: every frame drew
+            return len(iv) / total
+        return int(np.count_nonzero(slow)) / total
 
 
 # What the moving display sheds after its points, in this order (cheapest loss first): the

@@ -207,3 +207,21 @@ def test_rests_within_a_gesture_and_empty_frames_are_not_counted():
     m.frames(1, [f for f in frames if f > drawn[-1]], 12.0)
     # (an empty frame shortens the interval it ends by a vsync: 2.07, not the 4 of rAF's count)
     assert abs(m.rate(drawn[-1] + DRAWN_GAP_S + 0.01) - 2.0) < 0.1
+
+
+def test_a_slow_page_waiting_for_input_between_frames_is_not_read_as_fast():
+    """4 frames/s drawn (250 ms each) while the input comes slowly: between two drawn frames the
+    page runs a few empty frames (17 ms apart) waiting for the next move. Most frames are
+    short, most of the time is in the long ones: 4 frames drawn a second, not 20."""
+    m = ViewRateMeter()
+    m.frames(1, [0.0], 0.0)
+    frames, t = [], 10.0
+    for _ in range(24):
+        frames.append(t)
+        frames += [t + 0.25 + k / 60.0 for k in range(6)]        # empty frames after each draw
+        t += 0.25 + 6 / 60.0
+    for tm in frames[::7]:
+        m.moved(1, tm)
+    m.frames(1, frames, t + 0.5)
+    r = m.rate(t + DRAWN_GAP_S + 0.6)
+    assert m.source == "drawn" and abs(r - 1.0 / (0.25 + 0.1)) < 0.1, r
