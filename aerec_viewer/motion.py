@@ -27,7 +27,6 @@ if TYPE_CHECKING:
 REST_MIN_S = 0.5          # the views rest once no camera message came for this long, or for
 REST_MESSAGES = 3.0       # this many of the recent intervals between messages (a slow page
 REST_MAX_S = 2.0          # sends them far apart), at most this long
-REBUILD_S = 3.0           # at rest, moving subsamples that lag behind the cloud are rebuilt this often
 
 
 class MotionDisplay:
@@ -42,7 +41,6 @@ class MotionDisplay:
         self._gaps: deque[float] = deque(maxlen=8)
         self._asked = False                  # a switch to moving is queued
         self._hidden: list = []              # (kind, handle) hidden for the motion
-        self._built = -np.inf                # when the moving subsamples were last rebuilt at rest
         self.note = ""                       # what the governor did, for the Display panel
 
     # -- from the camera messages (server threads) ------------------------------------------------
@@ -72,17 +70,14 @@ class MotionDisplay:
             self._apply()
 
     def tick(self, now: float | None = None) -> None:
-        """Each update: back to rest once the views rest; the governor after a gesture; at rest,
-        moving subsamples that lag behind a growing cloud rebuilt now and then."""
+        """Each update: back to rest once the views rest; the governor after a gesture. The
+        moving subsamples are rebuilt when a gesture starts, if the cloud or the budget changed
+        since (scene.sync_moving): a growing cloud costs no traffic at rest."""
         now = time.monotonic() if now is None else now
         if self.moving and now - self._last > self.rest_s():
             self.moving = False
             self._apply()
         self._govern(now)
-        scene = self.app.scene
-        if not self.moving and now - self._built > REBUILD_S and scene.stale_moving():
-            self._built = now
-            scene.sync_moving()
 
     def _apply(self) -> None:
         """Show the display that matches `moving`."""
@@ -130,9 +125,6 @@ class MotionDisplay:
         scene.moving_budget = gov.budget
         if self.moving:
             self._apply()
-        else:
-            scene.sync_moving()
-            self._built = now
         source = "drew" if self.app.view_rate.source == "drawn" else "moved at"
         what = f"{gov.budget:,} points" if gov.budget is not None else "every point"
         gone = [SHED_WORDS[k] for k in gov.hidden()]

@@ -366,13 +366,6 @@ class SceneView:
             self.apply_point_size()
         return changed
 
-    def stale_moving(self) -> bool:
-        """Do the moving subsamples lag behind the chunks or the budget?"""
-        f = self.moving_fraction()
-        return any((st.moving is not None) != (f is not None and bool(st.chunks))
-                   or (st.moving is not None and f is not None and st.moving.key != self._moving_key(st, f))
-                   for st in self._clouds.values())
-
     def _nearest(self, ray_origin, ray_direction, max_angle: float):
         """(group, cloud state, display xyz) of the displayed point nearest in angle to a ray."""
         best = None
