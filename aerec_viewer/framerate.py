@@ -120,11 +120,19 @@ class ViewRateMeter:
         iv = np.diff(f)[both]
         if len(iv) < MIN_FRAMES:
             return None
-        slow = iv > EMPTY_FRAME_S
-        total = float(np.sum(iv))
-        if float(np.sum(iv[slow])) < total / 2:       # a fast page: every frame drew
-            return len(iv) / total
-        return int(np.count_nonzero(slow)) / total
+        return drawn_rate(iv)
+
+
+def drawn_rate(intervals: np.ndarray) -> float:
+    """Frames drawn per second from the intervals between a page's frames: their count over
+    their span; on a slow page (most of the span in frames longer than EMPTY_FRAME_S), without
+    the short ones, which drew nothing (requestAnimationFrame runs while the page waits)."""
+    iv = np.asarray(intervals, float)
+    slow = iv > EMPTY_FRAME_S
+    total = float(np.sum(iv))
+    if float(np.sum(iv[slow])) < total / 2:           # a fast page: every frame drew
+        return len(iv) / total
+    return int(np.count_nonzero(slow)) / total
 
 
 # What the moving display sheds after its points, in this order (cheapest loss first): the
@@ -139,14 +147,17 @@ class MotionGovernor:
     """The display while a view moves: how many points it draws (`budget`; None: all shown) and
     how much of SHED it hides, set from the frame rate of each finished gesture.
 
-    Under TARGET_FPS the budget moves by the measured ratio (frame time ~ fixed + per point, with
-    a margin, and at least 15 % a step so a noisy measure still converges), down to MIN_BUDGET;
-    at the floor and still slow, the next of SHED goes. Over HIGH_FPS it gives back in the
+    Under EDGE times TARGET_FPS the budget moves to draw at AIM times the target (by the line
+    through the last two gestures, frame time = fixed + per point, or by the ratio; at least
+    15 % a step so a noisy measure still converges), down to MIN_BUDGET; at the floor and still
+    slow, or when the fixed part alone is too slow, the next of SHED goes. Over HIGH_FPS it gives back in the
     reverse order, up to drawing all the points shown. At rest the display is never thinned."""
 
     budget: int | None = None
     shed: int = 0                          # SHED[:shed] are hidden while the view moves
     TARGET_FPS: float = 15.0
+    EDGE: float = 1.1                      # within 10 % of the target is under it (a load that
+    AIM: float = 1.25                      # grows tips it over); aim 25 % over the target
     HIGH_FPS: float = 40.0
     MIN_BUDGET: int = 2_000
     last: tuple[int, float] | None = None  # (points, frame time) of the last gesture, nothing shed
@@ -154,7 +165,7 @@ class MotionGovernor:
     def observe(self, fps: float, drawn: int) -> bool:
         """A gesture drew `drawn` points at `fps` frames a second: did the display change?"""
         seen, self.last = self.last, ((drawn, 1.0 / fps) if self.shed == 0 else None)
-        if fps < self.TARGET_FPS:
+        if fps < self.TARGET_FPS * self.EDGE:
             floor = self.budget is not None and self.budget <= self.MIN_BUDGET
             if not floor and drawn > self.MIN_BUDGET * 1.05:
                 aim = self._aim(drawn, fps, seen)
@@ -176,17 +187,17 @@ class MotionGovernor:
         return False
 
     def _aim(self, drawn: int, fps: float, seen: tuple[int, float] | None) -> int | None:
-        """The points that should draw at the target with a 10 % margin: from the line through
-        this gesture and the one before (frame time = fixed + per point), when they drew
-        different counts and the line rises (None: its fixed part alone is over the target);
-        else by the ratio, with a 20 % margin."""
-        goal = 1.0 / (1.1 * self.TARGET_FPS)
+        """The points that should draw at AIM times the target: from the line through this
+        gesture and the one before (frame time = fixed + per point), when they drew different
+        counts and the line rises (None: its fixed part alone is over the goal); else by the
+        ratio."""
+        goal = 1.0 / (self.AIM * self.TARGET_FPS)
         if seen is not None and abs(seen[0] - drawn) > 0.1 * drawn:
             per = (1.0 / fps - seen[1]) / (drawn - seen[0])
             fixed = 1.0 / fps - per * drawn
             if per > 0:
                 return _round((goal - fixed) / per) if fixed < goal else None
-        return _round(drawn * fps / (1.2 * self.TARGET_FPS))
+        return _round(drawn * fps / (self.AIM * self.TARGET_FPS))
 
     def hidden(self) -> tuple[str, ...]:
         return SHED[:self.shed]

@@ -31,6 +31,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from aerec_viewer.framerate import drawn_rate  # noqa: E402
+
 
 class WireClient:
     """Connects to a viser server like a browser tab and logs (t, bytes, messages) per frame."""
@@ -305,10 +307,8 @@ def orbit_fps(page, seconds: float = 6.0) -> tuple[float, int, float]:
         time.sleep(1.0)              # its report of the last frames (every 0.5 s)
         # the iframe's clock is the page's shifted by their time origins
         shift = counter.evaluate("performance.timeOrigin") - page.evaluate("performance.timeOrigin")
-        iv = np.diff([t + shift for t in page.counted if t0 <= t + shift <= t1])
-        slow = iv[iv > 25.0]              # as framerate.py: a slow page's empty frames left out
-        iv = slow if len(slow) >= len(iv) / 2 else iv
-        iframe = 1000.0 / float(np.median(iv)) if len(iv) > 2 else float("nan")
+        iv = np.diff([t + shift for t in page.counted if t0 <= t + shift <= t1]) / 1000.0
+        iframe = drawn_rate(iv) if len(iv) > 2 else float("nan")      # as the viewer reads it
     return drawn * 1000.0 / max(t1 - t0, 1.0), n, iframe
 
 
