@@ -31,6 +31,7 @@ MIN_FRAMES = 4           # frame intervals within a gesture needed to measure it
 MOVING_FRAMES = 8        # more frames than this between two camera messages: the view rested
 EMPTY_FRAME_S = 0.025    # requestAnimationFrame also runs frames that draw nothing (~17 ms apart)
 REPORT_WAIT_S = 5.0      # a finished gesture waits this long for the page's report of its frames
+MID_S = 2.0              # a gesture that goes on is measured every this long of reported frames
 FRAMES_KEPT_S = 60.0     # frame times kept per client
 FRAMES_SILENT_S = 10.0   # a page that reported no frame for this long is measured by its messages
 
@@ -38,16 +39,18 @@ FRAMES_SILENT_S = 10.0   # a page that reported no frame for this long is measur
 @dataclass
 class ViewRateMeter:
     """Per client, the times its view moved and (when its page reports them) the times the page
-    drew a frame; `rate` gives the frame rate of the last finished gesture, once.
+    drew a frame; `rate` gives the frame rate of each part of a gesture, once.
 
     A page that reports its frames (the counter iframe, `frames`) is measured by the frames it
-    drew while its view moved (the median interval between frames from its first to its last
-    camera message of the gesture); one that does not, by its camera messages (the median
-    interval between consecutive moves: at most the drawn rate, about half of it in practice)."""
+    drew while its view moved (drawn_rate), every MID_S while the gesture goes on: the display
+    can follow within an orbit. One that does not is measured by its camera messages once the
+    gesture ends (the median interval between consecutive moves: at most the drawn rate, about
+    half of it in practice)."""
 
     _moves: dict[int, list[float]] = field(default_factory=dict)
     _frames: dict[int, deque] = field(default_factory=dict)
     _reported: dict[int, float] = field(default_factory=dict)   # client -> when it last reported
+    _marks: dict[int, float] = field(default_factory=dict)      # client -> measured up to (its gesture)
     source: str = ""                 # what the last rate measured: "drawn" frames or "camera" messages
     # camera messages and reports arrive on server threads, `rate` is asked on the viewer's
     _lock: threading.Lock = field(default_factory=threading.Lock)
@@ -72,29 +75,49 @@ class ViewRateMeter:
             gap = DRAWN_GAP_S if self.drawing(client, t) else GESTURE_GAP_S
             if ts and t - ts[-1] > gap:
                 ts.clear()                # an earlier gesture too short to measure
+                self._marks.pop(client, None)
             ts.append(t)
 
     def forget(self, client: int) -> None:
         with self._lock:
-            for d in (self._moves, self._frames, self._reported):
+            for d in (self._moves, self._frames, self._reported, self._marks):
                 d.pop(client, None)
 
     def rate(self, now: float) -> float | None:
-        """The rate of a gesture that has just ended (None when none has); slowest client."""
+        """The rate of the last part of a gesture not yet measured (None when there is none);
+        the slowest client's. A page that reports its frames is measured every MID_S of frames
+        while its gesture goes on, and for the rest once it has ended; one that does not, once
+        its gesture has ended."""
         rates: list[tuple[float, str]] = []
         with self._lock:
             for client, ts in self._moves.items():
-                drawn = self.drawing(client, ts[-1]) if ts else False
-                if not ts or now - ts[-1] < (DRAWN_GAP_S if drawn else REST_S):
+                if not ts:
                     continue
+                drawn = self.drawing(client, ts[-1])
+                ongoing = now - ts[-1] < (DRAWN_GAP_S if drawn else REST_S)
+                mark = self._marks.get(client)
                 if drawn:
+                    part = [t for t in ts if mark is None or t >= mark]
+                    if ongoing:
+                        upto = self._reported[client]
+                        part = [t for t in part if t <= upto]
+                        if len(part) >= 2 and upto - part[0] >= MID_S:
+                            r = self._drawn_rate(client, part)
+                            if r is not None:
+                                rates.append((r, "drawn"))
+                                self._marks[client] = upto
+                        continue
                     if self._reported[client] < ts[-1] + 0.05 and now - ts[-1] < REPORT_WAIT_S:
                         continue          # the frames drawn until the last move are on their way
-                    r = self._drawn_rate(client, ts)
-                    if r is not None:
-                        rates.append((r, "drawn"))
+                    r = self._drawn_rate(client, part) if len(part) >= 2 else None
+                    if r is not None or mark is not None:
+                        if r is not None:
+                            rates.append((r, "drawn"))
                         ts.clear()
+                        self._marks.pop(client, None)
                         continue
+                if ongoing:
+                    continue
                 if len(ts) > MIN_INTERVALS:
                     rates.append((1.0 / float(np.median(np.diff(ts))), "camera"))
                 ts.clear()

@@ -122,10 +122,28 @@ def test_a_reporting_page_is_measured_by_the_frames_it_drew_while_moving():
     m = ViewRateMeter()
     # 3.5 fps drawn, camera messages 0.57 s apart: the camera alone would see 1.75 updates/s
     end = drawn_gesture(m, 1, 100.0, 3.5, 6.0)
-    assert m.rate(end + REST_S + 0.01) is None           # messages this slow may still continue
-    r = m.rate(end + DRAWN_GAP_S + 0.01)
+    r = m.rate(end + REST_S + 0.01)                      # the frames are in: measured at once
     assert abs(r - 3.5) < 1e-6 and m.source == "drawn"
-    assert m.rate(end + 10.0) is None                    # said once
+    assert m.rate(end + DRAWN_GAP_S + 0.01) is None      # said once
+    assert m.rate(end + 10.0) is None
+
+
+def test_a_gesture_that_goes_on_is_measured_every_few_seconds_of_frames():
+    """The display can follow within one orbit: 2 s of reported frames give a rate while the
+    hand still moves, the next 2 s another, the rest once the gesture ends."""
+    m = ViewRateMeter()
+    m.frames(1, [0.0], 0.0)
+    fps, t = 4.0, 10.0
+    for k in range(3):                                    # 3 windows of 2.5 s, slower and slower
+        frames = list(t + np.arange(10) / fps)
+        for tm in frames[::2]:
+            m.moved(1, tm)
+        m.frames(1, frames, frames[-1] + 0.01)
+        r = m.rate(frames[-1] + 0.02)
+        assert r is not None and abs(r - fps) < 0.05 * fps, (k, r)
+        assert m.rate(frames[-1] + 0.03) is None          # nothing new yet
+        t, fps = frames[-1] + 1.0 / fps, fps / 2
+    assert m.rate(t + DRAWN_GAP_S + REPORT_WAIT_S) is None    # the gesture ends: all was measured
 
 
 def test_messages_a_second_apart_are_one_gesture_when_the_page_reports():
