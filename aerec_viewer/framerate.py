@@ -159,9 +159,9 @@ def drawn_rate(intervals: np.ndarray) -> float:
 
 
 # What the moving display sheds after its points, in this order (cheapest loss first): the
-# registered tiles (outlines: fat-line instances; or textured quads), the labels (one instance per
-# glyph), the picking image (the fill of a textured plane: about 20 ms a frame at 1600 x 1000 on
-# a loaded machine).
+# registered tiles (outlines: fat-line instances; or textured quads), the GCP marks and labels
+# (rings: fat-line instances; labels: one instance per glyph), the picking image (the fill of a
+# textured plane: about 20 ms a frame at 1600 x 1000 on a loaded machine).
 SHED = ("tiles", "labels", "image")
 
 

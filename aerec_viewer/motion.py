@@ -24,7 +24,7 @@ from .framerate import SHED, MotionGovernor
 if TYPE_CHECKING:
     from .app import ViewerApp
 
-REST_MIN_S = 0.5          # the views rest once no camera message came for this long, or for
+REST_MIN_S = 1.0          # the views rest once no camera message came for this long, or for
 REST_MESSAGES = 3.0       # this many of the recent intervals between messages (a slow page
 REST_MAX_S = 2.0          # sends them far apart), at most this long
 
@@ -135,4 +135,4 @@ class MotionDisplay:
         self.app.recon.said_motion(self.note, lowered=gov.budget is not None or bool(gone))
 
 
-SHED_WORDS = {"tiles": "the tiles", "labels": "the labels", "image": "the picking image"}
+SHED_WORDS = {"tiles": "the tiles", "labels": "the GCP marks and labels", "image": "the picking image"}
