@@ -3,8 +3,9 @@
 At rest the page draws once and may take its time: every point of the budget, the tiles, the
 labels, the picking image. While any tab's view moves (its camera messages), the clouds are drawn
 from their moving subsamples (scene.SceneView.set_moving) and what the governor sheds is hidden
-(framerate.SHED); once the views rest, everything comes back. After each gesture the governor
-reads the frame rate the page drew (framerate.ViewRateMeter) and resizes the moving display.
+(framerate.SHED); once the views rest, everything comes back. Every few seconds of a gesture and
+at its end the governor reads the frame rate the page drew (framerate.ViewRateMeter) and resizes
+the moving display.
 
 Everything here runs on the viewer's update thread, except `moved`, which the camera messages
 call from the server's threads.
@@ -70,7 +71,7 @@ class MotionDisplay:
             self._apply()
 
     def tick(self, now: float | None = None) -> None:
-        """Each update: back to rest once the views rest; the governor after a gesture. The
+        """Each update: back to rest once the views rest; the governor on a new measure. The
         moving subsamples are rebuilt when a gesture starts, if the cloud or the budget changed
         since (scene.sync_moving): a growing cloud costs no traffic at rest."""
         now = time.monotonic() if now is None else now

@@ -17,8 +17,8 @@ growing one node to 1 M points in 10 steps sent 79 MB, one node a step 14 MB); a
 (ModelUpdated), a new frame transform, a budget change or too many chunks rebuilds the group's
 chunks. Display decimation follows the point budget.
 
-While a view moves, each cloud may be drawn from a nested subsample of its chunks instead, with
-bigger points that tile the same footprint (`set_moving`; the budget comes from motion.py).
+While a view moves, each cloud may be drawn from a nested subsample of its chunks instead, its
+points sized for their number (`set_moving`; the budget comes from motion.py).
 """
 
 from __future__ import annotations
@@ -293,7 +293,7 @@ class SceneView:
             for c in st.chunks:
                 c.handle.colors = point_colors(self.settings.color_mode, c.batch.rgb, c.xyz[:, 2],
                                                c.batch.n_views, c.batch.reproj, st.ranges)
-        self.sync_moving(force=True)     # rebuilt in the new colours when next drawn
+        # the moving subsamples: rebuilt in the new colours when the next gesture starts
 
     def apply_visibility(self) -> None:
         for (g, kind), st in self._clouds.items():
@@ -329,7 +329,7 @@ class SceneView:
     def _moving_key(self, st: _Cloud, f: float) -> tuple:
         return (st.generation, st.next_k, len(st.chunks), round(f, 6), self.settings.color_mode)
 
-    def sync_moving(self, force: bool = False) -> bool:
+    def sync_moving(self) -> bool:
         """Build (or drop) each cloud's moving subsample to match its chunks and the budget: the
         points of its chunks whose hash falls below the moving fraction (display.keep_mask, nested
         in the chunks' own subsample), coloured as they are. Returns whether anything changed."""
@@ -342,7 +342,7 @@ class SceneView:
                     st.moving, changed = None, True
                 continue
             mk = self._moving_key(st, f)
-            if st.moving is not None and st.moving.key == mk and not force:
+            if st.moving is not None and st.moving.key == mk:
                 continue
             parts = []
             for c in st.chunks:
