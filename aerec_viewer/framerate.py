@@ -4,7 +4,8 @@ Each tab counts the frames its page draws: a 1-pixel iframe served by the image 
 (`counter_iframe`, workspace/static/frames.html) runs in the page's own frame loop and posts the
 times of its frames. Without those reports the rate falls back on viser's camera messages, sent
 at most once per drawn frame (in practice about every second one). `ViewRateMeter` turns a
-gesture (orbit, pan, zoom) into a frame rate once the hand rests.
+gesture (orbit, pan, zoom) into frame rates: every MID_S of reported frames while it goes on,
+else once the hand rests.
 
 Software WebGL (a laptop without GPU, a remote desktop, a VM) is where this matters: a frame
 costs a fixed part (the canvas, the picking image, outlines, labels) plus about 1.5 us per point
