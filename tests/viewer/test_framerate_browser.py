@@ -7,13 +7,12 @@ measured by the frames it drew (framerate.py, motion.py)."""
 from __future__ import annotations
 
 import math
-import shutil
 import threading
 import time
 
 import pytest
 
-from tests.viewer.test_viewer_browser import CHROMIUM, wait_for
+from tests.viewer.test_viewer_browser import CHROMIUM, reopened_tiny, wait_for
 
 pytestmark = pytest.mark.browser
 
@@ -25,17 +24,9 @@ VIEW = {"width": 1400, "height": 900}
 @pytest.fixture(scope="module")
 def page_on_tiny(tiny_run, tmp_path_factory):
     """(viewer reopening a copy of the `tiny` run, a Chromium page on it, its client id)."""
-    if not CHROMIUM.exists():
-        pytest.skip("/usr/bin/chromium is not installed")
+    app = reopened_tiny(tiny_run, tmp_path_factory, "fr_browser")
     from playwright.sync_api import sync_playwright
 
-    from aerec_viewer.app import ViewerApp
-
-    state, _ = tiny_run
-    out = tmp_path_factory.mktemp("fr_browser") / "out"
-    shutil.copytree(state.out, out)
-    app = ViewerApp(out, state.site.root, None, mode="reopen", port=0)
-    app.start()
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=FLAGS)
         page = browser.new_page(viewport=VIEW)
