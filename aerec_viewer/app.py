@@ -34,12 +34,13 @@ from .display import (
     euclidean_display_transform,
     image_footprint,
 )
-from .framerate import BudgetGovernor, ViewRateMeter
+from .framerate import ViewRateMeter
 from .gcp_controller import GcpController
 from .gcp_marks import GcpMarks
 from .gcp_panel import GcpPanel
 from .gcp_session import GcpError, open_session
 from .imagery import ImageSource
+from .motion import MotionDisplay
 from .picking import PickingView
 from .recon_panel import ReconstructionPanel
 from .results import DsmPanel
@@ -113,6 +114,11 @@ class ViewerApp:
         self.out.mkdir(parents=True, exist_ok=True)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.scene.set_up_direction("+z")
+        # everything drawn is unlit (points, images, lines, labels): viser's default lights cast
+        # shadows in 3 cascades, 3 more passes over the scene per frame, and its environment map
+        # is fetched and prefiltered at start; without a GPU both cost frames (docs/viewer.md)
+        self.server.scene.configure_default_lights(enabled=False, cast_shadow=False)
+        self.server.scene.configure_environment_map(hdri=None)
         self.server.gui.configure_theme(control_width="large", dark_mode=False)
         self.worker = ReconWorker(self.site.root, self.out, cfg, mode=mode, until=until)
         self.reference = reference        # euclidean.ground_reference.GroundReference, or None
@@ -123,7 +129,7 @@ class ViewerApp:
         if budget is not None:
             self.scene.settings.budget = int(budget)
         self.view_rate = ViewRateMeter()
-        self.governor = BudgetGovernor(start=self.scene.settings.budget, user_set=budget is not None)
+        self.motion = MotionDisplay(self)
         self.session = open_session(self.out, self.site)
         self.models: dict = {}
         self._models_version = 0
@@ -144,7 +150,8 @@ class ViewerApp:
         self.gcp = GcpController(self)       # the clicks, the working set's edits, the upgrade
         # the image workspace (its own page and port): bound now, so the GCP tab can link to it
         self.workspace = WorkspaceServer(self, host, (0 if port == 0 else self.port + 1)
-                                         if workspace_port is None else workspace_port)
+                                         if workspace_port is None else workspace_port,
+                                         viewer_port=self.port)
         self.picking = PickingView(self)     # the picking plane and its loupe (/gcp/plane)
         self.marks = GcpMarks(self)          # every other /gcp node
         self._gui_cache: dict[int, object] = {}   # id(handle) -> the content it shows
@@ -241,7 +248,7 @@ class ViewerApp:
     # -- the update -----------------------------------------------------------------------------
     def _tick(self) -> int | None:
         """Apply the newest worker state; returns the number of points sent (None: no change)."""
-        self.recon.govern_budget()
+        self.motion.tick()
         snap = self.worker.snapshot()
         if snap.status in ("done", "reopened") and not self._auto_frame_tried:
             # a finished run that holds an upgrade opens in metres (the affine frame "may be

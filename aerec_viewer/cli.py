@@ -449,9 +449,8 @@ def register(subparsers) -> None:
     s.add_argument("--tile-size", type=int, default=None, help="tile side d in pixels")
     s.add_argument("--preset", default=None, help="parameter preset (default, tiny)")
     s.add_argument("--point-budget", type=int, default=None, metavar="N",
-                   help="points displayed at most, 10000-2000000 (default 150000, lowered while "
-                        "the page draws under 15 frames/s; a budget given here or on the Display "
-                        "panel's slider is kept)")
+                   help="points displayed at most when the view rests, 10000-2000000 (default "
+                        "150000; while a view moves, fewer as the page's frame rate asks)")
     s.add_argument("--reference-ortho", type=Path, default=None, metavar="TIF",
                    help="a georeferenced orthoimage of the site (a national orthophoto, any "
                         "GeoTIFF): shown last in the GCP tab's image list; a click on it gives a "

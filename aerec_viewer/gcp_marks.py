@@ -178,6 +178,12 @@ class GcpMarks:
         self._draw_residual_vectors()
         self._draw_drag_handle()
 
+    def label_nodes(self) -> list:
+        """The GCPs' labels and rings, the residual vectors and their legend (what the moving
+        display sheds as "labels": the rings are fat-line instances, a frame's millisecond each
+        few dozen in software WebGL)."""
+        return [m.label for m in self.items.values()] + list(self.rings.values()) + list(self.residual_nodes)
+
     def _draw_rings(self) -> None:
         """The markers' rings, merged into one node per place (the picking plane, each group's
         cloud) and width (the selected GCP's is wider): a node is a draw call, and software

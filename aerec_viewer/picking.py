@@ -147,6 +147,10 @@ class PickingView:
         self._views: dict[int, tuple] = {}   # client id -> its camera before the loupe
         self._regions: dict[str, Window] = {}
 
+    def plane_nodes(self) -> list:
+        """The picking image's node (none before it is drawn)."""
+        return [] if self._handle is None else [self._handle]
+
     def look_at_plane(self, client) -> None:
         """Put a client's camera straight above the picking plane (for precise clicks)."""
         p = self.plane

@@ -1,10 +1,9 @@
 """The Reconstruction tab: the run's status, progress and figures, the display controls, the
-messages, and the point budget that follows the page's frame rate. The viewer (app.ViewerApp)
+messages, and what the display draws while a view moves (motion.py). The viewer (app.ViewerApp)
 owns the scene and calls `update` from its update thread."""
 
 from __future__ import annotations
 
-import time
 from typing import TYPE_CHECKING
 
 from .display import COLOR_MODES
@@ -20,6 +19,7 @@ class ReconstructionPanel:
 
     def __init__(self, app: "ViewerApp", gui):
         self.app = app
+        self._motion_said = False
         self.g_title = gui.add_markdown(f"### AE-Rec · {self.app.site.name}")
         self.g_status = gui.add_markdown("starting…")
         self.g_progress = gui.add_progress_bar(0.0, animated=True)
@@ -32,8 +32,9 @@ class ReconstructionPanel:
                                             initial_value=self.app.scene.settings.color_mode)
             self.g_budget = gui.add_slider("Point budget (k)", 10, 2000, 10,
                                            self.app.scene.settings.budget // 1000,
-                                           hint="points displayed at most; the full cloud "
-                                                "stays on disk")
+                                           hint="points displayed at most when the view rests (fewer "
+                                                "while it moves, as the page's frame rate asks); "
+                                                "the full cloud stays on disk")
             self.g_budget_note = gui.add_markdown("")
             self.g_tiles = gui.add_dropdown(
                 "Tiles", list(TILE_MODES), initial_value=self.app.scene.settings.tiles,
@@ -58,11 +59,8 @@ class ReconstructionPanel:
                                               self.app.scene.apply_point_size())))
         self.g_color.on_update(setter(lambda: (setattr(s, "color_mode", self.g_color.value),
                                                self.app.scene.apply_colors())))
-        def budget_set(ev) -> None:
-            if ev.client is not None:       # the operator's choice: kept from now on
-                self.app.governor.user_set = True
-            sub(lambda: (setattr(s, "budget", int(self.g_budget.value) * 1000), self.app.force()))
-        self.g_budget.on_update(budget_set)
+        self.g_budget.on_update(setter(lambda: (setattr(s, "budget", int(self.g_budget.value) * 1000),
+                                                self.app.force())))
         self.g_tiles.on_update(setter(lambda: (setattr(s, "tiles", self.g_tiles.value),
                                                self.app.scene.set_tiles_visible(self.g_tiles.value != "hidden"),
                                                self.app.force())))
@@ -72,38 +70,13 @@ class ReconstructionPanel:
                                                self.app.scene.apply_visibility(), self.app.force())))
         self.g_reset.on_click(lambda ev: sub(lambda: self.app.views.frame_client(ev.client)))
 
-    def govern_budget(self) -> None:
-        """After each gesture, the point budget follows the page's view-update rate (framerate.py).
-        What it did stays said under the slider; the messages list hears of it once (a slow
-        page would otherwise fill it); a budget the operator sets is kept."""
-        fps = self.app.view_rate.rate(time.monotonic())
-        if fps is None:
-            return
-        s, gov = self.app.scene.settings, self.app.governor
-        hid = gov.hide_tiles
-        new = gov.observe(fps, s.budget)
-        said = []
-        if gov.hide_tiles and not hid and s.tiles == "auto":
-            s.tiles = "hidden"
-            self.g_tiles.value = "hidden"
-            self.app.force()
-            said.append("tile outlines hidden (Tiles)")
-        if new is not None:
-            s.budget = new
-            self.g_budget.value = new // 1000
-            self.app.force()
-        if new is None and not said:
-            return
-        lowered = s.budget < gov.start
-        text = (f"The view moved at {fps:.0f} updates/s (under {gov.TARGET_FPS:g}: a browser "
-                f"without GPU?): budget lowered from {gov.start // 1000} k to {s.budget // 1000} k"
-                + "".join(f", {x}" for x in said) + ". A budget you set is kept."
-                if lowered or said else
-                f"The view moves at {fps:.0f} updates/s: budget back at {s.budget // 1000} k.")
+    def said_motion(self, text: str, lowered: bool) -> None:
+        """What the moving display became (motion.py): under the budget slider, and once in the
+        messages the first time it is thinned (a slow page would otherwise fill them)."""
         self.g_budget_note.content = text
-        if lowered and not gov.said:
-            gov.said = True
-            self.app.worker.message(text.rstrip(".") + " (Display)", "warning")
+        if lowered and not self._motion_said:
+            self._motion_said = True
+            self.app.worker.message(text + " (Display)", "info")
 
     def update(self, snap: DisplaySnapshot) -> None:
         done = ("affine reconstruction finished: **place the control GCPs** (GCPs tab), then Upgrade"

@@ -4,6 +4,7 @@
 thread only, inside `server.atomic()`. Scene paths are stable, so updates replace nodes:
 
   /recon/g<g>/<kind>/chunk_<k>     point-cloud chunks (kind: sparse, dense); float32, local origin
+  /recon/g<g>/<kind>/moving        what is drawn instead while a view moves (set_moving)
   /recon/g<g>/tiles/outlines       registered tile footprints, one node per group (each node is
                                    a draw call, and software WebGL pays ~1 ms for each)
   /recon/g<g>/tiles/<tile>/image   a tile's textured quad
@@ -15,6 +16,9 @@ Points are sent as new chunks as they arrive (reassigning a node's points resend
 growing one node to 1 M points in 10 steps sent 79 MB, one node a step 14 MB); a new generation
 (ModelUpdated), a new frame transform, a budget change or too many chunks rebuilds the group's
 chunks. Display decimation follows the point budget.
+
+While a view moves, each cloud may be drawn from a nested subsample of its chunks instead, its
+points sized for their number (`set_moving`; the budget comes from motion.py).
 """
 
 from __future__ import annotations
@@ -100,6 +104,14 @@ class _Cloud:
     box: tuple | None = None             # its footprint: 2-98 % xy bounds (lo, hi), grown per chunk
     next_k: int = 0
     kept: float = 1.0                    # the store's own thinning when this generation began
+    moving: "_Moving | None" = None      # the subsample drawn while a view moves
+
+
+@dataclass
+class _Moving:
+    handle: viser.PointCloudHandle
+    n: int
+    key: tuple                           # what it was built from (_moving_key)
 
 
 @dataclass
@@ -155,6 +167,8 @@ class SceneView:
         self._slack = 1.5
         self.sent_log: list[dict] = []    # one entry per point chunk sent (for the bench)
         self.image_index = {name: k for k, name in enumerate(sorted(images.images))}
+        self.moving = False               # a view moves: the clouds' moving subsamples are drawn
+        self.moving_budget: int | None = None    # points drawn while moving (None: those shown)
 
     # -- points -------------------------------------------------------------------------------
     def sync(self, snap: DisplaySnapshot, transforms: dict[int, DisplayTransform | None]) -> int:
@@ -183,7 +197,7 @@ class SceneView:
                     frac: float) -> int:
         key = (g, kind)
         st = self._clouds.setdefault(key, _Cloud())
-        visible = self._shows(kind)
+        visible = self._shows(kind) and not (self.moving and st.moving is not None)
         rebuild = (st.generation != cloud.generation or st.transform is not T
                    or frac < st.fraction / self._slack or (frac > st.fraction * 1.5 and st.fraction < 1.0)
                    or len(st.chunks) > MAX_CHUNKS or len(cloud.batches) < st.n_batches)
@@ -253,32 +267,104 @@ class SceneView:
                               "bytes": int(xyz.nbytes + colors.nbytes)})
         return len(sub)
 
-    def point_size(self) -> float:
+    def point_size(self, n_shown: int | None = None) -> float:
         """Point size in scene units: the setting times the automatic size, at which the points
-        shown about tile the footprint of the clouds shown (display.auto_point_size)."""
+        shown (or n_shown) about tile the footprint of the clouds shown (display.auto_point_size)."""
         live = [c for (g, kind), c in self._clouds.items() if c.generation >= 0 and self._shows(kind)]
         ext = max((c.extent for c in live), default=1000.0)
         area = union_area([c.box for c in live if c.box is not None])
-        return float(self.settings.point_size * auto_point_size(ext, area, self._shown()))
+        n = self._shown() if n_shown is None else n_shown
+        return float(self.settings.point_size * auto_point_size(ext, area, n))
 
     def apply_point_size(self, size: float | None = None) -> None:
         size = self.point_size() if size is None else size
         for st in self._clouds.values():
             for c in st.chunks:
                 c.handle.point_size = size
+        moving = self.moving_points()
+        if moving:
+            size = self.point_size(moving)
+            for st in self._clouds.values():
+                if st.moving is not None:
+                    st.moving.handle.point_size = size
 
     def apply_colors(self) -> None:
         for st in self._clouds.values():
             for c in st.chunks:
                 c.handle.colors = point_colors(self.settings.color_mode, c.batch.rgb, c.xyz[:, 2],
                                                c.batch.n_views, c.batch.reproj, st.ranges)
+        # the moving subsamples: rebuilt in the new colours when the next gesture starts
 
     def apply_visibility(self) -> None:
         for (g, kind), st in self._clouds.items():
             vis = self._shows(kind)
+            thin = self.moving and st.moving is not None
             for c in st.chunks:
-                c.handle.visible = vis
+                c.handle.visible = vis and not thin
+            if st.moving is not None:
+                st.moving.handle.visible = vis and thin
         self.apply_point_size()          # the points shown set the size
+
+    # -- while a view moves (motion.py) -------------------------------------------------------
+    def set_moving(self, moving: bool, budget: int | None) -> None:
+        """Draw each cloud from its moving subsample (`budget` points in all, None: as shown)
+        while a view moves, or from its chunks again."""
+        self.moving, self.moving_budget = moving, budget
+        if moving:
+            self.sync_moving()
+        self.apply_visibility()
+
+    def moving_fraction(self) -> float | None:
+        """The fraction of the points shown that is drawn while a view moves (None: all)."""
+        shown = self._shown()
+        if self.moving_budget is None or shown <= self.moving_budget:
+            return None
+        return self.moving_budget / float(shown)
+
+    def moving_points(self) -> int:
+        """Points drawn while a view moves, with the subsamples as they are now built."""
+        return sum(st.moving.n if st.moving is not None else sum(len(c.batch) for c in st.chunks)
+                   for (g, kind), st in self._clouds.items() if self._shows(kind))
+
+    def _moving_key(self, st: _Cloud, f: float) -> tuple:
+        return (st.generation, st.next_k, len(st.chunks), round(f, 6), self.settings.color_mode)
+
+    def sync_moving(self) -> bool:
+        """Build (or drop) each cloud's moving subsample to match its chunks and the budget: the
+        points of its chunks whose hash falls below the moving fraction (display.keep_mask, nested
+        in the chunks' own subsample), coloured as they are. Returns whether anything changed."""
+        f = self.moving_fraction()
+        changed = False
+        for key, st in self._clouds.items():
+            if f is None or not st.chunks:
+                if st.moving is not None:
+                    st.moving.handle.remove()
+                    st.moving, changed = None, True
+                continue
+            mk = self._moving_key(st, f)
+            if st.moving is not None and st.moving.key == mk:
+                continue
+            parts = []
+            for c in st.chunks:
+                m = keep_mask(c.batch.ids, st.fraction * st.kept * f, cloud_salt(*key))
+                parts.append((c.xyz[m], c.batch.subset(m)))
+            xyz = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, 3))
+            sub = concat_batches(tuple(p[1] for p in parts))
+            if st.moving is not None:
+                st.moving.handle.remove()
+            colors = point_colors(self.settings.color_mode, sub.rgb, xyz[:, 2], sub.n_views,
+                                  sub.reproj, st.ranges)
+            h = self.scene.add_point_cloud(f"/recon/g{key[0]}/{key[1]}/moving", xyz.astype(np.float32),
+                                           colors, point_size=self.point_size(), precision="float32",
+                                           point_shape="rounded", point_shading="flat",
+                                           visible=self.moving and self._shows(key[1]))
+            st.moving, changed = _Moving(h, len(xyz), mk), True
+        if changed:
+            for (g, kind), st in self._clouds.items():
+                for c in st.chunks:
+                    c.handle.visible = self._shows(kind) and not (self.moving and st.moving is not None)
+            self.apply_point_size()
+        return changed
 
     def _nearest(self, ray_origin, ray_direction, max_angle: float):
         """(group, cloud state, display xyz) of the displayed point nearest in angle to a ray."""
@@ -451,6 +537,14 @@ class SceneView:
         for line, label in self._newest_nodes.values():
             label.visible = False
 
+    def tile_nodes(self) -> list:
+        """The nodes that draw the registered tiles (outlines, textured quads, the newest)."""
+        return ([h for h in self._outlines.values()] + [n.image for n in self._tiles.values() if n.image is not None]
+                + [line for line, _ in self._newest_nodes.values()])
+
+    def label_nodes(self) -> list:
+        return [label for _, label in self._newest_nodes.values()]
+
     def set_tiles_visible(self, visible: bool) -> None:
         for line, label in self._newest_nodes.values():
             line.visible = visible
@@ -461,6 +555,8 @@ class SceneView:
         for st in self._clouds.values():
             for c in st.chunks:
                 c.handle.remove()
+            if st.moving is not None:
+                st.moving.handle.remove()
         self._clouds.clear()
         for node in self._tiles.values():
             if node.image is not None:

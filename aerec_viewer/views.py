@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .display import plane_point
+from .framerate import counter_iframe
 
 if TYPE_CHECKING:
     import viser
@@ -31,6 +32,7 @@ class ClientViews:
         self.app = app
         self.moved: dict[int | None, tuple] = {}   # client id -> (position, wxyz, time it moved)
         self.app.server.on_client_connect(self.on_connect)
+        self.app.server.on_client_disconnect(lambda c: self.app.view_rate.forget(c.client_id))
         zooms: tuple[tuple[KeyModifier, float], ...] = (("shift", self.ZOOM_STEP),
                                                         ("cmd/ctrl+shift", 1.0 / self.ZOOM_STEP))
         for modifier, factor in zooms:
@@ -42,17 +44,23 @@ class ClientViews:
     def on_connect(self, client) -> None:
         self.app.gcp_panel.note_choice(client, chooser=False)   # what this tab sees at first
         client.camera.on_update(self.camera_update)
+        ws = getattr(self.app, "workspace", None)
+        if ws is not None:      # the page counts the frames it draws (framerate.py)
+            client.gui.add_html(counter_iframe(ws.url, client.client_id), order=-1e9)
         self.app.submit(lambda: self.frame_client(client))
 
     def camera_update(self, camera) -> None:
-        """Remember when each client's view last moved (the drag guard of on_plane_click)."""
+        """Remember when each client's view last moved (the drag guard of on_plane_click, the
+        frame rate meter, the display while a view moves)."""
         key = camera.client.client_id
         pose = (np.asarray(camera.position, float).copy(), np.asarray(camera.wxyz, float).copy())
         old = self.moved.get(key)
         if old is None or not (np.allclose(old[0], pose[0], rtol=0, atol=1e-9)
                                and np.allclose(old[1], pose[1], rtol=0, atol=1e-9)):
             self.moved[key] = (*pose, time.time())
-            self.app.view_rate.moved(key, time.monotonic())
+            now = time.monotonic()
+            self.app.view_rate.moved(key, now)
+            self.app.motion.moved(now)          # the lighter display while it moves
             d = float(np.linalg.norm(np.asarray(camera.position) - np.asarray(camera.look_at)))
             view = (d, float(camera.fov), int(camera.image_height))
             before = self.app.marks.ring_view

@@ -18,6 +18,7 @@ the screen becomes a pixel, and how often the predictions bring the spot into th
     python bench/bench_operator.py --shots /tmp/op   # also saves a screenshot after each step
     python bench/bench_operator.py --no-survey       # ground positions from an orthoimage + DEM
     python bench/bench_operator.py --no-survey --roof-dem 5   # roof corners, a 5 m DEM
+    python bench/bench_operator.py --wrong-clicks    # N with the loupe open; two tabs
 
 --no-survey: the operator has no survey. The working set starts empty; the viewer is given a
 reference orthoimage of the site (the generator's true orthoimage, render_ortho, 0.5 m) and a
@@ -37,6 +38,12 @@ height the upgrade's images give each flagged GCP (the function behind "Take the
 height", called on the working set the person saved, with the site's viewing angles). Target
 (the operator issue): every roof-corner GCP within 0.5 m in height, or flagged before the
 upgrade.
+
+--wrong-clicks: instead of the session, the two ways a click once saved a wrong observation
+(the operator issue): N pressed with the loupe open, then a click at the previous GCP's spot;
+and a second browser tab's ordinary click on its image while the first tab's loupe is open. Every
+observation added or moved must be within 0.3 px of its GCP's truth, and the first tab's GCP must
+stay where it was put.
 
 Site: a synthetic scene (seed 0, one date group of 3 images of 2000 x 2000 px, d = 1000); its
 working GCP set holds 4 control GCPs with ground coordinates only (no observation: the operator
@@ -463,6 +470,118 @@ def place_ground(person: Person, out: Path, ortho: np.ndarray, true_px, label: s
     return None if got is None else sorted(set(got) - before)[0]
 
 
+# -- the wrong clicks of the operator issue -----------------------------------------------------
+def wrong_observations(before: dict, after: dict, gcps: list[dict], tol: float = 0.3) -> list[str]:
+    """Observations added or moved between two readings of the working set that are not within
+    tol px of their GCP's truth (a click recorded for a GCP at another's spot)."""
+    truth = {g["id"]: g["true_observations"] for g in gcps}
+    bad = []
+    for gid, obs in after.items():
+        for im, xy in obs.items():
+            if before.get(gid, {}).get(im) == xy:
+                continue
+            t = truth.get(gid, {}).get(im)
+            e = None if t is None else float(np.hypot(xy[0] - t[0], xy[1] - t[1]))
+            if e is None or e > tol:
+                bad.append(f"{gid} in {im} at ({xy[0]:.2f}, {xy[1]:.2f}), "
+                           + ("no truth" if e is None else f"{e:.2f} px from its spot"))
+    for gid, obs in before.items():
+        for im in obs:
+            if im not in after.get(gid, {}):
+                bad.append(f"{gid} in {im}: removed")
+    return bad
+
+
+def open_gcp_tab(page, person: "Person") -> None:
+    page.get_by_role("tab", name="GCPs").wait_for(timeout=60_000)
+    person.click_role("tab", "GCPs")
+    person.key("l", "look at the image plane")
+
+
+def wrong_clicks(browser, url: str, out: Path, gcps: list[dict], names: list[str],
+                 images: dict[str, np.ndarray], shots: Path | None) -> bool:
+    """The two ways a click once saved a wrong observation (the operator issue), as a person does
+    them; True when nothing wrong was recorded.
+
+    N with the loupe open: the person clicks GCP A on the image (the loupe opens), presses N,
+    and clicks A's spot in the loupe with the new GCP B selected. Two tabs: tab 1 places A, then
+    clicks it again (its loupe opens); a second person in another browser tab sees the GCP tab
+    and clicks B's spot on the image on their screen."""
+    a, b = gcps[0], gcps[1]
+    im = names[0]
+    page = browser.new_context(viewport=VIEW).new_page()
+    page.goto(url)
+    p1 = Person(page, shots)
+    open_gcp_tab(page, p1)
+    page.get_by_text(f"{a['id']} (control)").first.wait_for(timeout=20_000)
+    ok = True
+    # -- N with the loupe open
+    screen = p1.settle()
+    x, y, _, v = find_on_screen(screen, images[im], *a["true_observations"][im], half=48,
+                                scales=np.geomspace(0.12, 2.5, 40), nearest=False)
+    if v < 0.4:
+        print(f"  {a['id']} not found on the screen (NCC {v:.2f}): the run says nothing")
+        return False
+    p1.click(x, y, f"{a['id']} on {im} (the loupe opens)")
+    p1.settle()
+    before = read_working_set(out)
+    p1.key("n", f"next GCP ({b['id']}) with the loupe open")
+    page.get_by_text(f"{b['id']} (control)").first.wait_for(timeout=20_000)
+    screen = p1.settle()
+    x, y, s, v = find_on_screen(screen, images[im], *a["true_observations"][im], half=8,
+                                scales=np.geomspace(3.0, 40.0, 40), nearest=True)
+    where = "in a loupe still open" if v >= 0.8 else "on the image (the loupe was closed)"
+    if v < 0.8:
+        x, y, s, v = find_on_screen(screen, images[im], *a["true_observations"][im], half=48,
+                                    scales=np.geomspace(0.12, 2.5, 40), nearest=False)
+    p1.click(x, y, f"{a['id']}'s spot {where}, {b['id']} selected")
+    time.sleep(3.0)
+    bad = wrong_observations(before, read_working_set(out), gcps)
+    print(f"N with the loupe open: the click landed {where}; "
+          + ("nothing wrong recorded [ok]" if not bad else f"WRONG: {'; '.join(bad)} [FAIL]"))
+    ok &= not bad
+    p1.key("Escape", "leave the loupe")
+    # -- two tabs
+    p1.key("p", f"back to {a['id']}")
+    page.get_by_text(f"{a['id']} (control)").first.wait_for(timeout=20_000)
+    if not place(p1, out, images[im], a["id"], im, a["true_observations"][im]):
+        print(f"  {a['id']} could not be placed in tab 1: the two-tab run says nothing")
+        return False
+    p1.key("Escape", "leave the loupe (the viewer walked on to A's next image)")
+    screen = p1.settle()
+    # the image on the plane now: where A's spot matches best
+    im, (x, y, _, v) = max(((n, find_on_screen(screen, images[n], *a["true_observations"][n], half=48,
+                                                scales=np.geomspace(0.12, 2.5, 40), nearest=False))
+                            for n in names), key=lambda t: t[1][3])
+    p1.click(x, y, f"{a['id']} on {im} (NCC {v:.2f}): tab 1's loupe opens")
+    p1.settle()
+    loupe = page.get_by_role("button", name="Leave the loupe").first.is_enabled()
+    before = read_working_set(out)
+    page2 = browser.new_context(viewport=VIEW).new_page()
+    page2.goto(url)
+    p2 = Person(page2, shots)
+    open_gcp_tab(page2, p2)
+    screen = p2.settle()
+    im2, (x, y, s, v) = max(((n, find_on_screen(screen, images[n], *b["true_observations"][n], half=48,
+                                                 scales=np.geomspace(0.12, 2.5, 40), nearest=False))
+                             for n in names), key=lambda t: t[1][3])
+    p2.click(x, y, f"tab 2: {b['id']}'s spot in {im2} on what its screen shows (NCC {v:.2f}, "
+                   f"{s:.2f} px/px)")
+    print(f"  tab 1's loupe {'open' if loupe else 'NOT open'} on {im} when tab 2 clicked")
+    time.sleep(3.0)
+    after = read_working_set(out)
+    bad = wrong_observations(before, after, gcps)
+    moved = after.get(a["id"], {}) != before.get(a["id"], {})
+    print(f"two tabs: tab 2's click while tab 1's loupe is open: "
+          + ("nothing wrong recorded" if not bad else f"WRONG: {'; '.join(bad)}")
+          + (f", {a['id']} moved [FAIL]" if moved else f", {a['id']} where tab 1 put it")
+          + (" [ok]" if not bad and not moved and loupe else " [FAIL]"))
+    ok &= not bad and not moved and loupe
+    p1.shot("wrong_clicks_tab1")
+    p2.shot("wrong_clicks_tab2")
+    return ok
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--root", type=Path, default=Path("/tmp/aerec_bench"))
@@ -470,6 +589,9 @@ def main() -> None:
     ap.add_argument("--shots", type=Path, default=None, help="save a screenshot after each step")
     ap.add_argument("--no-survey", action="store_true",
                     help="no ground coordinates: take them from a reference orthoimage + DEM")
+    ap.add_argument("--wrong-clicks", action="store_true",
+                    help="instead of the session: N with the loupe open, and a second tab's click "
+                         "while the first tab's loupe is open (the operator issue's two bugs)")
     ap.add_argument("--roof-dem", type=float, default=None, metavar="CELL",
                     help="with --no-survey: a DEM of CELL metres and GCPs on roof corners")
     ap.add_argument("--roofs", type=int, default=2, choices=range(5),
@@ -531,6 +653,11 @@ def main() -> None:
         url = next(ln for ln in lines if ln.startswith("aerec view: open")).split()[-1]
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path="/usr/bin/chromium", args=FLAGS, headless=True)
+            if args.wrong_clicks:
+                ok = wrong_clicks(browser, url, out, gcps, names, images, args.shots)
+                browser.close()
+                print("the wrong clicks: " + ("none recorded anything wrong" if ok else "FAIL"))
+                return
             page = browser.new_context(viewport=VIEW).new_page()
             page.goto(url)
             page.get_by_role("tab", name="GCPs").wait_for(timeout=60_000)

@@ -11,11 +11,14 @@ connected and the time until the first points are rendered on its screen is meas
     python bench/bench_viewer.py --cold               # `aerec view` from a bare cache
     python bench/bench_viewer.py --fps OUT            # frames drawn per second while orbiting
     python bench/bench_viewer.py --fps OUT --budgets 150000,40000
+    python bench/bench_viewer.py --fps OUT --duration 60 --tabs 2   # the governor at work
+    python bench/bench_viewer.py --fps OUT --duration 60 --load 1   # on a machine doing other work
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import statistics
 import sys
@@ -27,6 +30,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from aerec_viewer.framerate import drawn_rate  # noqa: E402
 
 
 class WireClient:
@@ -264,8 +269,9 @@ def cold(args) -> None:
               if t_screen else "  no points seen on the Chromium screen")
 
 
-# Counts the frames the page draws: a frame clears the canvas (viser 1.1.1: 4 clears within a
-# millisecond, a frame apart they are > 100 ms in software WebGL); viser renders on demand, so
+# Counts the frames the page draws: a frame clears the canvas (viser 1.1.1: once, or 4 times within
+# a millisecond with its default lights' shadow cascades; frames are > 30 ms apart in software
+# WebGL); viser renders on demand, so
 # requestAnimationFrame alone would count frames that draw nothing.
 COUNT_RENDERS = """
   window.__renders = [];
@@ -275,9 +281,10 @@ COUNT_RENDERS = """
   }"""
 
 
-def orbit_fps(page, seconds: float = 6.0) -> tuple[float, int]:
+def orbit_fps(page, seconds: float = 6.0) -> tuple[float, int, float]:
     """Frames drawn per second while the mouse orbits the view (left button held, a circle
-    traced as fast as the page takes the moves), and the number of moves it took."""
+    traced as fast as the page takes the moves), the number of moves it took, and the rate the
+    viewer's counter iframe counted (its requestAnimationFrame callbacks; nan without it)."""
     w = page.viewport_size["width"] - 520          # left of the control panel
     h = page.viewport_size["height"]
     cx, cy, r = w / 2, h / 2, min(w, h) / 5
@@ -294,7 +301,15 @@ def orbit_fps(page, seconds: float = 6.0) -> tuple[float, int]:
     # viser clears the canvas several times per frame (4 here): a frame is a run of clears
     drawn = page.evaluate(f"""(() => {{ const a = window.__renders.filter(t => t >= {t0} && t <= {t1});
         let n = 0; for (let i = 0; i < a.length; i++) if (i === 0 || a[i] - a[i - 1] > 4) n++; return n; }})()""")
-    return drawn * 1000.0 / max(t1 - t0, 1.0), n
+    counter = next((f for f in page.frames if "frames.html" in f.url), None)
+    iframe = float("nan")
+    if counter is not None and hasattr(page, "counted"):
+        time.sleep(1.0)              # its report of the last frames (every 0.5 s)
+        # the iframe's clock is the page's shifted by their time origins
+        shift = counter.evaluate("performance.timeOrigin") - page.evaluate("performance.timeOrigin")
+        iv = np.diff([t + shift for t in page.counted if t0 <= t + shift <= t1]) / 1000.0
+        iframe = drawn_rate(iv) if len(iv) > 2 else float("nan")      # as the viewer reads it
+    return drawn * 1000.0 / max(t1 - t0, 1.0), n, iframe
 
 
 def fps(args) -> None:
@@ -330,22 +345,44 @@ def fps(args) -> None:
                 raise SystemExit("the viewer printed no address:\n" + "".join(lines[-20:]))
             with sync_playwright() as pw:
                 b = pw.chromium.launch(executable_path="/usr/bin/chromium", args=flags, headless=True)
-                page = b.new_page(viewport={"width": 1600, "height": 1000})
-                page.add_init_script(COUNT_RENDERS)
-                page.goto(url.rstrip(";"))
+                pages = []
+                for _ in range(args.tabs):
+                    page = b.new_page(viewport={"width": 1600, "height": 1000})
+                    page.add_init_script(COUNT_RENDERS)
+                    page.counted = []                # what the counter iframe posts to the viewer
+                    page.on("request", lambda r, c=page.counted: c.extend(json.loads(r.post_data)["frames"])
+                            if r.url.endswith("/api/frames") and r.post_data else None)
+                    page.goto(url.rstrip(";"))
+                    pages.append(page)
                 time.sleep(args.settle)              # the cloud arrives, textures upload
+                # --load K: K busy processes beside the browser (a machine doing other work)
+                burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                           for _ in range(args.load)]
                 shown = """() => { const t = document.body.innerText;
                     const m = t.match(/points displayed\\s*([\\d,]+)/); return m ? m[1] : '?'; }"""
-                rates, labels = [], []
-                for k in range(args.repeats):     # the viewer may adapt its budget in between
+                rates, labels, counted = [], [], []
+                t_end = time.time() + args.duration
+                k = 0
+                # --duration: orbits for that long (tabs in turn, `between` apart), else `repeats`
+                while (k < args.repeats) if not args.duration else (k == 0 or time.time() < t_end):
                     if k:
-                        time.sleep(args.between)
+                        time.sleep(args.between)     # the viewer may adapt its budget in between
+                    page = pages[k % len(pages)]
                     labels.append(page.evaluate(shown))
-                    rates.append(orbit_fps(page, args.seconds)[0])
+                    r, _, iframe = orbit_fps(page, args.seconds)
+                    rates.append(r)
+                    counted.append(iframe)
+                    if args.duration:
+                        print(f"    t {time.time() - t_end + args.duration:5.1f} s tab {k % len(pages)}: "
+                              f"drawn {r:.1f} fps (the counter iframe, as the viewer reads it: {iframe:.1f}), "
+                              f"1-min load {os.getloadavg()[0]:.1f}", flush=True)
+                    k += 1
+                for p in burners:
+                    p.kill()
                 label = " -> ".join(dict.fromkeys(labels))
                 if args.shots:
                     Path(args.shots).mkdir(parents=True, exist_ok=True)
-                    page.screenshot(path=str(Path(args.shots) / f"fps_{budget or 'default'}.png"))
+                    pages[0].screenshot(path=str(Path(args.shots) / f"fps_{budget or 'default'}.png"))
                 b.close()
         finally:
             proc.terminate()
@@ -354,6 +391,12 @@ def fps(args) -> None:
             except subprocess.TimeoutExpired:
                 proc.kill()
         notes = [ln.strip() for ln in lines if "budget" in ln.lower()]
+        if args.duration:
+            n = len(pages)
+            before, after = rates[:n], rates[-n:]
+            print(f"  {n} tab(s), {len(rates)} orbits in {args.duration:.0f} s: drawn before the governor "
+                  f"{', '.join(f'{r:.1f}' for r in before)} fps; after (the last orbit of each tab) "
+                  f"{', '.join(f'{r:.1f}' for r in after)} fps")
         print(f"  budget {budget or 'default':>8}: first orbit {rates[0]:.1f} fps, last {rates[-1]:.1f} "
               f"(runs {', '.join(f'{r:.1f}' for r in rates)}), points displayed {label}"
               + (f"; viewer said: {notes[-1]}" if notes else ""))
@@ -422,6 +465,11 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3, help="--fps: measurements per budget")
     p.add_argument("--between", type=float, default=12.0, help="--fps: seconds between measurements")
     p.add_argument("--settle", type=float, default=25.0, help="--fps: seconds for the scene to load")
+    p.add_argument("--tabs", type=int, default=1, help="--fps: browser tabs on the viewer")
+    p.add_argument("--load", type=int, default=0,
+                   help="--fps: this many busy processes run beside the browser while it orbits")
+    p.add_argument("--duration", type=float, default=0.0,
+                   help="--fps: orbit this long (tabs in turn) instead of --repeats times")
     p.add_argument("--shots", default=None, help="--fps: save a screenshot per budget here")
     args = p.parse_args()
     if args.fps:

@@ -14,7 +14,9 @@ from __future__ import annotations
 import concurrent.futures
 import copy
 import json
+import math
 import threading
+import time
 from typing import TYPE_CHECKING, Callable
 
 from ..gcp_session import (
@@ -32,6 +34,7 @@ from .tiles import TileSource
 if TYPE_CHECKING:
     from ..app import ViewerApp
 
+MAX_FRAMES = 5000          # frame times in one report of the counter iframe
 EDIT_TIMEOUT_S = 20.0       # an edit waits this long for the update thread (an upgrade runs there)
 
 
@@ -62,8 +65,24 @@ class WorkspaceApi:
         self._lock = threading.Lock()
         self._key: tuple | None = None
         self._upgrade: tuple = (None, None)     # (the page's last upgrade, OUT's) the version saw
-        self._version = 0
+        # versions start from the boot's time in ms: a viewer restarted behind an open tab
+        # answers with newer versions than any it gave before (a counter from 0 would look older
+        # to the tab, which would then ignore every state and send edits "from the future")
+        self._version = int(time.time() * 1000)
         self._state: tuple[int, bytes] | None = None      # (version, state JSON)
+
+    # -- the 3D page's frame counter (framerate.py) ------------------------------------------------
+    def frames(self, client: int, now_ms: float, frames_ms: object) -> dict:
+        """A tab's counter iframe drew frames at `frames_ms` (its performance.now(), ms) and sent
+        them at `now_ms`: they reach the viewer's rate meter on this process's clock."""
+        if not isinstance(frames_ms, list) or len(frames_ms) > MAX_FRAMES:
+            raise bad(f"frames: give a list of at most {MAX_FRAMES} times (ms)")
+        if any(isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t)
+               or not 0 <= t <= now_ms for t in frames_ms):
+            raise bad("frames: each a time in ms, between 0 and now")
+        recv = time.monotonic()
+        self.app.view_rate.frames(client, [recv - (now_ms - t) / 1000.0 for t in frames_ms], recv)
+        return {"frames": len(frames_ms)}
 
     # -- reading --------------------------------------------------------------------------------
     def version(self) -> int:

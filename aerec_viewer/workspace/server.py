@@ -32,6 +32,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("aerec.workspace")
 
 STATIC = Path(__file__).resolve().parent / "static"
+COUNTER = "frames.html"           # the 3D page's frame counter (framerate.py), framed by viser's page
 CONTENT_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
                  ".css": "text/css; charset=utf-8", ".png": "image/png", ".svg": "image/svg+xml"}
 MAX_JSON_BYTES = 64 * 1024
@@ -126,6 +127,8 @@ def post_routes(api: WorkspaceApi) -> dict[str, Callable[[dict], dict]]:
         "/api/remove": lambda b: api.remove(text(b, "gcp"), text(b, "image")),
         "/api/undo": lambda b: api.undo(),
         "/api/redo": lambda b: api.redo(),
+        "/api/frames": lambda b: api.frames(integer(b, "client", 0, 1 << 31), number(b, "now", 0.0, 1e12),
+                                            b.get("frames")),
     }
 
 
@@ -133,9 +136,9 @@ def post_routes(api: WorkspaceApi) -> dict[str, Callable[[dict], dict]]:
 class WorkspaceServer:
     """The workspace on `host` (the viewer's), from `port` on (0: any free one)."""
 
-    def __init__(self, app: "ViewerApp", host: str = "127.0.0.1", port: int = 0):
+    def __init__(self, app: "ViewerApp", host: str = "127.0.0.1", port: int = 0, viewer_port: int = 0):
         self.api = WorkspaceApi(app)
-        self.httpd = _bind(host, port, _handler_class(self.api, host))
+        self.httpd = _bind(host, port, _handler_class(self.api, host, viewer_port))
         self._thread: threading.Thread | None = None
 
     @property
@@ -175,8 +178,9 @@ def _bind(host: str, port: int, handler) -> ThreadingHTTPServer:
     raise OSError(f"no free port for the image workspace from {port}: {last}")
 
 
-def _handler_class(api: WorkspaceApi, host: str):
-    """The request handler bound to the API (http.server makes one instance per request)."""
+def _handler_class(api: WorkspaceApi, host: str, viewer_port: int = 0):
+    """The request handler bound to the API (http.server makes one instance per request). Pages
+    are never framed, but the frame counter (static/frames.html) is, by viser's page only."""
     gets, posts = get_routes(api), post_routes(api)
     loopback = host in ("127.0.0.1", "localhost", "::1")
 
@@ -204,7 +208,9 @@ def _handler_class(api: WorkspaceApi, host: str):
             f = STATIC / name
             if "/" in name or not f.is_file() or f.suffix not in CONTENT_TYPES:
                 raise ApiError(404, f"no such page: {path}")
-            self._send(200, CONTENT_TYPES[f.suffix], f.read_bytes(), {"Cache-Control": "no-cache"})
+            framed = name == COUNTER and viewer_port > 0
+            self._send(200, CONTENT_TYPES[f.suffix], f.read_bytes(), {"Cache-Control": "no-cache"},
+                       framed_by=f"http://*:{viewer_port} https://*:{viewer_port}" if framed else None)
 
         def _post(self) -> None:
             path = urlsplit(self.path).path
@@ -268,13 +274,16 @@ def _handler_class(api: WorkspaceApi, host: str):
             except (BrokenPipeError, ConnectionResetError):
                 pass
 
-        def _send(self, status: int, ctype: str, body: bytes, headers: dict) -> None:
+        def _send(self, status: int, ctype: str, body: bytes, headers: dict,
+                  framed_by: str | None = None) -> None:
             self.send_response(status)
             self.send_header("Content-Type", ctype)
             self.send_header("Content-Length", str(len(body)))
             self.send_header("X-Content-Type-Options", "nosniff")
-            self.send_header("X-Frame-Options", "DENY")           # click-to-edit: never framed
-            self.send_header("Content-Security-Policy", "frame-ancestors 'none'")
+            if framed_by is None:                                  # click-to-edit: never framed
+                self.send_header("X-Frame-Options", "DENY")
+            # the counter has nothing to click: framed by viser's page (any host, its port)
+            self.send_header("Content-Security-Policy", "frame-ancestors " + (framed_by or "'none'"))
             if self.close_connection:
                 self.send_header("Connection", "close")
             for k, v in headers.items():

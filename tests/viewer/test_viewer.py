@@ -1124,32 +1124,73 @@ def test_the_viewer_refuses_a_blank_image_before_computing(small_site, tmp_path)
     assert not (tmp_path / "out" / "affine").exists()
 
 
-def test_a_slow_page_lowers_the_point_budget_and_says_so(live):
-    """Orbiting at 3 view updates/s (software WebGL at 150 k points) lowers the budget after the
-    gesture; the operator's own budget is kept from then on."""
+def test_a_slow_page_thins_the_display_while_moving_and_says_so(live):
+    """Orbiting at 3 view updates/s (software WebGL at 150 k points): after the gesture the
+    display while moving is thinned, said under the slider and once in the messages; the
+    point budget (at rest) is the operator's and does not move."""
     app = live[0]
-    s = app.scene.settings
-    before, tiles = s.budget, s.tiles
+    s, mo = app.scene.settings, app.motion
+    before = s.budget
     try:
-        app.call(lambda: setattr(s, "budget", 150_000))
+        shown = app.call(app.scene.displayed_points)
         t0 = time.monotonic() - 10.0
         for k in range(12):
             app.view_rate.moved(99, t0 + k / 3.0)
-        app.call(app.recon.govern_budget)
-        assert s.budget < 150_000 and app.recon.g_budget.value == s.budget // 1000
-        assert "budget lowered from 150 k" in app.recon.g_budget_note.content
-        assert sum("budget lowered" in text for _, text in app.worker.snapshot().messages) == 1
-        # the operator sets it: kept, however slow
-        app.governor.user_set = True
-        app.call(lambda: setattr(s, "budget", 150_000))
-        for k in range(12):
-            app.view_rate.moved(99, t0 + 5.0 + k / 3.0)
-        app.call(app.recon.govern_budget)
-        assert s.budget == 150_000
+        app.call(lambda: mo.tick())
+        assert s.budget == before and app.recon.g_budget.value == before // 1000
+        gov = mo.governor
+        assert (gov.budget is not None and gov.budget < shown) or gov.shed > 0
+        assert app.scene.moving_budget == gov.budget
+        note = app.recon.g_budget_note.content
+        assert note.startswith("While a view moves:") and "the page moved at 3 frames/s with" in note
+        assert sum("While a view moves" in text for _, text in app.worker.snapshot().messages) == 1
+        for k in range(12):                                  # slower still: said under the slider only
+            app.view_rate.moved(99, t0 + 5.0 + k / 2.0)
+        app.call(lambda: mo.tick())
+        assert sum("While a view moves" in text for _, text in app.worker.snapshot().messages) == 1
     finally:
-        app.governor.user_set = False
+        app.call(lambda: (setattr(mo.governor, "budget", None), setattr(mo.governor, "shed", 0),
+                          setattr(app.scene, "moving_budget", None), app.scene.sync_moving()))
         app.recon.g_budget_note.content = ""
-        app.call(lambda: (setattr(s, "budget", before), setattr(s, "tiles", tiles), app.force()))
+
+
+def test_while_a_view_moves_a_nested_subsample_is_drawn_and_the_rest_comes_back(live):
+    """A camera message switches the scene to its moving display: each cloud drawn from a
+    subsample of its shown points (about the governor's budget in all, bigger points), the
+    kinds the governor sheds hidden; once the views rest everything is as before."""
+    from aerec_viewer import motion
+
+    app = live[0]
+    sc, mo = app.scene, app.motion
+    app.wait_idle()
+    shown = app.call(sc.displayed_points)
+    assert shown >= 400, shown
+    vis_tiles = [(h, h.visible) for h in app.call(sc.tile_nodes)]
+    try:
+        app.call(lambda: (setattr(mo.governor, "budget", shown // 4), setattr(mo.governor, "shed", 1)))
+        mo.moved(time.monotonic())
+        app.wait_idle()
+        assert mo.moving and sc.moving
+        clouds = [st for st in sc._clouds.values() if st.chunks]
+        assert all(st.moving is not None for st in clouds)
+        assert not any(c.handle.visible for st in clouds for c in st.chunks)
+        assert all(st.moving.handle.visible for st in clouds)
+        n = sum(st.moving.n for st in clouds)
+        assert abs(n - shown / 4) < 0.2 * shown / 4 + 30, (n, shown)     # a hash subsample
+        for st in clouds:                                 # drawn from the points shown at rest
+            full = {tuple(p) for c in st.chunks for p in np.round(c.xyz.astype(np.float32), 3)}
+            assert {tuple(p) for p in np.round(st.moving.handle.points, 3)} <= full
+            assert st.moving.handle.point_size >= st.chunks[0].handle.point_size   # capped: 1/200 of the extent
+        assert vis_tiles and not any(h.visible for h, _ in vis_tiles)     # shed: the tiles
+        time.sleep(motion.REST_MAX_S + 0.3)               # no camera message: the views rest
+        app.wait_idle()
+        assert not mo.moving and not sc.moving
+        assert all(c.handle.visible for st in clouds for c in st.chunks)
+        assert not any(st.moving.handle.visible for st in clouds)
+        assert [h.visible for h, _ in vis_tiles] == [v for _, v in vis_tiles]
+    finally:
+        app.call(lambda: (setattr(mo.governor, "budget", None), setattr(mo.governor, "shed", 0),
+                          setattr(sc, "moving_budget", None), sc.sync_moving()))
 
 
 def test_the_gcp_list_names_each_gcps_role_and_images_placed(live):

@@ -38,6 +38,18 @@ def wait_for(cond, timeout: float, what: str, step: float = 0.1):
     raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
+def reopened_tiny(tiny_run, tmp_path_factory, name: str):
+    """A started viewer reopening a copy of the `tiny` run (skips without Chromium)."""
+    if not CHROMIUM.exists():
+        pytest.skip("/usr/bin/chromium is not installed")
+    from aerec_viewer.app import ViewerApp
+
+    state, _ = tiny_run
+    out = tmp_path_factory.mktemp(name) / "out"
+    shutil.copytree(state.out, out)
+    return ViewerApp(out, state.site.root, None, mode="reopen", port=0).start()
+
+
 def project(client, p: np.ndarray) -> tuple[float, float]:
     """Screen position (CSS px) of a world point in a client's current camera (OpenCV camera
     convention of viser: +z forward, +y down; fov is vertical)."""

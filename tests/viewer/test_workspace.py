@@ -172,7 +172,7 @@ def test_bad_input_is_refused_with_400_and_one_line(ws):
     for change, words in [({"col": None}, "col"), ({"col": "abc"}, "not a number"), ({"col": True}, "not a number"),
                           ({"col": float("nan")}, "outside"), ({"col": w + 1.0}, "outside"), ({"row": -0.6}, "outside"),
                           ({"image": "nope.tif"}, "no image"), ({"gcp": ""}, "gcp"), ({"gcp": 3}, "gcp"),
-                          ({"version_seen": 1.5}, "whole number"), ({"version_seen": 10 ** 9}, "newer")]:
+                          ({"version_seen": 1.5}, "whole number"), ({"version_seen": 1 << 60}, "newer")]:
         assert words in refused(ws, 400, "/api/observe", {**ok, **change}), change
     assert "outside" in refused(ws, 400, "/api/nudge", {"gcp": gid, "image": image, "dcol": 1e6, "drow": 0})
     assert "JSON" in refused(ws, 400, "/api/observe", raw=b"gcp=1", headers={"Content-Type": "text/plain"})
@@ -349,3 +349,43 @@ def test_a_refused_request_ends_its_connection(ws):
     r = c.getresponse()
     assert r.status == 403 and b"own page" in r.read()
     c.close()
+
+
+def test_the_frame_counter_reports_reach_the_rate_meter_and_bad_ones_are_400(ws):
+    """The 3D page's counter iframe (framerate.py) posts its frame times; they land on the
+    viewer's clock, the most recent one about now."""
+    status, page = call(ws, "/static/frames.html?client=7")
+    assert status == 200 and b"requestAnimationFrame" in page
+    # framed by viser's page (its port, any host), where every other page is never framed
+    with urllib.request.urlopen(ws.workspace.url + "static/frames.html?client=7", timeout=30) as r:
+        assert r.headers.get("X-Frame-Options") is None
+        assert r.headers.get("Content-Security-Policy") == (
+            f"frame-ancestors http://*:{ws.port} https://*:{ws.port}")
+    for page in ("", "static/workspace.js"):
+        with urllib.request.urlopen(ws.workspace.url + page, timeout=30) as r:
+            assert r.headers.get("X-Frame-Options") == "DENY"
+            assert r.headers.get("Content-Security-Policy") == "frame-ancestors 'none'"
+    t0 = time.monotonic()
+    status, out = call(ws, "/api/frames", {"client": 7, "now": 5000.0, "frames": [4000.0, 4500.5, 5000]})
+    assert status == 200 and out == {"frames": 3}
+    got = list(ws.view_rate._frames[7])
+    assert ws.view_rate.drawing(7, time.monotonic())
+    assert abs(got[-1] - t0) < 1.0 and abs((got[-1] - got[0]) - 1.0) < 1e-9
+    for body in ({"client": -1, "now": 1.0, "frames": []}, {"client": "x", "now": 1.0, "frames": []},
+                 {"client": 1, "frames": []}, {"client": 1, "now": 10.0, "frames": "1,2"},
+                 {"client": 1, "now": 10.0, "frames": [11.0]}, {"client": 1, "now": 10.0, "frames": [None]},
+                 {"client": 1, "now": 1e6, "frames": list(range(6000))}):
+        assert refused(ws, 400, "/api/frames", body)
+    assert refused(ws, 400, "/api/frames", raw=b"client=1", headers={"Content-Type": "text/plain"})
+    ws.view_rate.forget(7)
+
+
+def test_a_restarted_viewer_answers_with_newer_versions_than_before(ws):
+    """An open tab keeps the last version it saw: a viewer restarted behind it must not answer
+    with older ones (the tab would ignore its state and send edits "from the future")."""
+    from aerec_viewer.workspace.api import WorkspaceApi
+
+    seen = call(ws, "/api/version")[1]["version"]
+    time.sleep(0.01)
+    again = WorkspaceApi(ws)                   # the API a new viewer process would start with
+    assert again.version() > seen

@@ -5,11 +5,10 @@ cursor held, and an arrow key nudges by 0.1 px."""
 
 from __future__ import annotations
 
-import shutil
 
 import pytest
 
-from tests.viewer.test_viewer_browser import CHROMIUM, wait_for
+from tests.viewer.test_viewer_browser import CHROMIUM, reopened_tiny, wait_for
 
 pytestmark = pytest.mark.browser
 
@@ -23,17 +22,9 @@ AIM = 1e-4      # image px: Chromium carries a mouse position as a float32 (1e-6
 @pytest.fixture(scope="module")
 def ws_browser(tiny_run, tmp_path_factory):
     """(viewer reopening a copy of the `tiny` run, a Playwright browser context)."""
-    if not CHROMIUM.exists():
-        pytest.skip("/usr/bin/chromium is not installed")
+    app = reopened_tiny(tiny_run, tmp_path_factory, "ws_browser")
     from playwright.sync_api import sync_playwright
 
-    from aerec_viewer.app import ViewerApp
-
-    state, _ = tiny_run
-    out = tmp_path_factory.mktemp("ws_browser") / "out"
-    shutil.copytree(state.out, out)
-    app = ViewerApp(out, state.site.root, None, mode="reopen", port=0)
-    app.start()
     wait_for(lambda: app.models or app.wait_idle(), 60, "the reopened models")
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=FLAGS, headless=True)

@@ -53,6 +53,7 @@ function edit(path, body) {
   return tab.edits;
 }
 
+// Returns whether the viewer answered (the poll backs off while it does not).
 async function refresh(force = false) {
   try {
     if (!force && tab.data) {
@@ -69,9 +70,18 @@ async function refresh(force = false) {
       select(null);
     }
     render();
+    return true;
   } catch (err) {
     say(`the viewer does not answer (${err.message}); retrying`, "error");
+    return false;
   }
+}
+
+// One poll at a time, the next POLL_MS after the last answer; while the viewer does not answer,
+// twice as long each time, up to 10 s (a stopped viewer is not asked 1.4 times a second forever).
+async function poll(wait = POLL_MS) {
+  const next = (await refresh(false)) ? POLL_MS : Math.min(2 * wait, 10000);
+  setTimeout(() => poll(next), next);
 }
 
 function gcp(id) {
@@ -681,5 +691,4 @@ window.workspace = {
 
 wireControls();
 drawLegend();
-refresh(true);
-setInterval(() => refresh(false), POLL_MS);
+refresh(true).then(() => setTimeout(poll, POLL_MS));
