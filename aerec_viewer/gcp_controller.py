@@ -236,7 +236,9 @@ class GcpController:
         shows: the last one the page ran, else the one OUT holds (a finished or reopened run);
         None before any. What predicts a GCP from its surveyed position."""
         if self.upgrade is not None:
-            return UpgradeMaps(self.upgrade.maps, self.upgrade.frame)
+            fits = self.upgrade.fits(self.app.models)      # a group's model replaced since: not its map
+            maps = {g: m for g, m in self.upgrade.maps.items() if g in fits}
+            return UpgradeMaps(maps, self.upgrade.frame) if maps else None
         return self.app.saved_upgrade
 
     def update_upgrade_button(self) -> None:
@@ -266,6 +268,9 @@ class GcpController:
         stale = ""
         if self.upgrade is not None and self.upgrade.gcps_key != gcps_key(app.session):
             stale = "\n\n*The GCPs changed since the last upgrade: press Upgrade again.*"
+        elif self.upgrade is not None and not set(self.upgrade.maps) <= self.upgrade.fits(app.models):
+            stale = ("\n\n*The reconstruction changed since the last upgrade (a new bundle adjustment): "
+                     "press Upgrade again.*")
         app.set_md(app.g_ready, f"{why}.{stale}")
 
     def do_upgrade(self) -> UpgradeOutcome:

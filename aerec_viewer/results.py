@@ -10,7 +10,8 @@ upgrade records, cloud.ply, dsm.tif and evaluation as `aerec run --redo-from upg
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, fields
+import weakref
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Protocol
 
@@ -49,10 +50,17 @@ class UpgradeOutcome(Upgrade):
 
     gcps_version: int = -1
     gcps_key: str = ""           # what the GCPs were (an undo back to them is not a change)
+    # group -> the model its H_A was fitted on (weakly: a replaced model is not kept alive)
+    fitted_on: dict[int, weakref.ref] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
         return bool(self.results)
+
+    def fits(self, models: dict) -> set[int]:
+        """The groups whose H_A was fitted on the model they hold now: a bundle adjustment of a
+        live run replaces a group's model (a new affine frame), and its H_A no longer holds."""
+        return {g for g, ref in self.fitted_on.items() if g in models and ref() is models[g]}
 
     def transform(self, g: int) -> DisplayTransform | None:
         u = self.groups.get(g)
@@ -250,7 +258,7 @@ def run_upgrade(session: GcpSession, models: dict, cfg: Config, images: dict | N
     gcps = read_gcps_geojson(session.path)        # what a run on OUT reads: the same numbers
     up = upgrade_models(gcps, models, cfg, images)
     return UpgradeOutcome(**{f.name: getattr(up, f.name) for f in fields(up)}, gcps_version=session.version,
-                          gcps_key=gcps_key(session))
+                          gcps_key=gcps_key(session), fitted_on={g: weakref.ref(m) for g, m in models.items()})
 
 
 def images_height(outcome: "UpgradeOutcome | None", gcp) -> tuple[float, float | None] | None:

@@ -389,3 +389,29 @@ def test_a_restarted_viewer_answers_with_newer_versions_than_before(ws):
     time.sleep(0.01)
     again = WorkspaceApi(ws)                   # the API a new viewer process would start with
     assert again.version() > seen
+
+
+def test_an_upgrade_fitted_on_a_replaced_model_predicts_nothing_there(ws):
+    """A live run's bundle adjustment replaces a group's model (a new affine frame): the
+    upgrade the page ran on the old one no longer maps it, so it predicts no pixel from a
+    surveyed position there, and the Results tab says to upgrade again."""
+    import copy as copy_
+
+    from aerec_viewer.results import run_upgrade
+
+    images = {im.name: im for im in ws.site.images}
+    before = ws.gcp.upgrade, dict(ws.models)
+    try:
+        outcome = ws.call(lambda: run_upgrade(ws.session, ws.models, ws.cfg, images))
+        ws.call(lambda: (setattr(ws.gcp, "upgrade", outcome), ws.gcp.update_upgrade_button()))
+        maps = ws.call(ws.gcp.upgrade_maps)
+        assert maps is not None and set(maps.maps) == set(outcome.maps) and outcome.maps
+        assert "reconstruction changed" not in ws.g_ready.content
+        # the worker replaces every model (as a global bundle adjustment does)
+        ws.call(lambda: (ws.models.update({g: copy_.copy(m) for g, m in ws.models.items()}),
+                         ws.gcp.update_upgrade_button()))
+        assert ws.call(ws.gcp.upgrade_maps) is None
+        assert "reconstruction changed since the last upgrade" in ws.g_ready.content
+    finally:
+        ws.call(lambda: (setattr(ws.gcp, "upgrade", before[0]), ws.models.clear(), ws.models.update(before[1]),
+                         ws.gcp.update_upgrade_button()))
