@@ -135,7 +135,8 @@ class ViewRateMeter:
         (requestAnimationFrame runs while the page waits for input) and are not counted; their
         time is. A mean, not a median interval: a stall is part of what the operator sees."""
         ts = np.asarray(moves)
-        f = np.array([t for t in self._frames.get(client, ()) if ts[0] <= t <= ts[-1] + 0.05])
+        f = np.fromiter(self._frames.get(client, ()), float)
+        f = f[(f >= ts[0]) & (f <= ts[-1] + 0.05)]
         if len(f) <= MIN_FRAMES:
             return None
         seg = np.searchsorted(ts, f)                  # the message interval each frame is in
@@ -169,13 +170,14 @@ SHED = ("tiles", "labels", "image")
 @dataclass
 class MotionGovernor:
     """The display while a view moves: how many points it draws (`budget`; None: all shown) and
-    how much of SHED it hides, set from the frame rate of each finished gesture.
+    how much of SHED it hides, set from each frame rate the meter gives.
 
     Under EDGE times TARGET_FPS the budget moves to draw at AIM times the target (by the line
-    through the last two gestures, frame time = fixed + per point, or by the ratio; at least
+    through the last two measures, frame time = fixed + per point, or by the ratio; at least
     15 % a step so a noisy measure still converges), down to MIN_BUDGET; at the floor and still
-    slow, or when the fixed part alone is too slow, the next of SHED goes. Over HIGH_FPS it gives back in the
-    reverse order, up to drawing all the points shown. At rest the display is never thinned."""
+    slow, or when the fixed part alone is too slow, the next of SHED goes. Over HIGH_FPS it
+    gives back in the reverse order, up to drawing all the points shown. At rest the display is
+    never thinned."""
 
     budget: int | None = None
     shed: int = 0                          # SHED[:shed] are hidden while the view moves
@@ -200,7 +202,7 @@ class MotionGovernor:
             if self.shed < len(SHED):
                 self.shed += 1
                 return True
-            return not floor
+            return False
         if fps > self.HIGH_FPS:
             if self.shed:
                 self.shed -= 1

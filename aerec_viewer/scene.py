@@ -197,7 +197,7 @@ class SceneView:
                     frac: float) -> int:
         key = (g, kind)
         st = self._clouds.setdefault(key, _Cloud())
-        visible = self._shows(kind) and not (self.moving and st.moving is not None)
+        visible = self._chunks_visible(kind, st)
         rebuild = (st.generation != cloud.generation or st.transform is not T
                    or frac < st.fraction / self._slack or (frac > st.fraction * 1.5 and st.fraction < 1.0)
                    or len(st.chunks) > MAX_CHUNKS or len(cloud.batches) < st.n_batches)
@@ -295,14 +295,17 @@ class SceneView:
                                                c.batch.n_views, c.batch.reproj, st.ranges)
         # the moving subsamples: rebuilt in the new colours when the next gesture starts
 
+    def _chunks_visible(self, kind: str, st: _Cloud) -> bool:
+        """Are a cloud's chunks drawn (its kind shown, and no moving subsample drawn instead)?"""
+        return self._shows(kind) and not (self.moving and st.moving is not None)
+
     def apply_visibility(self) -> None:
         for (g, kind), st in self._clouds.items():
-            vis = self._shows(kind)
-            thin = self.moving and st.moving is not None
+            chunks = self._chunks_visible(kind, st)
             for c in st.chunks:
-                c.handle.visible = vis and not thin
+                c.handle.visible = chunks
             if st.moving is not None:
-                st.moving.handle.visible = vis and thin
+                st.moving.handle.visible = self._shows(kind) and self.moving
         self.apply_point_size()          # the points shown set the size
 
     # -- while a view moves (motion.py) -------------------------------------------------------
@@ -310,9 +313,8 @@ class SceneView:
         """Draw each cloud from its moving subsample (`budget` points in all, None: as shown)
         while a view moves, or from its chunks again."""
         self.moving, self.moving_budget = moving, budget
-        if moving:
-            self.sync_moving()
-        self.apply_visibility()
+        if not (moving and self.sync_moving()):      # a rebuild applies the visibility itself
+            self.apply_visibility()
 
     def moving_fraction(self) -> float | None:
         """The fraction of the points shown that is drawn while a view moves (None: all)."""
@@ -360,10 +362,7 @@ class SceneView:
                                            visible=self.moving and self._shows(key[1]))
             st.moving, changed = _Moving(h, len(xyz), mk), True
         if changed:
-            for (g, kind), st in self._clouds.items():
-                for c in st.chunks:
-                    c.handle.visible = self._shows(kind) and not (self.moving and st.moving is not None)
-            self.apply_point_size()
+            self.apply_visibility()
         return changed
 
     def _nearest(self, ray_origin, ray_direction, max_angle: float):

@@ -498,6 +498,14 @@ def open_gcp_tab(page, person: "Person") -> None:
     person.key("l", "look at the image plane")
 
 
+def on_the_plane(screen: np.ndarray, images: dict[str, np.ndarray], g: dict):
+    """(image, find_on_screen's answer) for the image on the screen where the GCP's spot matches
+    best: the person does not know which image the plane shows."""
+    return max(((n, find_on_screen(screen, images[n], *g["true_observations"][n], half=48,
+                                   scales=np.geomspace(0.12, 2.5, 40), nearest=False))
+                for n in images), key=lambda t: t[1][3])
+
+
 def wrong_clicks(browser, url: str, out: Path, gcps: list[dict], names: list[str],
                  images: dict[str, np.ndarray], shots: Path | None) -> bool:
     """The two ways a click once saved a wrong observation (the operator issue), as a person does
@@ -550,9 +558,7 @@ def wrong_clicks(browser, url: str, out: Path, gcps: list[dict], names: list[str
     p1.key("Escape", "leave the loupe (the viewer walked on to A's next image)")
     screen = p1.settle()
     # the image on the plane now: where A's spot matches best
-    im, (x, y, _, v) = max(((n, find_on_screen(screen, images[n], *a["true_observations"][n], half=48,
-                                                scales=np.geomspace(0.12, 2.5, 40), nearest=False))
-                            for n in names), key=lambda t: t[1][3])
+    im, (x, y, _, v) = on_the_plane(screen, images, a)
     p1.click(x, y, f"{a['id']} on {im} (NCC {v:.2f}): tab 1's loupe opens")
     p1.settle()
     loupe = page.get_by_role("button", name="Leave the loupe").first.is_enabled()
@@ -562,9 +568,7 @@ def wrong_clicks(browser, url: str, out: Path, gcps: list[dict], names: list[str
     p2 = Person(page2, shots)
     open_gcp_tab(page2, p2)
     screen = p2.settle()
-    im2, (x, y, s, v) = max(((n, find_on_screen(screen, images[n], *b["true_observations"][n], half=48,
-                                                 scales=np.geomspace(0.12, 2.5, 40), nearest=False))
-                             for n in names), key=lambda t: t[1][3])
+    im2, (x, y, s, v) = on_the_plane(screen, images, b)
     p2.click(x, y, f"tab 2: {b['id']}'s spot in {im2} on what its screen shows (NCC {v:.2f}, "
                    f"{s:.2f} px/px)")
     print(f"  tab 1's loupe {'open' if loupe else 'NOT open'} on {im} when tab 2 clicked")
